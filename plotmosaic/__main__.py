@@ -1,0 +1,3 @@
+from plotmosaic.cli import main
+
+main()

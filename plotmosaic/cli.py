@@ -1,0 +1,65 @@
+"""The `plotmosaic` command: a thin typer layer over the library.
+
+Each subcommand lives in plotmosaic/commands/<name>.py; this file only assembles them.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import typer
+
+from plotmosaic import __version__
+from plotmosaic.commands import align, bench, demo, merge, register, report, simulate
+
+HELP = """Targetless, GNSS-free registration of forest LiDAR scans into one georeferenced cloud.
+
+Typical run on a plot scanned from five positions, with an ALS tile over the region:
+
+\b
+  plotmosaic simulate sim --preset small            # a simulated plot with ground truth
+  plotmosaic align sim/P1/scan_1.laz sim/P1/scan_0.laz --out pair.json
+  plotmosaic register-plot sim/manifest.toml --out reg
+  plotmosaic tie-to-als sim/manifest.toml --poses reg/poses.json --out geo
+  plotmosaic merge sim/manifest.toml --poses geo/poses.json --out merged.laz
+  plotmosaic demo demo-output                        # all of the above on a built-in demo
+"""
+
+app = typer.Typer(help=HELP, no_args_is_help=True, add_completion=False, rich_markup_mode=None)
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"plotmosaic {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Show the version and exit."),
+) -> None:
+    pass
+
+
+app.command("align")(align.align_command)
+app.command("register-plot")(register.register_plot_command)
+app.command("tie-to-als")(register.tie_to_als_command)
+app.command("merge")(merge.merge_command)
+app.command("simulate")(simulate.simulate_command)
+app.command("bench")(bench.bench_command)
+app.command("report")(report.report_command)
+app.command("demo")(demo.demo_command)
+
+
+def main() -> None:
+    try:
+        app()
+    except KeyboardInterrupt:
+        typer.echo("interrupted", err=True)
+        sys.exit(130)
+    except Exception as exc:  # a bug, not bad input: one line unless debugging
+        if os.environ.get("PLOTMOSAIC_DEBUG"):
+            raise
+        typer.echo(f"internal error: {type(exc).__name__}: {exc} (set PLOTMOSAIC_DEBUG=1 for a traceback)", err=True)
+        sys.exit(1)

@@ -1,0 +1,1 @@
+"""One module per CLI subcommand; each stays a thin layer over the library."""

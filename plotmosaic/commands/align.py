@@ -1,0 +1,12 @@
+"""`plotmosaic align`."""
+
+from __future__ import annotations
+
+import typer
+
+from plotmosaic.commands.common import not_implemented
+
+
+def align_command(ctx: typer.Context) -> None:
+    """Not implemented yet."""
+    not_implemented("align")

@@ -1,0 +1,12 @@
+"""`plotmosaic demo`."""
+
+from __future__ import annotations
+
+import typer
+
+from plotmosaic.commands.common import not_implemented
+
+
+def demo_command(ctx: typer.Context) -> None:
+    """Not implemented yet."""
+    not_implemented("demo")

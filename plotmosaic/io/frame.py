@@ -1,0 +1,57 @@
+"""Local frames: a recorded offset so UTM-sized coordinates are processed near the origin.
+
+A transform estimated between two local frames is converted back into the files' own
+coordinates with `to_global_transform`, so every figure the tool reports is in file coordinates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+def translation(t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = np.asarray(t, dtype=np.float64)
+    return T
+
+
+@dataclass(frozen=True)
+class Frame:
+    """Local coordinates = file coordinates - offset (all float64)."""
+
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    @classmethod
+    def around(cls, xyz: np.ndarray, step: float = 1.0) -> "Frame":
+        """A frame centred on the cloud's bounding box, offset rounded to `step` metres."""
+        xyz = np.asarray(xyz, dtype=np.float64)
+        if len(xyz) == 0:
+            return cls(np.zeros(3))
+        centre = (xyz.min(axis=0) + xyz.max(axis=0)) / 2.0
+        return cls(np.round(centre / step) * step)
+
+    def to_local(self, xyz: np.ndarray) -> np.ndarray:
+        return np.asarray(xyz, dtype=np.float64) - self.offset
+
+    def to_global(self, xyz: np.ndarray) -> np.ndarray:
+        return np.asarray(xyz, dtype=np.float64) + self.offset
+
+    def to_dict(self) -> dict:
+        return {"offset": [float(v) for v in self.offset]}
+
+
+def to_global_transform(T_local: np.ndarray, source: Frame, target: Frame) -> np.ndarray:
+    """Transform mapping source file coordinates to target file coordinates."""
+    return translation(target.offset) @ np.asarray(T_local, dtype=np.float64) @ translation(-source.offset)
+
+
+def to_local_transform(T_global: np.ndarray, source: Frame, target: Frame) -> np.ndarray:
+    """Inverse of `to_global_transform`: a file-coordinate transform expressed between local frames."""
+    return translation(-target.offset) @ np.asarray(T_global, dtype=np.float64) @ translation(source.offset)
+
+
+def apply_transform(T: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    return np.asarray(xyz, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]

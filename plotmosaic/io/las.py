@@ -1,0 +1,248 @@
+"""LAS/LAZ 1.2-1.4 reading and writing with laspy (lazrs backend).
+
+Coordinates are always float64 in the file's own coordinate system; attributes are kept
+as their LAS dtypes. Reading goes chunk by chunk so memory stays bounded by what is kept.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import laspy
+import numpy as np
+from pyproj import CRS
+
+from plotmosaic.errors import InputError
+from plotmosaic.io.atomic import atomic_output
+
+CHUNK_SIZE = 2_000_000
+
+# Standard attributes carried through the tool (LAS dimension name -> dtype).
+STANDARD_ATTRIBUTES: dict[str, np.dtype] = {
+    "intensity": np.dtype(np.uint16),
+    "return_number": np.dtype(np.uint8),
+    "number_of_returns": np.dtype(np.uint8),
+    "classification": np.dtype(np.uint8),
+    "gps_time": np.dtype(np.float64),
+    "red": np.dtype(np.uint16),
+    "green": np.dtype(np.uint16),
+    "blue": np.dtype(np.uint16),
+    "point_source_id": np.dtype(np.uint16),
+}
+RGB = ("red", "green", "blue")
+
+
+@dataclass
+class PointCloud:
+    """Points in file coordinates (float64) with optional per-point attributes and a CRS."""
+
+    xyz: np.ndarray
+    attrs: dict[str, np.ndarray] = field(default_factory=dict)
+    crs: CRS | None = None
+
+    def __post_init__(self) -> None:
+        self.xyz = np.ascontiguousarray(self.xyz, dtype=np.float64).reshape(-1, 3)
+        for name, values in self.attrs.items():
+            if len(values) != len(self.xyz):
+                raise ValueError(f"attribute {name!r} has {len(values)} values for {len(self.xyz)} points")
+
+    def __len__(self) -> int:
+        return len(self.xyz)
+
+    def select(self, index: np.ndarray) -> "PointCloud":
+        return PointCloud(self.xyz[index], {k: v[index] for k, v in self.attrs.items()}, self.crs)
+
+
+@dataclass(frozen=True)
+class HeaderInfo:
+    path: Path
+    point_count: int
+    point_format: int
+    version: str
+    mins: np.ndarray
+    maxs: np.ndarray
+    crs: CRS | None
+    dimensions: tuple[str, ...]
+
+
+def _check_file(path: Path) -> Path:
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: file not found")
+    if path.is_dir():
+        raise InputError(f"{path}: is a directory, expected a LAS/LAZ file")
+    if path.suffix.lower() not in (".las", ".laz"):
+        raise InputError(f"{path}: not a LAS/LAZ file (expected .las or .laz)")
+    return path
+
+
+def _open(path: Path) -> laspy.LasReader:
+    try:
+        return laspy.open(path)
+    except Exception as exc:  # laspy raises several types for a bad signature/header
+        raise InputError(f"{path}: not a readable LAS/LAZ file ({_short(exc)})") from None
+
+
+def _short(exc: Exception) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0][:160] if text else type(exc).__name__
+
+
+def _parse_crs(header: laspy.LasHeader) -> CRS | None:
+    try:
+        return header.parse_crs()
+    except Exception:
+        return None  # a damaged CRS VLR is not a reason to refuse the points
+
+
+def read_header_info(path: str | Path) -> HeaderInfo:
+    path = _check_file(Path(path))
+    with _open(path) as reader:
+        h = reader.header
+        return HeaderInfo(
+            path=path,
+            point_count=int(h.point_count),
+            point_format=int(h.point_format.id),
+            version=str(h.version),
+            mins=np.asarray(h.mins, dtype=np.float64),
+            maxs=np.asarray(h.maxs, dtype=np.float64),
+            crs=_parse_crs(h),
+            dimensions=tuple(h.point_format.dimension_names),
+        )
+
+
+def read_crs(path: str | Path) -> CRS | None:
+    return read_header_info(path).crs
+
+
+def _wanted_attributes(header: laspy.LasHeader, attributes: bool | Iterable[str]) -> list[str]:
+    present = set(header.point_format.dimension_names)
+    if attributes is True:
+        names = [n for n in STANDARD_ATTRIBUTES if n in present and n != "point_source_id"]
+        names += list(header.point_format.extra_dimension_names)
+        return names
+    if attributes is False:
+        return []
+    return [n for n in attributes if n in present]
+
+
+def iter_chunks(
+    path: str | Path, chunk_size: int = CHUNK_SIZE, attributes: bool | Iterable[str] = True
+) -> Iterator[PointCloud]:
+    """Yield the file as PointCloud chunks of at most `chunk_size` points."""
+    path = _check_file(Path(path))
+    with _open(path) as reader:
+        crs = _parse_crs(reader.header)
+        names = _wanted_attributes(reader.header, attributes)
+        try:
+            for chunk in reader.chunk_iterator(chunk_size):
+                xyz = np.column_stack([np.asarray(chunk.x), np.asarray(chunk.y), np.asarray(chunk.z)])
+                attrs = {n: np.array(chunk[n]) for n in names}
+                yield PointCloud(xyz, attrs, crs)
+        except InputError:
+            raise
+        except Exception as exc:
+            raise InputError(f"{path}: corrupt or truncated LAS/LAZ data ({_short(exc)})") from None
+
+
+def read_cloud(path: str | Path, attributes: bool | Iterable[str] = True, min_points: int = 1) -> PointCloud:
+    """Read a whole LAS/LAZ file as float64 xyz (+ attributes), validating it on the way."""
+    path = _check_file(Path(path))
+    info = read_header_info(path)
+    if info.point_count == 0:
+        raise InputError(f"{path}: contains no points")
+    xyz = np.empty((info.point_count, 3), dtype=np.float64)
+    attrs: dict[str, np.ndarray] = {}
+    n = 0
+    for chunk in iter_chunks(path, attributes=attributes):
+        m = len(chunk)
+        if n + m > info.point_count:
+            raise InputError(f"{path}: holds more points than its header says ({info.point_count})")
+        xyz[n : n + m] = chunk.xyz
+        for name, values in chunk.attrs.items():
+            if name not in attrs:
+                attrs[name] = np.empty(info.point_count, dtype=values.dtype)
+            attrs[name][n : n + m] = values
+        n += m
+    if n != info.point_count:
+        raise InputError(f"{path}: truncated, read {n} of {info.point_count} points")
+    bad = ~np.isfinite(xyz).all(axis=1)
+    if bad.any():
+        raise InputError(f"{path}: {int(bad.sum())} points have NaN or infinite coordinates")
+    if n < min_points:
+        raise InputError(f"{path}: only {n} points, at least {min_points} needed")
+    return PointCloud(xyz, attrs, info.crs)
+
+
+# ---------------------------------------------------------------- writing
+
+
+def las_offsets(mins: np.ndarray) -> np.ndarray:
+    """Offsets rounded down to 1 km: int32 at 1 mm then spans +-2000 km around them."""
+    return np.floor(np.asarray(mins, dtype=np.float64) / 1000.0) * 1000.0
+
+
+def make_header(
+    attribute_names: Iterable[str],
+    extra_dims: dict[str, np.dtype] | None = None,
+    crs: CRS | None = None,
+    offsets: np.ndarray | None = None,
+    scale: float = 0.001,
+) -> laspy.LasHeader:
+    """A LAS 1.4 header (PF 6, or 7 when RGB is present) for the given attributes."""
+    names = set(attribute_names)
+    point_format = 7 if all(c in names for c in RGB) else 6
+    header = laspy.LasHeader(point_format=point_format, version="1.4")
+    header.scales = np.array([scale, scale, scale])
+    header.offsets = np.zeros(3) if offsets is None else np.asarray(offsets, dtype=np.float64)
+    for name, dtype in (extra_dims or {}).items():
+        header.add_extra_dim(laspy.ExtraBytesParams(name=name, type=np.dtype(dtype)))
+    if crs is not None:
+        header.add_crs(CRS.from_user_input(crs))
+    return header
+
+
+def make_record(header: laspy.LasHeader, xyz: np.ndarray, attrs: dict[str, np.ndarray]) -> laspy.ScaleAwarePointRecord:
+    """Points for `header` from float64 xyz and attribute arrays (unknown attributes are dropped)."""
+    record = laspy.ScaleAwarePointRecord.zeros(len(xyz), header=header)
+    xyz = np.asarray(xyz, dtype=np.float64)
+    span = np.abs(xyz - header.offsets).max(axis=0) / header.scales if len(xyz) else np.zeros(3)
+    if np.any(span >= 2**31 - 1):
+        raise InputError("coordinates do not fit the LAS integer range at this scale/offset")
+    record.x, record.y, record.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    dims = set(header.point_format.dimension_names)
+    for name, values in attrs.items():
+        if name in dims:
+            record[name] = values
+    return record
+
+
+def _extra_dims(cloud: PointCloud) -> dict[str, np.dtype]:
+    return {n: v.dtype for n, v in cloud.attrs.items() if n not in STANDARD_ATTRIBUTES}
+
+
+def write_cloud(
+    path: str | Path,
+    cloud: PointCloud,
+    crs: CRS | None = None,
+    scale: float = 0.001,
+    force: bool = True,
+    chunk_size: int = CHUNK_SIZE,
+) -> Path:
+    """Write a cloud as LAS/LAZ 1.4 (compression from the suffix), atomically."""
+    path = Path(path)
+    if path.suffix.lower() not in (".las", ".laz"):
+        raise InputError(f"{path}: output must end in .las or .laz")
+    if len(cloud) and not np.isfinite(cloud.xyz).all():
+        raise InputError(f"{path}: refusing to write NaN or infinite coordinates")
+    crs = crs if crs is not None else cloud.crs
+    mins = cloud.xyz.min(axis=0) if len(cloud) else np.zeros(3)
+    header = make_header(cloud.attrs.keys(), _extra_dims(cloud), crs, las_offsets(mins), scale)
+    with atomic_output(path, force=force) as tmp:
+        with laspy.open(tmp, mode="w", header=header, do_compress=path.suffix.lower() == ".laz") as writer:
+            for start in range(0, len(cloud), chunk_size):
+                part = slice(start, start + chunk_size)
+                writer.write_points(make_record(header, cloud.xyz[part], {k: v[part] for k, v in cloud.attrs.items()}))
+    return path

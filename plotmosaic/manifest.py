@@ -1,0 +1,231 @@
+"""Manifests: a TOML file describing one plot or a region of several plots and ALS tiles.
+
+Two equivalent forms are accepted:
+
+  * one plot:  top-level `[[scans]]` (plus optional `plot_id`, `crs`)
+  * a region:  `[[plots]]` each with `id`, optional `crs` and `[[plots.scans]]`
+
+plus optional `[[als]]` tiles in both. Paths are relative to the manifest file.
+Errors name the file, plot, scan and field.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from enum import Enum
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from plotmosaic.errors import InputError
+
+DEFAULT_LEVELS = {"tls": 3, "mls": 3, "uls": 2, "als": 2}
+
+
+class ScanKind(str, Enum):
+    tls = "tls"
+    mls = "mls"
+    uls = "uls"
+    als = "als"
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Scan(_Strict):
+    id: str = Field(min_length=1)
+    path: Path
+    kind: ScanKind = ScanKind.tls
+    approx_position: tuple[float, float, float] | None = None
+    # "crs": easting/northing/height in the plot's CRS; "plot": metres in the plot's own frame
+    approx_position_frame: Literal["crs", "plot"] = "plot"
+    levels: int | None = Field(default=None, ge=1, le=6)
+    reference: bool = False
+
+    @property
+    def k(self) -> int:
+        return self.levels or DEFAULT_LEVELS[self.kind.value]
+
+
+class AlsTile(_Strict):
+    path: Path
+    levels: int | None = Field(default=None, ge=1, le=6)
+
+    @property
+    def k(self) -> int:
+        return self.levels or DEFAULT_LEVELS["als"]
+
+
+class Plot(_Strict):
+    id: str = Field(min_length=1)
+    crs: str | None = None
+    scans: list[Scan] = Field(min_length=1)
+
+    @field_validator("crs")
+    @classmethod
+    def _valid_crs(cls, value: str | None) -> str | None:
+        if value is not None:
+            from pyproj import CRS
+            from pyproj.exceptions import CRSError
+
+            try:
+                CRS.from_user_input(value)
+            except CRSError:
+                raise ValueError(f"not a CRS pyproj understands: {value!r}") from None
+        return value
+
+    @model_validator(mode="after")
+    def _one_reference(self) -> "Plot":
+        refs = [s.id for s in self.scans if s.reference]
+        if len(refs) > 1:
+            raise ValueError(f"more than one reference scan: {', '.join(refs)}")
+        return self
+
+    @property
+    def reference(self) -> Scan:
+        return next((s for s in self.scans if s.reference), self.scans[0])
+
+
+class Manifest(_Strict):
+    version: int = 1
+    name: str | None = None
+    plots: list[Plot] = Field(min_length=1)
+    als: list[AlsTile] = Field(default_factory=list)
+    source: Path | None = None  # the manifest file; paths are resolved against its folder
+
+    @property
+    def root(self) -> Path:
+        return self.source.parent if self.source else Path(".")
+
+    def resolve(self, path: Path) -> Path:
+        return path if path.is_absolute() else self.root / path
+
+    @property
+    def scans(self) -> list[Scan]:
+        return [s for p in self.plots for s in p.scans]
+
+    def scan(self, scan_id: str) -> Scan:
+        for s in self.scans:
+            if s.id == scan_id:
+                return s
+        raise InputError(f"{self.source}: no scan with id {scan_id!r}")
+
+    def plot_of(self, scan_id: str) -> Plot:
+        for p in self.plots:
+            if any(s.id == scan_id for s in p.scans):
+                return p
+        raise InputError(f"{self.source}: no scan with id {scan_id!r}")
+
+
+def _location(data: dict, loc: tuple) -> str:
+    """Readable location of a pydantic error, naming plot and scan ids where possible."""
+    parts: list[str] = []
+    node = data
+    i = 0
+    while i < len(loc):
+        key = loc[i]
+        if key in ("plots", "scans", "als") and i + 1 < len(loc) and isinstance(loc[i + 1], int):
+            idx = loc[i + 1]
+            item = node.get(key, [])[idx] if isinstance(node, dict) else None
+            label = {"plots": "plot", "scans": "scan", "als": "als tile"}[key]
+            ident = item.get("id") or item.get("path") if isinstance(item, dict) else None
+            parts.append(f"{label} {ident!r}" if ident else f"{label} #{idx + 1}")
+            node = item if isinstance(item, dict) else {}
+            i += 2
+            continue
+        parts.append(f"field '{key}'")
+        node = node.get(key, {}) if isinstance(node, dict) else {}
+        i += 1
+    return ", ".join(parts)
+
+
+def _normalise(data: dict) -> dict:
+    """Turn the one-plot form into the region form."""
+    if "scans" in data:
+        if "plots" in data:
+            raise ValueError("give either top-level [[scans]] (one plot) or [[plots]] (a region), not both")
+        data = dict(data)
+        plot = {"id": data.pop("plot_id", "plot"), "scans": data.pop("scans")}
+        if "crs" in data:
+            plot["crs"] = data.pop("crs")
+        data["plots"] = [plot]
+    return data
+
+
+def load_manifest(path: str | Path, check_files: bool = True) -> Manifest:
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: manifest not found")
+    try:
+        data = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: not valid TOML ({exc})") from None
+    try:
+        data = _normalise(data)
+    except ValueError as exc:
+        raise InputError(f"{path}: {exc}") from None
+    try:
+        manifest = Manifest.model_validate({**data, "source": path})
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = _location(data, tuple(err["loc"]))
+        more = f" (+{exc.error_count() - 1} more problems)" if exc.error_count() > 1 else ""
+        raise InputError(f"{path}: {where}: {err['msg']}{more}") from None
+    _check_unique(manifest, path)
+    if check_files:
+        _check_paths(manifest, path)
+    return manifest
+
+
+def _check_unique(manifest: Manifest, path: Path) -> None:
+    seen: dict[str, str] = {}
+    for plot in manifest.plots:
+        for scan in plot.scans:
+            if scan.id in seen:
+                raise InputError(f"{path}: plot {plot.id!r}: duplicate scan id {scan.id!r} (also in plot {seen[scan.id]!r})")
+            seen[scan.id] = plot.id
+    plot_ids = [p.id for p in manifest.plots]
+    dupes = sorted({p for p in plot_ids if plot_ids.count(p) > 1})
+    if dupes:
+        raise InputError(f"{path}: duplicate plot id {dupes[0]!r}")
+
+
+def _check_paths(manifest: Manifest, path: Path) -> None:
+    for plot in manifest.plots:
+        for scan in plot.scans:
+            if not manifest.resolve(scan.path).is_file():
+                raise InputError(f"{path}: plot {plot.id!r}, scan {scan.id!r}, field 'path': file not found: {scan.path}")
+    for tile in manifest.als:
+        if not manifest.resolve(tile.path).is_file():
+            raise InputError(f"{path}: als tile, field 'path': file not found: {tile.path}")
+
+
+def dump_manifest(manifest: Manifest) -> str:
+    """TOML text for a manifest (region form), paths as given."""
+    lines = [f"version = {manifest.version}"]
+    if manifest.name:
+        lines.append(f"name = {_toml(manifest.name)}")
+    for tile in manifest.als:
+        lines += ["", "[[als]]", f"path = {_toml(tile.path.as_posix())}"]
+        if tile.levels:
+            lines.append(f"levels = {tile.levels}")
+    for plot in manifest.plots:
+        lines += ["", "[[plots]]", f"id = {_toml(plot.id)}"]
+        if plot.crs:
+            lines.append(f"crs = {_toml(plot.crs)}")
+        for scan in plot.scans:
+            lines += ["", "[[plots.scans]]", f"id = {_toml(scan.id)}", f"path = {_toml(scan.path.as_posix())}", f'kind = "{scan.kind.value}"']
+            if scan.approx_position is not None:
+                lines.append("approx_position = [" + ", ".join(f"{v:.3f}" for v in scan.approx_position) + "]")
+                lines.append(f'approx_position_frame = "{scan.approx_position_frame}"')
+            if scan.levels:
+                lines.append(f"levels = {scan.levels}")
+            if scan.reference:
+                lines.append("reference = true")
+    return "\n".join(lines) + "\n"
+
+
+def _toml(value: str) -> str:
+    return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'

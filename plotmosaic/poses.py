@@ -1,0 +1,96 @@
+"""poses.json: per-scan 4x4 transforms from each scan's own file coordinates into a common frame.
+
+Written by `simulate` (ground truth), `register-plot` (plot frame) and `tie-to-als` (ALS CRS);
+read by `merge`, `report` and the benchmarks. One format for all of them:
+
+    {"frame": "plot" | "crs", "crs": "<WKT>" | null,
+     "scans": {"<scan id>": {"plot": "P1", "transform": [[4x4]], "sigma": [rx, ry, rz, tx, ty, tz] | null}}}
+
+`sigma` is the 1-sigma uncertainty (radians, metres) where an optimiser produced one.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from plotmosaic.errors import InputError
+from plotmosaic.io.atomic import write_text_atomic
+
+
+@dataclass
+class ScanPose:
+    transform: np.ndarray
+    plot: str | None = None
+    sigma: np.ndarray | None = None
+    extra: dict = field(default_factory=dict)
+
+
+@dataclass
+class Poses:
+    scans: dict[str, ScanPose]
+    frame: str = "plot"
+    crs: str | None = None
+    extra: dict = field(default_factory=dict)
+
+    def transform(self, scan_id: str) -> np.ndarray:
+        if scan_id not in self.scans:
+            raise InputError(f"no pose for scan {scan_id!r}")
+        return self.scans[scan_id].transform
+
+    def to_dict(self) -> dict:
+        return {
+            "frame": self.frame,
+            "crs": self.crs,
+            **self.extra,
+            "scans": {
+                sid: {
+                    "plot": p.plot,
+                    "transform": np.asarray(p.transform, dtype=float).tolist(),
+                    "sigma": None if p.sigma is None else np.asarray(p.sigma, dtype=float).tolist(),
+                    **p.extra,
+                }
+                for sid, p in self.scans.items()
+            },
+        }
+
+    def save(self, path: str | Path) -> Path:
+        return write_text_atomic(path, json.dumps(self.to_dict(), indent=1))
+
+
+def _matrix(value, where: str) -> np.ndarray:
+    try:
+        T = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: 'transform' is not a 4x4 matrix of numbers") from None
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise InputError(f"{where}: 'transform' must be a finite 4x4 matrix")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or not np.allclose(T[3], [0, 0, 0, 1]):
+        raise InputError(f"{where}: 'transform' is not a rigid transform")
+    return T
+
+
+def load_poses(path: str | Path) -> Poses:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: poses file not found")
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: not valid JSON ({exc.msg if hasattr(exc, 'msg') else exc})") from None
+    if not isinstance(data, dict) or not isinstance(data.get("scans"), dict):
+        raise InputError(f"{path}: missing the 'scans' object")
+    scans = {}
+    for sid, entry in data["scans"].items():
+        where = f"{path}: scan {sid!r}"
+        if not isinstance(entry, dict) or "transform" not in entry:
+            raise InputError(f"{where}: missing field 'transform'")
+        sigma = entry.get("sigma")
+        extra = {k: v for k, v in entry.items() if k not in ("transform", "plot", "sigma")}
+        scans[sid] = ScanPose(_matrix(entry["transform"], where), entry.get("plot"), None if sigma is None else np.asarray(sigma, float), extra)
+    extra = {k: v for k, v in data.items() if k not in ("frame", "crs", "scans")}
+    return Poses(scans, data.get("frame", "plot"), data.get("crs"), extra)
