@@ -11,7 +11,7 @@ import sys
 import typer
 
 from plotmosaic import __version__
-from plotmosaic.commands import align, bench, demo, merge, register, report, simulate
+from plotmosaic.commands import align, bench, demo, info, merge, register, report, simulate
 
 HELP = """Targetless, GNSS-free registration of forest LiDAR scans into one georeferenced cloud.
 
@@ -24,6 +24,7 @@ Typical run on a plot scanned from five positions, with an ALS tile over the reg
   plotmosaic tie-to-als sim/manifest.toml --poses reg/poses.json --out geo
   plotmosaic merge sim/manifest.toml --poses geo/poses.json --out merged.laz
   plotmosaic demo demo-output                        # all of the above on a built-in demo
+  plotmosaic info sim/manifest.toml --full           # check a manifest and its files
 """
 
 app = typer.Typer(help=HELP, no_args_is_help=True, add_completion=False, rich_markup_mode=None)
@@ -50,6 +51,7 @@ app.command("simulate")(simulate.simulate_command)
 app.command("bench")(bench.bench_command)
 app.command("report")(report.report_command)
 app.command("demo")(demo.demo_command)
+app.command("info")(info.info_command)
 
 
 def main() -> None:

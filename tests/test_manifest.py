@@ -1,0 +1,96 @@
+"""Manifests: both forms load, and every mistake names file, plot, scan and field."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from plotmosaic.errors import InputError
+from plotmosaic.io import PointCloud, write_cloud
+from plotmosaic.manifest import dump_manifest, load_manifest
+
+
+@pytest.fixture
+def scans(tmp_path):
+    rng = np.random.default_rng(0)
+    for name in ("a", "b", "c"):
+        write_cloud(tmp_path / f"{name}.laz", PointCloud(rng.uniform(-5, 5, (200, 3))))
+    return tmp_path
+
+
+ONE_PLOT = """
+plot_id = "P1"
+crs = "EPSG:26912"
+[[scans]]
+id = "c"
+path = "c.laz"
+kind = "tls"
+[[scans]]
+id = "a"
+path = "a.laz"
+reference = true
+approx_position = [1.0, 2.0, 0.0]
+"""
+
+REGION = """
+name = "two plots"
+[[als]]
+path = "c.laz"
+[[plots]]
+id = "P1"
+[[plots.scans]]
+id = "P1-A"
+path = "a.laz"
+[[plots]]
+id = "P2"
+crs = "EPSG:26912"
+[[plots.scans]]
+id = "P2-B"
+path = "b.laz"
+kind = "mls"
+levels = 2
+"""
+
+
+def write(tmp: Path, text: str, name="m.toml") -> Path:
+    (tmp / name).write_text(text)
+    return tmp / name
+
+
+def test_one_plot_form(scans):
+    m = load_manifest(write(scans, ONE_PLOT))
+    assert [p.id for p in m.plots] == ["P1"]
+    assert m.plots[0].reference.id == "a"
+    assert m.scan("c").k == 3 and m.scan("a").approx_position == (1.0, 2.0, 0.0)
+    assert m.resolve(m.scan("c").path) == scans / "c.laz"
+
+
+def test_region_form_and_dump_round_trip(scans):
+    m = load_manifest(write(scans, REGION))
+    assert [s.id for s in m.scans] == ["P1-A", "P2-B"]
+    assert m.scan("P2-B").k == 2 and m.als[0].k == 2 and m.plot_of("P2-B").crs == "EPSG:26912"
+    again = load_manifest(write(scans, dump_manifest(m), "again.toml"))
+    assert again.model_dump(exclude={"source"}) == m.model_dump(exclude={"source"})
+
+
+@pytest.mark.parametrize(
+    "text, expected",
+    [
+        (ONE_PLOT.replace('kind = "tls"', 'kind = "sonar"'), "scan 'c', field 'kind'"),
+        (ONE_PLOT.replace('approx_position = [1.0, 2.0, 0.0]', 'approx_position = "here"'), "scan 'a', field 'approx_position'"),
+        (REGION.replace("levels = 2", 'levels = "two"'), "plot 'P2', scan 'P2-B', field 'levels'"),
+        (REGION.replace('id = "P2-B"', 'id = "P1-A"'), "duplicate scan id 'P1-A'"),
+        (ONE_PLOT.replace('path = "c.laz"', 'path = "missing.laz"'), "scan 'c', field 'path': file not found"),
+        (ONE_PLOT + "colour = 3\n", "field 'colour': Extra inputs are not permitted"),
+        (ONE_PLOT.replace('crs = "EPSG:26912"', 'crs = "EPSG:99999999"'), "plot 'P1', field 'crs'"),
+        ("[[scans]\n", "not valid TOML"),
+        (ONE_PLOT.replace('id = "c"\n', 'id = "c"\nreference = true\n'), "more than one reference scan"),
+    ],
+)
+def test_invalid_manifests_name_the_field(scans, text, expected):
+    path = write(scans, text)
+    with pytest.raises(InputError) as err:
+        load_manifest(path)
+    message = str(err.value)
+    assert str(path) in message and expected in message
+    assert "\n" not in message
