@@ -1,15 +1,51 @@
-"""Global coarse alignment (work in progress by the lead; interface fixed)."""
+"""Global coarse alignment: any heading, tens of metres, no GNSS.
+
+  1. level both clouds (normals: ground and stems give the vertical),
+  2. search heading exhaustively and the horizontal shift by masked FFT correlation of forest
+     rasters (stems, canopy, terrain), keeping several hypotheses,
+  3. take the vertical offset from the ground,
+  4. refine each hypothesis with a quick robust ICP and keep the best by how many non-flat points
+     (stems, branches, crowns: flat ground matches anywhere) find a partner; the gap to the best
+     distinct runner-up is the confidence.
+
+Every transform here maps source-local to target-local coordinates (see PreparedCloud.frame).
+"""
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from pydantic import BaseModel
+import open3d as o3d
+from pydantic import BaseModel, Field
+from scipy import fft
+from scipy.spatial import cKDTree
+
+from plotmosaic.align.levelling import levelling_rotation
+from plotmosaic.align.rasters import CHANNELS, MaskedNCC, PointFeatures, Raster, point_features, rasterise
+
+AIRBORNE = {"als", "uls"}
 
 
 class CoarseConfig(BaseModel):
     enabled: bool = True
+    feature_voxel: float = Field(0.1, gt=0, description="voxel (m) of the cloud used for levelling and rasters")
+    max_points: int = Field(150_000, gt=1000, description="cap on points used for the rasters")
+    max_tilt_deg: float = Field(75.0, description="largest roll/pitch the levelling searches")
+    cell: float = Field(1.0, gt=0, description="raster cell (m); grown for large extents")
+    max_fft: int = Field(512, description="largest padded FFT side; the cell grows to respect it")
+    yaw_step_deg: float = Field(2.0, gt=0, le=10)
+    blur_cells: float = 1.0
+    min_overlap: float = Field(0.08, description="least overlap, as a fraction of the smaller footprint")
+    hypotheses: int = Field(8, ge=1, description="hypotheses refined and verified")
+    peaks_per_yaw: int = 2
+    verify_voxel: float = 0.3
+    verify_points: int = Field(20_000, description="source points used to verify hypotheses")
+    verify_iterations: int = 10
+    refine_top: int = Field(3, ge=1, description="screened hypotheses refined fully")
+    verify_distance_ground: float = Field(0.2, description="inlier distance (m) between ground-based scans")
+    verify_distance_airborne: float = Field(0.5, description="inlier distance (m) when one cloud is airborne (sparse)")
 
 
 @dataclass
@@ -18,10 +54,230 @@ class CoarseResult:
     confidence: float
     hypotheses: list[dict] = field(default_factory=list)
     seconds: float = 0.0
+    levelling: dict = field(default_factory=dict)
+    timing: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
-        return {"confidence": self.confidence, "hypotheses": self.hypotheses, "seconds": self.seconds}
+        return {
+            "transform": np.asarray(self.transform).tolist(),
+            "confidence": self.confidence,
+            "seconds": self.seconds,
+            "levelling": self.levelling,
+            "timing": self.timing,
+            "hypotheses": self.hypotheses,
+        }
 
 
-def coarse_align(source, target, config: CoarseConfig, seed: int = 0) -> CoarseResult:
-    raise NotImplementedError("coarse alignment lands with its issue")
+@dataclass
+class _Levelled:
+    pcd: o3d.geometry.PointCloud  # levelled, feature voxel
+    R: np.ndarray  # levelling rotation (local -> levelled)
+    feats: PointFeatures
+    info: dict
+
+
+def _as_pcd(points: np.ndarray, normals: np.ndarray) -> o3d.geometry.PointCloud:
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=np.float64))
+    return pcd
+
+
+def _level(cloud, config: CoarseConfig, rng: np.random.Generator) -> _Levelled:
+    pcd = _as_pcd(cloud.points, cloud.normals).voxel_down_sample(config.feature_voxel)
+    pts, nrm = np.asarray(pcd.points), np.asarray(pcd.normals)
+    nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    if len(pts) > config.max_points:
+        keep = np.sort(rng.choice(len(pts), config.max_points, replace=False))
+        pts, nrm = pts[keep], nrm[keep]
+    sample = nrm[rng.choice(len(nrm), min(len(nrm), 10_000), replace=False)]
+    R, info = levelling_rotation(sample, max_tilt_deg=config.max_tilt_deg)
+    pts_l, nrm_l = pts @ R.T, nrm @ R.T
+    feats = point_features(pts_l, nrm_l, cell=1.0)
+    info.update(stems=int(feats.stem.sum()), canopy=int(feats.canopy.sum()), ground=int(feats.ground.sum()), points=len(pts))
+    return _Levelled(_as_pcd(pts_l, nrm_l), R, feats, info)
+
+
+def _weights(source_kind: str, target_kind: str) -> dict[str, float]:
+    if source_kind in AIRBORNE or target_kind in AIRBORNE:
+        return {"stems": 0.25, "canopy": 1.0, "terrain": 1.0}
+    return {"stems": 1.0, "canopy": 0.5, "terrain": 0.5}
+
+
+def _rot_z(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s], [s, c]])
+
+
+def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: CoarseConfig) -> list[dict]:
+    """Exhaustive heading search; masked-NCC shift per heading; the best distinct peaks."""
+    centre = src.feats.xy.mean(axis=0)
+    radius = float(np.linalg.norm(src.feats.xy - centre, axis=1).max()) + 1.0
+    t_min, t_max = tgt.feats.xy.min(axis=0) - 1.0, tgt.feats.xy.max(axis=0) + 1.0
+    cell = config.cell
+    while True:
+        t_shape = tuple(np.ceil((t_max - t_min) / cell).astype(int) + 1)
+        s_side = int(np.ceil(2 * radius / cell)) + 1
+        if max(fft.next_fast_len(t + s_side, real=True) for t in t_shape) <= config.max_fft:
+            break
+        cell *= 1.5
+    s_shape = (s_side, s_side)
+    s_origin = centre - radius
+    target = rasterise(tgt.feats.xy, tgt.feats, cell, t_min, t_shape, config.blur_cells)
+    area_t = target.masks["canopy"].sum()
+    ncc = MaskedNCC(target, s_shape, min_overlap=1)
+    area_s = rasterise(src.feats.xy, src.feats, cell, s_origin, s_shape, 0).masks["canopy"].sum()
+    min_cells = config.min_overlap * min(area_s, area_t)
+
+    rel = src.feats.xy - centre
+    candidates = []
+    for yaw in np.radians(np.arange(0.0, 360.0, config.yaw_step_deg)):
+        c, s_ = np.cos(yaw), np.sin(yaw)
+        xy = np.empty_like(rel)
+        xy[:, 0] = c * rel[:, 0] - s_ * rel[:, 1] + centre[0]
+        xy[:, 1] = s_ * rel[:, 0] + c * rel[:, 1] + centre[1]
+        source = rasterise(xy, src.feats, cell, s_origin, s_shape, config.blur_cells)
+        total = 0.0
+        overlap = None
+        for name in CHANNELS:
+            if weights[name] == 0:
+                continue
+            score, ov = ncc(source, name)
+            if name == "canopy":
+                overlap = ov
+            if name == "terrain":  # a handful of shared ground cells proves nothing
+                score = np.where(ov >= max(min_cells * 0.25, 4), score, 0.0)
+            total = total + weights[name] * score
+        total = total / sum(weights.values())
+        frac = overlap / max(min(area_s, area_t), 1.0)
+        total = np.where(overlap >= min_cells, total * np.clip(frac, 0, 1) ** 0.25, -1.0)
+        for _ in range(config.peaks_per_yaw):
+            k = np.unravel_index(int(np.argmax(total)), total.shape)
+            if total[k] <= 0:
+                break
+            t_xy = ncc.shift_to_translation(k, source)
+            candidates.append({"score": float(total[k]), "yaw": float(yaw), "t_xy": t_xy, "overlap": float(min(frac[k], 1.0))})
+            r = max(1, int(round(3.0 / cell)))
+            rows = np.arange(k[0] - r, k[0] + r + 1) % total.shape[0]
+            cols = np.arange(k[1] - r, k[1] + r + 1) % total.shape[1]
+            total[np.ix_(rows, cols)] = -1.0
+    candidates.sort(key=lambda c: -c["score"])
+    chosen: list[dict] = []
+    for c in candidates:
+        if all(_angle_diff(c["yaw"], o["yaw"]) > np.radians(6) or np.linalg.norm(c["t_xy"] - o["t_xy"]) > 3.0 for o in chosen):
+            chosen.append({**c, "centre": centre, "cell": cell})
+        if len(chosen) >= config.hypotheses:
+            break
+    return chosen
+
+
+def _angle_diff(a: float, b: float) -> float:
+    return abs((a - b + np.pi) % (2 * np.pi) - np.pi)
+
+
+def _hypothesis_transform(h: dict, src: _Levelled, tgt: _Levelled, ground_tree: cKDTree | None) -> np.ndarray:
+    """Full 4x4 (levelled source -> levelled target) of a heading/shift hypothesis, tz from the ground."""
+    Rz = np.eye(3)
+    Rz[:2, :2] = _rot_z(h["yaw"])
+    A = np.eye(4)
+    A[:3, :3] = Rz
+    c = np.array([*h["centre"], 0.0])
+    A[:3, 3] = c - Rz @ c + np.array([*h["t_xy"], 0.0])
+    g = src.feats.ground
+    if ground_tree is not None and g.any():
+        moved = (np.column_stack([src.feats.xy[g], src.feats.z[g]]) @ A[:3, :3].T) + A[:3, 3]
+        d, idx = ground_tree.query(moved[:, :2], distance_upper_bound=0.75)
+        ok = np.isfinite(d)
+        if ok.sum() >= 20:
+            A[2, 3] = float(np.median(tgt.feats.z[tgt.feats.ground][idx[ok]] - moved[ok, 2]))
+            return A
+    A[2, 3] = float(np.median(tgt.feats.z) - np.median(src.feats.z))  # no shared ground: crude
+    return A
+
+
+def _refine(src_pcd, tgt_pcd, T0: np.ndarray, distances: tuple[float, ...], iterations: int) -> np.ndarray:
+    """Quick robust point-to-plane ICP over shrinking correspondence distances."""
+    reg = o3d.pipelines.registration
+    T = T0
+    for d in distances:
+        est = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=d))
+        T = reg.registration_icp(src_pcd, tgt_pcd, d, T, est, reg.ICPConvergenceCriteria(max_iteration=iterations)).transformation
+    return np.asarray(T)
+
+
+def _score(structure, tgt_pcd, T: np.ndarray, distance: float) -> float:
+    """Share of non-flat source points with a target partner: flat ground matches anywhere, stems do not."""
+    return float(o3d.pipelines.registration.evaluate_registration(structure, tgt_pcd, distance, T).fitness)
+
+
+def _subsample(pcd: o3d.geometry.PointCloud, n: int, rng: np.random.Generator) -> o3d.geometry.PointCloud:
+    if len(pcd.points) <= n:
+        return pcd
+    return pcd.select_by_index(np.sort(rng.choice(len(pcd.points), n, replace=False)).tolist())
+
+
+def _pose_distance(A: np.ndarray, B: np.ndarray) -> tuple[float, float]:
+    D = np.linalg.inv(A) @ B
+    angle = np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1)))
+    return float(np.linalg.norm(A[:3, 3] - B[:3, 3])), float(angle)
+
+
+def _homogeneous(R: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    return T
+
+
+def coarse_align(source, target, config: CoarseConfig | None = None, seed: int = 0) -> CoarseResult:
+    """Global alignment of two prepared clouds (anything with `points`, `normals`, `kind`)."""
+    config = config or CoarseConfig()
+    start = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    src, tgt = _level(source, config, rng), _level(target, config, rng)
+    timing = {"levelling": time.perf_counter() - start}
+    weights = _weights(source.kind, target.kind)
+    hyps = _search(src, tgt, weights, config)
+    timing["search"] = time.perf_counter() - start - timing["levelling"]
+
+    airborne = source.kind in AIRBORNE or target.kind in AIRBORNE
+    d = config.verify_distance_airborne if airborne else config.verify_distance_ground
+    tgt_v = tgt.pcd.voxel_down_sample(config.verify_voxel)
+    src_v = _subsample(src.pcd.voxel_down_sample(config.verify_voxel), config.verify_points, rng)
+    nz = np.abs(np.asarray(src_v.normals)[:, 2])
+    structure = src_v.select_by_index(np.flatnonzero(nz < 0.8).tolist())
+    ground_xy = tgt.feats.xy[tgt.feats.ground]
+    ground_tree = cKDTree(ground_xy) if len(ground_xy) >= 20 else None
+
+    # screen every hypothesis with one short ICP, refine the most promising ones fully
+    screened = []
+    for h in hyps:
+        A = _refine(src_v, tgt_v, _hypothesis_transform(h, src, tgt, ground_tree), (6 * d,), config.verify_iterations)
+        screened.append((_score(structure, tgt_v, A, 2 * d), A, h))
+    screened.sort(key=lambda r: -r[0])
+    L_s, L_t_inv = _homogeneous(src.R), _homogeneous(tgt.R.T)
+    results = []
+    for rank, (pre, A, h) in enumerate(screened):
+        if rank < config.refine_top:
+            A = _refine(src_v, tgt_v, A, (3 * d, 1.5 * d), config.verify_iterations)
+            score = _score(structure, tgt_v, A, d)
+        else:
+            score = pre * 0.5  # unrefined: ranks below every refined hypothesis of similar quality
+        results.append({"T": L_t_inv @ A @ L_s, "score": score, "screen_score": pre, "raster_score": h["score"], "yaw_deg": float(np.degrees(h["yaw"])), "overlap": h["overlap"]})
+    if not results:
+        identity = {"T": np.eye(4), "score": 0.0, "screen_score": 0.0, "raster_score": 0.0, "yaw_deg": 0.0, "overlap": 0.0}
+        results.append(identity)
+    results.sort(key=lambda r: -r["score"])
+    best = results[0]
+    runner_up = next((r for r in results[1:] if _pose_distance(best["T"], r["T"])[0] > 1.0 or _pose_distance(best["T"], r["T"])[1] > 3.0), None)
+    second = runner_up["score"] if runner_up else 0.0
+    confidence = float(1.0 - second / best["score"]) if best["score"] > 0 else 0.0
+    return CoarseResult(
+        transform=best["T"],
+        confidence=confidence,
+        hypotheses=[
+            {k: v for k, v in r.items() if k != "T"} | {"transform": np.asarray(r["T"]).tolist()}
+            for r in results
+        ],
+        seconds=time.perf_counter() - start,
+        levelling={"source": src.info, "target": tgt.info, "raster_cell": hyps[0]["cell"] if hyps else None},
+        timing=timing | {"verify": time.perf_counter() - start - timing["levelling"] - timing["search"]},
+    )

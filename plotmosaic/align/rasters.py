@@ -1,0 +1,149 @@
+"""2D forest rasters of a levelled cloud, and masked normalised cross-correlation between them.
+
+Channels (each with its own validity mask):
+  stems   - occupancy of vertical surfaces 0.5-4 m above ground (what TLS sees best)
+  canopy  - occupancy of vegetation more than 3 m above ground (what ALS sees best)
+  terrain - ground height (both see it; carries heading through the slope and position through relief)
+
+The masked NCC (Padfield, "Masked object registration in the Fourier domain", 2012) only
+compares cells both clouds observed, which is what partial TLS overlap needs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import fft, ndimage
+
+CHANNELS = ("stems", "canopy", "terrain")
+
+
+@dataclass
+class PointFeatures:
+    """Per-point quantities that do not change under a rotation about z."""
+
+    xy: np.ndarray  # (N, 2) levelled horizontal coordinates
+    z: np.ndarray
+    stem: np.ndarray  # bool
+    canopy: np.ndarray  # bool
+    ground: np.ndarray  # bool
+
+
+def ground_model(xy: np.ndarray, z: np.ndarray, cell: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A rough DTM: lowest point per cell, cells standing far above their neighbours dropped.
+
+    Returns (dtm, origin, filled) where `filled` marks cells with a ground estimate.
+    """
+    origin = xy.min(axis=0) - cell
+    ij = np.floor((xy - origin) / cell).astype(np.int64)
+    shape = tuple(ij.max(axis=0) + 2)
+    flat = ij[:, 0] * shape[1] + ij[:, 1]
+    low = np.full(shape[0] * shape[1], np.inf)
+    np.minimum.at(low, flat, z)
+    low = low.reshape(shape)
+    filled = np.isfinite(low)
+    # the lowest return of a cell seen only through a crown or beside a stem is not ground:
+    # compare with the neighbourhood's low quantile and drop cells well above it
+    ref = ndimage.percentile_filter(low, 25, size=5, mode="constant", cval=np.inf)
+    ok = filled & ~(low > ref + 1.0)
+    dtm = np.where(ok, low, np.nan)
+    # fill holes from the nearest valid cell so every point gets a height above ground
+    if ok.any():
+        idx = ndimage.distance_transform_edt(~ok, return_distances=False, return_indices=True)
+        dtm = dtm[tuple(idx)]
+    else:
+        dtm = np.full(shape, float(np.median(z)))
+    return dtm, origin, ok
+
+
+def point_features(points: np.ndarray, normals: np.ndarray, cell: float = 1.0) -> PointFeatures:
+    xy, z = points[:, :2], points[:, 2]
+    dtm, origin, _ = ground_model(xy, z, cell)
+    ij = np.floor((xy - origin) / cell).astype(np.int64)
+    hag = z - dtm[ij[:, 0], ij[:, 1]]
+    vertical_surface = np.abs(normals[:, 2]) < 0.35
+    return PointFeatures(
+        xy=xy,
+        z=z,
+        stem=vertical_surface & (hag > 0.5) & (hag < 4.0),
+        canopy=hag > 3.0,
+        ground=(hag < 0.25) & (np.abs(normals[:, 2]) > 0.7),
+    )
+
+
+@dataclass
+class Raster:
+    origin: np.ndarray  # world xy of cell (0, 0)'s corner
+    cell: float
+    images: dict[str, np.ndarray]
+    masks: dict[str, np.ndarray]
+
+
+def rasterise(xy: np.ndarray, feats: PointFeatures, cell: float, origin: np.ndarray, shape: tuple[int, int], blur: float) -> Raster:
+    ij = np.floor((xy - origin) / cell).astype(np.int64)
+    inside = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < shape[0]) & (ij[:, 1] < shape[1])
+    flat = ij[:, 0] * shape[1] + ij[:, 1]
+    size = shape[0] * shape[1]
+
+    def count(mask):
+        m = mask & inside
+        return np.bincount(flat[m], minlength=size).reshape(shape).astype(np.float64)
+
+    seen = count(np.ones(len(xy), bool)) > 0
+    images, masks = {}, {}
+    for name in ("stems", "canopy"):
+        occ = (count(getattr(feats, name[:-1] if name == "stems" else name)) > 0).astype(np.float64)
+        images[name] = ndimage.gaussian_filter(occ, blur) if blur > 0 else occ
+        masks[name] = seen.astype(np.float64)
+    g = feats.ground & inside
+    n_g = np.bincount(flat[g], minlength=size).reshape(shape)
+    s_g = np.bincount(flat[g], weights=feats.z[g], minlength=size).reshape(shape)
+    has = n_g > 0
+    terrain = np.zeros(shape)
+    terrain[has] = s_g[has] / n_g[has]
+    images["terrain"] = terrain
+    masks["terrain"] = has.astype(np.float64)
+    return Raster(np.asarray(origin, float), cell, images, masks)
+
+
+class MaskedNCC:
+    """Masked NCC of many source rasters against one fixed target raster (target FFTs cached)."""
+
+    def __init__(self, target: Raster, source_shape: tuple[int, int], min_overlap: float):
+        self.target = target
+        ht, wt = next(iter(target.images.values())).shape
+        hs, ws = source_shape
+        self.shape = (fft.next_fast_len(ht + hs, real=True), fft.next_fast_len(wt + ws, real=True))
+        self.min_overlap = min_overlap
+        self._t = {}
+        for name, img in target.images.items():
+            m = target.masks[name]
+            g = img * m
+            self._t[name] = (self._f(m), self._f(g), self._f(g * g))
+
+    def _f(self, a):
+        return fft.rfft2(a, s=self.shape, workers=-1)
+
+    def _corr(self, fa, fb):
+        # sum_x a(x) b(x + s) for every shift s (circular, padded so no wrap-around overlaps)
+        return fft.irfft2(np.conj(fa) * fb, s=self.shape, workers=-1)
+
+    def __call__(self, source: Raster, name: str) -> tuple[np.ndarray, np.ndarray]:
+        fm2, fg, fgg = self._t[name]
+        m1 = source.masks[name]
+        f = source.images[name] * m1
+        fm1, ff, fff = self._f(m1), self._f(f), self._f(f * f)
+        overlap = np.round(self._corr(fm1, fm2))
+        s_f, s_g = self._corr(ff, fm2), self._corr(fm1, fg)
+        s_ff, s_gg, s_fg = self._corr(fff, fm2), self._corr(fm1, fgg), self._corr(ff, fg)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            num = s_fg - s_f * s_g / overlap
+            den = np.sqrt(np.clip(s_ff - s_f**2 / overlap, 0, None) * np.clip(s_gg - s_g**2 / overlap, 0, None))
+            ncc = np.where((overlap >= self.min_overlap) & (den > 1e-9), num / den, 0.0)
+        return np.clip(ncc, -1.0, 1.0), overlap
+
+    def shift_to_translation(self, k: tuple[int, int], source: Raster) -> np.ndarray:
+        """Cell shift (wrapped index) -> xy translation taking source coordinates onto target ones."""
+        s = np.array([k[0] if k[0] < self.shape[0] // 2 else k[0] - self.shape[0], k[1] if k[1] < self.shape[1] // 2 else k[1] - self.shape[1]])
+        return self.target.origin - source.origin + s * self.target.cell
