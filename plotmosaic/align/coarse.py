@@ -32,6 +32,8 @@ class CoarseConfig(BaseModel):
     enabled: bool = True
     feature_voxel: float = Field(0.1, gt=0, description="voxel (m) of the cloud used for levelling and rasters")
     max_points: int = Field(150_000, gt=1000, description="cap on points used for the rasters")
+    normal_radius: float = Field(0.75, gt=0, description="largest neighbourhood (m) of the coarse stage's own normals")
+    normal_neighbours: int = Field(16, ge=5, description="nearest neighbours per normal: the neighbourhood adapts to density")
     max_tilt_deg: float = Field(75.0, description="largest roll/pitch the levelling searches")
     cell: float = Field(1.0, gt=0, description="raster cell (m); grown for large extents")
     max_fft: int = Field(512, description="largest padded FFT side; the cell grows to respect it")
@@ -41,9 +43,9 @@ class CoarseConfig(BaseModel):
     hypotheses: int = Field(8, ge=1, description="hypotheses refined and verified")
     peaks_per_yaw: int = 2
     verify_voxel: float = 0.3
-    verify_points: int = Field(20_000, description="source points used to verify hypotheses")
+    verify_points: int = Field(10_000, description="source points used to verify hypotheses")
     verify_iterations: int = 10
-    refine_top: int = Field(3, ge=1, description="screened hypotheses refined fully")
+    refine_top: int = Field(2, ge=1, description="screened hypotheses refined fully")
     verify_distance_ground: float = Field(0.2, description="inlier distance (m) between ground-based scans")
     verify_distance_airborne: float = Field(0.5, description="inlier distance (m) when one cloud is airborne (sparse)")
 
@@ -83,12 +85,14 @@ def _as_pcd(points: np.ndarray, normals: np.ndarray) -> o3d.geometry.PointCloud:
 
 
 def _level(cloud, config: CoarseConfig, rng: np.random.Generator) -> _Levelled:
-    pcd = _as_pcd(cloud.points, cloud.normals).voxel_down_sample(config.feature_voxel)
+    # own normals over a wider neighbourhood than ForestAlign's 0.25 m: the coarse stage must also
+    # work on sparse clouds (far TLS ranges, ALS), where 0.25 m holds too few points for a plane
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(cloud.points, dtype=np.float64)))
+    pcd = pcd.voxel_down_sample(config.feature_voxel)
+    if len(pcd.points) > config.max_points:
+        pcd = pcd.select_by_index(np.sort(rng.choice(len(pcd.points), config.max_points, replace=False)).tolist())
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=config.normal_radius, max_nn=config.normal_neighbours))
     pts, nrm = np.asarray(pcd.points), np.asarray(pcd.normals)
-    nrm = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
-    if len(pts) > config.max_points:
-        keep = np.sort(rng.choice(len(pts), config.max_points, replace=False))
-        pts, nrm = pts[keep], nrm[keep]
     sample = nrm[rng.choice(len(nrm), min(len(nrm), 10_000), replace=False)]
     R, info = levelling_rotation(sample, max_tilt_deg=config.max_tilt_deg)
     pts_l, nrm_l = pts @ R.T, nrm @ R.T
@@ -228,7 +232,7 @@ def _homogeneous(R: np.ndarray) -> np.ndarray:
 
 
 def coarse_align(source, target, config: CoarseConfig | None = None, seed: int = 0) -> CoarseResult:
-    """Global alignment of two prepared clouds (anything with `points`, `normals`, `kind`)."""
+    """Global alignment of two prepared clouds (anything with local `points` and a `kind`)."""
     config = config or CoarseConfig()
     start = time.perf_counter()
     rng = np.random.default_rng(seed)
