@@ -19,7 +19,7 @@ Typical run on a plot scanned from five positions, with an ALS tile over the reg
 
 \b
   plotmosaic simulate sim --preset small            # a simulated plot with ground truth
-  plotmosaic align sim/P1/scan_1.laz sim/P1/scan_0.laz --out pair.json
+  plotmosaic align sim/P1/P1-S1.laz sim/P1/P1-S0.laz --out pair.json
   plotmosaic register-plot sim/manifest.toml --out reg
   plotmosaic tie-to-als sim/manifest.toml --poses reg/poses.json --out geo
   plotmosaic merge sim/manifest.toml --poses geo/poses.json --out merged.laz

@@ -1,0 +1,218 @@
+"""Every knob of the forest simulator, with defaults, and the named presets.
+
+Distances in metres, angles in degrees. The scene is built in a local frame (plot P1 centre at
+the origin) and `origin` (EPSG:26912, NAD83 / UTM 12N) is added in float64 when files are written.
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+CRS_EPSG = 26912
+# The paper's layout: a centre scan and four corner scans ~15 x 5 m away.
+PAPER_LAYOUT = [(0.0, 0.0), (15.0, 5.0), (-15.0, 5.0), (-15.0, -5.0), (15.0, -5.0)]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class TerrainConfig(_Model):
+    cell: float = Field(0.25, gt=0.02, description="grid spacing of the terrain mesh")
+    slope_deg: float = Field(8.0, ge=0, le=40)
+    slope_azimuth_deg: float = 35.0
+    undulation_m: float = Field(1.2, ge=0, description="amplitude of the smooth undulations")
+    undulation_wavelength_m: tuple[float, float] = (12.0, 60.0)
+    microrelief_m: float = Field(0.08, ge=0, description="hummocks, pits, litter mounds (std); they shadow grazing rays")
+    microrelief_scale_m: float = Field(1.2, gt=0)
+    roughness_m: float = Field(0.015, ge=0, description="micro-roughness (per-vertex noise, std)")
+    flat: bool = Field(False, description="near-flat terrain (hard case): no slope, 5 cm undulations")
+
+
+class ForestConfig(_Model):
+    trees_per_ha: float = Field(250.0, ge=0)
+    conifer_fraction: float = Field(0.75, ge=0, le=1)
+    dbh_range_m: tuple[float, float] = (0.10, 0.80)
+    dbh_median_m: float = 0.32
+    conifer_height_m: tuple[float, float] = (15.0, 30.0)  # ponderosa
+    broadleaf_height_m: tuple[float, float] = (10.0, 20.0)
+    max_lean_deg: float = 8.0
+    stem_sides: int = Field(24, ge=8, description="facets around a stem: enough for smooth normals")
+    foliage_per_m: float = Field(40.0, gt=0, description="foliage elements per metre of conifer branch")
+    broadleaf_leaves: int = Field(4000, ge=10, description="foliage elements of a full-size broadleaf crown")
+    leaf_size_m: tuple[float, float] = (0.06, 0.14)
+    detail_radius_m: float = Field(70.0, description="trees farther from every plot centre get coarse foliage")
+    coarse_factor: int = Field(6, ge=1, description="coarse foliage: this many times fewer, larger elements")
+    shrubs_per_ha: float = Field(500.0, ge=0)
+    shrub_elements: int = Field(300, ge=1)
+    saplings_per_ha: float = Field(150.0, ge=0, description="young conifers 1.5-5 m tall (understory)")
+    # Bunchgrass: it hides the ground from grazing rays, so scans far apart see different ground.
+    grass_tufts_per_m2: float = Field(3.0, ge=0)
+    grass_blades: int = Field(20, ge=1)
+    blade_width_m: tuple[float, float] = (0.01, 0.03)
+    grass_height_m: tuple[float, float] = (0.15, 0.5)
+    logs_per_ha: float = Field(25.0, ge=0)
+    debris_per_ha: float = Field(400.0, ge=0, description="fallen branches on the ground (woody)")
+    clearance_m: float = Field(1.5, ge=0, description="no stem or shrub this close to a scanner position")
+
+
+class TlsConfig(_Model):
+    points_per_scan: int = Field(2_000_000, ge=1000, description="target points; sets the angular step")
+    angular_step_deg: float | None = Field(None, gt=0, description="fixed angular step (overrides points_per_scan)")
+    fov_horizontal_deg: float = 360.0
+    fov_vertical_deg: float = 300.0  # BLK360: from 60 deg below the horizon to the zenith
+    min_range_m: float = 0.6
+    max_range_m: float = 60.0
+    range_noise_m: float = 0.002  # sigma = range_noise_m + range_noise_per_m * range (4 mm at 10 m)
+    range_noise_per_m: float = 0.00025
+    height_m: float = 1.5
+    max_tilt_deg: float = 2.0
+    position_jitter_m: float = 0.5
+    chunk_rays: int = 2_000_000
+    intensity: bool = True
+    seconds_per_scan: float = 180.0
+
+
+class AlsConfig(_Model):
+    density_per_m2: float = Field(15.0, gt=0, description="all returns per square metre")
+    altitude_m: float = 900.0
+    fov_deg: float = 40.0
+    heading_deg: float = 0.0
+    max_returns: int = Field(5, ge=1)
+    transmission: float = Field(0.55, ge=0, le=1, description="chance a pulse goes on after a foliage/understory hit")
+    dead_zone_m: float = Field(1.0, ge=0, description="minimum separation of returns along a pulse")
+    range_noise_m: float = 0.03
+    margin_m: float = Field(15.0, description="tile edge beyond the plot(s) extent (scan positions)")
+    chunk_pulses: int = 1_000_000
+
+
+class FireConfig(_Model):
+    grass_removed: float = Field(0.8, ge=0, le=1)
+    shrubs_removed: float = Field(0.7, ge=0, le=1)
+    post_jitter_m: float = Field(0.8, ge=0, description="POST scans stand this far from the PRE positions")
+
+
+class SimulationConfig(_Model):
+    name: str = "small"
+    origin: tuple[float, float, float] = (470250.0, 3810150.0, 2100.0)
+    plot_centres: list[tuple[float, float]] = Field(default_factory=lambda: [(0.0, 0.0)])
+    scan_layout: list[tuple[float, float]] = Field(default_factory=lambda: list(PAPER_LAYOUT))
+    scene_margin_m: float = Field(35.0, description="scene (terrain, trees) beyond the scan positions")
+    prepost: bool = False
+    approx_positions: bool = False
+    approx_sigma_m: float = Field(3.0, ge=0)
+    terrain: TerrainConfig = Field(default_factory=TerrainConfig)
+    forest: ForestConfig = Field(default_factory=ForestConfig)
+    tls: TlsConfig = Field(default_factory=TlsConfig)
+    als: AlsConfig = Field(default_factory=AlsConfig)
+    fire: FireConfig = Field(default_factory=FireConfig)
+
+
+def _preset(name: str, **changes) -> SimulationConfig:
+    data = SimulationConfig(name=name).model_dump()
+    for key, value in changes.items():
+        node = data
+        *parents, last = key.split(".")
+        for p in parents:
+            node = node[p]
+        node[last] = value
+    return SimulationConfig.model_validate(data)
+
+
+PRESETS: dict[str, SimulationConfig] = {
+    # Unit tests: a 70 x 50 m scene, coarse foliage, tens of thousands of points a scan.
+    "small": _preset(
+        "small",
+        scene_margin_m=18.0,
+        **{
+            "terrain.cell": 0.4,
+            "forest.foliage_per_m": 14.0,
+            "forest.broadleaf_leaves": 1200,
+            "forest.leaf_size_m": (0.12, 0.25),
+            "forest.shrub_elements": 120,
+            "forest.grass_tufts_per_m2": 0.5,  # 50k-point scans cannot resolve blades: keep grass light
+            "forest.grass_blades": 8,
+            "forest.blade_width_m": (0.02, 0.05),
+            "forest.stem_sides": 16,
+            "tls.points_per_scan": 50_000,
+            "tls.max_range_m": 40.0,
+            "als.margin_m": 8.0,
+        },
+    ),
+    # One plot as in the paper: 5 BLK360-like scans, ALS over ~60 x 60 m.
+    "paper": _preset("paper", **{"tls.points_per_scan": 4_000_000}),
+    # Three plots a few hundred metres apart under one ALS region.
+    "region": _preset(
+        "region",
+        plot_centres=[(0.0, 0.0), (280.0, 90.0), (110.0, 260.0)],
+        **{
+            "terrain.cell": 0.5,
+            "forest.detail_radius_m": 45.0,
+            "forest.coarse_factor": 10,
+            "tls.points_per_scan": 1_000_000,
+            "als.margin_m": 40.0,
+        },
+    ),
+    # Open grassland: no trees or logs, dense grass, a few shrubs.
+    "grassland": _preset(
+        "grassland",
+        **{
+            "terrain.slope_deg": 3.0,
+            "forest.trees_per_ha": 0.0,
+            "forest.logs_per_ha": 0.0,
+            "forest.debris_per_ha": 0.0,
+            "forest.shrubs_per_ha": 60.0,
+            "forest.saplings_per_ha": 0.0,
+            "forest.grass_tufts_per_m2": 4.0,
+            "tls.points_per_scan": 2_000_000,
+        },
+    ),
+    # The same plot before and after a low-intensity fire that thinned grass and shrubs.
+    "prepost": _preset("prepost", prepost=True, **{"tls.points_per_scan": 2_000_000}),
+}
+
+# Short names for the knobs the CLI and `simulate(**overrides)` expose.
+ALIASES = {
+    "points_per_scan": "tls.points_per_scan",
+    "angular_step": "tls.angular_step_deg",
+    "max_range": "tls.max_range_m",
+    "als_density": "als.density_per_m2",
+    "tree_density": "forest.trees_per_ha",
+    "conifer_fraction": "forest.conifer_fraction",
+    "shrub_density": "forest.shrubs_per_ha",
+    "sapling_density": "forest.saplings_per_ha",
+    "grass_density": "forest.grass_tufts_per_m2",
+    "flat_terrain": "terrain.flat",
+    "slope": "terrain.slope_deg",
+}
+
+
+def make_config(preset: str = "small", **overrides) -> SimulationConfig:
+    """A preset with overrides (`points_per_scan=...`, dotted `tls.max_range_m=...` via a dict, or top-level fields).
+
+    `None` values are ignored so a CLI can pass every option through.
+    """
+    from plotmosaic.errors import InputError
+
+    if preset not in PRESETS:
+        raise InputError(f"unknown preset {preset!r} (choose from {', '.join(PRESETS)})")
+    data = PRESETS[preset].model_dump()
+    for key, value in overrides.items():
+        if value is None:
+            continue
+        path = ALIASES.get(key, key).split(".")
+        node = data
+        for p in path[:-1]:
+            if p not in node or not isinstance(node[p], dict):
+                raise InputError(f"unknown simulation setting {key!r}")
+            node = node[p]
+        if path[-1] not in node:
+            raise InputError(f"unknown simulation setting {key!r}")
+        node[path[-1]] = value
+    from pydantic import ValidationError
+
+    try:
+        return SimulationConfig.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        raise InputError(f"simulation setting {'.'.join(map(str, err['loc']))}: {err['msg']}") from None

@@ -1,0 +1,178 @@
+"""`simulate`: build a world, scan it, write LAZ files, ground truth and a manifest.
+
+Layout of OUTDIR:
+    manifest.toml           region form, [[als]] + [[plots]] with crs EPSG:26912
+    ground_truth.json       Poses(frame="crs"): scanner frame -> UTM for every TLS scan
+    <plot>/<plot>-S<i>.laz  TLS scans in their scanner frames (extra dim `label`)
+    als/als.laz             the ALS tile in UTM (CRS written)
+    figures/*.png           pictures (optional)
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from pyproj import CRS
+
+from plotmosaic.io.frame import translation
+from plotmosaic.io.las import PointCloud, write_cloud
+from plotmosaic.io.atomic import write_text_atomic
+from plotmosaic.manifest import AlsTile, Manifest, Plot, Scan, dump_manifest
+from plotmosaic.poses import Poses, ScanPose
+from plotmosaic.simulate.als import scan_als
+from plotmosaic.simulate.config import CRS_EPSG, SimulationConfig, make_config
+from plotmosaic.simulate.scene import Scene, World, build_world, plot_ids, scan_id, square_extent
+from plotmosaic.simulate.tls import random_pose, scan_tls
+
+FIGURE_SAMPLE = 400_000  # points per scan kept in memory for the pictures
+
+
+@dataclass
+class SimulationResult:
+    outdir: Path
+    manifest_path: Path
+    ground_truth_path: Path
+    scan_paths: dict[str, Path]
+    als_paths: list[Path]
+    figures: list[Path]
+    config: SimulationConfig
+    seed: int
+    points: dict[str, int] = field(default_factory=dict)  # per scan id, and "als"
+    als_density: float = 0.0  # achieved returns per m2 over the tile
+    als_extent: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)  # local frame
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+Progress = Callable[[str, int, int], None]  # (what, done, total)
+
+
+def scan_path(plot_id: str, scan_id: str) -> Path:
+    """Where a TLS scan goes, relative to OUTDIR (and to the manifest)."""
+    return Path(plot_id) / f"{scan_id}.laz"
+
+
+ALS_PATH = Path("als") / "als.laz"
+
+
+def expected_scans(config: SimulationConfig) -> list[tuple[str, str, Path]]:
+    """(plot id, scan id, relative path) of every TLS scan `simulate` writes for this config."""
+    return [(pid, scan_id(pid, i), scan_path(pid, scan_id(pid, i))) for pid in plot_ids(config) for i in range(len(config.scan_layout))]
+
+
+def crs_wkt() -> str:
+    return CRS.from_epsg(CRS_EPSG).to_wkt()
+
+
+def scanner_pose(world: World, xy: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Scanner frame -> local frame for a tripod standing at xy."""
+    z = world.terrain.height(np.array([xy[0]]), np.array([xy[1]]))[0] + world.config.tls.height_m
+    return random_pose(np.array([xy[0], xy[1], z]), world.config.tls, rng)
+
+
+def als_extent(world: World) -> tuple[float, float, float, float]:
+    xy = np.array([s.xy for s in world.sites])
+    ext = square_extent(xy, world.config.als.margin_m)
+    e = world.extent  # never beyond the scene
+    return max(ext[0], e[0] + 1), max(ext[1], e[1] + 1), min(ext[2], e[2] - 1), min(ext[3], e[3] - 1)
+
+
+def simulate(
+    outdir: str | Path,
+    preset: str = "small",
+    seed: int = 0,
+    figures: bool = False,
+    progress: Progress | None = None,
+    config: SimulationConfig | None = None,
+    **overrides,
+) -> SimulationResult:
+    """Simulate a forest plot (or region) with TLS scans, an ALS tile and ground truth into `outdir`."""
+    t_start = time.perf_counter()
+    outdir = Path(outdir)
+    cfg = config if config is not None else make_config(preset, **overrides)
+    world = build_world(cfg, seed)
+    seconds = {"world": time.perf_counter() - t_start}
+    rng_pose, rng_tls, rng_als, rng_approx, rng_fig = (np.random.default_rng(s) for s in np.random.SeedSequence([seed, 1]).spawn(5))
+    origin = world.origin
+    to_world = translation(origin)
+
+    scenes: dict[bool, Scene] = {}
+    scan_paths: dict[str, Path] = {}
+    poses: dict[str, ScanPose] = {}
+    points: dict[str, int] = {}
+    samples: dict[str, PointCloud] = {}
+    plots: dict[str, list[Scan]] = {}
+    total = len(world.sites) + 1
+    t0 = time.perf_counter()
+    for k, site in enumerate(world.sites):
+        if progress:
+            progress(f"scan {site.scan_id}", k, total)
+        post = site.post and world.post_mesh is not None
+        if post not in scenes:
+            scenes[post] = Scene(world.mesh_for(site))
+        pose_local = scanner_pose(world, site.xy, rng_pose)
+        cloud = scan_tls(scenes[post], pose_local, cfg.tls, rng_tls, t0=1000.0 + 600.0 * k)
+        rel = scan_path(site.plot_id, site.scan_id)
+        scan_paths[site.scan_id] = write_cloud(outdir / rel, cloud)
+        T = to_world @ pose_local  # scanner frame -> UTM, float64
+        poses[site.scan_id] = ScanPose(T, plot=site.plot_id)
+        points[site.scan_id] = len(cloud)
+        if figures:
+            samples[site.scan_id] = _sample(cloud, rng_fig)
+        approx = None
+        if cfg.approx_positions:
+            approx = tuple(float(v) for v in T[:3, 3] + rng_approx.normal(0, cfg.approx_sigma_m, 3))
+        first = not plots.get(site.plot_id)
+        scan = Scan(id=site.scan_id, path=rel, kind="tls", reference=first, approx_position=approx,
+                    approx_position_frame="crs")
+        plots.setdefault(site.plot_id, []).append(scan)
+    seconds["tls"] = time.perf_counter() - t0
+
+    if progress:
+        progress("ALS", total - 1, total)
+    t0 = time.perf_counter()
+    if False not in scenes:
+        scenes[False] = Scene(world.mesh)
+    extent = als_extent(world)
+    als = scan_als(scenes[False], world.terrain, extent, cfg.als, rng_als)
+    als_world = PointCloud(als.xyz + origin, als.attrs)
+    als_path = write_cloud(outdir / ALS_PATH, als_world, crs=CRS.from_epsg(CRS_EPSG))
+    area = (extent[2] - extent[0]) * (extent[3] - extent[1])
+    points["als"] = len(als)
+    seconds["als"] = time.perf_counter() - t0
+    if progress:
+        progress("done", total, total)
+
+    crs = f"EPSG:{CRS_EPSG}"
+    manifest = Manifest(
+        name=f"simulated {cfg.name} (seed {seed})",
+        plots=[Plot(id=pid, crs=crs, scans=scans) for pid, scans in plots.items()],
+        als=[AlsTile(path=ALS_PATH)],
+    )
+    manifest_path = write_text_atomic(outdir / "manifest.toml", dump_manifest(manifest))
+    truth = Poses(scans=poses, frame="crs", crs=crs_wkt(), extra={"simulation": {"preset": cfg.name, "seed": seed, "origin": [float(v) for v in origin]}})
+    truth_path = truth.save(outdir / "ground_truth.json")
+
+    result = SimulationResult(
+        outdir=outdir, manifest_path=manifest_path, ground_truth_path=truth_path, scan_paths=scan_paths,
+        als_paths=[als_path], figures=[], config=cfg, seed=seed, points=points,
+        als_density=len(als) / area, als_extent=extent, seconds=seconds,
+    )
+    if figures:
+        from plotmosaic.simulate.figures import make_figures
+
+        t0 = time.perf_counter()
+        als_sample = _sample(als_world, rng_fig)
+        result.figures = make_figures(outdir / "figures", world, samples, poses, als_sample)
+        seconds["figures"] = time.perf_counter() - t0
+    seconds["total"] = time.perf_counter() - t_start
+    return result
+
+
+def _sample(cloud: PointCloud, rng: np.random.Generator) -> PointCloud:
+    if len(cloud) <= FIGURE_SAMPLE:
+        return cloud
+    return cloud.select(np.sort(rng.choice(len(cloud), FIGURE_SAMPLE, replace=False)))
