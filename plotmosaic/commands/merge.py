@@ -2,11 +2,88 @@
 
 from __future__ import annotations
 
+import contextlib
+import signal
+from pathlib import Path
+
 import typer
+from pydantic import ValidationError
 
-from plotmosaic.commands.common import not_implemented
+from plotmosaic.commands.common import handle_errors
+from plotmosaic.errors import InputError
+from plotmosaic.manifest import load_manifest
+from plotmosaic.merge import MergeConfig, MergeSummary, merge_scans, parse_bbox
+from plotmosaic.poses import load_poses
 
 
-def merge_command(ctx: typer.Context) -> None:
-    """Not implemented yet."""
-    not_implemented("merge")
+@handle_errors
+def merge_command(
+    manifest: Path = typer.Argument(..., help="Manifest (.toml) naming the scans (and ALS tiles)."),
+    poses: Path = typer.Option(..., "--poses", help="poses.json (ground truth, register-plot or tie-to-als)."),
+    out: Path = typer.Option(..., "--out", help="Merged cloud (.laz or .las); a sidecar <out>.json is written beside it."),
+    voxel: float | None = typer.Option(None, "--voxel", help="Keep one point per voxel of this size (m): evens out TLS density."),
+    include_als: bool = typer.Option(False, "--include-als", help="Add the manifest's ALS tiles, each with its own source id."),
+    bbox: str | None = typer.Option(None, "--bbox", help="Crop to xmin,ymin,xmax,ymax[,zmin,zmax] in output coordinates."),
+    force: bool = typer.Option(False, "--force", help="Overwrite an existing output."),
+    skip_missing: bool = typer.Option(False, "--skip-missing", help="Leave out scans without a pose instead of failing."),
+) -> None:
+    """Apply each scan's pose and write one LAS/LAZ 1.4 cloud (point_source_id = scan index)."""
+    try:
+        config = MergeConfig(
+            voxel=voxel, include_als=include_als, bbox=parse_bbox(bbox) if bbox else None, force=force, skip_missing=skip_missing
+        )
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        raise InputError(f"--{str(err['loc'][0]).replace('_', '-')}: {err['msg'].removeprefix('Value error, ')}") from None
+    with _terminate_as_interrupt():
+        summary = merge_scans(load_manifest(manifest), load_poses(poses), out, config, progress=True, poses_path=poses)
+    print_summary(summary)
+
+
+@contextlib.contextmanager
+def _terminate_as_interrupt():
+    """SIGTERM (a killed batch job) unwinds like Ctrl-C, so the atomic output removes its temp file."""
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGTERM, interrupt)
+    except ValueError:  # not the main thread: leave signals alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def print_summary(summary: MergeSummary) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console(highlight=False)
+    table = Table(title=f"{summary.out}", title_justify="left")
+    for name in ("source id", "scan", "kind", "points in", "points out"):
+        table.add_column(name, justify="right" if name.startswith(("points", "source")) else "left")
+    for s in summary.sources:
+        table.add_row(str(s.source_id), s.id, s.kind, f"{s.points_in:,}", f"{s.points_out:,}")
+    table.add_row("", "total", "", f"{summary.points_in:,}", f"{summary.points_out:,}")
+    console.print(table)
+    lo, hi = summary.mins, summary.maxs
+    lines = [f"bounds  x {lo[0]:.3f}..{hi[0]:.3f}  y {lo[1]:.3f}..{hi[1]:.3f}  z {lo[2]:.3f}..{hi[2]:.3f}"]
+    if summary.crs:
+        lines.append(f"CRS     {summary.crs_name} (from {summary.crs_source})")
+    else:
+        lines.append(f"CRS     none ({summary.crs_source.removeprefix('none: ')})")
+    if summary.voxel:
+        lines.append(f"voxel   {summary.voxel:g} m (first point of each voxel in scan order)")
+    if summary.bbox:
+        lines.append(f"bbox    {', '.join(f'{v:.3f}' for v in summary.bbox)}")
+    if summary.skipped:
+        lines.append(f"left out (no pose): {', '.join(summary.skipped)}")
+    if summary.ignored:
+        lines.append(f"note: poses for scans not in the manifest were ignored: {', '.join(summary.ignored)}")
+    lines.append(f"{summary.seconds:.1f} s, {summary.points_per_second / 1e6:.2f} M points/s; source id table in {summary.sidecar}")
+    for line in lines:
+        typer.echo(line)

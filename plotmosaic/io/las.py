@@ -78,14 +78,14 @@ def _check_file(path: Path) -> Path:
     return path
 
 
-def _open(path: Path) -> laspy.LasReader:
+def open_las(path: Path) -> laspy.LasReader:
     try:
         return laspy.open(path)
     except Exception as exc:  # laspy raises several types for a bad signature/header
-        raise InputError(f"{path}: not a readable LAS/LAZ file ({_short(exc)})") from None
+        raise InputError(f"{path}: not a readable LAS/LAZ file ({short_error(exc)})") from None
 
 
-def _short(exc: Exception) -> str:
+def short_error(exc: Exception) -> str:
     text = str(exc).strip().splitlines()
     return text[0][:160] if text else type(exc).__name__
 
@@ -99,7 +99,7 @@ def _parse_crs(header: laspy.LasHeader) -> CRS | None:
 
 def read_header_info(path: str | Path) -> HeaderInfo:
     path = _check_file(Path(path))
-    with _open(path) as reader:
+    with open_las(path) as reader:
         h = reader.header
         return HeaderInfo(
             path=path,
@@ -133,7 +133,7 @@ def iter_chunks(
 ) -> Iterator[PointCloud]:
     """Yield the file as PointCloud chunks of at most `chunk_size` points."""
     path = _check_file(Path(path))
-    with _open(path) as reader:
+    with open_las(path) as reader:
         crs = _parse_crs(reader.header)
         names = _wanted_attributes(reader.header, attributes)
         try:
@@ -144,7 +144,7 @@ def iter_chunks(
         except InputError:
             raise
         except Exception as exc:
-            raise InputError(f"{path}: corrupt or truncated LAS/LAZ data ({_short(exc)})") from None
+            raise InputError(f"{path}: corrupt or truncated LAS/LAZ data ({short_error(exc)})") from None
 
 
 def read_cloud(path: str | Path, attributes: bool | Iterable[str] = True, min_points: int = 1) -> PointCloud:
