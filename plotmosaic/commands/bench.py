@@ -1,12 +1,85 @@
-"""`plotmosaic bench`."""
+"""`plotmosaic bench`: the paper's evaluation protocol on a pair or on a simulated plot."""
 
 from __future__ import annotations
 
+import shlex
+import sys
+from pathlib import Path
+
 import typer
 
-from plotmosaic.commands.common import not_implemented
+from plotmosaic.commands.common import handle_errors
+from plotmosaic.errors import InputError
 
 
-def bench_command(ctx: typer.Context) -> None:
-    """Not implemented yet."""
-    not_implemented("bench")
+def _floats(text: str | None, option: str) -> list[float] | None:
+    if not text:
+        return None
+    try:
+        return [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise InputError(f"{option}: {text!r} is not a comma-separated list of numbers") from None
+
+
+@handle_errors
+def bench_command(
+    source: Path | None = typer.Argument(None, help="Source cloud (LAS/LAZ); omit with --manifest."),
+    target: Path | None = typer.Argument(None, help="Target cloud (LAS/LAZ); omit with --manifest."),
+    gt: str = typer.Option(..., "--gt", help="Ground truth: 'identity', a JSON with 'transform' (source -> target), or a poses file."),
+    manifest: Path | None = typer.Option(None, "--manifest", help="Bench pairs of a plot with known poses (e.g. sim/manifest.toml)."),
+    pairs: str = typer.Option("tls-tls", "--pairs", help="With --manifest: tls-tls | tls-als | prepost | all."),
+    max_pairs: int | None = typer.Option(None, "--max-pairs", min=1, help="With --manifest: only the first N pairs."),
+    source_id: str | None = typer.Option(None, "--source-id", help="Source scan id in a poses --gt (default: file stem)."),
+    target_id: str | None = typer.Option(None, "--target-id", help="Target scan id in a poses --gt (default: file stem)."),
+    source_kind: str = typer.Option("tls", "--source-kind", help="tls | mls | uls | als"),
+    target_kind: str = typer.Option("tls", "--target-kind", help="tls | mls | uls | als"),
+    trials: int = typer.Option(10, "--trials", min=1, help="Random perturbations per pair."),
+    protocol: str = typer.Option("paper", "--protocol", help="paper (+-45 deg, +-15 m) | beyond (yaw +-180, roll/pitch +-10, +-25 m) | custom"),
+    max_rotation: float | None = typer.Option(None, "--max-rotation", help="custom: +- roll/pitch (deg), default 45."),
+    max_yaw: float | None = typer.Option(None, "--max-yaw", help="custom: +- yaw (deg), default = --max-rotation."),
+    max_translation: float | None = typer.Option(None, "--max-translation", help="custom: +- x/y/z (m), default 15."),
+    methods: str = typer.Option("forestalign,icp,fpfh-ransac,cpd", "--methods", help="Comma-separated: forestalign, icp, fpfh-ransac, cpd."),
+    overlap: str | None = typer.Option(None, "--overlap", help="Crop to these overlaps in percent, e.g. 28,15,5,1 (paper Table 1)."),
+    no_coarse: bool = typer.Option(False, "--no-coarse", help="forestalign without its global stage, from identity (the paper's local setting)."),
+    seed: int = typer.Option(0, "--seed"),
+    out: Path = typer.Option(Path("bench"), "--out", help="Folder for trials.csv, table.md, errors.png, summary.json."),
+    title: str = typer.Option("", "--title", help="Heading of table.md."),
+) -> None:
+    """Paper-style benchmark: per-parameter RMSE, success rate and time over seeded random trials."""
+    from plotmosaic.bench.methods import METHODS, MethodsConfig
+    from plotmosaic.bench.pairs import load_truth, manifest_pairs
+    from plotmosaic.bench.protocol import get_protocol
+    from plotmosaic.bench.run import BenchConfig, BenchPair, run_bench, write_outputs
+    from plotmosaic.io.las import read_cloud
+    from plotmosaic.manifest import load_manifest
+    from plotmosaic.poses import load_poses
+
+    try:
+        proto = get_protocol(protocol, max_rotation, max_yaw, max_translation)
+    except ValueError as exc:
+        raise InputError(f"--protocol: {exc}") from None
+    names = [m.strip() for m in methods.split(",") if m.strip()]
+    for m in names:
+        if m not in METHODS:
+            raise InputError(f"--methods: unknown method {m!r} (choose from {', '.join(METHODS)})")
+    overlaps = _floats(overlap, "--overlap")
+    config = BenchConfig(protocol=proto, trials=trials, seed=seed, methods=names, overlaps=overlaps, methods_config=MethodsConfig(no_coarse=no_coarse))
+    if manifest is not None:
+        if source or target:
+            raise InputError("give either SOURCE TARGET or --manifest, not both")
+        m = load_manifest(manifest)
+        bench_pairs = manifest_pairs(m, load_poses(gt), pairs, max_pairs)
+    else:
+        if source is None or target is None:
+            raise InputError("give SOURCE and TARGET clouds (or --manifest)")
+        T = load_truth(gt, source, target, source_id, target_id)
+        src, tgt = read_cloud(source, attributes=False), read_cloud(target, attributes=False)
+        bench_pairs = [BenchPair(f"{source.stem}->{target.stem}", src, tgt, T, source_kind.lower(), target_kind.lower())]
+    tty = sys.stderr.isatty()
+    result = run_bench(bench_pairs, config, progress=tty, log=None if tty else (lambda msg: typer.echo(msg, err=True)))
+    command = "plotmosaic " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    paths = write_outputs(result, out, title, command)
+    typer.echo(result.table, nl=False)
+    for m, why in result.skipped.items():
+        typer.echo(f"{m}: not run ({why})")
+    typer.echo(f"wrote {paths['trials']}, {paths['table']}, {paths['plot']}, {paths['summary']}")

@@ -2,16 +2,103 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
 import typer
 
-from plotmosaic.commands.common import not_implemented
+from plotmosaic.commands.common import handle_errors
+from plotmosaic.errors import InputError
 
 
-def register_plot_command(ctx: typer.Context) -> None:
-    """Not implemented yet."""
-    not_implemented("register-plot")
+def _check_jobs(jobs: int | None) -> None:
+    if jobs is not None and jobs < 1:
+        raise InputError(f"--jobs must be at least 1, not {jobs}")
 
 
-def tie_to_als_command(ctx: typer.Context) -> None:
-    """Not implemented yet."""
-    not_implemented("tie-to-als")
+@handle_errors
+def register_plot_command(
+    manifest: Path = typer.Argument(..., help="Manifest (.toml) of one plot or a region of plots."),
+    out: Path = typer.Option(..., "--out", help="Output folder: poses.json, graph.json, report.md, pictures, pairs/ cache."),
+    jobs: int | None = typer.Option(None, "--jobs", "-j", help="Pairs registered at once (default: number of cores)."),
+    executor: str = typer.Option("local", "--executor", help="local (process pool) or dask (a Dask distributed cluster)."),
+    scheduler: str | None = typer.Option(None, "--scheduler", help="Dask scheduler address, e.g. tcp://host:8786 (with --executor dask)."),
+    max_distance: float = typer.Option(60.0, "--max-distance", help="With approximate positions: skip pairs of scans farther apart (m)."),
+    seed: int = typer.Option(0, "--seed", help="Random seed (same inputs + seed = same result)."),
+    force: bool = typer.Option(False, "--force", help="Register every pair again, ignoring the cache in OUT/pairs/."),
+) -> None:
+    """Register every overlapping pair of scans in each plot and place all scans with a pose graph."""
+    from plotmosaic.graph.pipeline import RegisterConfig, register_plot
+
+    _check_jobs(jobs)
+    if executor not in ("local", "dask"):
+        raise InputError(f"--executor must be 'local' or 'dask', not {executor!r}")
+    if scheduler and executor != "dask":
+        raise InputError("--scheduler needs --executor dask")
+    if max_distance <= 0:
+        raise InputError(f"--max-distance must be positive, not {max_distance}")
+    result = register_plot(manifest, out, jobs, executor, scheduler, RegisterConfig(max_distance=max_distance), seed, force)
+    _summary(result.graph, [(p.plot, p.reference, p.solution.poses, p.solution.sigmas, p.solution.dropped)
+                            for p in result.plots], result.unplaced)
+    typer.echo(f"pairs: {result.pairs} ({result.computed} registered now, {result.pairs - result.computed} cached); "
+               f"{result.seconds:.1f} s")
+    typer.echo(f"wrote {out / 'poses.json'}, {out / 'graph.json'}, {out / 'report.md'}")
+
+
+@handle_errors
+def tie_to_als_command(
+    manifest: Path = typer.Argument(..., help="Manifest (.toml) with the plots and [[als]] tile(s)."),
+    poses: Path = typer.Option(..., "--poses", help="poses.json from register-plot (graph.json beside it is used too)."),
+    out: Path = typer.Option(..., "--out", help="Output folder: poses.json in the ALS CRS, graph.json, report.md."),
+    buffer: float = typer.Option(20.0, "--buffer", help="ALS kept around each plot (m) when approximate CRS positions are known."),
+    seed: int = typer.Option(0, "--seed", help="Random seed."),
+    jobs: int | None = typer.Option(None, "--jobs", "-j", help="Plots registered to the ALS at once (default: cores)."),
+) -> None:
+    """Register each plot to the ALS and optimise the whole region with the ALS frame fixed."""
+    from plotmosaic.graph.anchors import TieConfig, tie_to_als
+
+    _check_jobs(jobs)
+    if buffer < 0:
+        raise InputError(f"--buffer must not be negative, not {buffer}")
+    result = tie_to_als(manifest, poses, out, TieConfig(buffer=buffer), seed, jobs)
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title="anchors (plot -> ALS)", title_justify="left")
+    for name in ("plot", "status", "fitness", "inlier RMSE (cm)", "residual (cm / deg)"):
+        table.add_column(name)
+    for a in result.anchors:
+        r = a.residual
+        table.add_row(a.plot, a.status if a.status == "ok" else f"failed: {a.error}",
+                      "-" if a.fitness is None else f"{a.fitness:.3f}",
+                      "-" if a.inlier_rmse is None else f"{a.inlier_rmse * 100:.2f}",
+                      "-" if not r else f"{r['translation'] * 100:.2f} / {r['rotation_deg']:.3f}")
+    Console(highlight=False).print(table)
+    poses = {k: v.transform for k, v in result.poses.scans.items()}
+    sigmas = {k: v.sigma for k, v in result.poses.scans.items()}
+    _summary(result.graph, [("region, ALS CRS", "ALS fixed", poses, sigmas, result.solution.dropped)], result.unplaced)
+    typer.echo(f"{result.seconds:.1f} s; wrote {out / 'poses.json'} (ALS CRS), {out / 'report.md'}")
+
+
+def _summary(G, solves, unplaced: list[str]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console(highlight=False)
+    kept = sum(1 for *_, e in G.edges(data=True) if not e.get("dropped"))
+    console.print(f"edges: {kept} kept, {G.number_of_edges() - kept} dropped, {len(G.graph.get('failed', []))} pairs failed")
+    for plot, ref, poses, sigmas, dropped in solves:
+        for d in dropped:
+            console.print(f"  dropped {d['source']} -> {d['target']} ({d['reason']})")
+        table = Table(title=f"{plot} (reference {ref})", title_justify="left")
+        for name in ("scan", "x (m)", "y (m)", "z (m)", "sigma xyz (mm)", "sigma rot (deg)"):
+            table.add_column(name, justify="left" if name == "scan" else "right")
+        for name, T in poses.items():
+            if name == "ALS":
+                continue
+            s = sigmas[name]
+            table.add_row(name, f"{T[0, 3]:.3f}", f"{T[1, 3]:.3f}", f"{T[2, 3]:.3f}",
+                          " ".join(f"{v * 1000:.1f}" for v in s[3:]), " ".join(f"{np.degrees(v):.4f}" for v in s[:3]))
+        console.print(table)
+    if unplaced:
+        console.print(f"not placed (no usable pair): {', '.join(unplaced)}")

@@ -1,12 +1,35 @@
-"""`plotmosaic report`."""
+"""`plotmosaic report`: before/after pictures, complexity levels and the pose graph on one page."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import typer
 
-from plotmosaic.commands.common import not_implemented
+from plotmosaic.commands.common import handle_errors
+from plotmosaic.errors import InputError
 
 
-def report_command(ctx: typer.Context) -> None:
-    """Not implemented yet."""
-    not_implemented("report")
+@handle_errors
+def report_command(
+    directory: Path | None = typer.Argument(None, help="A register-plot / tie-to-als output folder (poses.json, graph.json)."),
+    pair: tuple[Path, Path, Path] | None = typer.Option(None, "--pair", help="RESULT.json SOURCE TARGET of one `align` run."),
+    manifest: Path | None = typer.Option(None, "--manifest", help="Manifest of the scans (default: the paths recorded in graph.json)."),
+    out: Path | None = typer.Option(None, "--out", help="Output folder (default DIR/report, or report-<result> for --pair)."),
+    points: int = typer.Option(40_000, "--points", min=1000, help="Points drawn per scan (a seeded random subset)."),
+    no_levels: bool = typer.Option(False, "--no-levels", help="Skip the structural-complexity figure (it re-runs the levelling)."),
+    seed: int = typer.Option(0, "--seed"),
+) -> None:
+    """Pictures of a registration: before/after top and side views, a slice, levels, pose graph; index.md."""
+    from plotmosaic.report.page import report_dir, report_pair
+
+    if pair and pair[0] is not None:
+        if directory is not None:
+            raise InputError("give either a folder or --pair RESULT.json SOURCE TARGET, not both")
+        result, source, target = pair
+        rep = report_pair(result, source, target, out or result.with_name(f"report-{result.stem}"), points=points, seed=seed, levels=not no_levels)
+    else:
+        if directory is None:
+            raise InputError("give a register-plot output folder, or --pair RESULT.json SOURCE TARGET")
+        rep = report_dir(directory, out, manifest, points=points, seed=seed, levels=not no_levels)
+    typer.echo(f"wrote {rep.index} and {len(rep.figures)} figures")

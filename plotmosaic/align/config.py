@@ -1,0 +1,68 @@
+"""Typed settings for ForestAlign pairwise registration (defaults = the paper's Algorithm 1)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, Field
+
+from plotmosaic.align.coarse import CoarseConfig
+
+KINDS = ("tls", "mls", "uls", "als")
+
+# Levels per sensor kind (paper, Algorithm 1): ground-based scans see ground, stems and foliage;
+# airborne scans mostly ground and canopy. Grassland plots (no trees) should use 1-2 via the flag.
+DEFAULT_LEVELS = {"tls": 3, "mls": 3, "uls": 2, "als": 2}
+
+
+def default_levels(kind: str) -> int:
+    return DEFAULT_LEVELS[kind.lower()]
+
+
+class VmfConfig(BaseModel):
+    sample_size: int = 20_000  # EM runs on a seeded subsample; every point is then labelled
+    max_iter: int = 60
+    tol: float = 1e-4  # relative change of the mean log-likelihood
+    n_init: int = 2  # restarts; the best log-likelihood wins
+    kappa_max: float = 500.0
+
+
+class IcpStage(BaseModel):
+    max_distance: float  # correspondence distance (m)
+    iterations: int
+
+
+class AlignConfig(BaseModel):
+    voxel: float = Field(0.05, gt=0)  # delta0
+    normal_radius: float = Field(0.25, gt=0)  # r, spherical neighbourhood
+    normal_max_nn: int = 20  # cap the neighbourhood size: speed on dense TLS, same planes
+    # Sparse airborne clouds (~10-50 pts/m2) have almost no neighbours within 0.25 m; use a wider sphere.
+    normal_radius_sparse: float = 1.0
+    sparse_min_neighbors: int = 6  # median neighbours within normal_radius below this => sparse cloud
+    final_voxel: float = Field(0.025, gt=0)  # delta for the last ICP
+    complexity: Literal["vmf", "vmf+eigen"] = "vmf+eigen"
+    vmf: VmfConfig = VmfConfig()
+    # Level steps run on one point per `level_cell` cube: evens out the 1/r^2 density of TLS around
+    # the scanner, which otherwise pulls the scanner positions together (and is faster).
+    level_cell: float = 0.2
+    # Incremental ICP: for level step j (0 = least complex), a coarse-to-fine schedule of stages.
+    level_schedule: list[list[IcpStage]] = [
+        [IcpStage(max_distance=3.0, iterations=30), IcpStage(max_distance=1.0, iterations=30)],
+        # the second level brings the first x/y/yaw constraints: start wide again
+        [IcpStage(max_distance=3.0, iterations=30), IcpStage(max_distance=1.0, iterations=30),
+         IcpStage(max_distance=0.4, iterations=20)],
+        [IcpStage(max_distance=0.4, iterations=30), IcpStage(max_distance=0.2, iterations=30)],
+    ]
+    level_max_source_points: int = 60_000  # seeded subsample of the source per level step
+    min_eig_ratio: float = 0.02  # level steps move only along directions this well constrained (see icp.guarded_icp)
+    final_schedule: list[IcpStage] = [IcpStage(max_distance=0.25, iterations=30), IcpStage(max_distance=0.1, iterations=20)]
+    final_max_source_points: int = 150_000  # random subsample of the source for the last ICP (target kept whole)
+    robust_kernel: float = 0.1  # Tukey k (m) on point-to-plane residuals; 0 = plain least squares
+    relative_fitness: float = 1e-5
+    relative_rmse: float = 1e-5
+    quality_max_points: int = 200_000  # query points per direction for fitness / overlap
+    quality_distance: float = 0.25  # fitness / inlier RMSE / overlap distance (paper: 25 cm)
+    min_fitness: float = 0.1  # below => RegistrationFailed (exit 3); sparse true pairs reach ~0.18
+    min_overlap: float = 0.05
+    max_inlier_rmse: float = 0.2  # point-to-point at 0.25 m; a sparse ALS target alone gives ~0.16
+    coarse: CoarseConfig = CoarseConfig()

@@ -1,0 +1,1 @@
+"""The paper's evaluation protocol (`plotmosaic bench`): seeded trials, baselines, RMSE tables, plots."""

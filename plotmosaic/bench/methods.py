@@ -1,0 +1,216 @@
+"""The methods a benchmark compares, all behind one call: source' -> target, file coordinates.
+
+  forestalign  plotmosaic's pipeline (global coarse stage on; `--no-coarse` starts it at identity)
+  icp          Open3D point-to-point ICP from identity (the paper's "standard ICP")
+  fpfh-ransac  Open3D FPFH features + RANSAC, refined by the same ICP (a standard global method)
+  cpd          rigid Coherent Point Drift from probreg (optional; the paper's Table 3 baseline)
+
+Baselines work in a local frame around the target so UTM coordinates keep their centimetres.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel
+
+from plotmosaic.errors import InputError, RegistrationFailed
+from plotmosaic.io.frame import Frame, to_global_transform
+from plotmosaic.io.las import PointCloud
+
+METHODS = ("forestalign", "icp", "fpfh-ransac", "cpd")
+
+
+class IcpConfig(BaseModel):
+    voxel: float = 0.15  # metres
+    # a wide first pass to pull in metre-scale offsets, then a tight one (the paper refines at 0.25 m)
+    distances: tuple[float, ...] = (1.0, 0.25)
+    iterations: int = 30
+
+
+class FpfhConfig(BaseModel):
+    voxel: float = 0.5  # forest scale: features over 2.5 m neighbourhoods
+    max_points: int = 8000  # RANSAC scores every hypothesis on all points: cap them (seeded subset)
+    max_nn_normal: int = 30
+    max_nn_feature: int = 100
+    ransac_iterations: int = 50_000
+    ransac_confidence: float = 0.999
+
+
+class CpdConfig(BaseModel):
+    points: int = 2000  # CPD is O(N*M): subsample hard
+    voxel: float = 0.3
+    maxiter: int = 50
+    w: float = 0.1  # outlier weight: forests never overlap fully
+
+
+class MethodsConfig(BaseModel):
+    icp: IcpConfig = IcpConfig()
+    fpfh: FpfhConfig = FpfhConfig()
+    cpd: CpdConfig = CpdConfig()
+    no_coarse: bool = False  # forestalign from identity, the paper's local setting
+
+
+@dataclass
+class MethodOutput:
+    transform: np.ndarray  # 4x4 source' file coords -> target file coords
+    seconds: float
+    failed: bool = False  # the method reported failure (identity, or its refused estimate, is scored)
+    note: str = ""
+
+
+@dataclass
+class PairInput:
+    source: PointCloud
+    target: PointCloud
+    source_kind: str = "tls"
+    target_kind: str = "tls"
+
+
+def available(name: str) -> str | None:
+    """None when the method can run here, else why not."""
+    if name not in METHODS:
+        raise InputError(f"--methods: unknown method {name!r} (choose from {', '.join(METHODS)})")
+    if name == "cpd":
+        try:
+            import probreg  # noqa: F401
+        except ImportError:
+            return "probreg is not installed"
+    if name == "forestalign":
+        try:
+            from plotmosaic.align.pipeline import align_clouds  # noqa: F401
+        except ImportError as exc:
+            return f"the align pipeline is not available ({exc})"
+    return None
+
+
+def run_method(name: str, pair: PairInput, config: MethodsConfig, seed: int) -> MethodOutput:
+    """Run one method once; a method that cannot register is flagged failed and scored as identity
+    (so its error is the initial error), or as the estimate it refused when it reports one."""
+    start = time.perf_counter()
+    try:
+        T = _RUNNERS[name](pair, config, seed)
+        return MethodOutput(T, time.perf_counter() - start)
+    except RegistrationFailed as exc:
+        # the pipeline refused its own answer (quality gate): score the transform it had, flag the refusal
+        result = getattr(exc, "result", None)
+        T = np.asarray(result.transform, dtype=np.float64) if result is not None else np.eye(4)
+        return MethodOutput(T, time.perf_counter() - start, True, str(exc).splitlines()[0][:200])
+    except RuntimeError as exc:  # Open3D / probreg numerical trouble counts as a failed trial
+        return MethodOutput(np.eye(4), time.perf_counter() - start, True, f"{type(exc).__name__}: {exc}"[:200])
+
+
+# ---------------------------------------------------------------- forestalign
+
+
+def _forestalign(pair: PairInput, config: MethodsConfig, seed: int) -> np.ndarray:
+    from plotmosaic.align.config import AlignConfig
+    from plotmosaic.align.pipeline import align_clouds
+
+    cfg = AlignConfig()
+    init = None
+    if config.no_coarse:
+        cfg = cfg.model_copy(update={"coarse": cfg.coarse.model_copy(update={"enabled": False})})
+        init = np.eye(4)
+    result = align_clouds(pair.source, pair.target, source_kind=pair.source_kind, target_kind=pair.target_kind, config=cfg, init=init, seed=seed)
+    return np.asarray(result.transform, dtype=np.float64)
+
+
+# ---------------------------------------------------------------- Open3D baselines
+
+
+def _o3d():
+    import open3d as o3d
+
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    return o3d
+
+
+def _local(pair: PairInput, voxel: float):
+    """Both clouds voxel-downsampled in a frame centred on the target."""
+    o3d = _o3d()
+    frame = Frame.around(pair.target.xyz)
+    out = []
+    for cloud in (pair.source, pair.target):
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(frame.to_local(cloud.xyz)))
+        out.append(pcd.voxel_down_sample(voxel))
+    return frame, out[0], out[1]
+
+
+def _icp_refine(src, tgt, init: np.ndarray, cfg: IcpConfig) -> np.ndarray:
+    o3d = _o3d()
+    reg = o3d.pipelines.registration
+    T = np.asarray(init, dtype=np.float64)
+    for d in cfg.distances:
+        result = reg.registration_icp(src, tgt, d, T, reg.TransformationEstimationPointToPoint(), reg.ICPConvergenceCriteria(max_iteration=cfg.iterations))
+        T = np.asarray(result.transformation)
+    return T
+
+
+def _icp(pair: PairInput, config: MethodsConfig, seed: int) -> np.ndarray:
+    frame, src, tgt = _local(pair, config.icp.voxel)
+    T = _icp_refine(src, tgt, np.eye(4), config.icp)
+    return to_global_transform(T, frame, frame)
+
+
+def _fpfh_ransac(pair: PairInput, config: MethodsConfig, seed: int) -> np.ndarray:
+    o3d = _o3d()
+    reg = o3d.pipelines.registration
+    cfg = config.fpfh
+    v = cfg.voxel
+    frame, src, tgt = _local(pair, v)
+    rng = np.random.default_rng(seed)
+    keys, feats = [], []
+    for pcd in (src, tgt):
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * v, max_nn=cfg.max_nn_normal))
+        f = reg.compute_fpfh_feature(pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * v, max_nn=cfg.max_nn_feature))
+        keep = np.arange(len(pcd.points))
+        if len(keep) > cfg.max_points:  # features from the full cloud, matched on a subset
+            keep = np.sort(rng.choice(len(keep), cfg.max_points, replace=False))
+        sub = reg.Feature()
+        sub.data = np.asarray(f.data)[:, keep]
+        keys.append(pcd.select_by_index(keep.tolist()))
+        feats.append(sub)
+    o3d.utility.random.seed(seed)  # determinism: Open3D's RANSAC draws from its own generator
+    ransac = reg.registration_ransac_based_on_feature_matching(
+        keys[0], keys[1], feats[0], feats[1], True, 1.5 * v,
+        reg.TransformationEstimationPointToPoint(False), 3,
+        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * v)],
+        reg.RANSACConvergenceCriteria(cfg.ransac_iterations, cfg.ransac_confidence),
+    )  # fmt: skip
+    if ransac.fitness == 0.0:
+        raise RegistrationFailed("FPFH + RANSAC found no consistent correspondences")
+    _, src_fine, tgt_fine = _local(pair, config.icp.voxel)
+    T = _icp_refine(src_fine, tgt_fine, np.asarray(ransac.transformation), config.icp)
+    return to_global_transform(T, frame, frame)
+
+
+# ---------------------------------------------------------------- probreg CPD
+
+
+def _cpd(pair: PairInput, config: MethodsConfig, seed: int) -> np.ndarray:
+    from probreg import cpd
+
+    cfg = config.cpd
+    frame, src, tgt = _local(pair, cfg.voxel)
+    rng = np.random.default_rng(seed)
+    xyz = []
+    for pcd in (src, tgt):
+        pts = np.asarray(pcd.points)
+        if len(pts) > cfg.points:
+            pts = pts[np.sort(rng.choice(len(pts), cfg.points, replace=False))]
+        xyz.append(pts)
+    solver = cpd.RigidCPD(xyz[0], update_scale=False)
+    result = solver.registration(xyz[1], w=cfg.w, maxiter=cfg.maxiter, tol=1e-4)
+    tf = result.transformation
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(tf.rot)
+    T[:3, 3] = np.asarray(tf.t)
+    if not np.isfinite(T).all():
+        raise RegistrationFailed("CPD diverged")
+    return to_global_transform(T, frame, frame)
+
+
+_RUNNERS = {"forestalign": _forestalign, "icp": _icp, "fpfh-ransac": _fpfh_ransac, "cpd": _cpd}

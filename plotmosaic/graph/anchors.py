@@ -1,0 +1,286 @@
+"""tie-to-als: anchor each plot to the ALS and optimise the whole region with the ALS frame fixed.
+
+Per plot: merge its scans with the register-plot poses (voxel-thinned) into one plot cloud, crop
+the ALS around it (by approximate CRS positions when the manifest has them, else the whole tile,
+where the coarse stage has to find the plot), register plot -> ALS with ForestAlign (TLS K=3 vs
+ALS K=2). Each result becomes an edge between the plot's reference scan and an "ALS" node in the
+same pose graph as the pairwise edges. The region is solved in a local frame (ALS CRS minus a
+recorded offset), and poses are written in the ALS CRS.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import gtsam
+import networkx as nx
+import numpy as np
+import open3d as o3d
+from pydantic import BaseModel, Field
+
+from plotmosaic.align.config import AlignConfig
+from plotmosaic.errors import InputError, RegistrationFailed
+from plotmosaic.graph import report as rep
+from plotmosaic.graph.cache import PairCache, pair_key
+from plotmosaic.graph.executor import PairJob
+from plotmosaic.graph.pipeline import EDGE_FIELDS, compute_pairs
+from plotmosaic.graph.posegraph import (
+    PoseGraphConfig,
+    Solution,
+    build_graph,
+    graph_from_json,
+    graph_to_json,
+    inverse,
+    optimise,
+)
+from plotmosaic.io.atomic import write_text_atomic
+from plotmosaic.io.frame import Frame, apply_transform, translation
+from plotmosaic.io.las import PointCloud, read_cloud, write_cloud
+from plotmosaic.manifest import Manifest, Plot, load_manifest
+from plotmosaic.poses import Poses, ScanPose, load_poses
+
+ALS_NODE = "ALS"
+
+
+class TieConfig(BaseModel):
+    align: AlignConfig = Field(default_factory=AlignConfig)
+    graph: PoseGraphConfig = Field(default_factory=PoseGraphConfig)
+    buffer: float = Field(20.0, ge=0)  # metres of ALS kept around the plot's footprint
+    plot_voxel: float = Field(0.05, gt=0)  # thinning of the merged plot cloud (TLS is far denser than needed)
+    report_points: int = 20_000
+
+
+@dataclass
+class Anchor:
+    plot: str
+    reference: str
+    status: str  # "ok" | "failed"
+    transform: np.ndarray | None = None  # plot frame -> ALS CRS
+    fitness: float | None = None
+    inlier_rmse: float | None = None
+    overlap: float | None = None
+    confidence: float | None = None
+    error: str | None = None
+    crop: str = "whole tile"
+    residual: dict | None = None  # anchor edge residual after the joint solve
+
+
+@dataclass
+class TieResult:
+    out: Path
+    poses: Poses
+    graph: nx.Graph
+    anchors: list[Anchor]
+    solution: Solution
+    offset: np.ndarray
+    unplaced: list[str] = field(default_factory=list)
+    computed: int = 0
+    seconds: float = 0.0
+
+
+def _voxel(xyz: np.ndarray, size: float) -> np.ndarray:
+    """Voxel-thinned points, computed near the origin so UTM-sized values keep their precision."""
+    frame = Frame.around(xyz)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(frame.to_local(xyz)))
+    return frame.to_global(np.asarray(pcd.voxel_down_sample(size).points))
+
+
+def plot_cloud(manifest: Manifest, plot: Plot, poses: Poses, voxel: float) -> PointCloud:
+    """All placed scans of the plot in the plot frame, voxel-thinned."""
+    parts = []
+    for scan in plot.scans:
+        if scan.id in poses.scans:
+            xyz = read_cloud(manifest.resolve(scan.path), attributes=False).xyz
+            parts.append(_voxel(apply_transform(poses.transform(scan.id), xyz), voxel))
+    if not parts:
+        raise InputError(f"plot {plot.id!r}: none of its scans has a pose in the poses file")
+    return PointCloud(_voxel(np.concatenate(parts), voxel))
+
+
+def load_als(manifest: Manifest) -> tuple[PointCloud, object]:
+    if not manifest.als:
+        raise InputError(f"{manifest.source}: no [[als]] tile in the manifest; tie-to-als needs one")
+    clouds = [read_cloud(manifest.resolve(t.path), attributes=False) for t in manifest.als]
+    crs = next((c.crs for c in clouds if c.crs is not None), None)
+    return PointCloud(np.concatenate([c.xyz for c in clouds]), crs=crs), crs
+
+
+def crop_als(als: PointCloud, plot: Plot, cloud: PointCloud, buffer: float) -> tuple[PointCloud, str]:
+    """ALS within the plot's footprint + buffer when its approximate CRS positions are known, else all of it."""
+    approx = [s.approx_position for s in plot.scans if s.approx_position is not None and s.approx_position_frame == "crs"]
+    if not approx:
+        return als, "whole tile"
+    centre = np.mean(np.asarray(approx)[:, :2], axis=0)
+    lo, hi = cloud.xyz[:, :2].min(axis=0), cloud.xyz[:, :2].max(axis=0)
+    radius = float(np.linalg.norm(hi - lo) / 2 + buffer)
+    keep = np.linalg.norm(als.xyz[:, :2] - centre, axis=1) <= radius
+    if keep.sum() < 100:
+        raise InputError(f"plot {plot.id!r}: the ALS has only {int(keep.sum())} points within {radius:.0f} m of the "
+                         f"plot's approximate position ({centre[0]:.1f}, {centre[1]:.1f}); wrong CRS or position?")
+    return als.select(keep), f"{radius:.0f} m around ({centre[0]:.1f}, {centre[1]:.1f})"
+
+
+def _plot_reference(plot: Plot, poses: Poses, G: nx.Graph | None) -> str:
+    """The scan whose frame is the plot frame (identity pose); the manifest's reference otherwise."""
+    placed = [s.id for s in plot.scans if s.id in poses.scans]
+    recorded = poses.extra.get("plots", {}).get(plot.id, {}).get("reference")
+    if recorded in placed:
+        return recorded
+    for sid in placed:
+        if np.allclose(poses.transform(sid), np.eye(4), atol=1e-9):
+            return sid
+    return plot.reference.id if plot.reference.id in placed else placed[0]
+
+
+def _plot_edges(plot: Plot, poses: Poses, G: nx.Graph | None, ref: str) -> tuple[dict, list[dict]]:
+    """Within-plot edges: the register-plot graph's when given, else constraints from the poses and sigmas."""
+    ids = [s.id for s in plot.scans]
+    if G is not None and all(s in G for s in ids):
+        nodes = {n: dict(G.nodes[n]) for n in ids}
+        edges = [dict(e) for u, v, e in G.subgraph(ids).edges(data=True)]
+        return nodes, edges
+    nodes = {s.id: {"plot": plot.id, "kind": s.kind.value} for s in plot.scans}
+    edges = []
+    P_ref = poses.transform(ref)
+    for sid in ids:
+        if sid == ref or sid not in poses.scans:
+            continue
+        sp = poses.scans[sid]
+        info = None if sp.sigma is None else np.diag(1.0 / np.maximum(np.asarray(sp.sigma, float), 1e-6) ** 2)
+        edges.append({"source": sid, "target": ref, "transform": inverse(P_ref) @ sp.transform, "information": info,
+                      "fitness": 1.0, "overlap": 1.0, "status": "ok", "from_poses": True})
+    return nodes, edges
+
+
+def tie_to_als(manifest: str | Path | Manifest, poses_path: str | Path, out: str | Path, config: TieConfig | None = None,
+               seed: int = 0, jobs: int | None = None, executor: str = "local", scheduler: str | None = None,
+               progress: bool = True) -> TieResult:
+    start = time.perf_counter()
+    config = config or TieConfig()
+    manifest = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
+    poses_path, out = Path(poses_path), Path(out)
+    poses = load_poses(poses_path)
+    if poses.frame != "plot":
+        raise InputError(f"{poses_path}: expected register-plot poses (frame 'plot'), got frame {poses.frame!r}")
+    graph_path = poses_path.parent / "graph.json"
+    G_plot = graph_from_json(json.loads(graph_path.read_text())) if graph_path.is_file() else None
+    out.mkdir(parents=True, exist_ok=True)
+
+    if any(s.id == ALS_NODE for s in manifest.scans):
+        raise InputError(f"{manifest.source}: scan id {ALS_NODE!r} is reserved for the ALS frame in tie-to-als; rename the scan")
+    als, crs = load_als(manifest)
+    if crs is None:
+        raise InputError(f"{manifest.resolve(manifest.als[0].path)}: the ALS tile has no CRS; cannot georeference")
+    als_frame = Frame.around(als.xyz)  # the region is solved in ALS CRS - offset
+    als_k = manifest.als[0].k
+
+    # 1. plot clouds and ALS crops as files, so the plot -> ALS pairs run (and are cached) like any pair
+    jobs_list, anchors, refs = [], {}, {}
+    config_json = config.align.model_dump_json()
+    for plot in manifest.plots:
+        if not any(s.id in poses.scans for s in plot.scans):
+            anchors[plot.id] = Anchor(plot.id, "", "failed", error="no scan of this plot was placed by register-plot")
+            continue
+        ref = refs[plot.id] = _plot_reference(plot, poses, G_plot)
+        cloud = plot_cloud(manifest, plot, poses, config.plot_voxel)
+        crop, how = crop_als(als, plot, cloud, config.buffer)
+        src = write_cloud(out / "plots" / f"{plot.id}.laz", cloud)
+        tgt = write_cloud(out / "plots" / f"{plot.id}_als.laz", crop, crs=crs)
+        kind = plot.reference.kind.value
+        key = pair_key(src, tgt, kind, "als", plot.reference.k, als_k, config_json, seed)
+        jobs_list.append(PairJob(key, plot.id, ALS_NODE, str(src), str(tgt), kind, "als", plot.reference.k, als_k,
+                                 config_json, seed))
+        anchors[plot.id] = Anchor(plot.id, ref, "pending", crop=how)
+    records, computed = compute_pairs(jobs_list, PairCache(out / "pairs"), executor, jobs, scheduler, False, progress)
+
+    # 2. one graph: every plot's pairwise edges + an anchor edge per plot to the fixed ALS node
+    nodes, edges = {ALS_NODE: {"kind": "als", "plot": None}}, []
+    for plot in manifest.plots:
+        if plot.id in refs:
+            n, e = _plot_edges(plot, poses, G_plot, refs[plot.id])
+            nodes.update(n)
+            edges += e
+    for job in jobs_list:
+        rec, anchor = records[job.key], anchors[job.source]
+        if rec.get("status") != "ok":
+            anchor.status, anchor.error = "failed", rec.get("error")
+            continue
+        T = np.asarray(rec["transform"], float)  # plot frame -> ALS CRS
+        P_ref = poses.transform(anchor.reference)
+        # edge: reference scan file -> ALS local frame; information moved onto the reference scan's tangent
+        info = np.asarray(rec["information"], float)
+        Ad = gtsam.Pose3(P_ref).AdjointMap()
+        edge = {k: rec.get(k) for k in EDGE_FIELDS}
+        edge.update(source=anchor.reference, target=ALS_NODE, anchor=job.source,
+                    transform=translation(-als_frame.offset) @ T @ P_ref, information=Ad.T @ info @ Ad)
+        edges.append(edge)
+        anchor.status, anchor.transform = "ok", T
+        anchor.fitness, anchor.inlier_rmse, anchor.overlap, anchor.confidence = (
+            rec.get("fitness"), rec.get("inlier_rmse"), rec.get("overlap"), rec.get("confidence"))
+    if not any(a.status == "ok" for a in anchors.values()):
+        raise RegistrationFailed("no plot could be registered to the ALS: " + "; ".join(
+            f"{a.plot}: {a.error}" for a in anchors.values()))
+    G = build_graph(nodes, edges)
+    for u, v, e in G.edges(data=True):  # register-plot decisions stand; the rest is re-checked
+        e["dropped"] = bool(e.get("dropped"))
+    sol = optimise(G, ALS_NODE, config.graph)
+    for a in anchors.values():
+        if a.status == "ok":
+            a.residual = G.edges[a.reference, ALS_NODE].get("residual_after")
+
+    E = translation(als_frame.offset)
+    scans = {}
+    for name, X in sol.poses.items():
+        if name == ALS_NODE:
+            continue
+        scans[name] = ScanPose(E @ X, G.nodes[name].get("plot"), sol.sigmas[name])
+    unplaced = sorted(s.id for s in manifest.scans if s.id not in scans)
+    extra = {"offset": [float(v) for v in als_frame.offset], "unplaced": unplaced,
+             "anchors": {a.plot: _anchor_dict(a) for a in anchors.values()}}
+    result_poses = Poses(scans, frame="crs", crs=crs.to_wkt(), extra=extra)
+    result = TieResult(out, result_poses, G, list(anchors.values()), sol, als_frame.offset, unplaced, computed)
+    write_text_atomic(out / "graph.json", json.dumps(graph_to_json(G)))
+    result_poses.save(out / "poses.json")
+    write_tie_report(result, manifest, als, config, seed)
+    result.seconds = time.perf_counter() - start
+    return result
+
+
+def _anchor_dict(a: Anchor) -> dict:
+    return {"reference": a.reference, "status": a.status, "fitness": a.fitness, "inlier_rmse": a.inlier_rmse,
+            "overlap": a.overlap, "confidence": a.confidence, "error": a.error, "crop": a.crop, "residual": a.residual}
+
+
+def write_tie_report(result: TieResult, manifest: Manifest, als: PointCloud, config: TieConfig, seed: int) -> Path:
+    out, G = result.out, result.graph
+    lines = ["# tie-to-als report", "", f"- manifest: `{manifest.source}`",
+             f"- region solved in ALS CRS minus offset ({', '.join(f'{v:.0f}' for v in result.offset)})",
+             f"- plot -> ALS registrations: {len(result.anchors)} ({result.computed} run now, rest cached)", ""]
+    if result.unplaced:
+        lines += [f"**Not placed**: {', '.join(result.unplaced)}", ""]
+    lines += ["## Anchors (plot -> ALS)", "",
+              "| plot | reference scan | status | fitness | inlier RMSE (cm) | overlap | ALS crop | anchor residual (cm / deg) |",
+              "|---|---|---|---|---|---|---|---|"]
+    for a in result.anchors:
+        r = a.residual
+        res = "-" if not r else f"{r['translation'] * 100:.2f} / {r['rotation_deg']:.3f}"
+        status = a.status if a.status == "ok" else f"failed: {a.error}"
+        lines.append(f"| {a.plot} | {a.reference} | {status} | {rep._fmt(a.fitness, 1, 3)} | {rep._fmt(a.inlier_rmse, 100, 2)} "
+                     f"| {rep._fmt(a.overlap, 1, 3)} | {a.crop} | {res} |")
+    lines += ["", "## Poses (ALS CRS)", ""]
+    lines += rep.pose_table([s.id for s in manifest.scans], {k: v.transform for k, v in result.poses.scans.items()},
+                            {k: v.sigma for k, v in result.poses.scans.items()})
+    lines += ["", "## Edges", ""] + rep.edge_table(G) + [""]
+    poses = {k: v.transform for k, v in result.poses.scans.items()}
+    paths = {s.id: manifest.resolve(s.path) for s in manifest.scans}
+    clouds = rep.sample_clouds(paths, poses, config.report_points, seed, lambda p: read_cloud(p, attributes=False).xyz)
+    rng = np.random.default_rng(seed)
+    als_xyz = als.xyz if len(als) <= 50_000 else als.xyz[rng.choice(len(als), 50_000, replace=False)]
+    png = rep.plot_scans(out / "region_scans.png", {"ALS": als_xyz, **clouds}, "region: ALS and scans in the ALS CRS",
+                         origin=result.offset)
+    lines += [f"![region]({png.name})", ""]
+    return write_text_atomic(out / "report.md", "\n".join(lines))
+

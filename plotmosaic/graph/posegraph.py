@@ -1,0 +1,341 @@
+"""The pose graph: scans are nodes, pairwise registrations are edges; GTSAM places every scan.
+
+Conventions (shared with plotmosaic.align): an edge stores `source`, `target` and `transform`, the
+4x4 mapping source file coordinates into target file coordinates, with a 6x6 `information` for
+T·Exp(xi), xi = (wx, wy, wz, vx, vy, vz) (GTSAM's Pose3 tangent order). Poses X_k map scan k into
+the graph frame, so an edge says X_source = X_target · T.
+
+Outliers are found in three ways, because each alone misses cases: a cycle-consistency vote on
+triangles (before any solve, so a wrong edge cannot drag the initialisation), low-confidence edges
+that no consistent triangle confirms, then a residual test after a robust solve (drop the worst
+offender, re-solve, repeat).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import gtsam
+import networkx as nx
+import numpy as np
+from pydantic import BaseModel
+
+
+class PoseGraphConfig(BaseModel):
+    """Tuning of the pose-graph solve. Angles in degrees, lengths in metres."""
+
+    robust: Literal["cauchy", "huber", "none"] = "cauchy"
+    robust_k: float = 3.0  # kernel width in whitened (sigma) units
+    # Pairwise information matrices from ICP are often over-confident: floor each sigma and cap
+    # the ratio of strongest to weakest direction so the problem stays well conditioned.
+    min_sigma_rotation_deg: float = 0.01
+    min_sigma_translation: float = 0.002
+    max_information_ratio: float = 1e4
+    fallback_sigma_rotation_deg: float = 0.1  # when a pair carries no information matrix
+    # A triangle of edges is inconsistent when going around it is off by more than this.
+    cycle_rotation_deg: float = 1.0
+    cycle_translation: float = 0.10
+    # An edge whose coarse-stage confidence is below this is kept only when a consistent triangle
+    # confirms it: a wrong coarse solution can still pass the pair's own fitness checks.
+    min_confidence: float = 0.25
+    # After a solve, an edge is an outlier when its residual exceeds both a metric bound and a
+    # chi-square bound (6 dof); the metric bound keeps over-confident good edges.
+    outlier_rotation_deg: float = 0.5
+    outlier_translation: float = 0.10
+    outlier_chi2: float = 22.46  # 6 dof, p = 0.999
+    max_drops: int = 50
+    max_iterations: int = 100
+
+
+# --- small SE(3) helpers ---------------------------------------------------------------------------
+
+
+def inverse(T: np.ndarray) -> np.ndarray:
+    R, t = T[:3, :3], T[:3, 3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ t
+    return out
+
+
+def rotation_deg(T: np.ndarray) -> float:
+    c = (np.trace(T[:3, :3]) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """(rotation deg, translation m) between two poses."""
+    D = inverse(T_true) @ T_est
+    return rotation_deg(D), float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
+
+
+def _pose3(T: np.ndarray) -> gtsam.Pose3:
+    return gtsam.Pose3(np.asarray(T, dtype=np.float64))
+
+
+# --- graph construction and I/O --------------------------------------------------------------------
+
+
+def build_graph(nodes: dict[str, dict], edges: list[dict]) -> nx.Graph:
+    """Scans as nodes (any attributes), successful pair results as edges.
+
+    Each edge dict has at least source, target, transform; optional fitness, inlier_rmse, overlap,
+    confidence, information. Failed pairs (status "failed") are kept in G.graph["failed"].
+    """
+    G = nx.Graph()
+    G.graph["failed"] = []
+    for name, attrs in nodes.items():
+        G.add_node(name, **attrs)
+    for e in edges:
+        if e.get("status", "ok") != "ok":
+            G.graph["failed"].append({k: v for k, v in e.items() if k in ("source", "target", "error", "key")})
+            continue
+        attrs = dict(e)
+        attrs["transform"] = np.asarray(e["transform"], dtype=np.float64)
+        if e.get("information") is not None:
+            attrs["information"] = np.asarray(e["information"], dtype=np.float64)
+        attrs.setdefault("status", "ok")
+        attrs.setdefault("dropped", False)
+        attrs["weight"] = edge_strength(attrs)
+        G.add_edge(e["source"], e["target"], **attrs)
+    return G
+
+
+def edge_strength(e: dict) -> float:
+    """How much to trust an edge when choosing the initialisation tree (bigger is better)."""
+    fitness = e.get("fitness") or 0.0
+    overlap = e.get("overlap")
+    return float(fitness * overlap) if overlap is not None else float(fitness)
+
+
+def _jsonable(value):
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    return value
+
+
+# Link ends are "a"/"b" so the edges' own "source"/"target" (the direction of the pair) survive.
+_LINK = {"edges": "edges", "source": "a", "target": "b"}
+
+
+def graph_to_json(G: nx.Graph) -> dict:
+    """Node-link form with plain lists instead of arrays."""
+    data = nx.node_link_data(G, **_LINK)
+    return _jsonable(data)
+
+
+def graph_from_json(data: dict) -> nx.Graph:
+    G = nx.node_link_graph(data, **_LINK)
+    for _, _, attrs in G.edges(data=True):
+        for name in ("transform", "information"):
+            if attrs.get(name) is not None:
+                attrs[name] = np.asarray(attrs[name], dtype=np.float64)
+    G.graph.setdefault("failed", [])
+    return G
+
+
+def edge_transform(G: nx.Graph, a: str, b: str) -> np.ndarray:
+    """The measured X_a^-1 X_b (maps b's coordinates into a's) from the edge between a and b."""
+    e = G.edges[a, b]
+    T = e["transform"]
+    return T if (e["source"], e["target"]) == (b, a) else inverse(T)
+
+
+def kept(G: nx.Graph) -> nx.Graph:
+    """View of the edges still in use."""
+    return nx.subgraph_view(G, filter_edge=lambda u, v: not G.edges[u, v].get("dropped", False))
+
+
+# --- information conditioning ----------------------------------------------------------------------
+
+
+def condition_information(info: np.ndarray | None, rmse: float | None, config: PoseGraphConfig) -> np.ndarray:
+    """A well-conditioned 6x6 information: sigmas floored, strongest/weakest ratio capped."""
+    floors = np.array([np.radians(config.min_sigma_rotation_deg)] * 3 + [config.min_sigma_translation] * 3)
+    S = np.diag(floors)
+    A = None
+    if info is not None:
+        info = np.asarray(info, dtype=np.float64)
+        if info.shape == (6, 6) and np.isfinite(info).all():
+            A = S @ ((info + info.T) / 2.0) @ S  # in floor units: eigenvalue 1 <=> sigma at the floor
+    if A is not None:
+        w, V = np.linalg.eigh(A)
+        if w.max() <= 0:
+            A = None
+    if A is None:  # no usable information: a loose isotropic guess from the pair's RMSE
+        sigma_t = max(rmse or 0.0, 0.01)
+        sigma_r = np.radians(config.fallback_sigma_rotation_deg)
+        return np.diag([1 / sigma_r**2] * 3 + [1 / sigma_t**2] * 3)
+    cap = min(w.max(), 1.0)
+    w = np.clip(w, cap / config.max_information_ratio, cap)
+    Sinv = np.diag(1.0 / floors)
+    return Sinv @ (V * w) @ V.T @ Sinv
+
+
+# --- initialisation and cycle consistency ----------------------------------------------------------
+
+
+def spanning_tree_poses(G: nx.Graph, reference: str) -> dict[str, np.ndarray]:
+    """Poses of every scan connected to `reference` by chaining the strongest edges (max spanning tree)."""
+    H = kept(G)
+    component = nx.node_connected_component(H, reference)
+    tree = nx.maximum_spanning_tree(H.subgraph(component), weight="weight")
+    poses = {reference: np.eye(4)}
+    for u, v in nx.bfs_edges(tree, reference):
+        poses[v] = poses[u] @ edge_transform(G, u, v)
+    return poses
+
+
+def cycle_errors(G: nx.Graph) -> list[dict]:
+    """Every triangle of kept edges with how far composing its three edges is from identity."""
+    H = kept(G)
+    out = []
+    for a, b, c in (t for t in nx.enumerate_all_cliques(H) if len(t) == 3):
+        loop = edge_transform(G, a, b) @ edge_transform(G, b, c) @ edge_transform(G, c, a)
+        out.append({"nodes": (a, b, c), "rotation_deg": rotation_deg(loop), "translation": float(np.linalg.norm(loop[:3, 3]))})
+    return out
+
+
+def _edge_id(u: str, v: str) -> tuple[str, str]:
+    return (u, v) if u <= v else (v, u)
+
+
+def triangle_votes(G: nx.Graph, config: PoseGraphConfig) -> dict[tuple[str, str], tuple[int, int]]:
+    """Per kept edge (sorted ids): (inconsistent triangles, triangles) it is part of."""
+    votes: dict[tuple[str, str], list[int]] = {}
+    for tri in cycle_errors(G):
+        a, b, c = tri["nodes"]
+        wrong = tri["rotation_deg"] > config.cycle_rotation_deg or tri["translation"] > config.cycle_translation
+        for e in (_edge_id(a, b), _edge_id(b, c), _edge_id(a, c)):
+            n = votes.setdefault(e, [0, 0])
+            n[0] += int(wrong)
+            n[1] += 1
+    return {e: (bad, total) for e, (bad, total) in votes.items()}
+
+
+def cycle_outliers(G: nx.Graph, config: PoseGraphConfig) -> list[tuple[str, str]]:
+    """Edges inconsistent in most of the triangles they close (needs >= 2 bad triangles to decide)."""
+    return sorted(e for e, (bad, total) in triangle_votes(G, config).items() if bad >= 2 and bad > total / 2)
+
+
+def unverified(G: nx.Graph, config: PoseGraphConfig) -> list[tuple[str, str]]:
+    """Low-confidence edges (coarse stage unsure) that no consistent triangle confirms."""
+    votes = triangle_votes(G, config)
+    out = []
+    for u, v, e in kept(G).edges(data=True):
+        c = e.get("confidence")
+        bad, total = votes.get(_edge_id(u, v), (0, 0))
+        if c is not None and c < config.min_confidence and total - bad == 0:
+            out.append(_edge_id(u, v))
+    return sorted(out)
+
+
+# --- the solve ---------------------------------------------------------------------------------------
+
+
+@dataclass
+class Solution:
+    poses: dict[str, np.ndarray]  # placed scans only
+    sigmas: dict[str, np.ndarray]  # sqrt(diag(marginal covariance)): rx, ry, rz (rad), tx, ty, tz (m)
+    unplaced: list[str]  # scans with no kept edge path to the reference
+    iterations: int = 0
+    error_before: float = 0.0
+    error_after: float = 0.0
+    dropped: list[dict] = field(default_factory=list)  # {"source", "target", "reason"}
+
+
+def _noise(info: np.ndarray, config: PoseGraphConfig):
+    base = gtsam.noiseModel.Gaussian.Information(info)
+    if config.robust == "none":
+        return base
+    est = gtsam.noiseModel.mEstimator
+    kernel = est.Cauchy.Create(config.robust_k) if config.robust == "cauchy" else est.Huber.Create(config.robust_k)
+    return gtsam.noiseModel.Robust.Create(kernel, base)
+
+
+def residual(G: nx.Graph, u: str, v: str, poses: dict[str, np.ndarray], config: PoseGraphConfig) -> dict:
+    """Residual of one edge at the given poses: rotation (deg), translation (m) and chi2 (conditioned info)."""
+    e = G.edges[u, v]
+    i, j = e["source"], e["target"]
+    E = inverse(e["transform"]) @ inverse(poses[j]) @ poses[i]  # identity when the edge is satisfied
+    xi = gtsam.Pose3.Logmap(_pose3(E))
+    info = condition_information(e.get("information"), e.get("inlier_rmse"), config)
+    return {"rotation_deg": rotation_deg(E), "translation": float(np.linalg.norm(E[:3, 3])), "chi2": float(xi @ info @ xi)}
+
+
+def solve(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None) -> Solution:
+    """Place every scan connected to `reference` (fixed at identity) with robust Levenberg-Marquardt."""
+    config = config or PoseGraphConfig()
+    init = spanning_tree_poses(G, reference)
+    placed = sorted(init)
+    keys = {name: gtsam.symbol("x", n) for n, name in enumerate(placed)}
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    for name in placed:
+        values.insert(keys[name], _pose3(init[name]))
+    graph.add(gtsam.PriorFactorPose3(keys[reference], gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+    for u, v, e in kept(G).edges(data=True):
+        if u not in keys or v not in keys:
+            continue
+        info = condition_information(e.get("information"), e.get("inlier_rmse"), config)
+        graph.add(gtsam.BetweenFactorPose3(keys[e["target"]], keys[e["source"]], _pose3(e["transform"]), _noise(info, config)))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(config.max_iterations)
+    params.setRelativeErrorTol(1e-10)
+    params.setAbsoluteErrorTol(1e-12)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    before = graph.error(values)
+    result = optimizer.optimize()
+    marginals = gtsam.Marginals(graph, result)
+    poses = {name: result.atPose3(keys[name]).matrix() for name in placed}
+    sigmas = {name: np.sqrt(np.clip(np.diag(marginals.marginalCovariance(keys[name])), 0, None)) for name in placed}
+    unplaced = sorted(n for n in G.nodes if n not in keys)
+    return Solution(poses, sigmas, unplaced, optimizer.iterations(), float(before), float(graph.error(result)))
+
+
+def _drop(G: nx.Graph, u: str, v: str, reason: str, dropped: list[dict]) -> None:
+    e = G.edges[u, v]
+    e["dropped"] = True
+    e["drop_reason"] = reason
+    dropped.append({"source": e["source"], "target": e["target"], "reason": reason})
+
+
+def optimise(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None) -> Solution:
+    """Cycle check, robust solve, drop the worst residual outlier and re-solve until none is left.
+
+    Edge attributes are updated in place: dropped, drop_reason, residual_before (at the
+    spanning-tree initialisation), residual_after (at the final poses).
+    """
+    config = config or PoseGraphConfig()
+    dropped: list[dict] = []
+    for u, v in cycle_outliers(G, config):
+        _drop(G, u, v, "cycle", dropped)
+    for u, v in unverified(G, config):
+        _drop(G, u, v, "unverified", dropped)
+    initial = spanning_tree_poses(G, reference)
+    for u, v, e in G.edges(data=True):
+        e["residual_before"] = residual(G, u, v, initial, config) if u in initial and v in initial else None
+    for _ in range(config.max_drops + 1):
+        sol = solve(G, reference, config)
+        worst, worst_chi2 = None, 0.0
+        for u, v, e in kept(G).edges(data=True):
+            if u not in sol.poses or v not in sol.poses:
+                continue
+            r = residual(G, u, v, sol.poses, config)
+            metric = r["rotation_deg"] > config.outlier_rotation_deg or r["translation"] > config.outlier_translation
+            if metric and r["chi2"] > config.outlier_chi2 and r["chi2"] > worst_chi2:
+                worst, worst_chi2 = (u, v), r["chi2"]
+        if worst is None or len(dropped) >= config.max_drops:
+            break
+        _drop(G, *worst, "residual", dropped)
+    for u, v, e in G.edges(data=True):
+        e["residual_after"] = residual(G, u, v, sol.poses, config) if u in sol.poses and v in sol.poses else None
+    sol.dropped = dropped
+    return sol

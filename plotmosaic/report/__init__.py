@@ -1,0 +1,1 @@
+"""Pictures and an index page for a registration (`plotmosaic report`)."""

@@ -1,0 +1,183 @@
+"""`plotmosaic report`: pictures of a registration and one index.md that ties them together.
+
+Two inputs:
+  * a pair: an `align` RESULT.json plus its two clouds -> before/after views, a slice, the levels;
+  * a register-plot / tie-to-als output folder (poses.json + graph.json; the scans' paths are
+    recorded in graph.json's nodes, or come from --manifest) -> per plot before/after views,
+    a slice, the pose graph with edge residuals, the reference scan's levels.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import networkx as nx
+import numpy as np
+
+from plotmosaic.errors import InputError
+from plotmosaic.graph import report as graph_report
+from plotmosaic.io.atomic import write_text_atomic
+from plotmosaic.io.frame import apply_transform
+from plotmosaic.io.las import read_cloud
+from plotmosaic.report.figures import origin_of, plot_levels, plot_slice, subsample
+
+
+@dataclass
+class Report:
+    index: Path
+    figures: list[Path] = field(default_factory=list)
+
+
+def _read(path: Path) -> np.ndarray:
+    return read_cloud(path, attributes=False).xyz
+
+
+def _levels(clouds: dict[str, tuple[np.ndarray, str]], seed: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The align pipeline's own levels for each (xyz, kind): what ForestAlign actually matches."""
+    from plotmosaic.align.config import AlignConfig, default_levels
+    from plotmosaic.align.prepare import prepare_cloud
+    from plotmosaic.io.las import PointCloud
+
+    cfg = AlignConfig()
+    out = {}
+    for name, (xyz, kind) in clouds.items():
+        p = prepare_cloud(PointCloud(xyz), kind, default_levels(kind), cfg, seed, name)
+        out[name] = (p.points, p.levels)
+    return out
+
+
+def _figure_lines(figures: list[tuple[str, Path]]) -> list[str]:
+    lines = []
+    for caption, path in figures:
+        lines += [f"### {caption}", "", f"![{caption}]({path.name})", ""]
+    return lines
+
+
+# ---------------------------------------------------------------- a pair
+
+
+def report_pair(result_path: str | Path, source_path: str | Path, target_path: str | Path, out: str | Path,
+                points: int = 80_000, seed: int = 0, levels: bool = True) -> Report:
+    result_path, out = Path(result_path), Path(out)
+    if not result_path.is_file():
+        raise InputError(f"{result_path}: result file not found")
+    try:
+        data = json.loads(result_path.read_text())
+        T = np.asarray(data["transform"], dtype=np.float64)
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError):
+        raise InputError(f"{result_path}: not an align result (JSON with a 4x4 'transform')") from None
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise InputError(f"{result_path}: 'transform' is not a finite 4x4 matrix")
+    src, tgt = Path(source_path), Path(target_path)
+    rng = np.random.default_rng(seed)
+    src_xyz, tgt_xyz = _read(src), _read(tgt)
+    s_small, t_small = subsample(src_xyz, points, rng), subsample(tgt_xyz, points, rng)
+    names = (f"source {src.stem}", f"target {tgt.stem}")
+    before = {names[0]: s_small, names[1]: t_small}
+    after = {names[0]: apply_transform(T, s_small), names[1]: t_small}
+    origin = origin_of(after)
+    figs = [
+        ("Before: the two clouds as they lie in their files", graph_report.plot_scans(out / "before.png", before, "before alignment", origin_of(before))),
+        ("After: the source moved by the estimated transform", graph_report.plot_scans(out / "after.png", after, "after alignment", origin)),
+        ("After, a 2 m slice: stems and ground should not be doubled", plot_slice(out / "after_slice.png", after, "after alignment", origin=origin)),
+    ]
+    if levels:
+        kinds = (data.get("source_kind", "tls"), data.get("target_kind", "tls"))
+        lv = _levels({names[0]: (src_xyz, kinds[0]), names[1]: (tgt_xyz, kinds[1])}, seed)
+        figs.append(("Structural-complexity levels (the align pipeline's grouping)", plot_levels(out / "levels.png", lv, "structural-complexity levels", seed=seed)))
+    facts = [
+        f"- source: `{src}`", f"- target: `{tgt}`", f"- result: `{result_path}`",
+        *(f"- {k}: {data[k]:.4f}" for k in ("fitness", "inlier_rmse", "overlap", "confidence", "seconds") if isinstance(data.get(k), (int, float))),
+        "", "Transform (source file -> target file):", "", "```", *(" ".join(f"{v: .6f}" for v in row) for row in T), "```", "",
+    ]
+    if data.get("levels", {}).get("source"):
+        facts += ["Levels (from the result):", "", "```", json.dumps(data["levels"], indent=1)[:3000], "```", ""]
+    index = write_text_atomic(out / "index.md", "\n".join(["# Pair registration report", "", *facts, *_figure_lines(figs)]))
+    return Report(index, [p for _, p in figs])
+
+
+# ---------------------------------------------------------------- a register-plot / tie-to-als folder
+
+
+def _load_graph(path: Path):
+    """graph.json as register-plot wrote it (plotmosaic.graph.posegraph's node-link form)."""
+    from plotmosaic.graph.posegraph import graph_from_json
+
+    try:
+        return graph_from_json(json.loads(path.read_text()))
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, nx.NetworkXError) as exc:
+        raise InputError(f"{path}: not a register-plot graph.json ({type(exc).__name__}: {exc}); was it written by another version?") from None
+
+
+def _scan_table(directory: Path, manifest_path: str | Path | None):
+    """{scan id: (path, kind, plot)} from the manifest if given, else from graph.json's nodes."""
+    if manifest_path is not None:
+        from plotmosaic.manifest import load_manifest
+
+        m = load_manifest(manifest_path)
+        return {s.id: (m.resolve(s.path), s.kind.value, m.plot_of(s.id).id) for s in m.scans}, m
+    graph = directory / "graph.json"
+    if not graph.is_file():
+        raise InputError(f"{directory}: no graph.json recording the scans' files; pass --manifest")
+    G = _load_graph(graph)
+    table = {}
+    for n, attrs in G.nodes(data=True):
+        if "path" not in attrs and attrs.get("kind") == "als":
+            continue  # tie-to-als's ALS node: the frame, not a scan
+        if "path" not in attrs:
+            raise InputError(f"{graph}: node {n!r} has no 'path'; pass --manifest")
+        table[n] = (Path(attrs["path"]), attrs.get("kind", "tls"), attrs.get("plot"))
+    return table, None
+
+
+def report_dir(directory: str | Path, out: str | Path | None = None, manifest: str | Path | None = None,
+               points: int = 40_000, seed: int = 0, levels: bool = True) -> Report:
+    from plotmosaic.poses import load_poses
+
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise InputError(f"{directory}: not a folder")
+    out = Path(out) if out else directory / "report"
+    poses = load_poses(directory / "poses.json")
+    table, _ = _scan_table(directory, manifest)
+    G = _load_graph(directory / "graph.json") if (directory / "graph.json").is_file() else None
+    for sid, (path, _, _) in table.items():
+        if not Path(path).is_file():
+            raise InputError(f"{directory}: scan {sid!r}: file not found: {path}")
+    plots: dict[str, list[str]] = {}
+    for sid, (_, _, plot) in table.items():
+        plots.setdefault(str(poses.scans[sid].plot if sid in poses.scans and poses.scans[sid].plot else plot), []).append(sid)
+    rng = np.random.default_rng(seed)
+    lines = ["# Registration report", "", f"- folder: `{directory}`", f"- frame: {poses.frame}" + (" (CRS)" if poses.crs else ""), ""]
+    if (directory / "report.md").is_file():
+        rel = os.path.relpath(directory / "report.md", out)
+        lines += [f"- the registration's own tables: [report.md]({rel})", ""]
+    all_figs: list[Path] = []
+    for plot, ids in plots.items():
+        raw = {sid: subsample(_read(table[sid][0]), points, rng) for sid in ids}
+        placed = {sid: apply_transform(poses.scans[sid].transform, xyz) for sid, xyz in raw.items() if sid in poses.scans}
+        unplaced = [sid for sid in ids if sid not in poses.scans]
+        figs = [(f"Plot {plot}, before: each scan in its own file coordinates", graph_report.plot_scans(out / f"{plot}_before.png", raw, f"plot {plot}: before (file coordinates)", origin_of(raw)))]
+        if placed:
+            origin = origin_of(placed)
+            figs.append((f"Plot {plot}, after: scans placed by poses.json", graph_report.plot_scans(out / f"{plot}_after.png", placed, f"plot {plot}: after ({poses.frame} frame)", origin)))
+            figs.append((f"Plot {plot}, after, a 2 m slice", plot_slice(out / f"{plot}_slice.png", placed, f"plot {plot}: after", origin=origin)))
+        if G is not None:
+            sub = G.subgraph([s for s in ids if s in G])
+            T = {sid: poses.scans[sid].transform for sid in ids if sid in poses.scans}
+            figs.append((f"Plot {plot}, pose graph (edge colour = residual after optimisation)", graph_report.plot_graph(out / f"{plot}_graph.png", sub, T, f"plot {plot}: pose graph", origin_of({k: v[None, :3, 3] for k, v in T.items()}) if T else None)))
+        if levels:
+            ref = ids[0]
+            path, kind, _ = table[ref]
+            lv = _levels({f"{ref} ({kind})": (_read(path), kind)}, seed)
+            figs.append((f"Plot {plot}, structural-complexity levels of {ref}", plot_levels(out / f"{plot}_levels.png", lv, f"{ref}: structural-complexity levels", seed=seed)))
+        lines += [f"## Plot {plot}", "", f"Scans: {', '.join(ids)}." + (f" Not placed: **{', '.join(unplaced)}**." if unplaced else ""), ""]
+        if G is not None:
+            lines += graph_report.edge_table(G.subgraph(ids)) + [""]
+        lines += _figure_lines(figs)
+        all_figs += [p for _, p in figs]
+    index = write_text_atomic(out / "index.md", "\n".join(lines))
+    return Report(index, all_figs)

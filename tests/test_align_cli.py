@@ -1,0 +1,85 @@
+"""`plotmosaic align`: RESULT.json contract, exit 3 on a pair that cannot be registered, exit 2 on bad input."""
+
+from __future__ import annotations
+
+import json
+
+import laspy
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+
+from plotmosaic.cli import app
+from plotmosaic.io.las import PointCloud, read_cloud, write_cloud
+from plotmosaic.poses import load_poses
+
+runner = CliRunner()
+
+
+def invoke(*args):
+    result = runner.invoke(app, ["align", *map(str, args)])
+    assert result.exception is None or isinstance(result.exception, SystemExit), result.exception
+    return result
+
+
+def one_line_error(result, code):
+    assert result.exit_code == code, result.output
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.output
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def pair(small_sim, tmp_path_factory):
+    truth = load_poses(small_sim.ground_truth_path)
+    T_true = np.linalg.inv(truth.transform("P1-S0")) @ truth.transform("P1-S1")
+    P = np.eye(4)
+    P[:3, :3] = Rotation.from_euler("xyz", [4.0, -3.0, 6.0], degrees=True).as_matrix()
+    P[:3, 3] = [1.0, -1.5, 0.5]
+    init = tmp_path_factory.mktemp("init") / "init.json"
+    init.write_text(json.dumps({"transform": (T_true @ P).tolist()}))
+    return small_sim.scan_paths["P1-S1"], small_sim.scan_paths["P1-S0"], T_true, init
+
+
+def test_align_writes_result_and_levels(pair, tmp_path):
+    src, tgt, T_true, init = pair
+    out = tmp_path / "result.json"
+    res = invoke(src, tgt, "--init", init, "--no-coarse", "--out", out, "--save-levels", tmp_path / "levels")
+    assert res.exit_code == 0, res.output
+    assert "fitness" in res.output and "rotation" in res.output
+    data = json.loads(out.read_text())
+    for key in ("transform", "fitness", "inlier_rmse", "overlap", "information", "levels", "seconds", "method", "version"):
+        assert key in data
+    T = np.asarray(data["transform"])
+    D = np.linalg.inv(T_true) @ T
+    assert np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))) < 0.1
+    assert np.linalg.norm(D[:3, 3]) < 0.03
+    assert np.asarray(data["information"]).shape == (6, 6)
+    assert len(data["levels"]["source"]) == 3 and len(data["levels"]["target"]) == 3
+    for row in data["levels"]["source"]:
+        assert {"size", "kappa", "complexity", "matched"} <= set(row)
+    lv = laspy.read(tmp_path / "levels" / "source_levels.laz")
+    assert set(np.unique(lv["level"])) == {0, 1, 2}
+    assert (tmp_path / "levels" / "levels.png").stat().st_size > 10_000
+    # a previous RESULT.json is a valid --init
+    again = invoke(src, tgt, "--init", out, "--no-coarse")
+    assert again.exit_code == 0, again.output
+
+
+def test_non_overlapping_pair_exits_3(pair, tmp_path):
+    src, tgt, _, _ = pair
+    cloud = read_cloud(tgt, attributes=False)
+    far = write_cloud(tmp_path / "far.laz", PointCloud(cloud.xyz + [400.0, 0.0, 0.0]))
+    line = one_line_error(invoke(src, far, "--no-coarse"), 3)
+    assert "cannot be registered" in line and "fitness" in line and "overlap" in line
+
+
+def test_bad_input_exits_2(pair, tmp_path):
+    src, tgt, _, _ = pair
+    assert "nope.laz" in one_line_error(invoke(tmp_path / "nope.laz", tgt), 2)
+    assert "--source-kind" in one_line_error(invoke(src, tgt, "--source-kind", "sonar"), 2)
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"transform": [[1, 0], [0, 1]]}))
+    assert "bad.json" in one_line_error(invoke(src, tgt, "--init", bad), 2)
+    assert "--levels-target" in one_line_error(invoke(src, tgt, "--levels-target", "0"), 2)

@@ -1,0 +1,88 @@
+"""Candidate pairs, cache keys and the pair executor's bookkeeping (no registration involved)."""
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from plotmosaic.cli import app
+from plotmosaic.graph.cache import PairCache, file_hash, pair_key
+from plotmosaic.graph.executor import PairJob, run_pairs
+from plotmosaic.graph.pairs import candidate_pairs
+from plotmosaic.manifest import Plot, Scan
+
+
+def _plot(positions):
+    scans = [Scan(id=f"s{i}", path=f"s{i}.laz", approx_position=p) for i, p in enumerate(positions)]
+    return Plot(id="P", scans=scans)
+
+
+def test_pairs_all_without_positions_and_by_distance_with_them():
+    plot = _plot([None, None, None, None])
+    pairs = [(s.id, t.id) for s, t in candidate_pairs(plot, 10.0)]
+    assert pairs == [("s1", "s0"), ("s2", "s0"), ("s3", "s0"), ("s2", "s1"), ("s3", "s1"), ("s3", "s2")]
+    plot = _plot([(0, 0, 0), (8, 0, 0), (30, 0, 0), (36, 0, 5)])
+    assert [(s.id, t.id) for s, t in candidate_pairs(plot, 10.0)] == [("s1", "s0"), ("s3", "s2")]
+    assert len(candidate_pairs(plot, None)) == 6
+
+
+def test_cache_key_follows_content_and_settings(tmp_path):
+    a, b = tmp_path / "a.laz", tmp_path / "b.laz"
+    a.write_bytes(b"x" * 3_000_000)
+    b.write_bytes(b"y" * 10)
+    key = pair_key(a, b, "tls", "tls", 3, 3, '{"voxel": 0.05}', 0)
+    assert key == pair_key(a, b, "tls", "tls", 3, 3, '{"voxel": 0.05}', 0)
+    assert key != pair_key(b, a, "tls", "tls", 3, 3, '{"voxel": 0.05}', 0)
+    assert key != pair_key(a, b, "tls", "tls", 3, 3, '{"voxel": 0.1}', 0)
+    assert key != pair_key(a, b, "tls", "tls", 3, 3, '{"voxel": 0.05}', 1)
+    assert key != pair_key(a, b, "tls", "als", 3, 2, '{"voxel": 0.05}', 0)
+    before = file_hash(b)
+    b.write_bytes(b"z" * 11)  # new content (and size): new hash, new key
+    assert file_hash(b) != before and pair_key(a, b, "tls", "tls", 3, 3, '{"voxel": 0.05}', 0) != key
+    cache = PairCache(tmp_path / "pairs")
+    assert cache.get(key) is None
+    cache.put(key, {"status": "ok", "transform": np.eye(4).tolist()})
+    (tmp_path / "pairs" / "broken.json").write_text('{"status": "o')  # e.g. a file cut short by hand
+    assert cache.get(key)["status"] == "ok" and cache.get("broken") is None and cache.writes == 1
+
+
+def test_unreadable_pair_becomes_failed_record_not_crash(tmp_path):
+    bad = tmp_path / "bad.laz"
+    bad.write_bytes(b"not a laz file")
+    job = PairJob("k", "s1", "s0", str(bad), str(bad), "tls", "tls", 3, 3, "{}", 0)
+    (record,) = run_pairs([job], n_jobs=1, progress=False)
+    assert record["status"] == "failed" and "bad.laz" in record["error"] and record["cacheable"] is False
+
+
+runner = CliRunner()
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--executor", "spark"], "--executor"),
+    (["--jobs", "0"], "--jobs"),
+    (["--scheduler", "tcp://x:1"], "--scheduler"),
+])
+def test_register_plot_bad_options_one_line(tmp_path, args, needle):
+    manifest = tmp_path / "m.toml"
+    manifest.write_text('[[scans]]\nid = "a"\npath = "a.laz"\n')
+    result = runner.invoke(app, ["register-plot", str(manifest), "--out", str(tmp_path / "o"), *args])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1 and needle in lines[0], result.output
+
+
+def test_register_plot_missing_scan_file_one_line(tmp_path):
+    manifest = tmp_path / "m.toml"
+    manifest.write_text('[[scans]]\nid = "a"\npath = "a.laz"\n')
+    result = runner.invoke(app, ["register-plot", str(manifest), "--out", str(tmp_path / "o")])
+    assert result.exit_code == 2 and "a.laz" in result.output and "Traceback" not in result.output
+
+
+def test_tie_to_als_needs_als_tile(tmp_path):
+    from plotmosaic.io.las import PointCloud, write_cloud
+    from plotmosaic.poses import Poses, ScanPose
+
+    write_cloud(tmp_path / "a.laz", PointCloud(np.random.default_rng(0).normal(size=(100, 3))))
+    manifest = tmp_path / "m.toml"
+    manifest.write_text('[[scans]]\nid = "a"\npath = "a.laz"\n')
+    Poses({"a": ScanPose(np.eye(4), "plot")}).save(tmp_path / "poses.json")
+    result = runner.invoke(app, ["tie-to-als", str(manifest), "--poses", str(tmp_path / "poses.json"), "--out", str(tmp_path / "g")])
+    assert result.exit_code == 2 and "als" in result.output.lower() and "Traceback" not in result.output

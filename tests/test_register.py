@@ -1,0 +1,143 @@
+"""register-plot and tie-to-als end to end on the `small` simulated plot.
+
+To keep the suite short the plot is cut to three neighbouring scans (S0 centre, S2 and S3 on the
+west side: three pairs). One run is interrupted after its first pair, resumed, and re-run; the
+same cache then serves the checks on poses, the outputs, the Dask executor and tie-to-als.
+"""
+
+import json
+
+import numpy as np
+import pytest
+from pyproj import CRS
+
+from plotmosaic.graph.cache import PairCache
+from plotmosaic.graph.pipeline import RegisterConfig, plan_jobs, register_plot
+from plotmosaic.graph.posegraph import inverse, pose_error
+from plotmosaic.manifest import dump_manifest, load_manifest
+from plotmosaic.poses import load_poses
+
+pytestmark = pytest.mark.slow
+SUBSET = ["P1-S0", "P1-S2", "P1-S3"]
+
+
+def subset_manifest(sim, scan_ids, folder):
+    """The simulator's manifest with only some scans, paths made absolute."""
+    m = load_manifest(sim.manifest_path)
+    plot = m.plots[0]
+    scans = [s.model_copy(update={"path": m.resolve(s.path).resolve()}) for s in plot.scans if s.id in scan_ids]
+    als = [t.model_copy(update={"path": m.resolve(t.path).resolve()}) for t in m.als]
+    sub = m.model_copy(update={"plots": [plot.model_copy(update={"scans": scans})], "als": als})
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "manifest.toml"
+    path.write_text(dump_manifest(sub))
+    return path
+
+
+class Interrupt:
+    """Ctrl-C after `after` pairs have finished (and been cached)."""
+
+    def __init__(self, after):
+        self.after, self.seen = after, 0
+
+    def __call__(self, record):
+        self.seen += 1
+        if self.seen >= self.after:
+            raise KeyboardInterrupt
+
+
+@pytest.fixture(scope="module")
+def runs(small_sim, tmp_path_factory):
+    root = tmp_path_factory.mktemp("register")
+    manifest = subset_manifest(small_sim, SUBSET, root)
+    out = root / "out"
+    with pytest.raises(KeyboardInterrupt):
+        register_plot(manifest, out, jobs=1, progress=False, on_result=Interrupt(1))
+    after_crash = PairCache(out / "pairs").keys()
+    resumed = register_plot(manifest, out, jobs=1, progress=False)
+    mtimes = {p.name: p.stat().st_mtime_ns for p in (out / "pairs").glob("*.json")}
+    again = register_plot(manifest, out, jobs=1, progress=False)
+    return {"manifest": manifest, "out": out, "after_crash": after_crash, "resumed": resumed, "again": again,
+            "mtimes": mtimes, "sim": small_sim}
+
+
+def test_interrupted_run_resumes_without_redoing_pairs(runs):
+    assert len(runs["after_crash"]) == 1  # the pair finished before Ctrl-C was kept, nothing half-written
+    assert runs["resumed"].pairs == 3 and runs["resumed"].computed == 2
+    assert runs["again"].computed == 0  # a full re-run registers nothing
+    assert {p.name: p.stat().st_mtime_ns for p in (runs["out"] / "pairs").glob("*.json")} == runs["mtimes"]
+    a, b = runs["resumed"].poses, runs["again"].poses
+    for sid in a.scans:
+        assert np.array_equal(a.transform(sid), b.transform(sid))
+
+
+def test_poses_match_ground_truth(runs):
+    truth = load_poses(runs["sim"].ground_truth_path)
+    poses = load_poses(runs["out"] / "poses.json")
+    assert poses.frame == "plot" and set(poses.scans) == set(SUBSET), runs["again"].unplaced
+    ref = runs["again"].plots[0].reference
+    assert np.allclose(poses.transform(ref), np.eye(4))
+    for sid in SUBSET:
+        expected = inverse(truth.transform(ref)) @ truth.transform(sid)
+        rot, trans = pose_error(poses.transform(sid), expected)
+        assert rot < 0.1 and trans < 0.02, (sid, rot, trans)
+        sigma = poses.scans[sid].sigma
+        assert sigma is not None and len(sigma) == 6 and np.all(sigma >= 0)
+
+
+def test_outputs_written(runs):
+    out = runs["out"]
+    graph = json.loads((out / "graph.json").read_text())
+    assert {n["id"] for n in graph["nodes"]} == set(SUBSET)
+    assert len(graph["edges"]) + len(graph["graph"]["failed"]) == 3
+    for e in graph["edges"]:
+        assert np.asarray(e["transform"]).shape == (4, 4) and np.asarray(e["information"]).shape == (6, 6)
+        assert {"fitness", "inlier_rmse", "overlap", "confidence", "residual_before", "residual_after"} <= set(e)
+    report = (out / "report.md").read_text()
+    assert "| source | target |" in report and "P1-S3" in report
+    for png in ("P1_scans.png", "P1_graph.png"):
+        assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_dask_executor_gives_the_same_edge(runs, tmp_path):
+    from dask.distributed import LocalCluster
+
+    manifest = subset_manifest(runs["sim"], ["P1-S0", "P1-S3"], tmp_path)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+        result = register_plot(manifest, tmp_path / "out", executor="dask", scheduler=cluster.scheduler_address,
+                               progress=False)
+    assert result.computed == 1
+    (job,) = plan_jobs(load_manifest(manifest), RegisterConfig(), 0)
+    local = PairCache(runs["out"] / "pairs").get(job.key)  # same files, settings and seed as the local run
+    remote = PairCache(tmp_path / "out" / "pairs").get(job.key)
+    assert local is not None and remote is not None and local["status"] == remote["status"]
+    if local["status"] == "ok":
+        assert np.allclose(local["transform"], remote["transform"], atol=1e-6)
+        assert local["fitness"] == pytest.approx(remote["fitness"], abs=1e-6)
+
+
+def test_tie_to_als_georeferences_every_scan(runs, tmp_path):
+    from plotmosaic.graph.anchors import tie_to_als
+
+    result = tie_to_als(runs["manifest"], runs["out"] / "poses.json", tmp_path / "geo", progress=False)
+    truth = load_poses(runs["sim"].ground_truth_path)
+    poses = load_poses(tmp_path / "geo" / "poses.json")
+    assert poses.frame == "crs" and CRS.from_user_input(poses.crs).to_epsg() == 26912
+    assert set(poses.scans) == set(SUBSET)
+    for sid in SUBSET:
+        rot, trans = pose_error(poses.transform(sid), truth.transform(sid))
+        assert rot < 0.2 and trans < 0.05, (sid, rot, trans)
+    (anchor,) = result.anchors
+    assert anchor.status == "ok" and anchor.fitness > 0.2 and anchor.residual is not None
+    assert "Anchors" in (tmp_path / "geo" / "report.md").read_text()
+
+
+def test_cli_rerun_uses_the_cache(runs):
+    from typer.testing import CliRunner
+
+    from plotmosaic.cli import app
+
+    result = CliRunner().invoke(app, ["register-plot", str(runs["manifest"]), "--out", str(runs["out"]), "--jobs", "1"])
+    assert result.exit_code == 0, result.output
+    assert "3 pairs" in result.output.replace("pairs: 3", "3 pairs") and "0 registered now" in result.output
+    assert "P1-S3" in result.output  # the per-scan table
