@@ -61,7 +61,19 @@ class Poses:
         return write_text_atomic(path, json.dumps(self.to_dict(), indent=1))
 
 
-def _matrix(value, where: str) -> np.ndarray:
+def read_json(path: str | Path, what: str = "JSON file"):
+    """Parsed JSON of a file the user named; one-line errors for a missing or broken file."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: {what} not found")
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: not valid JSON ({getattr(exc, 'msg', exc)})") from None
+
+
+def rigid_matrix(value, where: str) -> np.ndarray:
+    """A finite rigid 4x4 transform from JSON data, or a one-line error naming `where`."""
     try:
         T = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
@@ -76,12 +88,7 @@ def _matrix(value, where: str) -> np.ndarray:
 
 def load_poses(path: str | Path) -> Poses:
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: poses file not found")
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: not valid JSON ({exc.msg if hasattr(exc, 'msg') else exc})") from None
+    data = read_json(path, "poses file")
     if not isinstance(data, dict) or not isinstance(data.get("scans"), dict):
         raise InputError(f"{path}: missing the 'scans' object")
     scans = {}
@@ -91,6 +98,6 @@ def load_poses(path: str | Path) -> Poses:
             raise InputError(f"{where}: missing field 'transform'")
         sigma = entry.get("sigma")
         extra = {k: v for k, v in entry.items() if k not in ("transform", "plot", "sigma")}
-        scans[sid] = ScanPose(_matrix(entry["transform"], where), entry.get("plot"), None if sigma is None else np.asarray(sigma, float), extra)
+        scans[sid] = ScanPose(rigid_matrix(entry["transform"], where), entry.get("plot"), None if sigma is None else np.asarray(sigma, float), extra)
     extra = {k: v for k, v in data.items() if k not in ("frame", "crs", "scans")}
     return Poses(scans, data.get("frame", "plot"), data.get("crs"), extra)

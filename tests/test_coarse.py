@@ -4,7 +4,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
-import pytest
 from scipy.spatial.transform import Rotation
 
 from plotmosaic.align.coarse import CoarseConfig, coarse_align

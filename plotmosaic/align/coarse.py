@@ -23,7 +23,7 @@ from scipy import fft
 from scipy.spatial import cKDTree
 
 from plotmosaic.align.levelling import levelling_rotation
-from plotmosaic.align.rasters import CHANNELS, MaskedNCC, PointFeatures, Raster, point_features, rasterise
+from plotmosaic.align.rasters import CHANNELS, MaskedNCC, PointFeatures, point_features, rasterise
 
 AIRBORNE = {"als", "uls"}
 

@@ -8,7 +8,6 @@ inv(pose[target]) @ pose[source]. ALS tiles have no pose: they are the common (C
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +16,7 @@ from plotmosaic.bench.run import BenchPair
 from plotmosaic.errors import InputError
 from plotmosaic.io.las import PointCloud, read_cloud
 from plotmosaic.manifest import Manifest
-from plotmosaic.poses import Poses, load_poses
+from plotmosaic.poses import Poses, load_poses, read_json, rigid_matrix
 
 PAIR_SETS = ("tls-tls", "tls-als", "prepost", "all")
 ALS_MARGIN = 20.0  # metres of ALS kept around a ground scan (the paper crops ALS to 50 x 50 m)
@@ -34,12 +33,7 @@ def load_truth(gt: str, source_path: Path, target_path: Path, source_id: str | N
     if gt.strip().lower() == "identity":
         return np.eye(4)
     path = Path(gt)
-    if not path.is_file():
-        raise InputError(f"--gt {gt}: file not found (give a JSON file or 'identity')")
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"--gt {path}: not valid JSON ({exc})") from None
+    data = read_json(path, "--gt file (give a JSON file or 'identity')")
     if isinstance(data, dict) and "scans" in data:
         poses = load_poses(path)
         sid, tid = source_id or source_path.stem, target_id or target_path.stem
@@ -48,10 +42,7 @@ def load_truth(gt: str, source_path: Path, target_path: Path, source_id: str | N
             return T_src  # a target with no pose in a CRS-frame file is in that frame (an ALS tile)
         return np.linalg.inv(_pose(poses, tid, path)) @ T_src
     if isinstance(data, dict) and "transform" in data:
-        T = np.asarray(data["transform"], dtype=float)
-        if T.shape != (4, 4) or not np.isfinite(T).all():
-            raise InputError(f"--gt {path}: 'transform' must be a finite 4x4 matrix")
-        return T
+        return rigid_matrix(data["transform"], f"--gt {path}")
     raise InputError(f"--gt {path}: neither a poses file ('scans') nor a JSON with a 'transform'")
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -10,28 +9,14 @@ import typer
 from rich.console import Console
 
 from plotmosaic.commands.common import handle_errors
+from plotmosaic.poses import read_json, rigid_matrix
 from plotmosaic.errors import InputError
 
 
 def load_init(path: Path) -> np.ndarray:
     """A 4x4 from a JSON file: {"transform": [[...]]} (e.g. a previous RESULT.json) or a bare 4x4 list."""
-    try:
-        data = json.loads(Path(path).read_text())
-    except FileNotFoundError:
-        raise InputError(f"{path}: init file not found") from None
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{path}: not a JSON file ({exc})") from None
-    value = data.get("transform") if isinstance(data, dict) else data
-    try:
-        T = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InputError(f"{path}: 'transform' is not a 4x4 matrix of numbers") from None
-    if T.shape != (4, 4) or not np.isfinite(T).all():
-        raise InputError(f"{path}: expected a finite 4x4 matrix (or a JSON object with a 'transform' key)")
-    R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or not np.allclose(T[3], [0, 0, 0, 1]):
-        raise InputError(f"{path}: the 4x4 matrix is not a rigid transform")
-    return T
+    data = read_json(path, "init file")
+    return rigid_matrix(data.get("transform") if isinstance(data, dict) else data, str(path))
 
 
 def summary_lines(result) -> list[str]:

@@ -54,5 +54,6 @@ def to_local_transform(T_global: np.ndarray, source: Frame, target: Frame) -> np
 
 def apply_transform(T: np.ndarray, xyz: np.ndarray) -> np.ndarray:
     T = np.asarray(T, dtype=np.float64)
+    xyz = np.asarray(xyz, dtype=np.float64)
     # einsum, not `xyz @ R.T`: the BLAS path for (N,3)x(3,3) is many times slower here
-    return np.einsum("ij,kj->ki", T[:3, :3], np.asarray(xyz, dtype=np.float64)) + T[:3, 3]
+    return np.einsum("ij,...j->...i", T[:3, :3], xyz) + T[:3, 3]
