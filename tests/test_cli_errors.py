@@ -6,27 +6,13 @@ import sys
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
+from helpers import assert_one_line_error, invoke
 
-from plotmosaic.cli import app
 from plotmosaic.io import PointCloud, write_cloud
-
-runner = CliRunner()
 
 
 def run_info(*args):
-    result = runner.invoke(app, ["info", *map(str, args)])
-    assert result.exception is None or isinstance(result.exception, SystemExit), result.exception
-    return result
-
-
-def assert_one_line_error(result, *needles):
-    assert result.exit_code == 2, result.output
-    lines = [line for line in result.output.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), result.output
-    assert "Traceback" not in result.output
-    for needle in needles:
-        assert needle in lines[0]
+    return invoke("info", *args)
 
 
 @pytest.fixture

@@ -6,20 +6,25 @@ from pathlib import Path
 import laspy
 import numpy as np
 import pytest
+from helpers import assert_one_line_error, invoke
 from pyproj import CRS
-from typer.testing import CliRunner
 
 import plotmosaic.merge as merge_module
-from plotmosaic.cli import app
 from plotmosaic.errors import InputError
 from plotmosaic.io import PointCloud, write_cloud
 from plotmosaic.io.frame import apply_transform
 from plotmosaic.io.las import read_cloud
-from plotmosaic.manifest import AlsTile, Manifest, Plot, Scan, dump_manifest, load_manifest
+from plotmosaic.manifest import (
+    AlsTile,
+    Manifest,
+    Plot,
+    Scan,
+    dump_manifest,
+    load_manifest,
+)
 from plotmosaic.merge import MergeConfig, merge_scans, read_source_table
 from plotmosaic.poses import Poses, ScanPose, load_poses
 
-runner = CliRunner()
 N = 20_000
 UTM = "EPSG:32612"
 ATTRS = ("intensity", "return_number", "number_of_returns", "classification", "gps_time", "red", "green", "blue", "label")
@@ -96,17 +101,10 @@ def _expected(site, ids=("a", "b", "c")):
 
 
 def _run(*args):
-    result = runner.invoke(app, ["merge", *map(str, args)])
-    assert result.exception is None or isinstance(result.exception, SystemExit), result.exception
-    return result
+    return invoke("merge", *args)
 
 
-def _one_line_error(result, *needles):
-    assert result.exit_code == 2, result.output
-    lines = [line for line in result.output.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), result.output
-    for needle in needles:
-        assert needle in lines[0], lines[0]
+_one_line_error = assert_one_line_error
 
 
 def test_merge_equals_posed_inputs(site, tmp_path):
