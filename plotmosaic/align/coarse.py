@@ -101,6 +101,16 @@ def _level(cloud, config: CoarseConfig, rng: np.random.Generator) -> _Levelled:
     return _Levelled(_as_pcd(pts_l, nrm_l), R, feats, info)
 
 
+def _levelled(cloud, config: CoarseConfig, seed: int) -> _Levelled:
+    """`_level`, remembered on the cloud object: in a plot each scan takes part in several pairs."""
+    key = (config.model_dump_json(), seed)
+    memo = cloud.__dict__.setdefault("_coarse_levelled", {})
+    if key not in memo:
+        memo.clear()  # one entry is enough and keeps memory bounded
+        memo[key] = _level(cloud, config, np.random.default_rng(seed))
+    return memo[key]
+
+
 def _weights(source_kind: str, target_kind: str) -> dict[str, float]:
     if source_kind in AIRBORNE or target_kind in AIRBORNE:
         return {"stems": 0.25, "canopy": 1.0, "terrain": 1.0}
@@ -236,7 +246,7 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
     config = config or CoarseConfig()
     start = time.perf_counter()
     rng = np.random.default_rng(seed)
-    src, tgt = _level(source, config, rng), _level(target, config, rng)
+    src, tgt = _levelled(source, config, seed), _levelled(target, config, seed + 1)
     timing = {"levelling": time.perf_counter() - start}
     weights = _weights(source.kind, target.kind)
     hyps = _search(src, tgt, weights, config)
