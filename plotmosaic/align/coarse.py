@@ -45,7 +45,7 @@ class CoarseConfig(BaseModel):
     verify_voxel: float = 0.3
     verify_points: int = Field(10_000, description="source points used to verify hypotheses")
     verify_iterations: int = 10
-    refine_top: int = Field(2, ge=1, description="screened hypotheses refined fully")
+    refine_top: int = Field(3, ge=1, description="screened hypotheses refined fully")
     verify_distance_ground: float = Field(0.2, description="inlier distance (m) between ground-based scans")
     verify_distance_airborne: float = Field(0.5, description="inlier distance (m) when one cloud is airborne (sparse)")
 
@@ -270,18 +270,19 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
     L_s, L_t_inv = _homogeneous(src.R), _homogeneous(tgt.R.T)
     results = []
     for rank, (pre, A, h) in enumerate(screened):
-        if rank < config.refine_top:
+        refined = rank < config.refine_top
+        score = None
+        if refined:
             A = _refine(src_v, tgt_v, A, (3 * d, 1.5 * d), config.verify_iterations)
             score = _score(structure, tgt_v, A, d)
-        else:
-            score = pre * 0.5  # unrefined: ranks below every refined hypothesis of similar quality
-        results.append({"T": L_t_inv @ A @ L_s, "score": score, "screen_score": pre, "raster_score": h["score"], "yaw_deg": float(np.degrees(h["yaw"])), "overlap": h["overlap"]})
+        results.append({"T": L_t_inv @ A @ L_s, "refined": refined, "score": score, "screen_score": pre, "raster_score": h["score"], "yaw_deg": float(np.degrees(h["yaw"])), "overlap": h["overlap"]})
     if not results:
-        identity = {"T": np.eye(4), "score": 0.0, "screen_score": 0.0, "raster_score": 0.0, "yaw_deg": 0.0, "overlap": 0.0}
+        identity = {"T": np.eye(4), "refined": True, "score": 0.0, "screen_score": 0.0, "raster_score": 0.0, "yaw_deg": 0.0, "overlap": 0.0}
         results.append(identity)
-    results.sort(key=lambda r: -r["score"])
+    results.sort(key=lambda r: (not r["refined"], -(r["score"] if r["refined"] else r["screen_score"])))
     best = results[0]
-    runner_up = next((r for r in results[1:] if _pose_distance(best["T"], r["T"])[0] > 1.0 or _pose_distance(best["T"], r["T"])[1] > 3.0), None)
+    # only refined hypotheses compete: an unrefined one may be the best pose not yet converged
+    runner_up = next((r for r in results[1:] if r["refined"] and (_pose_distance(best["T"], r["T"])[0] > 1.0 or _pose_distance(best["T"], r["T"])[1] > 3.0)), None)
     second = runner_up["score"] if runner_up else 0.0
     confidence = float(1.0 - second / best["score"]) if best["score"] > 0 else 0.0
     return CoarseResult(
