@@ -23,6 +23,7 @@ from scipy import fft
 from scipy.spatial import cKDTree
 
 from plotmosaic.align.levelling import levelling_rotation
+from plotmosaic.io.frame import pose_error
 from plotmosaic.align.rasters import CHANNELS, MaskedNCC, PointFeatures, point_features, rasterise
 
 AIRBORNE = {"als", "uls"}
@@ -229,10 +230,9 @@ def _subsample(pcd: o3d.geometry.PointCloud, n: int, rng: np.random.Generator) -
     return pcd.select_by_index(np.sort(rng.choice(len(pcd.points), n, replace=False)).tolist())
 
 
-def _pose_distance(A: np.ndarray, B: np.ndarray) -> tuple[float, float]:
-    D = np.linalg.inv(A) @ B
-    angle = np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1)))
-    return float(np.linalg.norm(A[:3, 3] - B[:3, 3])), float(angle)
+def _distinct(A: np.ndarray, B: np.ndarray) -> bool:
+    degrees, metres = pose_error(A, B)
+    return metres > 1.0 or degrees > 3.0
 
 
 def _homogeneous(R: np.ndarray) -> np.ndarray:
@@ -282,7 +282,7 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
     results.sort(key=lambda r: (not r["refined"], -(r["score"] if r["refined"] else r["screen_score"])))
     best = results[0]
     # only refined hypotheses compete: an unrefined one may be the best pose not yet converged
-    runner_up = next((r for r in results[1:] if r["refined"] and (_pose_distance(best["T"], r["T"])[0] > 1.0 or _pose_distance(best["T"], r["T"])[1] > 3.0)), None)
+    runner_up = next((r for r in results[1:] if r["refined"] and _distinct(best["T"], r["T"])), None)
     second = runner_up["score"] if runner_up else 0.0
     confidence = float(1.0 - second / best["score"]) if best["score"] > 0 else 0.0
     return CoarseResult(

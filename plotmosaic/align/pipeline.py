@@ -22,7 +22,7 @@ from plotmosaic.align.icp import evaluate, guarded_icp, information_matrix, run_
 from plotmosaic.align.prepare import PreparedCloud, prepare_cloud
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.io.atomic import write_text_atomic
-from plotmosaic.io.frame import to_global_transform, to_local_transform
+from plotmosaic.io.frame import rotation_deg, to_global_transform, to_local_transform
 from plotmosaic.io.las import PointCloud, read_cloud
 
 METHOD = "forestalign"
@@ -222,7 +222,7 @@ def register_prepared(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfi
         coarse=coarse, confidence=confidence,
         timings={"coarse": t_coarse - t0, "levels_icp": t_levels - t_coarse, "final_icp": t_final - t_levels,
                  "quality": t_end - t_final,
-                 "correction_deg": float(np.degrees(np.arccos(np.clip((np.trace(moved[:3, :3]) - 1) / 2, -1, 1)))),
+                 "correction_deg": rotation_deg(moved),
                  "correction_m": float(np.linalg.norm(moved[:3, 3]))},
         config=config.model_dump(),
     )

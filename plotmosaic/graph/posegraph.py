@@ -19,6 +19,7 @@ from typing import Literal
 import gtsam
 import networkx as nx
 import numpy as np
+from plotmosaic.io.frame import inverse, pose_error, rotation_deg  # noqa: F401  (re-exported)
 from pydantic import BaseModel
 
 
@@ -46,28 +47,6 @@ class PoseGraphConfig(BaseModel):
     outlier_chi2: float = 22.46  # 6 dof, p = 0.999
     max_drops: int = 50
     max_iterations: int = 100
-
-
-# --- small SE(3) helpers ---------------------------------------------------------------------------
-
-
-def inverse(T: np.ndarray) -> np.ndarray:
-    R, t = T[:3, :3], T[:3, 3]
-    out = np.eye(4)
-    out[:3, :3] = R.T
-    out[:3, 3] = -R.T @ t
-    return out
-
-
-def rotation_deg(T: np.ndarray) -> float:
-    c = (np.trace(T[:3, :3]) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
-
-
-def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
-    """(rotation deg, translation m) between two poses."""
-    D = inverse(T_true) @ T_est
-    return rotation_deg(D), float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
 
 
 def _pose3(T: np.ndarray) -> gtsam.Pose3:

@@ -57,3 +57,23 @@ def apply_transform(T: np.ndarray, xyz: np.ndarray) -> np.ndarray:
     xyz = np.asarray(xyz, dtype=np.float64)
     # einsum, not `xyz @ R.T`: the BLAS path for (N,3)x(3,3) is many times slower here
     return np.einsum("ij,...j->...i", T[:3, :3], xyz) + T[:3, 3]
+
+
+def inverse(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform (exact, no general matrix inverse)."""
+    R, t = T[:3, :3], T[:3, 3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ t
+    return out
+
+
+def rotation_deg(T: np.ndarray) -> float:
+    """Angle (degrees) of the rotation part of T."""
+    c = (np.trace(T[:3, :3]) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """(rotation deg, translation m) between two poses."""
+    return rotation_deg(inverse(T_true) @ T_est), float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
