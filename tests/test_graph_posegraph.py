@@ -158,3 +158,22 @@ def test_unconfirmed_low_confidence_bridge_is_dropped():
     for name, T in truth.items():
         r, t = pose_error(sol.poses[name], T)
         assert r < 0.01 and t < 0.001
+
+
+def test_many_unsure_wrong_corner_edges_do_not_outvote_the_right_ones():
+    # the region-preset failure: corner-to-corner pairs 30 m apart came back wrong with low coarse
+    # confidence (4 of a plot's 10 edges); they must be dropped without taking the good edges along
+    truth, nodes, edges = synthetic_plot(n_scans=5, seed=11)
+    rng = np.random.default_rng(3)
+    bad = {("s2", "s1"), ("s3", "s1"), ("s4", "s2"), ("s4", "s3")}
+    for e in edges:
+        e["confidence"] = 0.7
+        if (e["source"], e["target"]) in bad:
+            e["transform"] = inverse(truth[e["target"]]) @ _random_pose(rng)
+            e["confidence"] = 0.03
+    sol = optimise(build_graph(nodes, edges), "s0")
+    assert sorted((d["source"], d["target"]) for d in sol.dropped) == sorted(bad)
+    assert sol.unplaced == []
+    for name, T in truth.items():
+        r, t = pose_error(sol.poses[name], T)
+        assert r < 0.01 and t < 0.002  # six edges left, 0.5 mm noise each

@@ -294,8 +294,17 @@ def optimise(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None)
     """
     config = config or PoseGraphConfig()
     dropped: list[dict] = []
+    # Low-confidence edges stay out of the triangle vote: otherwise a plot with several wrong
+    # (and unsure) pairs outvotes its correct edges. They come back only if a triangle of trusted
+    # edges confirms them.
+    unsure = [(u, v) for u, v, e in kept(G).edges(data=True)
+              if e.get("confidence") is not None and e["confidence"] < config.min_confidence]
+    for u, v in unsure:
+        G.edges[u, v]["dropped"] = True
     for u, v in cycle_outliers(G, config):
         _drop(G, u, v, "cycle", dropped)
+    for u, v in unsure:
+        G.edges[u, v]["dropped"] = False
     for u, v in unverified(G, config):
         _drop(G, u, v, "unverified", dropped)
     initial = spanning_tree_poses(G, reference)
