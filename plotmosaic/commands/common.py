@@ -21,7 +21,3 @@ def handle_errors(func: Callable) -> Callable:
 
     return wrapper
 
-
-def not_implemented(name: str) -> None:
-    typer.echo(f"error: plotmosaic {name}: not implemented yet", err=True)
-    raise typer.Exit(2)
