@@ -78,7 +78,7 @@ def trials(name, ps, pt, T_true, cfg, n, bounds, seed=0, max_deg=10.0, max_m=2.0
 
 def purity_rows(name, cloud, kind, k, mode, seed):
     p = prepare_cloud(cloud, kind, k, config(mode), seed)
-    labels = cloud.attrs["label"][cKDTree(p.frame.to_local(cloud.xyz)).query(p.points, workers=2)[1]]
+    labels = cloud.attrs["label"][cKDTree(p.frame.to_local(cloud.xyz)).query(p.level_points, workers=2)[1]]
     rows = level_purity(p.levels, labels, p.k)
     for r, st in zip(rows, p.level_stats):
         shares = ", ".join(f"{CLASSES.get(c, c)} {v:.2f}" for c, v in sorted(r["classes"].items(), key=lambda kv: -kv[1]))

@@ -123,7 +123,7 @@ def test_tls_levels_are_ground_stems_foliage(sim_pair, sim_prepared):
     """K=3 on TLS: level 0 mostly ground; stems+branches and foliage dominate the other two."""
     src, _, _ = sim_pair
     ps = sim_prepared[0]
-    labels = src.attrs["label"][cKDTree(ps.frame.to_local(src.xyz)).query(ps.points)[1]]
+    labels = src.attrs["label"][cKDTree(ps.frame.to_local(src.xyz)).query(ps.level_points)[1]]
     purity = level_purity(ps.levels, labels, 3)
     assert purity[0]["majority"] == 0 and purity[0]["purity"] > 0.9
     assert {purity[1]["majority"], purity[2]["majority"]} == {1, 2}

@@ -23,6 +23,7 @@ from scipy import fft
 from scipy.spatial import cKDTree
 
 from plotmosaic.align.levelling import levelling_rotation
+from plotmosaic.align.voxel import voxel_centroids
 from plotmosaic.io.frame import pose_error
 from plotmosaic.align.rasters import CHANNELS, MaskedNCC, PointFeatures, point_features, rasterise
 
@@ -38,7 +39,8 @@ class CoarseConfig(BaseModel):
     max_tilt_deg: float = Field(75.0, description="largest roll/pitch the levelling searches")
     cell: float = Field(1.0, gt=0, description="raster cell (m); grown for large extents")
     max_fft: int = Field(512, description="largest padded FFT side; the cell grows to respect it")
-    yaw_step_deg: float = Field(2.0, gt=0, le=10)
+    yaw_step_deg: float = Field(4.0, gt=0, le=10, description="heading step of the full-circle search")
+    refine_headings: int = Field(8, ge=0, description="best headings searched again at half a step either side")
     blur_cells: float = 1.0
     min_overlap: float = Field(0.08, description="least overlap, as a fraction of the smaller footprint")
     hypotheses: int = Field(8, ge=1, description="hypotheses refined and verified")
@@ -88,10 +90,10 @@ def _as_pcd(points: np.ndarray, normals: np.ndarray) -> o3d.geometry.PointCloud:
 def _level(cloud, config: CoarseConfig, rng: np.random.Generator) -> _Levelled:
     # own normals over a wider neighbourhood than ForestAlign's 0.25 m: the coarse stage must also
     # work on sparse clouds (far TLS ranges, ALS), where 0.25 m holds too few points for a plane
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(cloud.points, dtype=np.float64)))
-    pcd = pcd.voxel_down_sample(config.feature_voxel)
-    if len(pcd.points) > config.max_points:
-        pcd = pcd.select_by_index(np.sort(rng.choice(len(pcd.points), config.max_points, replace=False)).tolist())
+    pts = voxel_centroids(cloud.points, config.feature_voxel)
+    if len(pts) > config.max_points:
+        pts = pts[np.sort(rng.choice(len(pts), config.max_points, replace=False))]
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=config.normal_radius, max_nn=config.normal_neighbours))
     pts, nrm = np.asarray(pcd.points), np.asarray(pcd.normals)
     sample = nrm[rng.choice(len(nrm), min(len(nrm), 10_000), replace=False)]
@@ -144,8 +146,8 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
     min_cells = config.min_overlap * min(area_s, area_t)
 
     rel = src.feats.xy - centre
-    candidates = []
-    for yaw in np.radians(np.arange(0.0, 360.0, config.yaw_step_deg)):
+
+    def peaks(yaw: float) -> list[dict]:
         c, s_ = np.cos(yaw), np.sin(yaw)
         xy = np.empty_like(rel)
         xy[:, 0] = c * rel[:, 0] - s_ * rel[:, 1] + centre[0]
@@ -165,16 +167,32 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
         total = total / sum(weights.values())
         frac = overlap / max(min(area_s, area_t), 1.0)
         total = np.where(overlap >= min_cells, total * np.clip(frac, 0, 1) ** 0.25, -1.0)
+        found = []
         for _ in range(config.peaks_per_yaw):
             k = np.unravel_index(int(np.argmax(total)), total.shape)
             if total[k] <= 0:
                 break
             t_xy = ncc.shift_to_translation(k, source)
-            candidates.append({"score": float(total[k]), "yaw": float(yaw), "t_xy": t_xy, "overlap": float(min(frac[k], 1.0))})
+            found.append({"score": float(total[k]), "yaw": float(yaw), "t_xy": t_xy, "overlap": float(min(frac[k], 1.0))})
             r = max(1, int(round(3.0 / cell)))
             rows = np.arange(k[0] - r, k[0] + r + 1) % total.shape[0]
             cols = np.arange(k[1] - r, k[1] + r + 1) % total.shape[1]
             total[np.ix_(rows, cols)] = -1.0
+        return found
+
+    # coarse-to-fine in heading: the full circle at yaw_step_deg, then half steps either side of
+    # the best headings (a peak is several steps wide once the rasters are blurred)
+    step = np.radians(config.yaw_step_deg)
+    candidates = [c for yaw in np.arange(0.0, 2 * np.pi, step) for c in peaks(float(yaw))]
+    best_yaws: list[float] = []
+    for c in sorted(candidates, key=lambda c: -c["score"]):
+        if all(_angle_diff(c["yaw"], y) > 1.5 * step for y in best_yaws):
+            best_yaws.append(c["yaw"])
+        if len(best_yaws) >= config.refine_headings:
+            break
+    for yaw in best_yaws:
+        for d in (-0.5 * step, 0.5 * step):
+            candidates += peaks(float((yaw + d) % (2 * np.pi)))
     candidates.sort(key=lambda c: -c["score"])
     chosen: list[dict] = []
     for c in candidates:
@@ -209,19 +227,22 @@ def _hypothesis_transform(h: dict, src: _Levelled, tgt: _Levelled, ground_tree: 
     return A
 
 
-def _refine(src_pcd, tgt_pcd, T0: np.ndarray, distances: tuple[float, ...], iterations: int) -> np.ndarray:
-    """Quick robust point-to-plane ICP over shrinking correspondence distances."""
-    reg = o3d.pipelines.registration
-    T = T0
-    for d in distances:
-        est = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=d))
-        T = reg.registration_icp(src_pcd, tgt_pcd, d, T, est, reg.ICPConvergenceCriteria(max_iteration=iterations)).transformation
-    return np.asarray(T)
+def _refine(src_pts: np.ndarray, tgt: tuple, T0: np.ndarray, distances: tuple[float, ...], iterations: int) -> np.ndarray:
+    """Quick robust point-to-plane ICP over shrinking correspondence distances (Tukey width = distance)."""
+    from plotmosaic.align.config import IcpStage  # here: align.config imports this module
+    from plotmosaic.align.icp import point_to_plane_icp
+
+    points, normals, tree = tgt
+    stages = [IcpStage(max_distance=d, iterations=iterations) for d in distances]
+    return point_to_plane_icp(src_pts, points, normals, T0, stages, tree=tree, kernel_floor=0.0, kernel_ratio=1.0,
+                              tol=1e-4).T
 
 
-def _score(structure, tgt_pcd, T: np.ndarray, distance: float) -> float:
+def _score(structure: np.ndarray, tgt: tuple, T: np.ndarray, distance: float) -> float:
     """Share of non-flat source points with a target partner: flat ground matches anywhere, stems do not."""
-    return float(o3d.pipelines.registration.evaluate_registration(structure, tgt_pcd, distance, T).fitness)
+    from plotmosaic.align.icp import evaluate
+
+    return evaluate(structure, tgt[2], T, distance)[0]
 
 
 def _subsample(pcd: o3d.geometry.PointCloud, n: int, rng: np.random.Generator) -> o3d.geometry.PointCloud:
@@ -254,10 +275,11 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
 
     airborne = source.kind in AIRBORNE or target.kind in AIRBORNE
     d = config.verify_distance_airborne if airborne else config.verify_distance_ground
-    tgt_v = tgt.pcd.voxel_down_sample(config.verify_voxel)
-    src_v = _subsample(src.pcd.voxel_down_sample(config.verify_voxel), config.verify_points, rng)
-    nz = np.abs(np.asarray(src_v.normals)[:, 2])
-    structure = src_v.select_by_index(np.flatnonzero(nz < 0.8).tolist())
+    tgt_pcd = tgt.pcd.voxel_down_sample(config.verify_voxel)
+    tgt_v = (np.asarray(tgt_pcd.points), np.asarray(tgt_pcd.normals), cKDTree(np.asarray(tgt_pcd.points)))
+    src_pcd = _subsample(src.pcd.voxel_down_sample(config.verify_voxel), config.verify_points, rng)
+    src_v = np.asarray(src_pcd.points)
+    structure = src_v[np.abs(np.asarray(src_pcd.normals)[:, 2]) < 0.8]
     ground_xy = tgt.feats.xy[tgt.feats.ground]
     ground_tree = cKDTree(ground_xy) if len(ground_xy) >= 20 else None
 

@@ -45,6 +45,7 @@ class AlignConfig(BaseModel):
     # Level steps run on one point per `level_cell` cube: evens out the 1/r^2 density of TLS around
     # the scanner, which otherwise pulls the scanner positions together (and is faster).
     level_cell: float = 0.2
+    level_max_points: int = 250_000  # cap on the labelled sample (seeded): TLS scans of 8M points give ~650k cubes
     # Incremental ICP: for level step j (0 = least complex), a coarse-to-fine schedule of stages.
     level_schedule: list[list[IcpStage]] = [
         [IcpStage(max_distance=3.0, iterations=30), IcpStage(max_distance=1.0, iterations=30)],
@@ -53,11 +54,13 @@ class AlignConfig(BaseModel):
          IcpStage(max_distance=0.4, iterations=20)],
         [IcpStage(max_distance=0.4, iterations=30), IcpStage(max_distance=0.2, iterations=30)],
     ]
-    level_max_source_points: int = 60_000  # seeded subsample of the source per level step
-    min_eig_ratio: float = 0.02  # level steps move only along directions this well constrained (see icp.guarded_icp)
+    level_max_source_points: int = 20_000  # seeded subsample of the source per level step
+    min_eig_ratio: float = 0.02  # level steps move only along directions this well constrained (see icp.point_to_plane_icp)
+    level_tol: float = 1e-4  # a level stage ends when a step moves points < this (m); the final ICP refines
+    final_tol: float = 1e-5
     final_schedule: list[IcpStage] = [IcpStage(max_distance=0.25, iterations=30), IcpStage(max_distance=0.1, iterations=20)]
-    final_max_source_points: int = 150_000  # random subsample of the source for the last ICP (target kept whole)
-    robust_kernel: float = 0.1  # Tukey k (m) on point-to-plane residuals; 0 = plain least squares
+    final_max_source_points: int = 150_000  # seeded sample of the source's delta grid for the last ICP (target kept whole)
+    robust_kernel: float = 0.1  # least Tukey width (m) of the final ICP (half the correspondence distance above it)
     relative_fitness: float = 1e-5
     relative_rmse: float = 1e-5
     quality_max_points: int = 200_000  # query points per direction for fitness / overlap

@@ -14,8 +14,8 @@ COLOURS = ["#8c6d31", "#2b8cbe", "#31a354", "#de2d26", "#756bb1"]  # level 0 (le
 
 
 def write_levels_laz(prepared: PreparedCloud, path: Path, crs=None) -> Path:
-    """The delta0 points in file coordinates with their level (0 = least complex)."""
-    cloud = PointCloud(prepared.frame.to_global(prepared.points), {"level": prepared.levels.astype(np.uint8)}, crs)
+    """The labelled points (one delta0 point per level cell) in file coordinates with their level (0 = least complex)."""
+    cloud = PointCloud(prepared.frame.to_global(prepared.level_points), {"level": prepared.levels.astype(np.uint8)}, crs)
     return write_cloud(path, cloud)
 
 
@@ -29,10 +29,10 @@ def plot_levels(clouds: dict[str, PreparedCloud], path: Path, max_points: int = 
     rng = np.random.default_rng(seed)
     fig, axes = plt.subplots(len(clouds), 2, figsize=(13, 5.2 * len(clouds)), squeeze=False)
     for row, (name, p) in enumerate(clouds.items()):
-        idx = np.arange(len(p.points))
+        idx = np.arange(len(p.level_points))
         if len(idx) > max_points:
             idx = np.sort(rng.choice(len(idx), max_points, replace=False))
-        xyz, lv = p.points[idx], p.levels[idx]
+        xyz, lv = p.level_points[idx], p.levels[idx]
         for col, (a, b, label) in enumerate(((0, 2, "side (x-z)"), (0, 1, "top (x-y)"))):
             ax = axes[row, col]
             for k, st in enumerate(p.level_stats):

@@ -1,39 +1,28 @@
-"""ICP stages (Open3D point-to-plane), quality figures and the information matrix."""
+"""Point-to-plane ICP (numpy Gauss-Newton on a scipy KD-tree), quality figures and the information matrix."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
-import open3d as o3d
+from scipy.spatial import cKDTree
 
 from plotmosaic.align.config import IcpStage
 
-reg = o3d.pipelines.registration
+
+def nearest(tree: cKDTree, points: np.ndarray, distance: float) -> tuple[np.ndarray, np.ndarray]:
+    """(distances, indices) of each point's nearest tree point; inf / len(tree) beyond `distance`."""
+    return tree.query(points, distance_upper_bound=distance, workers=-1)
 
 
-def run_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init: np.ndarray,
-            stages: list[IcpStage], robust_kernel: float = 0.0, relative_fitness: float = 1e-6,
-            relative_rmse: float = 1e-6):
-    """Point-to-plane ICP through a coarse-to-fine list of correspondence distances.
-
-    The Tukey kernel width follows the stage distance (never above `robust_kernel` once the
-    distances are small) so far-off foliage correspondences do not drag the estimate.
-    """
-    T = np.asarray(init, dtype=np.float64)
-    result = None
-    for st in stages:
-        kernel = reg.TukeyLoss(k=max(robust_kernel, st.max_distance / 2)) if robust_kernel > 0 else None
-        est = reg.TransformationEstimationPointToPlane(kernel) if kernel else reg.TransformationEstimationPointToPlane()
-        crit = reg.ICPConvergenceCriteria(relative_fitness=relative_fitness, relative_rmse=relative_rmse,
-                                          max_iteration=st.iterations)
-        result = reg.registration_icp(source, target, st.max_distance, T, est, crit)
-        T = np.asarray(result.transformation)
-    return T, result
-
-
-def evaluate(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, T: np.ndarray, distance: float):
-    """(fitness, inlier RMSE, correspondences) of source under T against target within `distance`."""
-    r = reg.evaluate_registration(source, target, distance, T)
-    return float(r.fitness), float(r.inlier_rmse), np.asarray(r.correspondence_set)
+def evaluate(source: np.ndarray, tree: cKDTree, T: np.ndarray, distance: float) -> tuple[float, float, int]:
+    """(fitness, inlier RMSE, inliers) of source points under T against the tree's points within `distance`."""
+    if len(source) == 0:
+        return 0.0, float("nan"), 0
+    d, _ = nearest(tree, source @ T[:3, :3].T + T[:3, 3], distance)
+    ok = np.isfinite(d)
+    rmse = float(np.sqrt(np.mean(d[ok] ** 2))) if ok.any() else float("nan")
+    return float(ok.mean()), rmse, int(ok.sum())
 
 
 def point_to_plane_jacobian(p: np.ndarray, n: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -72,55 +61,66 @@ def _exp_se3(xi: np.ndarray) -> np.ndarray:
     return T
 
 
-def guarded_icp(source: np.ndarray, target: np.ndarray, target_normals: np.ndarray, init: np.ndarray,
-                stages: list[IcpStage], tree=None, min_eig_ratio: float = 0.02, tol: float = 1e-7):
+@dataclass
+class IcpResult:
+    T: np.ndarray
+    fitness: float  # share of source points with a correspondence in the last iteration
+    rmse: float  # of their point-to-point distances
+    rank: int  # directions the last step was allowed to move along (6 = all)
+    source_index: np.ndarray  # last correspondences (source row, target row)
+    target_index: np.ndarray
+    iterations: int
+
+
+def point_to_plane_icp(source: np.ndarray, target: np.ndarray, target_normals, init: np.ndarray,
+                       stages: list[IcpStage], tree: cKDTree | None = None, min_eig_ratio: float = 0.0,
+                       kernel_floor: float = 0.05, kernel_ratio: float = 0.5, tol: float = 1e-5) -> IcpResult:
     """Point-to-plane ICP (Tukey-weighted Gauss-Newton) that moves only along well-constrained directions.
 
-    A level such as ground alone constrains height, roll and pitch but hardly x, y and yaw; a plain
-    solver lets noise and the uneven overlap slide it there (we saw tens of degrees of yaw on
-    sloped ground). Each step is solved in the eigenbasis of the (scaled) normal matrix and
-    directions whose eigenvalue is below `min_eig_ratio` x the largest are left for the next,
-    richer level (degeneracy-aware ICP, Zhang et al. 2016). Returns (T, fitness, rmse, constrained dims).
+    `target_normals`: an (M, 3) array, or a callable giving the normals of target rows on demand
+    (so a dense target needs normals only where it is matched). A level such as ground alone
+    constrains height, roll and pitch but hardly x, y and yaw; a plain solver lets noise and the
+    uneven overlap slide it there (we saw tens of degrees of yaw on sloped ground). Each step is
+    solved in the eigenbasis of the (scaled) normal matrix and directions whose eigenvalue is below
+    `min_eig_ratio` x the largest are left for the next, richer level (degeneracy-aware ICP,
+    Zhang et al. 2016); 0 moves along all six. Tukey's width is `kernel_ratio` x the stage's
+    correspondence distance, never below `kernel_floor`. A stage ends when a step moves points by less than `tol` m.
     """
-    from scipy.spatial import cKDTree
-
     tree = tree if tree is not None else cKDTree(target)
+    normals_of = target_normals if callable(target_normals) else (lambda j: target_normals[j])
     T = np.asarray(init, dtype=np.float64).copy()
     centre = source.mean(axis=0)
     # work about the source centroid so rotation and translation are on comparable scales
-    C = np.eye(4)
-    C[:3, 3] = centre
     p0 = source - centre
     scale = max(np.sqrt((p0**2).sum(axis=1).mean()), 1e-3)
-    fitness = rmse = 0.0
-    rank = 6
+    result = IcpResult(T, 0.0, float("nan"), 0, np.zeros(0, np.int64), np.zeros(0, np.int64), 0)
+    iterations = 0
     for st in stages:
-        k = max(st.max_distance / 2, 0.05)
+        k = max(st.max_distance * kernel_ratio, kernel_floor)
         for _ in range(st.iterations):
+            iterations += 1
             moved = source @ T[:3, :3].T + T[:3, 3]
-            d, j = tree.query(moved, distance_upper_bound=st.max_distance, workers=2)
-            ok = np.isfinite(d)
-            if ok.sum() < 12:
-                return T, 0.0, float("nan"), 0
-            n = target_normals[j[ok]]
+            d, j = nearest(tree, moved, st.max_distance)
+            ok = np.flatnonzero(np.isfinite(d))
+            if len(ok) < 12:
+                return IcpResult(T, 0.0, float("nan"), 0, ok, j[ok], iterations)
+            n = normals_of(j[ok])
             r = np.einsum("ij,ij->i", n, moved[ok] - target[j[ok]])
             wgt = np.where(np.abs(r) < k, (1 - (r / k) ** 2) ** 2, 0.0)  # Tukey
             # residual as a function of a left perturbation about the moved centroid
             c = T[:3, :3] @ centre + T[:3, 3]
-            q = moved[ok] - c
-            J = np.hstack([np.cross(q, n) / scale, n])
-            H = (J * wgt[:, None]).T @ J
-            g = (J * wgt[:, None]).T @ r
+            J = np.hstack([np.cross(moved[ok] - c, n) / scale, n])
+            Jw = J * wgt[:, None]
+            H, g = Jw.T @ J, Jw.T @ r
             vals, vecs = np.linalg.eigh(H)
-            keep = vals > min_eig_ratio * vals[-1]
-            rank = int(keep.sum())
+            keep = vals > max(min_eig_ratio, 1e-9) * vals[-1]
             step = -(vecs[:, keep] @ ((vecs[:, keep].T @ g) / vals[keep]))
             step[:3] /= scale
             Tc = np.eye(4)
             Tc[:3, 3] = c
             T = Tc @ _exp_se3(step) @ np.linalg.inv(Tc) @ T
-            fitness = float(ok.mean())
-            rmse = float(np.sqrt(np.mean(d[ok] ** 2)))
-            if np.linalg.norm(step[:3]) * scale + np.linalg.norm(step[3:]) < tol * scale:
+            result = IcpResult(T, float(len(ok) / len(source)), float(np.sqrt(np.mean(d[ok] ** 2))), int(keep.sum()),
+                               ok, j[ok], iterations)
+            if np.linalg.norm(step[:3]) * scale + np.linalg.norm(step[3:]) < tol:
                 break
-    return T, fitness, rmse, rank
+    return result

@@ -1,54 +1,72 @@
-"""Normals and local eigen-features from one spherical neighbourhood per point (one KD-tree build).
+"""Normals and local eigen-features at chosen points, from spherical neighbourhoods in a denser cloud.
 
-Open3D's compiled code gathers each neighbourhood's covariance; numpy's batched eigh then gives
-the plane normal (smallest eigenvector) and the eigenvalues l1 >= l2 >= l3 behind the features
-linearity (l1-l2)/l1, planarity (l2-l3)/l1 and scattering l3/l1 (Weinmann et al. 2015).
+The neighbourhood of a query point is its `max_nn` nearest points of the (delta0) cloud within
+`radius` (one KD-tree, built once per cloud). numpy's batched eigh gives the plane normal
+(smallest eigenvector) and the eigenvalues l1 >= l2 >= l3 behind linearity (l1-l2)/l1, planarity
+(l2-l3)/l1 and scattering l3/l1 (Weinmann et al. 2015). Computing them only where they are used
+(a thinned sample for the levels, target points that become ICP correspondences) is what keeps
+an 8M-point scan within seconds.
 """
 
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
+from scipy.spatial import cKDTree
 
 FEATURE_NAMES = ("linearity", "planarity", "scattering")
+CHUNK = 200_000
 
 
-def is_sparse(points: np.ndarray, radius: float, min_neighbors: int) -> bool:
-    """Whether a typical point has fewer than `min_neighbors` within `radius` (cell counting, no tree).
-
-    Cells of side 2r hold about twice a sphere of radius r, so half the per-point cell count
-    estimates the neighbours; the median over points resists a few dense spots.
-    """
-    if len(points) == 0:
-        return True
-    keys = np.floor(points / (2.0 * radius)).astype(np.int64)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    return float(np.median(counts[inverse.ravel()])) / 2.0 < min_neighbors
-
-
-def normals_and_features(pcd: o3d.geometry.PointCloud, radius: float, max_nn: int, chunk: int = 1_000_000):
-    """Set pcd.normals; return (normals (N,3), features (N,3)) from the covariance eigen-decomposition."""
-    pcd.estimate_covariances(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn))
-    cov = np.asarray(pcd.covariances)
-    n = len(cov)
-    normals = np.empty((n, 3))
-    features = np.empty((n, 3))
-    for s in range(0, n, chunk):
-        vals, vecs = np.linalg.eigh(cov[s : s + chunk])  # ascending eigenvalues
-        vals = np.clip(vals, 0.0, None)
-        l1, l2, l3 = vals[:, 2], vals[:, 1], vals[:, 0]
-        ok = l2 > 1e-10  # at least 3 non-collinear neighbours, else no plane
-        inv = np.where(ok, 1.0 / np.where(ok, l1, 1.0), 0.0)
-        # A point without a plane carries no shape: call it fully scattered (scattering = 1).
-        features[s : s + chunk] = np.column_stack([(l1 - l2) * inv, (l2 - l3) * inv, np.where(ok, l3 * inv, 1.0)])
-        nv = vecs[:, :, 0]
-        nv[~ok] = (0.0, 0.0, 1.0)
-        normals[s : s + chunk] = nv
-    pcd.normals = o3d.utility.Vector3dVector(normals)
-    pcd.covariances = o3d.utility.Matrix3dVector(np.empty((0, 3, 3)))  # free the memory
-    return normals, features
+def _shape_chunk(points: np.ndarray, query: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ok = idx < len(points)
+    w = ok.astype(np.float64)
+    count = w.sum(axis=1)
+    safe = np.where(ok, idx, 0)
+    # coordinates relative to the query point (small numbers: raw moments keep their precision)
+    rel = [(points[:, i][safe] - query[:, i][:, None]) * w for i in range(3)]
+    m = np.maximum(count, 1.0)
+    mean = [r.sum(axis=1) / m for r in rel]
+    cov = np.empty((len(idx), 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            cov[:, a, b] = cov[:, b, a] = np.einsum("ij,ij->i", rel[a], rel[b]) / m - mean[a] * mean[b]
+    vals, vecs = np.linalg.eigh(cov)  # ascending eigenvalues
+    vals = np.clip(vals, 0.0, None)
+    l1, l2, l3 = vals[:, 2], vals[:, 1], vals[:, 0]
+    has_plane = (l2 > 1e-10) & (count >= 3)  # at least 3 non-collinear neighbours
+    inv = np.where(has_plane, 1.0 / np.where(has_plane, l1, 1.0), 0.0)
+    # a point without a plane carries no shape: call it fully scattered (scattering = 1)
+    features = np.column_stack([(l1 - l2) * inv, (l2 - l3) * inv, np.where(has_plane, l3 * inv, 1.0)])
+    normals = vecs[:, :, 0].copy()
+    normals[~has_plane] = (0.0, 0.0, 1.0)
+    return normals, features, count.astype(np.int64)
 
 
-def estimate_normals(pcd: o3d.geometry.PointCloud, radius: float, max_nn: int) -> None:
-    """Normals only (target of the final ICP): Open3D's own eigen solver, multi-threaded."""
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn))
+def local_shape(points: np.ndarray, tree: cKDTree, query: np.ndarray, radius: float, max_nn: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(normals (M,3), features (M,3), neighbour counts (M,)) at `query` from `points` (indexed by `tree`)."""
+    m = len(query)
+    normals, features = np.empty((m, 3)), np.empty((m, 3))
+    counts = np.empty(m, dtype=np.int64)
+    k = int(min(max_nn, len(points)))
+    for s in range(0, m, CHUNK):
+        q = query[s : s + CHUNK]
+        _, idx = tree.query(q, k=k, distance_upper_bound=radius, workers=-1)
+        normals[s : s + CHUNK], features[s : s + CHUNK], counts[s : s + CHUNK] = _shape_chunk(points, q, idx.reshape(len(q), -1))
+    return normals, features, counts
+
+
+class LazyNormals:
+    """Normals of a cloud's points, each computed the first time it is asked for (ICP targets)."""
+
+    def __init__(self, points: np.ndarray, tree: cKDTree, radius: float, max_nn: int):
+        self.points, self.tree, self.radius, self.max_nn = points, tree, radius, max_nn
+        self.normals = np.zeros((len(points), 3))
+        self.known = np.zeros(len(points), dtype=bool)
+
+    def __call__(self, idx: np.ndarray) -> np.ndarray:
+        missing = np.unique(idx[~self.known[idx]])
+        if len(missing):
+            self.normals[missing] = local_shape(self.points, self.tree, self.points[missing], self.radius, self.max_nn)[0]
+            self.known[missing] = True
+        return self.normals[idx]

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,8 +19,8 @@ import numpy as np
 from plotmosaic import __version__
 from plotmosaic.align.complexity import match_levels
 from plotmosaic.align.config import KINDS, AlignConfig, default_levels
-from plotmosaic.align.icp import evaluate, guarded_icp, information_matrix, run_icp
-from plotmosaic.align.prepare import PreparedCloud, prepare_cloud
+from plotmosaic.align.icp import evaluate, information_matrix, point_to_plane_icp
+from plotmosaic.align.prepare import PreparedCloud, prepare_cloud, sample
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.frame import rotation_deg, to_global_transform, to_local_transform
@@ -102,11 +103,6 @@ class PairResult:
         return cls.from_dict(json.loads(Path(path).read_text()))
 
 
-def _sample(pcd, n: int, rng: np.random.Generator):
-    m = len(pcd.points)
-    return pcd if m <= n else pcd.select_by_index(np.sort(rng.choice(m, n, replace=False)))
-
-
 def _kind(kind: str, which: str) -> str:
     k = str(kind).lower()
     if k not in KINDS:
@@ -168,46 +164,41 @@ def register_prepared(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfi
     steps = []
     for j, (ls, lt) in enumerate(incremental_steps(matching)):
         say(f"ICP on levels {ls} -> {lt}")
-        s_pcd, t_pcd = src.subset(ls, config.level_cell), tgt.subset(lt, config.level_cell)
-        if len(s_pcd.points) < 10 or len(t_pcd.points) < 10:
+        sp, _ = src.subset(ls)
+        tp, tn = tgt.subset(lt)
+        if len(sp) < 10 or len(tp) < 10:
             continue
-        sp = np.asarray(s_pcd.points)
-        if len(sp) > config.level_max_source_points:
-            sp = sp[np.sort(rng.choice(len(sp), config.level_max_source_points, replace=False))]
+        sp = sp[sample(len(sp), config.level_max_source_points, rng)]
         schedule = config.level_schedule[min(j, len(config.level_schedule) - 1)]
-        T, fit, rmse, rank = guarded_icp(sp, np.asarray(t_pcd.points), np.asarray(t_pcd.normals), T, schedule,
-                                         min_eig_ratio=config.min_eig_ratio)
-        steps.append({"source_levels": ls, "target_levels": lt, "source_points": len(sp),
-                      "target_points": len(t_pcd.points), "fitness": fit, "rmse": rmse, "constrained_dof": rank})
+        res = point_to_plane_icp(sp, tp, tn, T, schedule, min_eig_ratio=config.min_eig_ratio, tol=config.level_tol)
+        T = res.T
+        steps.append({"source_levels": ls, "target_levels": lt, "source_points": len(sp), "target_points": len(tp),
+                      "fitness": res.fitness, "rmse": res.rmse, "constrained_dof": res.rank,
+                      "iterations": res.iterations})
     t_levels = time.perf_counter()
 
     say("final ICP")
-    target_fine = tgt.fine_with_normals(config.normal_max_nn)
-    source_fine = src.fine_pcd
-    n_src = len(source_fine.points)
-    if n_src > config.final_max_source_points:
-        idx = np.sort(rng.choice(n_src, config.final_max_source_points, replace=False))
-        source_fine = source_fine.select_by_index(idx)
-    T, res = run_icp(source_fine, target_fine, T, config.final_schedule, config.robust_kernel,
-                     config.relative_fitness, config.relative_rmse)
+    # the source's delta grid against the target's delta0 points and their 0.25 m planes, which
+    # are computed only where the source finds a partner
+    res = point_to_plane_icp(src.fine_points, tgt.points, tgt.target_normals, T, config.final_schedule,
+                             tree=tgt.tree, kernel_floor=config.robust_kernel, tol=config.final_tol)
+    T = res.T
     t_final = time.perf_counter()
 
     say("quality")
     # fitness / RMSE / overlap on seeded subsamples of the query side: same figures to ~0.1 %, a
     # fraction of the nearest-neighbour queries on 8M-point scans
-    s_q = _sample(src.pcd, config.quality_max_points, rng)
-    t_q = _sample(tgt.pcd, config.quality_max_points, rng)
-    fitness, rmse, cs = evaluate(s_q, tgt.pcd, T, config.quality_distance)
-    _, _, ct = evaluate(t_q, src.pcd, np.linalg.inv(T), config.quality_distance)
-    ov = float((len(cs) + len(ct)) / max(1, len(s_q.points) + len(t_q.points)))
+    s_q = src.points[sample(len(src.points), config.quality_max_points, rng)]
+    t_q = tgt.points[sample(len(tgt.points), config.quality_max_points, rng)]
+    fitness, rmse, n_s = evaluate(s_q, tgt.tree, T, config.quality_distance)
+    _, _, n_t = evaluate(t_q, src.tree, np.linalg.inv(T), config.quality_distance)
+    ov = float((n_s + n_t) / max(1, len(s_q) + len(t_q)))
     # information from the final point-to-plane problem (its last correspondences), in file coordinates
-    corr = np.asarray(res.correspondence_set)
     T_file = to_global_transform(T, src.frame, tgt.frame)
-    if len(corr):
-        p = src.frame.to_global(np.asarray(source_fine.points)[corr[:, 0]])
-        q = tgt.frame.to_global(np.asarray(target_fine.points)[corr[:, 1]])
-        n = np.asarray(target_fine.normals)[corr[:, 1]]
-        info, sigma = information_matrix(p, q, n, T_file)
+    if len(res.source_index):
+        p = src.frame.to_global(src.fine_points[res.source_index])
+        q = tgt.frame.to_global(tgt.points[res.target_index])
+        info, sigma = information_matrix(p, q, tgt.target_normals(res.target_index), T_file)
     else:
         info, sigma = np.zeros((6, 6)), float("nan")
     t_end = time.perf_counter()
@@ -250,6 +241,20 @@ def check_quality(result: PairResult, config: AlignConfig) -> None:
         raise err
 
 
+def _both(fn: Callable, a, b) -> tuple:
+    """fn(a), fn(b) in two threads: numpy, scipy and lazrs release the GIL for the heavy parts."""
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        fa, fb = pool.submit(fn, a), pool.submit(fn, b)
+        return fa.result(), fb.result()
+
+
+def prepare_pair(source: PointCloud, target: PointCloud, source_kind: str, target_kind: str, levels_source: int,
+                 levels_target: int, config: AlignConfig, seed: int = 0) -> tuple[PreparedCloud, PreparedCloud]:
+    """Both clouds prepared at once (source with `seed`, target with `seed + 1`)."""
+    return _both(lambda job: prepare_cloud(*job), (source, source_kind, levels_source, config, seed, "source"),
+                 (target, target_kind, levels_target, config, seed + 1, "target"))
+
+
 def align_clouds(source: PointCloud, target: PointCloud, source_kind: str = "tls", target_kind: str = "tls",
                  config: AlignConfig | None = None, init: np.ndarray | None = None, levels_source: int | None = None,
                  levels_target: int | None = None, seed: int = 0,
@@ -262,10 +267,9 @@ def align_clouds(source: PointCloud, target: PointCloud, source_kind: str = "tls
     t0 = time.perf_counter()
     say = progress or (lambda msg: None)
     sk, tk = _kind(source_kind, "source"), _kind(target_kind, "target")
-    say("preparing source")
-    src = prepare_cloud(source, sk, levels_source or default_levels(sk), config, seed, "source")
-    say("preparing target")
-    tgt = prepare_cloud(target, tk, levels_target or default_levels(tk), config, seed + 1, "target")
+    say("preparing source and target")
+    src, tgt = prepare_pair(source, target, sk, tk, levels_source or default_levels(sk),
+                            levels_target or default_levels(tk), config, seed)
     if save_levels is not None:
         from plotmosaic.align.figures import save_levels as write_levels
 
@@ -285,10 +289,8 @@ def align_files(source_path, target_path, source_kind: str = "tls", target_kind:
     """`align_clouds` on two LAS/LAZ files (coordinates only)."""
     t0 = time.perf_counter()
     say = progress or (lambda msg: None)
-    say("reading source")
-    source = read_cloud(source_path, attributes=False)
-    say("reading target")
-    target = read_cloud(target_path, attributes=False)
+    say("reading source and target")
+    source, target = _both(lambda path: read_cloud(path, attributes=False), source_path, target_path)
     t_read = time.perf_counter() - t0
     result = align_clouds(source, target, source_kind, target_kind, config, init, levels_source, levels_target,
                           seed, progress, save_levels)

@@ -1,15 +1,17 @@
-"""One cloud ready for ForestAlign: local frame, voxel grids, normals, complexity levels."""
+"""One cloud ready for ForestAlign: local frame, voxel grids, KD-tree, normals and complexity levels of a sample."""
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import open3d as o3d
+from scipy.spatial import cKDTree
 
 from plotmosaic.align.complexity import fit_levels
 from plotmosaic.align.config import AlignConfig
-from plotmosaic.align.normals import estimate_normals, is_sparse, normals_and_features
+from plotmosaic.align.normals import LazyNormals, local_shape
+from plotmosaic.align.voxel import thin, voxel_centroids
 from plotmosaic.errors import InputError
 from plotmosaic.io.frame import Frame
 from plotmosaic.io.las import PointCloud
@@ -17,30 +19,24 @@ from plotmosaic.io.las import PointCloud
 MIN_POINTS = 50
 
 
-def to_pcd(points: np.ndarray) -> o3d.geometry.PointCloud:
-    pcd = o3d.geometry.PointCloud()
-    pcd.points = o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64))
-    return pcd
-
-
-def thin(points: np.ndarray, cell: float) -> np.ndarray:
-    """Indices of one point per occupied cube of side `cell` (the first one met), sorted."""
-    keys = np.floor(points / cell).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
-    return np.sort(first)
+def sample(n: int, size: int, rng: np.random.Generator) -> np.ndarray:
+    """Sorted indices of a seeded random subset of range(n) of at most `size` (all when n <= size)."""
+    return np.arange(n) if n <= size else np.sort(rng.choice(n, size, replace=False))
 
 
 @dataclass
 class PreparedCloud:
     frame: Frame
     kind: str
-    points: np.ndarray  # (N, 3) local, voxel delta0
-    normals: np.ndarray  # (N, 3)
-    features: np.ndarray  # (N, 3) linearity, planarity, scattering
-    levels: np.ndarray  # (N,) 0 = least complex
+    points: np.ndarray  # (N, 3) local, delta0 voxel centroids in cube order (spatially coherent)
+    tree: cKDTree  # over `points`: normals, final-ICP correspondences, quality figures
+    level_points: np.ndarray  # (M, 3) the labelled sample: one delta0 point per `level_cell` cube (capped)
+    normals: np.ndarray  # (M, 3) at level_points, from the 0.25 m neighbourhood in `points`
+    features: np.ndarray  # (M, 3) linearity, planarity, scattering
+    levels: np.ndarray  # (M,) 0 = least complex
     level_stats: list[dict]
-    pcd: o3d.geometry.PointCloud  # points + normals, local
-    fine_pcd: o3d.geometry.PointCloud  # voxel delta (final ICP), local; normals on demand
+    fine_points: np.ndarray  # seeded sample of the delta (final ICP) grid: this cloud as a source
+    target_normals: LazyNormals  # normals of `points`, computed where this cloud is an ICP target
     normal_radius: float
     input_points: int
     seconds: dict = field(default_factory=dict)
@@ -49,48 +45,44 @@ class PreparedCloud:
     def k(self) -> int:
         return len(self.level_stats)
 
-    def subset(self, levels, cell: float = 0.0) -> o3d.geometry.PointCloud:
-        """The delta0 points (with normals) whose level is in `levels`, thinned to one point per
-        `cell` (a kept point, not an average: averaging axial normals of either sign cancels them)."""
-        idx = np.flatnonzero(np.isin(self.levels, list(levels)))
-        if cell > 0 and len(idx):
-            idx = idx[thin(self.points[idx], cell)]
-        return self.pcd.select_by_index(idx)
-
-    def fine_with_normals(self, max_nn: int) -> o3d.geometry.PointCloud:
-        if not self.fine_pcd.has_normals():
-            estimate_normals(self.fine_pcd, self.normal_radius, max_nn)
-        return self.fine_pcd
+    def subset(self, levels) -> tuple[np.ndarray, np.ndarray]:
+        """(points, normals) of the labelled sample whose level is in `levels`."""
+        sel = np.isin(self.levels, list(levels))
+        return self.level_points[sel], self.normals[sel]
 
 
 def prepare_cloud(cloud: PointCloud, kind: str, levels: int, config: AlignConfig, seed: int = 0,
                   name: str = "cloud") -> PreparedCloud:
-    import time
-
     t0 = time.perf_counter()
     if len(cloud) < MIN_POINTS:
         raise InputError(f"{name}: only {len(cloud)} points, at least {MIN_POINTS} needed to register")
     if levels < 1:
         raise InputError(f"{name}: levels must be >= 1, got {levels}")
+    rng = np.random.default_rng(seed)
     frame = Frame.around(cloud.xyz)
-    full = to_pcd(frame.to_local(cloud.xyz))
-    fine = full.voxel_down_sample(config.final_voxel)
-    del full
-    # delta0 grid from the delta grid: same cells to within a voxel, a fraction of the work on 8M points
-    pcd = fine.voxel_down_sample(config.voxel)
-    points = np.asarray(pcd.points)
+    fine = voxel_centroids(frame.to_local(cloud.xyz), config.final_voxel)
+    # delta0 grid from the delta grid: the same cells to within a voxel, a fraction of the work
+    points = voxel_centroids(fine, config.voxel)
     if len(points) < MIN_POINTS:
         raise InputError(f"{name}: only {len(points)} points after {config.voxel} m voxels, too few to register")
+    fine_points = fine[sample(len(fine), config.final_max_source_points, rng)]
+    del fine
+    tree = cKDTree(points)
     t1 = time.perf_counter()
+    # levels on a sample that evens out the 1/r^2 density of TLS around the scanner
+    level_points = points[thin(points, config.level_cell)]
+    level_points = level_points[sample(len(level_points), config.level_max_points, rng)]
     radius = config.normal_radius
-    if is_sparse(points, radius, config.sparse_min_neighbors):
+    normals, features, counts = local_shape(points, tree, level_points, radius, config.normal_max_nn)
+    if np.median(counts) < config.sparse_min_neighbors:  # airborne or far-range: too few points for a plane
         radius = max(radius, config.normal_radius_sparse)
-    normals, features = normals_and_features(pcd, radius, config.normal_max_nn)
+        normals, features, _ = local_shape(points, tree, level_points, radius, config.normal_max_nn)
     t2 = time.perf_counter()
     lv = fit_levels(normals, features, levels, config.complexity, config.vmf, seed)
     t3 = time.perf_counter()
     return PreparedCloud(
-        frame=frame, kind=kind, points=points, normals=normals, features=features, levels=lv.labels,
-        level_stats=lv.stats, pcd=pcd, fine_pcd=fine, normal_radius=radius, input_points=len(cloud),
-        seconds={"voxel": t1 - t0, "normals": t2 - t1, "levels": t3 - t2},
+        frame=frame, kind=kind, points=points, tree=tree, level_points=level_points, normals=normals,
+        features=features, levels=lv.labels, level_stats=lv.stats, fine_points=fine_points,
+        target_normals=LazyNormals(points, tree, radius, config.normal_max_nn), normal_radius=radius,
+        input_points=len(cloud), seconds={"voxel": t1 - t0, "normals": t2 - t1, "levels": t3 - t2},
     )

@@ -45,7 +45,7 @@ def _levels(clouds: dict[str, tuple[np.ndarray, str]], seed: int) -> dict[str, t
     out = {}
     for name, (xyz, kind) in clouds.items():
         p = prepare_cloud(PointCloud(xyz), kind, default_levels(kind), cfg, seed, name)
-        out[name] = (p.points, p.levels)
+        out[name] = (p.level_points, p.levels)
     return out
 
 
