@@ -70,11 +70,14 @@ def main() -> None:
                 continue
             start = time.perf_counter()
             config = BenchConfig(protocol=get_protocol(protocol), trials=args.trials, methods=["forestalign"], seed=0)
-            result = run_bench(pairs, config, progress=False)
             slug = f"{protocol}-{name}".replace(" ", "_").replace(">", "").replace("(", "").replace(")", "")
+            result = run_bench(pairs, config, progress=False, failures=args.out / slug / "failures")
             write_outputs(result, args.out / slug, title=f"{name}, protocol {protocol}")
             print(f"\n### {name}, protocol `{protocol}`: {len(pairs)} pair(s) x {args.trials} trials, {time.perf_counter() - start:.0f} s")
             print(result.table)
+            for r in result.rows:
+                if r["picture"]:
+                    print(f"failure picture: {args.out / slug / 'failures' / r['picture']}")
 
 
 if __name__ == "__main__":

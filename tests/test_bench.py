@@ -219,3 +219,17 @@ def test_ground_truth_from_poses_transform_json_or_identity(tmp_path):
     np.testing.assert_array_equal(load_truth("identity", a, b), np.eye(4))
     with pytest.raises(InputError, match="no pose for 'S7'"):
         load_truth(gt, tmp_path / "S7.laz", b)
+
+
+def test_bench_draws_forestalign_failures(tmp_path):
+    """A trial forestalign gets wrong comes with a picture of where it put the source (and no picture for baselines)."""
+    from plotmosaic.bench.run import BenchConfig, BenchPair, run_bench
+
+    src, tgt = split_pair(synthetic_plot(trees=6))
+    far = PointCloud(tgt.xyz + [400.0, 0.0, 0.0], crs=tgt.crs)  # the truth says they overlap; they cannot
+    config = BenchConfig(trials=1, methods=["forestalign", "icp"])
+    rows = run_bench([BenchPair("far", src, far, np.eye(4))], config, progress=False, failures=tmp_path / "f").rows
+    fa = next(r for r in rows if r["method"] == "forestalign")
+    icp = next(r for r in rows if r["method"] == "icp")
+    assert not fa["success"] and fa["picture"] and not icp["picture"]
+    assert (tmp_path / "f" / fa["picture"]).stat().st_size > 10_000

@@ -51,6 +51,8 @@ class CoarseConfig(BaseModel):
     refine_top: int = Field(3, ge=1, description="screened hypotheses refined fully")
     verify_distance_ground: float = Field(0.2, description="inlier distance (m) between ground-based scans")
     verify_distance_airborne: float = Field(0.5, description="inlier distance (m) when one cloud is airborne (sparse)")
+    prior_yaw_deg: float = Field(30.0, gt=0, description="with an initial guess: headings searched either side of it")
+    prior_shift_m: float = Field(8.0, gt=0, description="with an initial guess: horizontal distance searched around it")
 
 
 @dataclass
@@ -125,8 +127,13 @@ def _rot_z(yaw: float) -> np.ndarray:
     return np.array([[c, -s], [s, c]])
 
 
-def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: CoarseConfig) -> list[dict]:
-    """Exhaustive heading search; masked-NCC shift per heading; the best distinct peaks."""
+def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: CoarseConfig,
+            prior: np.ndarray | None = None) -> list[dict]:
+    """Exhaustive heading search; masked-NCC shift per heading; the best distinct peaks.
+
+    `prior` (levelled source -> levelled target): search only headings within `prior_yaw_deg` of
+    it and shifts within `prior_shift_m` of where it puts the source centroid.
+    """
     centre = src.feats.xy.mean(axis=0)
     radius = float(np.linalg.norm(src.feats.xy - centre, axis=1).max()) + 1.0
     t_min, t_max = tgt.feats.xy.min(axis=0) - 1.0, tgt.feats.xy.max(axis=0) + 1.0
@@ -146,6 +153,16 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
     min_cells = config.min_overlap * min(area_s, area_t)
 
     rel = src.feats.xy - centre
+    allowed = None
+    if prior is not None:
+        c3 = np.array([*centre, float(np.median(src.feats.z))])
+        prior_yaw = float(np.arctan2(prior[1, 0], prior[0, 0]))
+        prior_t = (prior[:3, :3] @ c3 + prior[:3, 3])[:2] - centre
+        rows, cols = np.meshgrid(np.arange(ncc.shape[0]), np.arange(ncc.shape[1]), indexing="ij")
+        shift = np.stack([np.where(rows < ncc.shape[0] // 2, rows, rows - ncc.shape[0]),
+                          np.where(cols < ncc.shape[1] // 2, cols, cols - ncc.shape[1])], axis=-1)
+        t_xy = target.origin - s_origin + shift * cell
+        allowed = np.linalg.norm(t_xy - prior_t, axis=-1) <= config.prior_shift_m
 
     def peaks(yaw: float) -> list[dict]:
         c, s_ = np.cos(yaw), np.sin(yaw)
@@ -167,6 +184,8 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
         total = total / sum(weights.values())
         frac = overlap / max(min(area_s, area_t), 1.0)
         total = np.where(overlap >= min_cells, total * np.clip(frac, 0, 1) ** 0.25, -1.0)
+        if allowed is not None:
+            total = np.where(allowed, total, -1.0)
         found = []
         for _ in range(config.peaks_per_yaw):
             k = np.unravel_index(int(np.argmax(total)), total.shape)
@@ -183,7 +202,10 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
     # coarse-to-fine in heading: the full circle at yaw_step_deg, then half steps either side of
     # the best headings (a peak is several steps wide once the rasters are blurred)
     step = np.radians(config.yaw_step_deg)
-    candidates = [c for yaw in np.arange(0.0, 2 * np.pi, step) for c in peaks(float(yaw))]
+    yaws = np.arange(0.0, 2 * np.pi, step)
+    if prior is not None:
+        yaws = [y for y in yaws if _angle_diff(y, prior_yaw) <= np.radians(config.prior_yaw_deg)] + [prior_yaw % (2 * np.pi)]
+    candidates = [c for yaw in yaws for c in peaks(float(yaw))]
     best_yaws: list[float] = []
     for c in sorted(candidates, key=lambda c: -c["score"]):
         if all(_angle_diff(c["yaw"], y) > 1.5 * step for y in best_yaws):
@@ -262,15 +284,22 @@ def _homogeneous(R: np.ndarray) -> np.ndarray:
     return T
 
 
-def coarse_align(source, target, config: CoarseConfig | None = None, seed: int = 0) -> CoarseResult:
-    """Global alignment of two prepared clouds (anything with local `points` and a `kind`)."""
+def coarse_align(source, target, config: CoarseConfig | None = None, seed: int = 0,
+                 prior: np.ndarray | None = None) -> CoarseResult:
+    """Global alignment of two prepared clouds (anything with local `points` and a `kind`).
+
+    `prior` (source local -> target local, e.g. from --init): search around it instead of everywhere,
+    and verify the prior itself beside the hypotheses found, so a start that is already right stays.
+    """
     config = config or CoarseConfig()
     start = time.perf_counter()
     rng = np.random.default_rng(seed)
     src, tgt = _levelled(source, config, seed), _levelled(target, config, seed + 1)
     timing = {"levelling": time.perf_counter() - start}
     weights = _weights(source.kind, target.kind)
-    hyps = _search(src, tgt, weights, config)
+    L_s, L_t_inv = _homogeneous(src.R), _homogeneous(tgt.R.T)
+    prior_levelled = None if prior is None else _homogeneous(tgt.R) @ np.asarray(prior, dtype=float) @ _homogeneous(src.R.T)
+    hyps = _search(src, tgt, weights, config, prior_levelled)
     timing["search"] = time.perf_counter() - start - timing["levelling"]
 
     airborne = source.kind in AIRBORNE or target.kind in AIRBORNE
@@ -284,12 +313,15 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
     ground_tree = cKDTree(ground_xy) if len(ground_xy) >= 20 else None
 
     # screen every hypothesis with one short ICP, refine the most promising ones fully
+    starts = [(_hypothesis_transform(h, src, tgt, ground_tree), h) for h in hyps]
+    if prior_levelled is not None:
+        yaw = float(np.arctan2(prior_levelled[1, 0], prior_levelled[0, 0]))
+        starts.append((prior_levelled, {"score": float("nan"), "yaw": yaw, "overlap": float("nan"), "prior": True}))
     screened = []
-    for h in hyps:
-        A = _refine(src_v, tgt_v, _hypothesis_transform(h, src, tgt, ground_tree), (6 * d,), config.verify_iterations)
+    for A0, h in starts:
+        A = _refine(src_v, tgt_v, A0, (6 * d,), config.verify_iterations)
         screened.append((_score(structure, tgt_v, A, 2 * d), A, h))
     screened.sort(key=lambda r: -r[0])
-    L_s, L_t_inv = _homogeneous(src.R), _homogeneous(tgt.R.T)
     results = []
     for rank, (pre, A, h) in enumerate(screened):
         refined = rank < config.refine_top
@@ -297,7 +329,7 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
         if refined:
             A = _refine(src_v, tgt_v, A, (3 * d, 1.5 * d), config.verify_iterations)
             score = _score(structure, tgt_v, A, d)
-        results.append({"T": L_t_inv @ A @ L_s, "refined": refined, "score": score, "screen_score": pre, "raster_score": h["score"], "yaw_deg": float(np.degrees(h["yaw"])), "overlap": h["overlap"]})
+        results.append({"T": L_t_inv @ A @ L_s, "refined": refined, "score": score, "screen_score": pre, "raster_score": h["score"], "yaw_deg": float(np.degrees(h["yaw"])), "overlap": h["overlap"], "prior": bool(h.get("prior", False))})
     if not results:
         identity = {"T": np.eye(4), "refined": True, "score": 0.0, "screen_score": 0.0, "raster_score": 0.0, "yaw_deg": 0.0, "overlap": 0.0}
         results.append(identity)

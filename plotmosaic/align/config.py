@@ -59,7 +59,7 @@ class AlignConfig(BaseModel):
     level_tol: float = 1e-4  # a level stage ends when a step moves points < this (m); the final ICP refines
     final_tol: float = 1e-5
     final_schedule: list[IcpStage] = [IcpStage(max_distance=0.25, iterations=30), IcpStage(max_distance=0.1, iterations=20)]
-    final_max_source_points: int = 150_000  # seeded sample of the source's delta grid for the last ICP (target kept whole)
+    final_max_source_points: int = 60_000  # seeded sample of the source's delta grid for the last ICP (target kept whole)
     robust_kernel: float = 0.1  # least Tukey width (m) of the final ICP (half the correspondence distance above it)
     relative_fitness: float = 1e-5
     relative_rmse: float = 1e-5

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from plotmosaic import __version__
+from plotmosaic.align.coarse import coarse_align
 from plotmosaic.align.complexity import match_levels
 from plotmosaic.align.config import KINDS, AlignConfig, default_levels
 from plotmosaic.align.icp import evaluate, information_matrix, point_to_plane_icp
@@ -132,29 +133,20 @@ def incremental_steps(matching: dict[int, int]) -> list[tuple[list[int], list[in
 
 def register_prepared(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig, init: np.ndarray | None = None,
                       seed: int = 0, progress: Callable[[str], None] | None = None) -> PairResult:
-    """Registration of two prepared clouds; `init` is source file -> target file (None: identity or coarse)."""
+    """Registration of two prepared clouds; `init` (source file -> target file) is a prior for the coarse stage, or the start itself with the coarse stage off."""
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
     coarse = None
     confidence = None
-    if init is not None:
-        T = to_local_transform(np.asarray(init, dtype=float), src.frame, tgt.frame)
-    elif config.coarse.enabled:
-        from plotmosaic.align.coarse import coarse_align  # lazily: the coarse stage is optional
-
+    T = to_local_transform(np.eye(4) if init is None else np.asarray(init, dtype=float), src.frame, tgt.frame)
+    if config.coarse.enabled:
+        # with an initial guess the coarse stage searches around it and keeps it if it verifies best:
+        # ICP alone from a guess 10 deg / 2 m off can settle in a wrong minimum that still looks fit
         say("coarse alignment")
-        try:
-            cres = coarse_align(src, tgt, config.coarse, seed)
-        except NotImplementedError:  # the coarse stage has not landed: start from the files' own placement
-            cres = None
-            coarse = {"skipped": "coarse stage not available"}
-            T = to_local_transform(np.eye(4), src.frame, tgt.frame)
-        if cres is not None:
-            T = np.asarray(cres.transform, dtype=float)
-            coarse = cres.to_dict()
-            confidence = float(cres.confidence)
-    else:
-        T = to_local_transform(np.eye(4), src.frame, tgt.frame)
+        cres = coarse_align(src, tgt, config.coarse, seed, prior=T if init is not None else None)
+        T = np.asarray(cres.transform, dtype=float)
+        coarse = cres.to_dict()
+        confidence = float(cres.confidence)
     T_init = T.copy()
     t_coarse = time.perf_counter()
 
@@ -212,6 +204,7 @@ def register_prepared(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfi
         source_offset=[float(v) for v in src.frame.offset], target_offset=[float(v) for v in tgt.frame.offset],
         coarse=coarse, confidence=confidence,
         timings={"coarse": t_coarse - t0, "levels_icp": t_levels - t_coarse, "final_icp": t_final - t_levels,
+                 "final_iterations": res.iterations,
                  "quality": t_end - t_final,
                  "correction_deg": rotation_deg(moved),
                  "correction_m": float(np.linalg.norm(moved[:3, 3]))},

@@ -67,7 +67,7 @@ def prepare_cloud(cloud: PointCloud, kind: str, levels: int, config: AlignConfig
         raise InputError(f"{name}: only {len(points)} points after {config.voxel} m voxels, too few to register")
     fine_points = fine[sample(len(fine), config.final_max_source_points, rng)]
     del fine
-    tree = cKDTree(points)
+    tree = cKDTree(points, balanced_tree=False, compact_nodes=False)  # half the build time; points are in cube order
     t1 = time.perf_counter()
     # levels on a sample that evens out the 1/r^2 density of TLS around the scanner
     level_points = points[thin(points, config.level_cell)]

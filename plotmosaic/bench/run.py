@@ -76,10 +76,13 @@ def _cases(aligned: PointCloud, target: PointCloud, overlaps: list[float] | None
         yield pct, c.source, c.target, c.overlap
 
 
-def run_bench(pairs: list[BenchPair], config: BenchConfig, progress: bool = True, log: Callable[[str], None] | None = None) -> BenchResult:
+def run_bench(pairs: list[BenchPair], config: BenchConfig, progress: bool = True, log: Callable[[str], None] | None = None,
+              failures: Path | None = None, max_failure_pictures: int = 3) -> BenchResult:
     """Every method on every trial of every pair (and overlap); one row per method x trial.
 
-    `progress` shows a rich bar (terminals); `log` gets one line per finished trial (log files).
+    `progress` shows a rich bar (terminals); `log` gets one line per finished trial (log files);
+    `failures`: a folder for pictures of forestalign's first unsuccessful trials (column 'picture');
+    the baselines miss most trials, so they get none.
     """
     skipped = {m: why for m in config.methods if (why := available(m))}
     methods = [m for m in config.methods if m not in skipped]
@@ -88,6 +91,7 @@ def run_bench(pairs: list[BenchPair], config: BenchConfig, progress: bool = True
     n_cases = len(config.overlaps) if config.overlaps else 1
     total = len(pairs) * n_cases * config.trials * len(methods)
     rows: list[dict] = []
+    pictures = 0
     with _progress(progress) as bar:
         task = bar.add_task("bench", total=total)
         for k, pair in enumerate(pairs):
@@ -119,8 +123,12 @@ def run_bench(pairs: list[BenchPair], config: BenchConfig, progress: bool = True
                                 "failed": out.failed,
                                 "seconds": out.seconds,
                                 "note": out.note,
+                                "picture": "",
                             }
                         )
+                        if failures is not None and method == "forestalign" and not ok and pictures < max_failure_pictures:
+                            pictures += 1
+                            rows[-1]["picture"] = _failure_picture(rows[-1], moved, tgt, out.transform, truth, Path(failures)).name
                         bar.advance(task)
                         if log:
                             r = rows[-1]
@@ -128,6 +136,18 @@ def run_bench(pairs: list[BenchPair], config: BenchConfig, progress: bool = True
                                 f"rotation {float(rotation_angle(err)[0]):.3f} deg, translation {np.linalg.norm(err[3:]):.3f} m, "
                                 f"{'success' if r['success'] else 'miss'}{' (failed)' if r['failed'] else ''}, {r['seconds']:.1f} s")
     return BenchResult(rows, config, skipped, [p.name for p in pairs])
+
+
+def _failure_picture(row: dict, moved: PointCloud, target: PointCloud, estimate: np.ndarray, truth: np.ndarray, folder: Path) -> Path:
+    from plotmosaic.bench.failures import plot_failure
+
+    slug = "".join(ch if ch.isalnum() else "-" for ch in f"{row['pair']}-{row['method']}-trial{row['trial']}").strip("-")
+    err = np.array([row[p] for p in PARAMS])
+    init = ", ".join(f"{row[f'init_{p}']:+.1f}" for p in PARAMS)
+    title = (f"{row['pair']}, {row['method']}, trial {row['trial']}: start (roll, pitch, yaw deg; x, y, z m) = ({init})\n"
+             f"error {float(rotation_angle(err)[0]):.2f} deg / {np.linalg.norm(err[3:]):.2f} m"
+             f"{' (the method refused it)' if row['failed'] else ''} {row['note']}")
+    return plot_failure(moved.xyz, target.xyz, estimate, truth, folder / f"{slug}.png", title)
 
 
 class _NoBar:
@@ -159,15 +179,15 @@ def _progress(enabled: bool):
 
 # ---------------------------------------------------------------- outputs
 
-CSV_FIELDS = ["pair", "overlap_wanted", "overlap", "method", "trial", *[f"init_{p}" for p in PARAMS], *PARAMS, "success", "failed", "seconds", "note"]
+CSV_FIELDS = ["pair", "overlap_wanted", "overlap", "method", "trial", *[f"init_{p}" for p in PARAMS], *PARAMS, "success", "failed", "seconds", "note", "picture"]
 
 
 def write_trials_csv(rows: list[dict], path: str | Path) -> Path:
     with atomic_output(path) as tmp, open(tmp, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=CSV_FIELDS)
+        writer = csv.DictWriter(fh, fieldnames=CSV_FIELDS, extrasaction="ignore")
         writer.writeheader()
         for r in rows:
-            writer.writerow({k: ("" if r[k] is None else r[k]) for k in CSV_FIELDS})
+            writer.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in CSV_FIELDS})
     return Path(path)
 
 

@@ -44,6 +44,7 @@ def bench_command(
     seed: int = typer.Option(0, "--seed"),
     out: Path = typer.Option(Path("bench"), "--out", help="Folder for trials.csv, table.md, errors.png, summary.json."),
     title: str = typer.Option("", "--title", help="Heading of table.md."),
+    failure_pictures: int = typer.Option(3, "--failure-pictures", help="PNGs of forestalign's first N unsuccessful trials in OUT/failures."),
 ) -> None:
     """Paper-style benchmark: per-parameter RMSE, success rate and time over seeded random trials."""
     from plotmosaic.bench.methods import METHODS, MethodsConfig
@@ -76,7 +77,8 @@ def bench_command(
         src, tgt = read_cloud(source, attributes=False), read_cloud(target, attributes=False)
         bench_pairs = [BenchPair(f"{source.stem}->{target.stem}", src, tgt, T, source_kind.lower(), target_kind.lower())]
     tty = sys.stderr.isatty()
-    result = run_bench(bench_pairs, config, progress=tty, log=None if tty else (lambda msg: typer.echo(msg, err=True)))
+    result = run_bench(bench_pairs, config, progress=tty, log=None if tty else (lambda msg: typer.echo(msg, err=True)),
+                       failures=out / "failures", max_failure_pictures=failure_pictures)
     command = "plotmosaic " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     paths = write_outputs(result, out, title, command)
     typer.echo(result.table, nl=False)
