@@ -167,6 +167,24 @@ def test_sim_tls_pair_large_errors_never_silently_wrong(sim_prepared):
     assert good >= 2
 
 
+def test_initial_guess_is_a_prior_not_a_trap(sim_prepared):
+    """With the coarse stage on (the default), a +-10 deg / +-2 m guess is searched around and verified:
+    the starts that ICP alone ends in a wrong minimum from (refused above) come back right too."""
+    ps, pt, T_true, cfg = sim_prepared
+    prior_cfg = cfg.model_copy(deep=True)
+    prior_cfg.coarse.enabled = True
+    rng = np.random.default_rng(5)
+    centre = ps.frame.to_global(ps.points.mean(axis=0))
+    starts = [T_true @ perturbation(rng, centre) for _ in range(5)]
+    with pytest.raises(RegistrationFailed):  # trial 1: a wrong minimum for ICP from the guess alone
+        register_prepared(ps, pt, cfg, init=starts[1], seed=0)
+    for init in starts:
+        result = register_prepared(ps, pt, prior_cfg, init=init, seed=0)
+        deg, m = pose_error(result.transform, T_true, centre)
+        assert deg.max() < 0.1 and m.max() < 0.02, (deg, m)
+        assert any(h["prior"] for h in result.coarse["hypotheses"])
+
+
 def test_utm_coordinates_keep_precision(sim_pair):
     """The same pair shifted into UTM-sized coordinates gives the same transform, to the millimetre."""
     src, tgt, T_true = sim_pair
@@ -211,3 +229,12 @@ def test_real_uas_to_als_recovers_known_perturbation(spanner_dir):
     assert deg.max() < 0.3, deg
     assert m.max() < 0.05, m
     assert result.levels["matching"] == {"0": 0, "1": 1}
+
+
+def test_same_inputs_and_seed_same_result(sim_pair):
+    """Whole pipeline (coarse stage included, both clouds prepared in parallel threads) twice: same figures."""
+    src, tgt, _ = sim_pair
+    a = align_clouds(src, tgt, "tls", "tls", AlignConfig(), seed=3)
+    b = align_clouds(src, tgt, "tls", "tls", AlignConfig(), seed=3)
+    np.testing.assert_allclose(a.transform, b.transform, rtol=0, atol=1e-9)
+    assert (a.fitness, a.inlier_rmse, a.overlap, a.confidence) == (b.fitness, b.inlier_rmse, b.overlap, b.confidence)

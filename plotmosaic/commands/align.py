@@ -41,7 +41,7 @@ def align_command(
     target_kind: str = typer.Option("tls", "--target-kind", help="tls | mls | uls | als"),
     levels_source: int | None = typer.Option(None, "--levels-source", help="Complexity levels K of the source (default by kind: tls/mls 3, uls/als 2)."),
     levels_target: int | None = typer.Option(None, "--levels-target", help="Complexity levels K of the target."),
-    init: Path | None = typer.Option(None, "--init", help="Initial guess, JSON: {'transform': 4x4} (e.g. a RESULT.json) or a 4x4 list; source file -> target file coordinates."),
+    init: Path | None = typer.Option(None, "--init", help="Initial guess, JSON: {'transform': 4x4} (e.g. a RESULT.json) or a 4x4 list; source file -> target file coordinates. A prior: the coarse stage searches around it (with --no-coarse, ICP starts from it)."),
     out: Path | None = typer.Option(None, "--out", help="Write RESULT.json here."),
     save_levels: Path | None = typer.Option(None, "--save-levels", help="Folder for the levels: LAZ per cloud (level attribute) + levels.png."),
     complexity: str = typer.Option("vmf+eigen", "--complexity", help="Grouping signal: vmf (the paper's) | vmf+eigen (vMF + local eigen-features)."),

@@ -18,10 +18,10 @@ from pathlib import Path
 import gtsam
 import networkx as nx
 import numpy as np
-import open3d as o3d
 from pydantic import BaseModel, Field
 
 from plotmosaic.align.config import AlignConfig
+from plotmosaic.align.voxel import voxel_centroids
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.graph import report as rep
 from plotmosaic.graph.cache import PairCache, pair_key
@@ -84,8 +84,7 @@ class TieResult:
 def _voxel(xyz: np.ndarray, size: float) -> np.ndarray:
     """Voxel-thinned points, computed near the origin so UTM-sized values keep their precision."""
     frame = Frame.around(xyz)
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(frame.to_local(xyz)))
-    return frame.to_global(np.asarray(pcd.voxel_down_sample(size).points))
+    return frame.to_global(voxel_centroids(frame.to_local(xyz), size))
 
 
 def plot_cloud(manifest: Manifest, plot: Plot, poses: Poses, voxel: float) -> PointCloud:

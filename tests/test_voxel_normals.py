@@ -1,0 +1,57 @@
+"""numpy voxel grids and neighbourhood shapes (normals, eigen-features), eager and lazy."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from plotmosaic.align.normals import LazyNormals, local_shape
+from plotmosaic.align.voxel import cube_keys, thin, voxel_centroids
+
+
+def test_voxel_centroids_match_a_plain_group_by_and_come_in_cube_order():
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-3, 7, (20_000, 3)) + [470_000.0, 3_810_000.0, 2_100.0]  # UTM-sized
+    got = voxel_centroids(pts, 0.5)
+    cells = {}
+    for p in pts:
+        cells.setdefault(tuple(np.floor(p / 0.5).astype(np.int64)), []).append(p)
+    assert len(got) == len(cells)
+    want = np.array([np.mean(cells[k], axis=0) for k in sorted(cells)])  # lexicographic = cube order
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-7)
+    keys = cube_keys(got, 0.5)
+    assert np.all(np.diff(keys) > 0)  # one point per cube, sorted
+
+
+def test_thin_keeps_the_first_point_of_each_cube():
+    pts = np.array([[0.05, 0.0, 0.0], [0.1, 0.1, 0.1], [0.25, 0.0, 0.0], [0.01, 0.02, 0.03]])
+    np.testing.assert_array_equal(thin(pts, 0.2), [0, 2])
+    assert len(thin(np.zeros((0, 3)), 0.2)) == 0
+
+
+def test_local_shape_on_a_plane_a_line_and_a_scatter():
+    rng = np.random.default_rng(1)
+    n = np.array([0.3, -0.2, 1.0]) / np.linalg.norm([0.3, -0.2, 1.0])
+    u = np.cross(n, [1.0, 0.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    ab = rng.uniform(-2, 2, (8000, 2))
+    plane = ab[:, :1] * u + ab[:, 1:] * v + rng.normal(0, 0.002, (8000, 1)) * n
+    line = np.column_stack([rng.normal(0, 0.003, (2000, 2)), rng.uniform(0, 4, 2000)]) + [10.0, 0, 0]  # a thin stem
+    blob = rng.normal(0, 0.3, (3000, 3)) + [20.0, 0, 0]
+    pts = np.vstack([plane, line, blob])
+    tree = cKDTree(pts)
+    normals, feats, counts = local_shape(pts, tree, pts[[0, 8000, 10_000]], 0.25, 30)
+    assert abs(normals[0] @ n) > 0.999
+    assert feats[0, 1] > 0.8  # planarity
+    assert feats[1, 0] > 0.9  # linearity
+    assert feats[2, 2] > 0.1 and counts.min() >= 3  # scattering
+    # nobody within the radius: no plane, called fully scattered
+    lone = np.vstack([pts, [[100.0, 100.0, 100.0]]])
+    _, f_lone, c_lone = local_shape(lone, cKDTree(lone), lone[-1:], 0.25, 30)
+    assert c_lone[0] == 1 and f_lone[0, 2] == 1.0
+    # the lazy target normals are the eager ones, computed once
+    lazy = LazyNormals(pts, tree, 0.25, 30)
+    idx = np.array([5, 9000, 5, 10_500])
+    np.testing.assert_allclose(lazy(idx), local_shape(pts, tree, pts[idx], 0.25, 30)[0])
+    assert lazy.known.sum() == 3
