@@ -56,6 +56,7 @@ class AlignConfig(BaseModel):
     ]
     level_max_source_points: int = 20_000  # seeded subsample of the source per level step
     min_eig_ratio: float = 0.02  # level steps move only along directions this well constrained (see icp.point_to_plane_icp)
+    level_keep_ratio: float = 0.98  # level ICP result kept only if its fitness >= this x that of its start
     level_tol: float = 1e-4  # a level stage ends when a step moves points < this (m); the final ICP refines
     final_tol: float = 1e-5
     final_schedule: list[IcpStage] = [IcpStage(max_distance=0.25, iterations=30), IcpStage(max_distance=0.1, iterations=20)]

@@ -10,11 +10,13 @@ an 8M-point scan within seconds.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 FEATURE_NAMES = ("linearity", "planarity", "scattering")
-CHUNK = 200_000
+CHUNK = 50_000
 
 
 def _shape_chunk(points: np.ndarray, query: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -44,15 +46,27 @@ def _shape_chunk(points: np.ndarray, query: np.ndarray, idx: np.ndarray) -> tupl
 
 def local_shape(points: np.ndarray, tree: cKDTree, query: np.ndarray, radius: float, max_nn: int
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(normals (M,3), features (M,3), neighbour counts (M,)) at `query` from `points` (indexed by `tree`)."""
+    """(normals (M,3), features (M,3), neighbour counts (M,)) at `query` from `points` (indexed by `tree`).
+
+    Chunks run in two threads (the KD-tree query and numpy's heavy loops release the GIL).
+    """
     m = len(query)
     normals, features = np.empty((m, 3)), np.empty((m, 3))
     counts = np.empty(m, dtype=np.int64)
     k = int(min(max_nn, len(points)))
-    for s in range(0, m, CHUNK):
+
+    def run(s: int) -> None:
         q = query[s : s + CHUNK]
-        _, idx = tree.query(q, k=k, distance_upper_bound=radius, workers=-1)
+        _, idx = tree.query(q, k=k, distance_upper_bound=radius)
         normals[s : s + CHUNK], features[s : s + CHUNK], counts[s : s + CHUNK] = _shape_chunk(points, q, idx.reshape(len(q), -1))
+
+    starts = range(0, m, CHUNK)
+    if m > CHUNK:
+        with ThreadPoolExecutor(max_workers=2) as pool:
+            list(pool.map(run, starts))
+    else:
+        for s in starts:
+            run(s)
     return normals, features, counts
 
 

@@ -167,6 +167,14 @@ def register_prepared(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfi
         steps.append({"source_levels": ls, "target_levels": lt, "source_points": len(sp), "target_points": len(tp),
                       "fitness": res.fitness, "rmse": res.rmse, "constrained_dof": res.rank,
                       "iterations": res.iterations})
+    # never leave the level stage worse than it started: from a verified coarse pose, levels that
+    # are not what they should be (plain vMF on dense scans mixes stems and foliage) can slide away
+    probe = src.level_points[sample(len(src.level_points), config.level_max_source_points, rng)]
+    start_fit = evaluate(probe, tgt.tree, T_init, config.quality_distance)[0]
+    level_fit = evaluate(probe, tgt.tree, T, config.quality_distance)[0]
+    reverted = bool(steps) and level_fit < config.level_keep_ratio * start_fit
+    if reverted:
+        T = T_init.copy()
     t_levels = time.perf_counter()
 
     say("final ICP")
@@ -199,7 +207,8 @@ def register_prepared(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfi
     result = PairResult(
         transform=T_file, fitness=fitness, inlier_rmse=rmse, overlap=ov, information=info, sigma=sigma,
         levels={"source": _level_table(src, matching, True), "target": _level_table(tgt, matching, False),
-                "matching": {str(k): v for k, v in matching.items()}, "steps": steps},
+                "matching": {str(k): v for k, v in matching.items()}, "steps": steps,
+                "fitness_before": start_fit, "fitness_after": level_fit, "reverted": reverted},
         seconds=t_end - t0, source_kind=src.kind, target_kind=tgt.kind,
         source_offset=[float(v) for v in src.frame.offset], target_offset=[float(v) for v in tgt.frame.offset],
         coarse=coarse, confidence=confidence,
