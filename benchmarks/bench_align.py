@@ -146,11 +146,13 @@ def bench_real(spanner: Path, n: int, modes: list[str]) -> dict:
     return out
 
 
-def bench_speed(src: Path, tgt: Path, kinds: list[str], mode: str, init: Path | None) -> dict:
-    """One pair, reading included; `init`: a JSON 4x4 start (e.g. the truth, +-a perturbation)."""
+def bench_speed(src: Path, tgt: Path, kinds: list[str], mode: str, init: Path | None, gt: str | None) -> dict:
+    """One pair from anywhere (or from `init`, a JSON 4x4 prior), reading included; `gt`: a poses file
+    (or identity) to print the pose error against."""
+    from plotmosaic.bench.pairs import load_truth
     from plotmosaic.commands.align import load_init
 
-    T0 = load_init(init) if init else np.eye(4)
+    T0 = load_init(init) if init else None
     t0, c0 = time.perf_counter(), time.process_time()
     try:
         res = align_files(src, tgt, kinds[0], kinds[1], config(mode), init=T0)
@@ -160,7 +162,14 @@ def bench_speed(src: Path, tgt: Path, kinds: list[str], mode: str, init: Path | 
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     print(f"speed {src.name} -> {tgt.name}: wall {wall:.1f} s, CPU {cpu:.1f} s, fitness {res.fitness:.3f}")
     print(json.dumps(res.timings, indent=1, default=float))
-    return {"wall": wall, "cpu": cpu, "timings": res.timings}
+    out = {"wall": wall, "cpu": cpu, "timings": res.timings}
+    if gt:
+        T_true = load_truth(gt, src, tgt)
+        centre = read_cloud(src, attributes=False).xyz[::97].mean(axis=0)
+        e = errors(res.transform, T_true, centre)
+        out["error_deg"], out["error_m"] = float(np.abs(e[:3]).max()), float(np.abs(e[3:]).max())
+        print(f"error against the truth: {out['error_deg']:.4f} deg, {100 * out['error_m']:.2f} cm (largest angle / axis)")
+    return out
 
 
 def main() -> None:
@@ -170,6 +179,7 @@ def main() -> None:
     ap.add_argument("--speed", type=Path, nargs=2, metavar=("SOURCE", "TARGET"))
     ap.add_argument("--purity", type=Path, nargs="+", metavar="SCAN", help="simulated TLS scans (with labels): level purity only")
     ap.add_argument("--kinds", nargs=2, default=["tls", "tls"])
+    ap.add_argument("--gt", help="--speed: ground-truth poses file (or 'identity') for the pose error")
     ap.add_argument("--init", type=Path, help="--speed: initial guess JSON")
     ap.add_argument("--trials", type=int, default=50)
     ap.add_argument("--modes", nargs="+", default=["vmf+eigen", "vmf"])
@@ -188,7 +198,7 @@ def main() -> None:
         out["purity"] = {f"{mode}:{path.stem}": purity_rows(path.stem, read_cloud(path, attributes=["label"]), "tls", 3, mode, 0)[1]
                          for path in args.purity for mode in args.modes}
     if args.speed:
-        out["speed"] = bench_speed(*args.speed, args.kinds, args.modes[0], args.init)
+        out["speed"] = bench_speed(*args.speed, args.kinds, args.modes[0], args.init, args.gt)
     if args.json:
         args.json.write_text(json.dumps(out, indent=1, default=float))
 

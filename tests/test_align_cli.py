@@ -83,3 +83,14 @@ def test_bad_input_exits_2(pair, tmp_path):
     bad.write_text(json.dumps({"transform": [[1, 0], [0, 1]]}))
     assert "bad.json" in one_line_error(invoke(src, tgt, "--init", bad), 2)
     assert "--levels-target" in one_line_error(invoke(src, tgt, "--levels-target", "0"), 2)
+
+
+def test_ambiguous_pair_exits_3_instead_of_a_silent_wrong_transform(small_sim, tmp_path):
+    """Corner scans 32 m apart at 50k points share too little: the coarse stage's best pose (the two
+    scanners pulled together, fitness 0.33 from the dense ground) is barely ahead of distinct rivals.
+    That is refused with the figures, not returned as a success."""
+    out = tmp_path / "r.json"
+    result = invoke(small_sim.scan_paths["P1-S1"], small_sim.scan_paths["P1-S3"], "--out", out)
+    line = one_line_error(result, 3)
+    assert "ambiguous" in line and "confidence" in line
+    assert not out.exists()

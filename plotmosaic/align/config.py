@@ -69,4 +69,7 @@ class AlignConfig(BaseModel):
     min_fitness: float = 0.1  # below => RegistrationFailed (exit 3); sparse true pairs reach ~0.18
     min_overlap: float = 0.05
     max_inlier_rmse: float = 0.2  # point-to-point at 0.25 m; a sparse ALS target alone gives ~0.16
+    # coarse confidence below this => ambiguous => exit 3: a distinct rival pose scored almost as well
+    # (right pairs gave 0.62-1.0, wrong ones 0.00-0.12; register-plot sets 0 and lets its loops decide)
+    min_confidence: float = 0.2
     coarse: CoarseConfig = CoarseConfig()

@@ -234,6 +234,8 @@ def check_quality(result: PairResult, config: AlignConfig) -> None:
         problems.append(f"overlap {result.overlap:.3f} < {config.min_overlap}")
     if not result.inlier_rmse <= config.max_inlier_rmse:
         problems.append(f"inlier RMSE {result.inlier_rmse:.3f} m > {config.max_inlier_rmse} m")
+    if result.confidence is not None and result.confidence < config.min_confidence:
+        problems.append(f"ambiguous: a distinct pose fits almost as well (confidence {result.confidence:.2f} < {config.min_confidence})")
     if problems:
         err = RegistrationFailed(
             "pair cannot be registered: " + "; ".join(problems)

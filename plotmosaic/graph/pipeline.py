@@ -33,8 +33,13 @@ EDGE_FIELDS = ("source", "target", "key", "status", "error", "transform", "infor
                "overlap", "confidence", "sigma", "seconds")
 
 
+def _graph_align_config() -> AlignConfig:
+    # unsure pairs still become edges: the pose graph keeps one only when a loop confirms it
+    return AlignConfig(min_confidence=0.0)
+
+
 class RegisterConfig(BaseModel):
-    align: AlignConfig = Field(default_factory=AlignConfig)
+    align: AlignConfig = Field(default_factory=_graph_align_config)
     graph: PoseGraphConfig = Field(default_factory=PoseGraphConfig)
     max_distance: float | None = Field(60.0, gt=0)  # with approximate positions: farther pairs are not tried
     report_points: int = 20_000  # per scan in the pictures
