@@ -89,7 +89,8 @@ def _as_pcd(points: np.ndarray, normals: np.ndarray) -> o3d.geometry.PointCloud:
     return pcd
 
 
-def _level(cloud, config: CoarseConfig, rng: np.random.Generator) -> _Levelled:
+def _level(cloud, config: CoarseConfig, rng: np.random.Generator, upright: bool = False) -> _Levelled:
+    """`upright`: take the file's z as the vertical (georeferenced airborne targets) instead of estimating it."""
     # own normals over a wider neighbourhood than ForestAlign's 0.25 m: the coarse stage must also
     # work on sparse clouds (far TLS ranges, ALS), where 0.25 m holds too few points for a plane
     pts = voxel_centroids(cloud.points, config.feature_voxel)
@@ -100,19 +101,22 @@ def _level(cloud, config: CoarseConfig, rng: np.random.Generator) -> _Levelled:
     pts, nrm = np.asarray(pcd.points), np.asarray(pcd.normals)
     sample = nrm[rng.choice(len(nrm), min(len(nrm), 10_000), replace=False)]
     R, info = levelling_rotation(sample, max_tilt_deg=config.max_tilt_deg)
+    if upright:
+        info = {"tilt_deg": 0.0, "estimated_tilt_deg": info["tilt_deg"], "stem_share": info["stem_share"], "upright": True}
+        R = np.eye(3)
     pts_l, nrm_l = pts @ R.T, nrm @ R.T
     feats = point_features(pts_l, nrm_l, cell=1.0)
     info.update(stems=int(feats.stem.sum()), canopy=int(feats.canopy.sum()), ground=int(feats.ground.sum()), points=len(pts))
     return _Levelled(_as_pcd(pts_l, nrm_l), R, feats, info)
 
 
-def _levelled(cloud, config: CoarseConfig, seed: int) -> _Levelled:
+def _levelled(cloud, config: CoarseConfig, seed: int, upright: bool = False) -> _Levelled:
     """`_level`, remembered on the cloud object: in a plot each scan takes part in several pairs."""
-    key = (config.model_dump_json(), seed)
+    key = (config.model_dump_json(), seed, upright)
     memo = cloud.__dict__.setdefault("_coarse_levelled", {})
     if key not in memo:
         memo.clear()  # one entry is enough and keeps memory bounded
-        memo[key] = _level(cloud, config, np.random.default_rng(seed))
+        memo[key] = _level(cloud, config, np.random.default_rng(seed), upright)
     return memo[key]
 
 
@@ -294,7 +298,12 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
     config = config or CoarseConfig()
     start = time.perf_counter()
     rng = np.random.default_rng(seed)
-    src, tgt = _levelled(source, config, seed), _levelled(target, config, seed + 1)
+    # An airborne target (ALS/ULS) is georeferenced: its z is the vertical, while its ground normals
+    # show the terrain's slope (11 deg on the simulated plot) and few stems correct them. Levelling it
+    # by its normals tilted it against a TLS source levelled by its stems, and 10 % of TLS -> ALS
+    # starts then took a heading 180 deg off. The source may come in any orientation: always levelled.
+    src = _levelled(source, config, seed)
+    tgt = _levelled(target, config, seed + 1, upright=target.kind in AIRBORNE)
     timing = {"levelling": time.perf_counter() - start}
     weights = _weights(source.kind, target.kind)
     L_s, L_t_inv = _homogeneous(src.R), _homogeneous(tgt.R.T)
