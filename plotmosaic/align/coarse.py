@@ -24,6 +24,7 @@ from scipy.spatial import cKDTree
 
 from plotmosaic.align.levelling import levelling_rotation
 from plotmosaic.align.voxel import voxel_centroids
+from plotmosaic.parallel import both
 from plotmosaic.io.frame import pose_error
 from plotmosaic.align.rasters import CHANNELS, MaskedNCC, PointFeatures, point_features, rasterise
 
@@ -302,8 +303,8 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
     # show the terrain's slope (11 deg on the simulated plot) and few stems correct them. Levelling it
     # by its normals tilted it against a TLS source levelled by its stems, and 10 % of TLS -> ALS
     # starts then took a heading 180 deg off. The source may come in any orientation: always levelled.
-    src = _levelled(source, config, seed)
-    tgt = _levelled(target, config, seed + 1, upright=target.kind in AIRBORNE)
+    src, tgt = both(lambda job: _levelled(*job), (source, config, seed, False),
+                    (target, config, seed + 1, target.kind in AIRBORNE))
     timing = {"levelling": time.perf_counter() - start}
     weights = _weights(source.kind, target.kind)
     L_s, L_t_inv = _homogeneous(src.R), _homogeneous(tgt.R.T)

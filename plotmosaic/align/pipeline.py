@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,6 +25,7 @@ from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.frame import rotation_deg, to_global_transform, to_local_transform
 from plotmosaic.io.las import PointCloud, read_cloud
+from plotmosaic.parallel import both
 
 METHOD = "forestalign"
 
@@ -245,17 +245,10 @@ def check_quality(result: PairResult, config: AlignConfig) -> None:
         raise err
 
 
-def _both(fn: Callable, a, b) -> tuple:
-    """fn(a), fn(b) in two threads: numpy, scipy and lazrs release the GIL for the heavy parts."""
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        fa, fb = pool.submit(fn, a), pool.submit(fn, b)
-        return fa.result(), fb.result()
-
-
 def prepare_pair(source: PointCloud, target: PointCloud, source_kind: str, target_kind: str, levels_source: int,
                  levels_target: int, config: AlignConfig, seed: int = 0) -> tuple[PreparedCloud, PreparedCloud]:
     """Both clouds prepared at once (source with `seed`, target with `seed + 1`)."""
-    return _both(lambda job: prepare_cloud(*job), (source, source_kind, levels_source, config, seed, "source"),
+    return both(lambda job: prepare_cloud(*job), (source, source_kind, levels_source, config, seed, "source"),
                  (target, target_kind, levels_target, config, seed + 1, "target"))
 
 
@@ -294,7 +287,7 @@ def align_files(source_path, target_path, source_kind: str = "tls", target_kind:
     t0 = time.perf_counter()
     say = progress or (lambda msg: None)
     say("reading source and target")
-    source, target = _both(lambda path: read_cloud(path, attributes=False), source_path, target_path)
+    source, target = both(lambda path: read_cloud(path, attributes=False), source_path, target_path)
     t_read = time.perf_counter() - t0
     result = align_clouds(source, target, source_kind, target_kind, config, init, levels_source, levels_target,
                           seed, progress, save_levels)

@@ -1,0 +1,13 @@
+"""Two independent jobs at once, in threads: numpy, scipy, Open3D and lazrs release the GIL for their heavy parts."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+
+
+def both(fn: Callable, a, b) -> tuple:
+    """(fn(a), fn(b)), computed side by side; an exception in either is raised here."""
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        fa, fb = pool.submit(fn, a), pool.submit(fn, b)
+        return fa.result(), fb.result()
