@@ -62,8 +62,6 @@ class AlignConfig(BaseModel):
     final_schedule: list[IcpStage] = [IcpStage(max_distance=0.25, iterations=30), IcpStage(max_distance=0.1, iterations=20)]
     final_max_source_points: int = 60_000  # seeded sample of the source's delta grid for the last ICP (target kept whole)
     robust_kernel: float = 0.1  # least Tukey width (m) of the final ICP (half the correspondence distance above it)
-    relative_fitness: float = 1e-5
-    relative_rmse: float = 1e-5
     quality_max_points: int = 200_000  # query points per direction for fitness / overlap
     quality_distance: float = 0.25  # fitness / inlier RMSE / overlap distance (paper: 25 cm)
     min_fitness: float = 0.1  # below => RegistrationFailed (exit 3); sparse true pairs reach ~0.18
