@@ -6,7 +6,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from plotmosaic.align.normals import LazyNormals, local_shape
-from plotmosaic.align.voxel import cube_keys, thin, voxel_centroids
+from plotmosaic.align.voxel import FACE_PHASE, cube_keys, thin, voxel_centroids, voxelize
 
 
 def test_voxel_centroids_match_a_plain_group_by_and_come_in_cube_order():
@@ -15,7 +15,7 @@ def test_voxel_centroids_match_a_plain_group_by_and_come_in_cube_order():
     got = voxel_centroids(pts, 0.5)
     cells = {}
     for p in pts:
-        cells.setdefault(tuple(np.floor(p / 0.5).astype(np.int64)), []).append(p)
+        cells.setdefault(tuple(np.floor(p / 0.5 - FACE_PHASE).astype(np.int64)), []).append(p)
     assert len(got) == len(cells)
     want = np.array([np.mean(cells[k], axis=0) for k in sorted(cells)])  # lexicographic = cube order
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-7)
@@ -23,8 +23,30 @@ def test_voxel_centroids_match_a_plain_group_by_and_come_in_cube_order():
     assert np.all(np.diff(keys) > 0)  # one point per cube, sorted
 
 
+def test_grid_of_quantised_coordinates_does_not_change_under_a_utm_offset():
+    """LAS coordinates sit on a 1 mm lattice, many of them on multiples of the cube size; the grid
+    of the local coordinates must be the same whether they were read as such or as UTM - offset."""
+    rng = np.random.default_rng(3)
+    local = np.round(rng.uniform(-5, 5, (50_000, 3)), 3)
+    offset = np.array([470_123.0, 3_810_456.0, 2_100.0])
+    base, shifted = voxelize(local, 0.05), voxelize(local + offset, 0.05, offset)
+    assert len(base.centroids) == len(shifted.centroids)
+    np.testing.assert_allclose(shifted.centroids, base.centroids, rtol=0, atol=1e-8)
+
+
+def test_members_lists_every_point_of_the_chosen_cubes():
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(0, 2, (3000, 3))
+    grid = voxelize(pts, 0.5)
+    cubes = np.array([0, 5, 17])
+    keys = cube_keys(pts, 0.5)
+    wanted = np.flatnonzero(np.isin(keys, np.unique(keys)[cubes]))
+    np.testing.assert_array_equal(np.sort(grid.members(cubes)), wanted)
+    np.testing.assert_allclose(pts[grid.members(cubes[:1])].mean(axis=0), grid.centroids[0])
+
+
 def test_thin_keeps_the_first_point_of_each_cube():
-    pts = np.array([[0.05, 0.0, 0.0], [0.1, 0.1, 0.1], [0.25, 0.0, 0.0], [0.01, 0.02, 0.03]])
+    pts = np.array([[0.05, 0.01, 0.01], [0.1, 0.1, 0.1], [0.25, 0.01, 0.01], [0.01, 0.02, 0.03]])
     np.testing.assert_array_equal(thin(pts, 0.2), [0, 2])
     assert len(thin(np.zeros((0, 3)), 0.2)) == 0
 

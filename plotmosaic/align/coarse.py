@@ -17,13 +17,13 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import open3d as o3d
 from pydantic import BaseModel, Field
 from scipy import fft
 from scipy.spatial import cKDTree
 
 from plotmosaic.align.levelling import levelling_rotation
-from plotmosaic.align.voxel import voxel_centroids
+from plotmosaic.align.normals import local_shape
+from plotmosaic.align.voxel import thin, voxel_centroids
 from plotmosaic.parallel import both
 from plotmosaic.io.frame import pose_error
 from plotmosaic.align.rasters import CHANNELS, MaskedNCC, PointFeatures, point_features, rasterise
@@ -47,7 +47,8 @@ class CoarseConfig(BaseModel):
     hypotheses: int = Field(8, ge=1, description="hypotheses refined and verified")
     peaks_per_yaw: int = 2
     verify_voxel: float = 0.3
-    verify_points: int = Field(10_000, description="source points used to verify hypotheses")
+    verify_points: int = Field(10_000, description="source points used to refine and score the best hypotheses")
+    screen_points: int = Field(3_000, description="of those, the points of the first short ICP that ranks every hypothesis")
     verify_iterations: int = 10
     refine_top: int = Field(3, ge=1, description="screened hypotheses refined fully")
     verify_distance_ground: float = Field(0.2, description="inlier distance (m) between ground-based scans")
@@ -78,16 +79,16 @@ class CoarseResult:
 
 @dataclass
 class _Levelled:
-    pcd: o3d.geometry.PointCloud  # levelled, feature voxel
+    points: np.ndarray  # levelled, one per feature voxel (capped), in cube order
+    normals: np.ndarray
     R: np.ndarray  # levelling rotation (local -> levelled)
     feats: PointFeatures
     info: dict
 
 
-def _as_pcd(points: np.ndarray, normals: np.ndarray) -> o3d.geometry.PointCloud:
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
-    pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=np.float64))
-    return pcd
+def _sample(n: int, size: int, rng: np.random.Generator) -> np.ndarray:
+    """Sorted seeded subset of range(n): the points keep their cube order (fast KD-tree queries)."""
+    return np.arange(n) if n <= size else np.sort(rng.choice(n, size, replace=False))
 
 
 def _level(cloud, config: CoarseConfig, rng: np.random.Generator, upright: bool = False) -> _Levelled:
@@ -95,11 +96,9 @@ def _level(cloud, config: CoarseConfig, rng: np.random.Generator, upright: bool 
     # own normals over a wider neighbourhood than ForestAlign's 0.25 m: the coarse stage must also
     # work on sparse clouds (far TLS ranges, ALS), where 0.25 m holds too few points for a plane
     pts = voxel_centroids(cloud.points, config.feature_voxel)
-    if len(pts) > config.max_points:
-        pts = pts[np.sort(rng.choice(len(pts), config.max_points, replace=False))]
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=config.normal_radius, max_nn=config.normal_neighbours))
-    pts, nrm = np.asarray(pcd.points), np.asarray(pcd.normals)
+    pts = pts[_sample(len(pts), config.max_points, rng)]
+    tree = cKDTree(pts, balanced_tree=False, compact_nodes=False)
+    nrm = local_shape(pts, tree, pts, config.normal_radius, config.normal_neighbours)[0]
     sample = nrm[rng.choice(len(nrm), min(len(nrm), 10_000), replace=False)]
     R, info = levelling_rotation(sample, max_tilt_deg=config.max_tilt_deg)
     if upright:
@@ -108,7 +107,7 @@ def _level(cloud, config: CoarseConfig, rng: np.random.Generator, upright: bool 
     pts_l, nrm_l = pts @ R.T, nrm @ R.T
     feats = point_features(pts_l, nrm_l, cell=1.0)
     info.update(stems=int(feats.stem.sum()), canopy=int(feats.canopy.sum()), ground=int(feats.ground.sum()), points=len(pts))
-    return _Levelled(_as_pcd(pts_l, nrm_l), R, feats, info)
+    return _Levelled(pts_l, nrm_l, R, feats, info)
 
 
 def _levelled(cloud, config: CoarseConfig, seed: int, upright: bool = False) -> _Levelled:
@@ -177,10 +176,7 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
         source = rasterise(xy, src.feats, cell, s_origin, s_shape, config.blur_cells)
         total = 0.0
         overlap = None
-        for name in CHANNELS:
-            if weights[name] == 0:
-                continue
-            score, ov = ncc(source, name)
+        for name, (score, ov) in ncc.scores(source, [n for n in CHANNELS if weights[n] != 0]).items():
             if name == "canopy":
                 overlap = ov
             if name == "terrain":  # a handful of shared ground cells proves nothing
@@ -272,12 +268,6 @@ def _score(structure: np.ndarray, tgt: tuple, T: np.ndarray, distance: float) ->
     return evaluate(structure, tgt[2], T, distance)[0]
 
 
-def _subsample(pcd: o3d.geometry.PointCloud, n: int, rng: np.random.Generator) -> o3d.geometry.PointCloud:
-    if len(pcd.points) <= n:
-        return pcd
-    return pcd.select_by_index(np.sort(rng.choice(len(pcd.points), n, replace=False)).tolist())
-
-
 def _distinct(A: np.ndarray, B: np.ndarray) -> bool:
     degrees, metres = pose_error(A, B)
     return metres > 1.0 or degrees > 3.0
@@ -314,11 +304,15 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
 
     airborne = source.kind in AIRBORNE or target.kind in AIRBORNE
     d = config.verify_distance_airborne if airborne else config.verify_distance_ground
-    tgt_pcd = tgt.pcd.voxel_down_sample(config.verify_voxel)
-    tgt_v = (np.asarray(tgt_pcd.points), np.asarray(tgt_pcd.normals), cKDTree(np.asarray(tgt_pcd.points)))
-    src_pcd = _subsample(src.pcd.voxel_down_sample(config.verify_voxel), config.verify_points, rng)
-    src_v = np.asarray(src_pcd.points)
-    structure = src_v[np.abs(np.asarray(src_pcd.normals)[:, 2]) < 0.8]
+    # one kept point (and its own normal: averaged axial normals cancel) per verify cube
+    keep = thin(tgt.points, config.verify_voxel)
+    tgt_v = (tgt.points[keep], tgt.normals[keep], cKDTree(tgt.points[keep], balanced_tree=False, compact_nodes=False))
+    keep = thin(src.points, config.verify_voxel)
+    keep = keep[_sample(len(keep), config.verify_points, rng)]
+    src_v = src.points[keep]
+    structure = src_v[np.abs(src.normals[keep, 2]) < 0.8]
+    few = _sample(len(src_v), config.screen_points, rng)
+    src_few, structure_few = src_v[few], src_v[few][np.abs(src.normals[keep[few], 2]) < 0.8]
     ground_xy = tgt.feats.xy[tgt.feats.ground]
     ground_tree = cKDTree(ground_xy) if len(ground_xy) >= 20 else None
 
@@ -329,8 +323,8 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
         starts.append((prior_levelled, {"score": float("nan"), "yaw": yaw, "overlap": float("nan"), "prior": True}))
     screened = []
     for A0, h in starts:
-        A = _refine(src_v, tgt_v, A0, (6 * d,), config.verify_iterations)
-        screened.append((_score(structure, tgt_v, A, 2 * d), A, h))
+        A = _refine(src_few, tgt_v, A0, (6 * d,), config.verify_iterations)
+        screened.append((_score(structure_few, tgt_v, A, 2 * d), A, h))
     screened.sort(key=lambda r: -r[0])
     results = []
     for rank, (pre, A, h) in enumerate(screened):

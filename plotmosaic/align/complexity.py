@@ -36,20 +36,41 @@ def _gauss_log(f: np.ndarray, resp: np.ndarray):
     nk = resp.sum(axis=0) + 1e-12
     mean = (resp.T @ f) / nk[:, None]
     var = np.maximum((resp.T @ f**2) / nk[:, None] - mean**2, VAR_FLOOR)
-    logp = -0.5 * (((f[:, None, :] - mean[None]) ** 2) / var[None] + np.log(2 * np.pi * var[None])).sum(axis=2)
-    return logp, mean, var
+    return _gauss_logpdf(f, mean, var), mean, var
+
+
+def _gauss_logpdf(f: np.ndarray, mean: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """(N, K) log densities of diagonal Gaussians (column loops: short-axis reductions are slow in numpy)."""
+    logp = np.empty((len(f), len(mean)))
+    for j in range(len(mean)):
+        acc = np.full(len(f), -0.5 * float(np.log(2 * np.pi * var[j]).sum()))
+        for c in range(f.shape[1]):
+            acc -= 0.5 * (f[:, c] - mean[j, c]) ** 2 / var[j, c]
+        logp[:, j] = acc
+    return logp
+
+
+def _sq_dist(z: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(N, K) squared distances (column loops, as in _gauss_logpdf)."""
+    out = np.zeros((len(z), len(c)))
+    for j in range(len(c)):
+        for d in range(z.shape[1]):
+            out[:, j] += (z[:, d] - c[j, d]) ** 2
+    return out
 
 
 def _kmeans_resp(z: np.ndarray, k: int, rng: np.random.Generator, iters: int = 30) -> np.ndarray:
     """Seeded k-means++ on a small descriptor, as hard initial responsibilities."""
     centres = [z[rng.integers(len(z))]]
     for _ in range(1, k):
-        d = np.min(((z[:, None, :] - np.array(centres)[None]) ** 2).sum(axis=2), axis=1)
+        d = _sq_dist(z, np.array(centres)).min(axis=1)
         centres.append(z[rng.choice(len(z), p=d / d.sum())] if d.sum() > 0 else z[rng.integers(len(z))])
     c = np.array(centres)
     for _ in range(iters):
-        lab = np.argmin(((z[:, None, :] - c[None]) ** 2).sum(axis=2), axis=1)
-        c = np.array([z[lab == j].mean(axis=0) if np.any(lab == j) else c[j] for j in range(k)])
+        lab = np.argmin(_sq_dist(z, c), axis=1)
+        counts = np.bincount(lab, minlength=k)
+        sums = np.stack([np.bincount(lab, weights=z[:, d], minlength=k) for d in range(z.shape[1])], axis=1)
+        c = np.where(counts[:, None] > 0, sums / np.maximum(counts, 1)[:, None], c)
     resp = np.full((len(z), k), 1e-3)
     resp[np.arange(len(z)), lab] = 1.0
     return resp / resp.sum(axis=1, keepdims=True)
@@ -105,8 +126,7 @@ def _fit_valid(normals: np.ndarray, features: np.ndarray, k: int, mode: str, con
         labels = np.empty(n, dtype=np.int64)
         for s in range(0, n, 1_000_000):
             ns, fs = normals[s : s + 1_000_000], features[s : s + 1_000_000]
-            lg = -0.5 * (((fs[:, None, :] - gmean[None]) ** 2) / gvar[None] + np.log(2 * np.pi * gvar[None])).sum(axis=2)
-            joint = vmf.log_density(ns, mu, kappa) + np.log(weights + 1e-300)[None] + lg
+            joint = vmf.log_density(ns, mu, kappa) + np.log(weights + 1e-300)[None] + _gauss_logpdf(fs, gmean, gvar)
             labels[s : s + 1_000_000] = np.argmax(joint, axis=1)
     else:
         raise ValueError(f"unknown complexity signal {mode!r}")

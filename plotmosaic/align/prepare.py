@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 from plotmosaic.align.complexity import fit_levels
 from plotmosaic.align.config import AlignConfig
 from plotmosaic.align.normals import LazyNormals, local_shape
-from plotmosaic.align.voxel import thin, voxel_centroids
+from plotmosaic.align.voxel import thin, voxel_centroids, voxelize
 from plotmosaic.errors import InputError
 from plotmosaic.io.frame import Frame
 from plotmosaic.io.las import PointCloud
@@ -60,13 +60,16 @@ def prepare_cloud(cloud: PointCloud, kind: str, levels: int, config: AlignConfig
         raise InputError(f"{name}: levels must be >= 1, got {levels}")
     rng = np.random.default_rng(seed)
     frame = Frame.around(cloud.xyz)
-    fine = voxel_centroids(frame.to_local(cloud.xyz), config.final_voxel)
-    # delta0 grid from the delta grid: the same cells to within a voxel, a fraction of the work
-    points = voxel_centroids(fine, config.voxel)
+    grid = voxelize(cloud.xyz, config.voxel, frame.offset)  # local coordinates, no shifted copy of 8M points
+    points = grid.centroids
     if len(points) < MIN_POINTS:
         raise InputError(f"{name}: only {len(points)} points after {config.voxel} m voxels, too few to register")
+    # final-ICP source: the delta grid of a seeded sample of delta0 cubes, which is a sample of the
+    # whole cloud's delta grid without building that grid over all (8M) input points
+    cubes = sample(len(points), config.final_max_source_points, rng)
+    fine = voxel_centroids(frame.to_local(cloud.xyz[grid.members(cubes)]), config.final_voxel)
     fine_points = fine[sample(len(fine), config.final_max_source_points, rng)]
-    del fine
+    del grid, fine
     tree = cKDTree(points, balanced_tree=False, compact_nodes=False)  # half the build time; points are in cube order
     t1 = time.perf_counter()
     # levels on a sample that evens out the 1/r^2 density of TLS around the scanner

@@ -90,12 +90,12 @@ def rasterise(xy: np.ndarray, feats: PointFeatures, cell: float, origin: np.ndar
         m = mask & inside
         return np.bincount(flat[m], minlength=size).reshape(shape).astype(np.float64)
 
-    seen = count(np.ones(len(xy), bool)) > 0
+    seen = (count(np.ones(len(xy), bool)) > 0).astype(np.float64)
     images, masks = {}, {}
     for name in ("stems", "canopy"):
         occ = (count(getattr(feats, name[:-1] if name == "stems" else name)) > 0).astype(np.float64)
         images[name] = ndimage.gaussian_filter(occ, blur) if blur > 0 else occ
-        masks[name] = seen.astype(np.float64)
+        masks[name] = seen  # one array: MaskedNCC transforms a shared mask once
     g = feats.ground & inside
     n_g = np.bincount(flat[g], minlength=size).reshape(shape)
     s_g = np.bincount(flat[g], weights=feats.z[g], minlength=size).reshape(shape)
@@ -108,7 +108,11 @@ def rasterise(xy: np.ndarray, feats: PointFeatures, cell: float, origin: np.ndar
 
 
 class MaskedNCC:
-    """Masked NCC of many source rasters against one fixed target raster (target FFTs cached)."""
+    """Masked NCC of many source rasters against one fixed target raster (target FFTs cached).
+
+    Channels that share a mask array (stems and canopy: "the cell was seen") share its transforms,
+    and each call runs its transforms as one batch (two FFT calls instead of dozens).
+    """
 
     def __init__(self, target: Raster, source_shape: tuple[int, int], min_overlap: float):
         self.target = target
@@ -116,34 +120,59 @@ class MaskedNCC:
         hs, ws = source_shape
         self.shape = (fft.next_fast_len(ht + hs, real=True), fft.next_fast_len(wt + ws, real=True))
         self.min_overlap = min_overlap
-        self._t = {}
-        for name, img in target.images.items():
-            m = target.masks[name]
-            g = img * m
-            self._t[name] = (self._f(m), self._f(g), self._f(g * g))
+        names = list(target.images)
+        masks = _distinct_masks(target, names)
+        images = [target.images[n] * target.masks[n] for n in names]
+        spectra = self._f([m for m in masks.values()] + [a for g in images for a in (g, g * g)])
+        slot = {key: i for i, key in enumerate(masks)}
+        self._t = {n: (id(target.masks[n]), spectra[slot[id(target.masks[n])]], spectra[len(masks) + 2 * i],
+                       spectra[len(masks) + 2 * i + 1]) for i, n in enumerate(names)}
 
-    def _f(self, a):
-        return fft.rfft2(a, s=self.shape, workers=-1)
+    def _f(self, arrays: list[np.ndarray]) -> np.ndarray:
+        return fft.rfft2(np.stack(arrays), s=self.shape, axes=(-2, -1), workers=-1)
 
-    def _corr(self, fa, fb):
-        # sum_x a(x) b(x + s) for every shift s (circular, padded so no wrap-around overlaps)
-        return fft.irfft2(np.conj(fa) * fb, s=self.shape, workers=-1)
+    def scores(self, source: Raster, names) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """{channel: (NCC, overlap in cells)} for every shift of `source` over the target."""
+        masks = _distinct_masks(source, names)
+        images = [source.images[n] * source.masks[n] for n in names]
+        spectra = self._f([m for m in masks.values()] + [a for f in images for a in (f, f * f)])
+        slot = {key: i for i, key in enumerate(masks)}
+        # sum_x a(x) b(x + s) for every shift s is irfft(conj(A) B) (padded: no wrap-around overlaps)
+        products, overlap_of, base = [], {}, {}
+        for i, name in enumerate(names):
+            t_mask, fm2, fg, fgg = self._t[name]
+            fm1 = spectra[slot[id(source.masks[name])]]
+            ff, fff = spectra[len(masks) + 2 * i], spectra[len(masks) + 2 * i + 1]
+            pair = (id(source.masks[name]), t_mask)
+            if pair not in overlap_of:
+                overlap_of[pair] = len(products)
+                products.append(np.conj(fm1) * fm2)
+            base[name] = len(products)
+            products += [np.conj(ff) * fm2, np.conj(fm1) * fg, np.conj(fff) * fm2, np.conj(fm1) * fgg, np.conj(ff) * fg]
+        corr = fft.irfft2(np.stack(products), s=self.shape, axes=(-2, -1), workers=-1)
+        out = {}
+        for name in names:
+            overlap = np.round(corr[overlap_of[(id(source.masks[name]), self._t[name][0])]])
+            s_f, s_g, s_ff, s_gg, s_fg = corr[base[name] : base[name] + 5]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                num = s_fg - s_f * s_g / overlap
+                den = np.sqrt(np.clip(s_ff - s_f**2 / overlap, 0, None) * np.clip(s_gg - s_g**2 / overlap, 0, None))
+                ncc = np.where((overlap >= self.min_overlap) & (den > 1e-9), num / den, 0.0)
+            out[name] = (np.clip(ncc, -1.0, 1.0), overlap)
+        return out
 
     def __call__(self, source: Raster, name: str) -> tuple[np.ndarray, np.ndarray]:
-        fm2, fg, fgg = self._t[name]
-        m1 = source.masks[name]
-        f = source.images[name] * m1
-        fm1, ff, fff = self._f(m1), self._f(f), self._f(f * f)
-        overlap = np.round(self._corr(fm1, fm2))
-        s_f, s_g = self._corr(ff, fm2), self._corr(fm1, fg)
-        s_ff, s_gg, s_fg = self._corr(fff, fm2), self._corr(fm1, fgg), self._corr(ff, fg)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            num = s_fg - s_f * s_g / overlap
-            den = np.sqrt(np.clip(s_ff - s_f**2 / overlap, 0, None) * np.clip(s_gg - s_g**2 / overlap, 0, None))
-            ncc = np.where((overlap >= self.min_overlap) & (den > 1e-9), num / den, 0.0)
-        return np.clip(ncc, -1.0, 1.0), overlap
+        return self.scores(source, [name])[name]
 
     def shift_to_translation(self, k: tuple[int, int], source: Raster) -> np.ndarray:
         """Cell shift (wrapped index) -> xy translation taking source coordinates onto target ones."""
         s = np.array([k[0] if k[0] < self.shape[0] // 2 else k[0] - self.shape[0], k[1] if k[1] < self.shape[1] // 2 else k[1] - self.shape[1]])
         return self.target.origin - source.origin + s * self.target.cell
+
+
+def _distinct_masks(raster: Raster, names) -> dict[int, np.ndarray]:
+    """The mask arrays of the channels, each once (keyed by identity, in first-use order)."""
+    out: dict[int, np.ndarray] = {}
+    for name in names:
+        out.setdefault(id(raster.masks[name]), raster.masks[name])
+    return out

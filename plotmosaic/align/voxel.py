@@ -7,17 +7,28 @@ KD-tree query several times faster than on hash-ordered points.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from plotmosaic.errors import InputError
 
 
-def cube_keys(points: np.ndarray, size: float) -> np.ndarray:
-    """One int64 per point naming its cube of side `size` (lexicographic in x, y, z)."""
+# Cube faces sit this fraction of a cube off the coordinate grid: LAS coordinates are quantised (to
+# 1 mm, 0.1 mm, ...), and faces exactly on multiples of the scale would leave many points on a face,
+# where rounding in the last bit (a UTM offset added and removed) decides their cube.
+FACE_PHASE = 0.00246
+
+
+def cube_keys(points: np.ndarray, size: float, offset=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """One int64 per point naming its cube of side `size` in `points - offset` (lexicographic in x, y, z)."""
     points = np.asarray(points, dtype=np.float64)
     cols, dims = [], []
     for i in range(3):  # column by column: axis-0 reductions over (N, 3) are ~5x slower
-        c = np.floor(points[:, i] * (1.0 / size))
+        c = points[:, i] - offset[i]
+        c *= 1.0 / size
+        c -= FACE_PHASE
+        np.floor(c, out=c)
         c -= c.min()
         cols.append(c)
         dims.append(c.max() + 1.0)
@@ -31,24 +42,58 @@ def cube_keys(points: np.ndarray, size: float) -> np.ndarray:
 
 
 def _groups(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(order that sorts the keys, start of each run of equal keys in that order)."""
-    order = np.argsort(keys, kind="stable")
-    sorted_keys = keys[order]
+    """(order that sorts the keys stably, start of each run of equal keys in that order)."""
+    n = len(keys)
+    bits = max(1, (n - 1).bit_length())
+    if n and int(keys.max()) < 2 ** (62 - bits):
+        # the index packed under the key: a plain sort is ~3x faster than argsort, and just as stable
+        packed = keys << bits
+        packed |= np.arange(n)
+        packed.sort()
+        order = packed & ((1 << bits) - 1)
+        packed >>= bits
+        sorted_keys = packed
+    else:
+        order = np.argsort(keys, kind="stable")
+        sorted_keys = keys[order]
     starts = np.flatnonzero(np.concatenate(([True], sorted_keys[1:] != sorted_keys[:-1])))
     return order, starts
 
 
-def voxel_centroids(points: np.ndarray, size: float) -> np.ndarray:
-    """The centroid of each occupied cube of side `size`, in cube-key order."""
+@dataclass
+class VoxelGrid:
+    """The occupied cubes of a cloud: `order` lists the points cube by cube, cube j from `starts[j]`."""
+
+    centroids: np.ndarray  # (M, 3) in cube-key order
+    order: np.ndarray
+    starts: np.ndarray
+
+    def members(self, cubes: np.ndarray) -> np.ndarray:
+        """Indices (into the input points) of every input point in the given cubes."""
+        ends = np.append(self.starts[1:], len(self.order))
+        first, count = self.starts[cubes], ends[cubes] - self.starts[cubes]
+        offset = np.repeat(first - np.cumsum(count) + count, count)  # per member: its run's start minus its rank
+        return self.order[offset + np.arange(int(count.sum()))]
+
+
+def voxelize(points: np.ndarray, size: float, offset=(0.0, 0.0, 0.0)) -> VoxelGrid:
+    """The grid of `points - offset` (centroids in those coordinates), without a shifted copy of all points."""
     points = np.asarray(points, dtype=np.float64)
     if len(points) == 0:
-        return points.reshape(0, 3)
-    order, starts = _groups(cube_keys(points, size))
+        return VoxelGrid(points.reshape(0, 3), np.zeros(0, np.int64), np.zeros(0, np.int64))
+    order, starts = _groups(cube_keys(points, size, offset))
     counts = np.diff(np.append(starts, len(order)))
     out = np.empty((len(starts), 3))
-    for i in range(3):
-        out[:, i] = np.add.reduceat(points[:, i][order], starts) / counts
-    return out
+    for i in range(3):  # per column: three 1-D gathers beat one gather of rows here
+        column = points[:, i][order]
+        column -= offset[i]
+        out[:, i] = np.add.reduceat(column, starts) / counts
+    return VoxelGrid(out, order, starts)
+
+
+def voxel_centroids(points: np.ndarray, size: float) -> np.ndarray:
+    """The centroid of each occupied cube of side `size`, in cube-key order."""
+    return voxelize(points, size).centroids
 
 
 def thin(points: np.ndarray, cell: float) -> np.ndarray:
