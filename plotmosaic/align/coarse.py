@@ -26,7 +26,7 @@ from plotmosaic.align.normals import local_shape
 from plotmosaic.align.voxel import thin, voxel_centroids
 from plotmosaic.parallel import both
 from plotmosaic.io.frame import pose_error
-from plotmosaic.align.rasters import CHANNELS, MaskedNCC, PointFeatures, point_features, rasterise
+from plotmosaic.align.rasters import CHANNELS, MaskedNCC, PointFeatures, column_bins, point_features, rasterise
 
 AIRBORNE = {"als", "uls"}
 
@@ -47,7 +47,7 @@ class CoarseConfig(BaseModel):
     hypotheses: int = Field(8, ge=1, description="hypotheses refined and verified")
     peaks_per_yaw: int = 2
     verify_voxel: float = 0.3
-    verify_points: int = Field(10_000, description="source points used to refine and score the best hypotheses")
+    verify_points: int = Field(6_000, description="source points used to refine and score the best hypotheses")
     screen_points: int = Field(3_000, description="of those, the points of the first short ICP that ranks every hypothesis")
     verify_iterations: int = 10
     refine_top: int = Field(3, ge=1, description="screened hypotheses refined fully")
@@ -150,13 +150,14 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
         cell *= 1.5
     s_shape = (s_side, s_side)
     s_origin = centre - radius
-    target = rasterise(tgt.feats.xy, tgt.feats, cell, t_min, t_shape, config.blur_cells)
+    src_bins, tgt_bins = column_bins(src.feats, cell / 4), column_bins(tgt.feats, cell / 4)
+    target = rasterise(tgt_bins.xy, tgt_bins, cell, t_min, t_shape, config.blur_cells)
     area_t = target.masks["canopy"].sum()
     ncc = MaskedNCC(target, s_shape, min_overlap=1)
-    area_s = rasterise(src.feats.xy, src.feats, cell, s_origin, s_shape, 0).masks["canopy"].sum()
+    area_s = rasterise(src_bins.xy, src_bins, cell, s_origin, s_shape, 0).masks["canopy"].sum()
     min_cells = config.min_overlap * min(area_s, area_t)
 
-    rel = src.feats.xy - centre
+    rel = src_bins.xy - centre
     allowed = None
     if prior is not None:
         c3 = np.array([*centre, float(np.median(src.feats.z))])
@@ -173,7 +174,7 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
         xy = np.empty_like(rel)
         xy[:, 0] = c * rel[:, 0] - s_ * rel[:, 1] + centre[0]
         xy[:, 1] = s_ * rel[:, 0] + c * rel[:, 1] + centre[1]
-        source = rasterise(xy, src.feats, cell, s_origin, s_shape, config.blur_cells)
+        source = rasterise(xy, src_bins, cell, s_origin, s_shape, config.blur_cells)
         total = 0.0
         overlap = None
         for name, (score, ov) in ncc.scores(source, [n for n in CHANNELS if weights[n] != 0]).items():

@@ -54,11 +54,13 @@ class AlignConfig(BaseModel):
          IcpStage(max_distance=0.4, iterations=20)],
         [IcpStage(max_distance=0.4, iterations=30), IcpStage(max_distance=0.2, iterations=30)],
     ]
+    # after the coarse stage (verified to ~0.3 m) level stages wider than this are skipped
+    level_max_distance_after_coarse: float = 1.0
     level_max_source_points: int = 10_000  # seeded subsample of the source per level step
     min_eig_ratio: float = 0.02  # level steps move only along directions this well constrained (see icp.point_to_plane_icp)
     level_keep_ratio: float = 0.98  # level ICP result kept only if its fitness >= this x that of its start
     level_tol: float = 1e-4  # a level stage ends when a step moves points < this (m); the final ICP refines
-    final_tol: float = 1e-5
+    final_tol: float = 5e-5
     final_schedule: list[IcpStage] = [IcpStage(max_distance=0.25, iterations=30), IcpStage(max_distance=0.1, iterations=20)]
     final_max_source_points: int = 40_000  # seeded sample of the source's delta grid for the last ICP (target kept whole)
     robust_kernel: float = 0.1  # least Tukey width (m) of the final ICP (half the correspondence distance above it)

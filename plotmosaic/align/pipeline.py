@@ -162,6 +162,8 @@ def register_prepared(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfi
             continue
         sp = sp[sample(len(sp), config.level_max_source_points, rng)]
         schedule = config.level_schedule[min(j, len(config.level_schedule) - 1)]
+        if coarse is not None:  # a verified coarse pose is within decimetres: the widest stages only cost time
+            schedule = [st for st in schedule if st.max_distance <= config.level_max_distance_after_coarse] or schedule[-1:]
         res = point_to_plane_icp(sp, tp, tn, T, schedule, min_eig_ratio=config.min_eig_ratio, tol=config.level_tol)
         T = res.T
         steps.append({"source_levels": ls, "target_levels": lt, "source_points": len(sp), "target_points": len(tp),
