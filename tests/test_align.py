@@ -120,16 +120,15 @@ def sim_prepared(sim_pair):
 
 
 def test_tls_levels_are_ground_stems_foliage(sim_pair, sim_prepared):
-    """K=3 on TLS: level 0 mostly ground; stems+branches and foliage dominate the other two."""
+    """K=3 on TLS: one level each mostly ground, mostly stems+branches and mostly foliage."""
     src, _, _ = sim_pair
     ps = sim_prepared[0]
     labels = src.attrs["label"][cKDTree(ps.frame.to_local(src.xyz)).query(ps.level_points)[1]]
-    purity = level_purity(ps.levels, labels, 3)
-    assert purity[0]["majority"] == 0 and purity[0]["purity"] > 0.9
-    assert {purity[1]["majority"], purity[2]["majority"]} == {1, 2}
-    stems = next(p for p in purity if p["majority"] == 1)
-    # on this sparse preset stems share a level with some foliage; still far above their share of points
-    assert stems["classes"][1] > 2 * np.mean(labels == 1)
+    purity = {p["majority"]: p for p in level_purity(ps.levels, labels, 3)}
+    assert set(purity) == {0, 1, 2}, purity
+    assert purity[0]["purity"] > 0.85 and purity[1]["purity"] > 0.8, purity
+    # foliage fills most of the scan's space; branches and understory have to go somewhere
+    assert purity[2]["classes"][2] > np.mean(labels == 2)
 
 
 def test_sim_tls_pair_from_perturbations(sim_prepared):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from plotmosaic.align.normals import LazyNormals, local_shape
+from plotmosaic.align.normals import LazyNormals, level_shape, local_shape
 from plotmosaic.align.voxel import FACE_PHASE, cube_keys, thin, voxel_centroids, voxelize
 
 
@@ -71,9 +71,23 @@ def test_local_shape_on_a_plane_a_line_and_a_scatter():
     # nobody within the radius: no plane, called fully scattered
     lone = np.vstack([pts, [[100.0, 100.0, 100.0]]])
     _, f_lone, c_lone = local_shape(lone, cKDTree(lone), lone[-1:], 0.25, 30)
-    assert c_lone[0] == 1 and f_lone[0, 2] == 1.0
+    assert c_lone[0] == 0 and f_lone[0, 2] == 1.0  # count 0: no plane
     # the lazy target normals are the eager ones, computed once
     lazy = LazyNormals(pts, tree, 0.25, 30)
     idx = np.array([5, 9000, 5, 10_500])
     np.testing.assert_allclose(lazy(idx), local_shape(pts, tree, pts[idx], 0.25, 30)[0])
     assert lazy.known.sum() == 3
+
+
+def test_level_shape_sees_a_stem_as_a_vertical_line_and_the_ground_as_a_level_plane():
+    """Dense input thinned to a support cloud: the 0.25 m normal and the 0.5 m features span their spheres."""
+    rng = np.random.default_rng(5)
+    ground = np.column_stack([rng.uniform(-3, 3, (60_000, 2)), rng.normal(0, 0.003, 60_000)])
+    a = rng.uniform(0, 2 * np.pi, 20_000)
+    stem = np.column_stack([0.15 * np.cos(a) + 10, 0.15 * np.sin(a), rng.uniform(0.5, 3.5, 20_000)])  # 30 cm stem
+    pts = np.vstack([ground, stem])
+    support = pts[thin(pts, 0.1)]
+    normals, feats, counts = level_shape(support, cKDTree(support), np.array([[0.0, 0.0, 0.0], [10.15, 0.0, 2.0]]), 0.25, 32)
+    assert abs(normals[0, 2]) > 0.99 and feats[0, 1] > 0.6 and feats[0, 2] < 0.05 and feats[0, 3] < 0.2  # level plane
+    assert abs(normals[1, 2]) < 0.2 and feats[1, 3] > 0.9  # vertical surface, vertical main axis
+    assert counts.min() >= 3

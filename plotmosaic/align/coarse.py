@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 
 from plotmosaic.align.levelling import levelling_rotation
 from plotmosaic.align.normals import local_shape
+from plotmosaic.align.sampling import sample
 from plotmosaic.align.voxel import thin, voxel_centroids
 from plotmosaic.parallel import both
 from plotmosaic.io.frame import pose_error
@@ -86,21 +87,16 @@ class _Levelled:
     info: dict
 
 
-def _sample(n: int, size: int, rng: np.random.Generator) -> np.ndarray:
-    """Sorted seeded subset of range(n): the points keep their cube order (fast KD-tree queries)."""
-    return np.arange(n) if n <= size else np.sort(rng.choice(n, size, replace=False))
-
-
 def _level(cloud, config: CoarseConfig, rng: np.random.Generator, upright: bool = False) -> _Levelled:
     """`upright`: take the file's z as the vertical (georeferenced airborne targets) instead of estimating it."""
     # own normals over a wider neighbourhood than ForestAlign's 0.25 m: the coarse stage must also
     # work on sparse clouds (far TLS ranges, ALS), where 0.25 m holds too few points for a plane
     pts = voxel_centroids(cloud.points, config.feature_voxel)
-    pts = pts[_sample(len(pts), config.max_points, rng)]
+    pts = pts[sample(len(pts), config.max_points, rng)]
     tree = cKDTree(pts, balanced_tree=False, compact_nodes=False)
     nrm = local_shape(pts, tree, pts, config.normal_radius, config.normal_neighbours)[0]
-    sample = nrm[rng.choice(len(nrm), min(len(nrm), 10_000), replace=False)]
-    R, info = levelling_rotation(sample, max_tilt_deg=config.max_tilt_deg)
+    some_normals = nrm[rng.choice(len(nrm), min(len(nrm), 10_000), replace=False)]
+    R, info = levelling_rotation(some_normals, max_tilt_deg=config.max_tilt_deg)
     if upright:
         info = {"tilt_deg": 0.0, "estimated_tilt_deg": info["tilt_deg"], "stem_share": info["stem_share"], "upright": True}
         R = np.eye(3)
@@ -309,10 +305,10 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
     keep = thin(tgt.points, config.verify_voxel)
     tgt_v = (tgt.points[keep], tgt.normals[keep], cKDTree(tgt.points[keep], balanced_tree=False, compact_nodes=False))
     keep = thin(src.points, config.verify_voxel)
-    keep = keep[_sample(len(keep), config.verify_points, rng)]
+    keep = keep[sample(len(keep), config.verify_points, rng)]
     src_v = src.points[keep]
     structure = src_v[np.abs(src.normals[keep, 2]) < 0.8]
-    few = _sample(len(src_v), config.screen_points, rng)
+    few = sample(len(src_v), config.screen_points, rng)
     src_few, structure_few = src_v[few], src_v[few][np.abs(src.normals[keep[few], 2]) < 0.8]
     ground_xy = tgt.feats.xy[tgt.feats.ground]
     ground_tree = cKDTree(ground_xy) if len(ground_xy) >= 20 else None

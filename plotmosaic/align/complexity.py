@@ -21,6 +21,7 @@ from scipy.optimize import linear_sum_assignment
 
 from plotmosaic.align import vmf
 from plotmosaic.align.config import VmfConfig
+from plotmosaic.align.normals import LEVEL_FEATURE_NAMES
 
 VAR_FLOOR = 1e-4
 
@@ -76,16 +77,19 @@ def _kmeans_resp(z: np.ndarray, k: int, rng: np.random.Generator, iters: int = 3
     return resp / resp.sum(axis=1, keepdims=True)
 
 
-def fit_levels(normals: np.ndarray, features: np.ndarray, k: int, mode: str, config: VmfConfig, seed: int) -> Levels:
+def fit_levels(normals: np.ndarray, features: np.ndarray, k: int, mode: str, config: VmfConfig, seed: int,
+               valid: np.ndarray | None = None, weights: np.ndarray | None = None) -> Levels:
     """Group points into k complexity levels; EM on a seeded subsample, then every point labelled.
 
-    Points without a plane (fewer than 3 non-collinear neighbours, scattering == 1) have no normal:
-    they stay out of the fit and join the most complex level.
+    Points without a plane (`valid` False; by default scattering == 1) have no normal: they stay out
+    of the fit and join the most complex level. `weights`: the subsample is drawn with probability
+    proportional to them (how many points each one stands for).
     """
-    valid = features[:, 2] < 1.0
+    valid = features[:, 2] < 1.0 if valid is None else np.asarray(valid, dtype=bool)
     if valid.sum() < max(10, 3 * k):
         valid = np.ones(len(normals), dtype=bool)
-    levels = _fit_valid(normals[valid], features[valid], k, mode, config, seed)
+    w = None if weights is None else np.asarray(weights, dtype=np.float64)[valid]
+    levels = _fit_valid(normals[valid], features[valid], k, mode, config, seed, w)
     labels = np.full(len(normals), levels.stats[-1]["level"] if levels.stats else 0, dtype=np.int64)
     labels[valid] = levels.labels
     if not valid.all():
@@ -95,10 +99,12 @@ def fit_levels(normals: np.ndarray, features: np.ndarray, k: int, mode: str, con
     return Levels(labels, levels.stats)
 
 
-def _fit_valid(normals: np.ndarray, features: np.ndarray, k: int, mode: str, config: VmfConfig, seed: int) -> Levels:
+def _fit_valid(normals: np.ndarray, features: np.ndarray, k: int, mode: str, config: VmfConfig, seed: int,
+               weights: np.ndarray | None = None) -> Levels:
     n = len(normals)
     rng = np.random.default_rng(seed)
-    idx = rng.choice(n, size=min(n, config.sample_size), replace=False) if n > config.sample_size else np.arange(n)
+    p = None if weights is None or weights.sum() <= 0 else weights / weights.sum()
+    idx = np.sort(rng.choice(n, size=config.sample_size, replace=False, p=p)) if n > config.sample_size else np.arange(n)
     x, f = normals[idx], features[idx]
     if k <= 1:
         mix = vmf.fit_vmf_mixture(x, 1, seed, config.max_iter, config.tol, 1, config.kappa_max)
@@ -176,7 +182,7 @@ def _stats(normals, features, labels, mu, kappa, weights, mode="vmf") -> list[di
             "complexity": complexity,
             "match_value": match_value,
             "features": {name: float(features[sel, i].mean()) if sel.any() else float("nan")
-                         for i, name in enumerate(("linearity", "planarity", "scattering"))},
+                         for i, name in enumerate(LEVEL_FEATURE_NAMES[: features.shape[1]])},
         })
     return out
 

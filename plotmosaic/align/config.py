@@ -20,7 +20,7 @@ def default_levels(kind: str) -> int:
 
 
 class VmfConfig(BaseModel):
-    sample_size: int = 20_000  # EM runs on a seeded subsample; every point is then labelled
+    sample_size: int = 10_000  # EM runs on a seeded subsample (drawn at delta0 density); every point is then labelled
     max_iter: int = 60
     tol: float = 1e-4  # relative change of the mean log-likelihood
     n_init: int = 2  # restarts; the best log-likelihood wins
@@ -39,6 +39,11 @@ class AlignConfig(BaseModel):
     # Sparse airborne clouds (~10-50 pts/m2) have almost no neighbours within 0.25 m; use a wider sphere.
     normal_radius_sparse: float = 1.0
     sparse_min_neighbors: int = 6  # median neighbours within normal_radius below this => sparse cloud
+    # level normals/features come from a support cloud of one delta0 point per (ratio x radius) cube,
+    # so that `level_max_nn` neighbours span the 0.25 m (normal) and 0.5 m (feature) spheres on
+    # dense scans too (20 neighbours of the delta0 cloud span only ~0.13 m on a dense surface)
+    level_support_ratio: float = 0.4
+    level_max_nn: int = 32
     final_voxel: float = Field(0.025, gt=0)  # delta for the last ICP
     complexity: Literal["vmf", "vmf+eigen"] = "vmf+eigen"
     vmf: VmfConfig = VmfConfig()

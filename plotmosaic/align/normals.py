@@ -16,14 +16,18 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 FEATURE_NAMES = ("linearity", "planarity", "scattering")
+# the complexity levels' features: the shape of the wider (2 r) neighbourhood and how vertical its main axis is
+LEVEL_FEATURE_NAMES = (*FEATURE_NAMES, "verticality")
 CHUNK = 50_000
 
 
-def _shape_chunk(points: np.ndarray, query: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    ok = idx < len(points)
+def _shape_chunk(points: np.ndarray, query: np.ndarray, idx: np.ndarray, ok: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(normals, features, counts, main axes) of the neighbours `idx` (rows of `points`) kept by `ok`."""
+    ok = idx < len(points) if ok is None else ok
     w = ok.astype(np.float64)
     count = w.sum(axis=1)
-    safe = np.where(ok, idx, 0)
+    safe = np.where(idx < len(points), idx, 0)
     # coordinates relative to the query point (small numbers: raw moments keep their precision)
     rel = [(points[:, i][safe] - query[:, i][:, None]) * w for i in range(3)]
     m = np.maximum(count, 1.0)
@@ -41,7 +45,9 @@ def _shape_chunk(points: np.ndarray, query: np.ndarray, idx: np.ndarray) -> tupl
     features = np.column_stack([(l1 - l2) * inv, (l2 - l3) * inv, np.where(has_plane, l3 * inv, 1.0)])
     normals = vecs[:, :, 0].copy()
     normals[~has_plane] = (0.0, 0.0, 1.0)
-    return normals, features, count.astype(np.int64)
+    axes = vecs[:, :, 2].copy()
+    axes[~has_plane] = (0.0, 0.0, 1.0)
+    return normals, features, np.where(has_plane, count, 0).astype(np.int64), axes
 
 
 def local_shape(points: np.ndarray, tree: cKDTree, query: np.ndarray, radius: float, max_nn: int
@@ -58,8 +64,41 @@ def local_shape(points: np.ndarray, tree: cKDTree, query: np.ndarray, radius: fl
     def run(s: int) -> None:
         q = query[s : s + CHUNK]
         _, idx = tree.query(q, k=k, distance_upper_bound=radius)
-        normals[s : s + CHUNK], features[s : s + CHUNK], counts[s : s + CHUNK] = _shape_chunk(points, q, idx.reshape(len(q), -1))
+        normals[s : s + CHUNK], features[s : s + CHUNK], counts[s : s + CHUNK], _ = _shape_chunk(points, q, idx.reshape(len(q), -1))
 
+    _in_chunks(run, m)
+    return normals, features, counts
+
+
+def level_shape(support: np.ndarray, tree: cKDTree, query: np.ndarray, radius: float, max_nn: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(normals (M,3), features (M,4), counts (M,)) for the complexity levels, from one neighbour query.
+
+    `support` is a thinned cloud (one point per cube a fraction of `radius`), so that `max_nn`
+    neighbours really span the spheres whatever the scan's density. Normals (and counts, 0 where
+    there is no plane) come from the `radius` sphere; the features - linearity, planarity,
+    scattering and the verticality |z| of the main axis - from the 2 x `radius` sphere, where stems
+    are vertical lines, ground a level plane and foliage a scatter without a preferred direction.
+    """
+    m = len(query)
+    normals, features = np.empty((m, 3)), np.empty((m, 4))
+    counts = np.empty(m, dtype=np.int64)
+    k = int(min(max_nn, len(support)))
+
+    def run(s: int) -> None:
+        q = query[s : s + CHUNK]
+        dist, idx = tree.query(q, k=k, distance_upper_bound=2 * radius)
+        dist, idx = dist.reshape(len(q), -1), idx.reshape(len(q), -1)
+        normals[s : s + CHUNK], _, counts[s : s + CHUNK], _ = _shape_chunk(support, q, idx, dist <= radius)
+        _, wide, _, axes = _shape_chunk(support, q, idx)
+        features[s : s + CHUNK] = np.column_stack([wide, np.abs(axes[:, 2])])
+
+    _in_chunks(run, m)
+    return normals, features, counts
+
+
+def _in_chunks(run, m: int) -> None:
+    """run(start) for every CHUNK of m rows, in two threads (KD-tree queries and numpy release the GIL)."""
     starts = range(0, m, CHUNK)
     if m > CHUNK:
         with ThreadPoolExecutor(max_workers=2) as pool:
@@ -67,7 +106,6 @@ def local_shape(points: np.ndarray, tree: cKDTree, query: np.ndarray, radius: fl
     else:
         for s in starts:
             run(s)
-    return normals, features, counts
 
 
 class LazyNormals:

@@ -20,7 +20,8 @@ from plotmosaic.align.coarse import coarse_align
 from plotmosaic.align.complexity import match_levels
 from plotmosaic.align.config import KINDS, AlignConfig, default_levels
 from plotmosaic.align.icp import evaluate, information_matrix, point_to_plane_icp
-from plotmosaic.align.prepare import PreparedCloud, prepare_cloud, sample
+from plotmosaic.align.prepare import PreparedCloud, prepare_cloud
+from plotmosaic.align.sampling import sample
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.frame import rotation_deg, to_global_transform, to_local_transform

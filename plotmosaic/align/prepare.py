@@ -10,18 +10,14 @@ from scipy.spatial import cKDTree
 
 from plotmosaic.align.complexity import fit_levels
 from plotmosaic.align.config import AlignConfig
-from plotmosaic.align.normals import LazyNormals, local_shape
-from plotmosaic.align.voxel import thin, voxel_centroids, voxelize
+from plotmosaic.align.normals import LazyNormals, level_shape, local_shape
+from plotmosaic.align.sampling import sample
+from plotmosaic.align.voxel import thin, thin_with_counts, voxel_centroids, voxelize
 from plotmosaic.errors import InputError
 from plotmosaic.io.frame import Frame
 from plotmosaic.io.las import PointCloud
 
 MIN_POINTS = 50
-
-
-def sample(n: int, size: int, rng: np.random.Generator) -> np.ndarray:
-    """Sorted indices of a seeded random subset of range(n) of at most `size` (all when n <= size)."""
-    return np.arange(n) if n <= size else np.sort(rng.choice(n, size, replace=False))
 
 
 @dataclass
@@ -31,8 +27,8 @@ class PreparedCloud:
     points: np.ndarray  # (N, 3) local, delta0 voxel centroids in cube order (spatially coherent)
     tree: cKDTree  # over `points`: normals, final-ICP correspondences, quality figures
     level_points: np.ndarray  # (M, 3) the labelled sample: one delta0 point per `level_cell` cube (capped)
-    normals: np.ndarray  # (M, 3) at level_points, from the 0.25 m neighbourhood in `points`
-    features: np.ndarray  # (M, 3) linearity, planarity, scattering
+    normals: np.ndarray  # (M, 3) at level_points, from the 0.25 m neighbourhood (see normals.level_shape)
+    features: np.ndarray  # (M, 4) linearity, planarity, scattering, verticality at 0.5 m
     levels: np.ndarray  # (M,) 0 = least complex
     level_stats: list[dict]
     fine_points: np.ndarray  # seeded sample of the delta (final ICP) grid: this cloud as a source
@@ -73,15 +69,22 @@ def prepare_cloud(cloud: PointCloud, kind: str, levels: int, config: AlignConfig
     tree = cKDTree(points, balanced_tree=False, compact_nodes=False)  # half the build time; points are in cube order
     t1 = time.perf_counter()
     # levels on a sample that evens out the 1/r^2 density of TLS around the scanner
-    level_points = points[thin(points, config.level_cell)]
-    level_points = level_points[sample(len(level_points), config.level_max_points, rng)]
+    keep, cube_sizes = thin_with_counts(points, config.level_cell)
+    chosen = sample(len(keep), config.level_max_points, rng)
+    level_points, cube_sizes = points[keep[chosen]], cube_sizes[chosen]
     radius = config.normal_radius
-    normals, features, counts = local_shape(points, tree, level_points, radius, config.normal_max_nn)
-    if np.median(counts) < config.sparse_min_neighbors:  # airborne or far-range: too few points for a plane
-        radius = max(radius, config.normal_radius_sparse)
-        normals, features, _ = local_shape(points, tree, level_points, radius, config.normal_max_nn)
+    probe = level_points[sample(len(level_points), 5_000, rng)]
+    if np.median(local_shape(points, tree, probe, radius, config.normal_max_nn)[2]) < config.sparse_min_neighbors:
+        radius = max(radius, config.normal_radius_sparse)  # airborne or far-range: too few points for a plane
+    support = points[thin(points, config.level_support_ratio * radius)]
+    support_tree = cKDTree(support, balanced_tree=False, compact_nodes=False)
+    normals, features, counts = level_shape(support, support_tree, level_points, radius, config.level_max_nn)
     t2 = time.perf_counter()
-    lv = fit_levels(normals, features, levels, config.complexity, config.vmf, seed)
+    # the mixture is fitted at the delta0 cloud's density, as in the paper (each sample point weighs
+    # as many delta0 points as share its cube): on the even sample, far canopy fills most cubes and
+    # the components split foliage while ground (3 % of the cubes of a dense scan) gets none
+    lv = fit_levels(normals, features, levels, config.complexity, config.vmf, seed, valid=counts >= 3,
+                    weights=cube_sizes)
     t3 = time.perf_counter()
     return PreparedCloud(
         frame=frame, kind=kind, points=points, tree=tree, level_points=level_points, normals=normals,

@@ -101,7 +101,14 @@ def thin(points: np.ndarray, cell: float) -> np.ndarray:
 
     A kept point, not an average: averaging axial normals of either sign would cancel them.
     """
+    return thin_with_counts(points, cell)[0]
+
+
+def thin_with_counts(points: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """`thin`, and how many input points share each kept point's cube."""
     if len(points) == 0:
-        return np.zeros(0, dtype=np.int64)
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     order, starts = _groups(cube_keys(points, cell))
-    return np.sort(order[starts])
+    first, counts = order[starts], np.diff(np.append(starts, len(order)))
+    by_index = np.argsort(first)
+    return first[by_index], counts[by_index]
