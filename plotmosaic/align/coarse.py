@@ -14,6 +14,7 @@ Every transform here maps source-local to target-local coordinates (see Prepared
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -149,7 +150,7 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
     src_bins, tgt_bins = column_bins(src.feats, cell / 4), column_bins(tgt.feats, cell / 4)
     target = rasterise(tgt_bins.xy, tgt_bins, cell, t_min, t_shape, config.blur_cells)
     area_t = target.masks["canopy"].sum()
-    ncc = MaskedNCC(target, s_shape, min_overlap=1)
+    ncc = MaskedNCC(target, s_shape, min_overlap=1, workers=1)  # headings run in two threads instead
     area_s = rasterise(src_bins.xy, src_bins, cell, s_origin, s_shape, 0).masks["canopy"].sum()
     min_cells = config.min_overlap * min(area_s, area_t)
 
@@ -203,16 +204,17 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
     yaws = np.arange(0.0, 2 * np.pi, step)
     if prior is not None:
         yaws = [y for y in yaws if _angle_diff(y, prior_yaw) <= np.radians(config.prior_yaw_deg)] + [prior_yaw % (2 * np.pi)]
-    candidates = [c for yaw in yaws for c in peaks(float(yaw))]
+    with ThreadPoolExecutor(max_workers=2) as pool:  # rasterising and FFTs release the GIL; order kept
+        candidates = [c for found in pool.map(peaks, [float(y) for y in yaws]) for c in found]
     best_yaws: list[float] = []
     for c in sorted(candidates, key=lambda c: -c["score"]):
         if all(_angle_diff(c["yaw"], y) > 1.5 * step for y in best_yaws):
             best_yaws.append(c["yaw"])
         if len(best_yaws) >= config.refine_headings:
             break
-    for yaw in best_yaws:
-        for d in (-0.5 * step, 0.5 * step):
-            candidates += peaks(float((yaw + d) % (2 * np.pi)))
+    refine = [float((yaw + d) % (2 * np.pi)) for yaw in best_yaws for d in (-0.5 * step, 0.5 * step)]
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        candidates += [c for found in pool.map(peaks, refine) for c in found]
     candidates.sort(key=lambda c: -c["score"])
     chosen: list[dict] = []
     for c in candidates:

@@ -50,7 +50,7 @@ class AlignConfig(BaseModel):
     # Level steps run on one point per `level_cell` cube: evens out the 1/r^2 density of TLS around
     # the scanner, which otherwise pulls the scanner positions together (and is faster).
     level_cell: float = 0.2
-    level_max_points: int = 250_000  # cap on the labelled sample (seeded): TLS scans of 8M points give ~650k cubes
+    level_max_points: int = 150_000  # cap on the labelled sample (seeded): TLS scans of 8M points give ~650k cubes
     # Incremental ICP: for level step j (0 = least complex), a coarse-to-fine schedule of stages.
     level_schedule: list[list[IcpStage]] = [
         [IcpStage(max_distance=3.0, iterations=30), IcpStage(max_distance=1.0, iterations=30)],

@@ -135,8 +135,8 @@ class MaskedNCC:
     and each call runs its transforms as one batch (two FFT calls instead of dozens).
     """
 
-    def __init__(self, target: Raster, source_shape: tuple[int, int], min_overlap: float):
-        self.target = target
+    def __init__(self, target: Raster, source_shape: tuple[int, int], min_overlap: float, workers: int = -1):
+        self.target, self.workers = target, workers
         ht, wt = next(iter(target.images.values())).shape
         hs, ws = source_shape
         self.shape = (fft.next_fast_len(ht + hs, real=True), fft.next_fast_len(wt + ws, real=True))
@@ -151,7 +151,7 @@ class MaskedNCC:
 
     def _f(self, arrays: list[np.ndarray]) -> np.ndarray:
         # float32: half the time of float64, and ample for picking peaks of occupancy / centred heights
-        return fft.rfft2(np.stack(arrays).astype(np.float32), s=self.shape, axes=(-2, -1), workers=-1)
+        return fft.rfft2(np.stack(arrays).astype(np.float32), s=self.shape, axes=(-2, -1), workers=self.workers)
 
     def scores(self, source: Raster, names) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """{channel: (NCC, overlap in cells)} for every shift of `source` over the target."""
@@ -171,7 +171,7 @@ class MaskedNCC:
                 products.append(np.conj(fm1) * fm2)
             base[name] = len(products)
             products += [np.conj(ff) * fm2, np.conj(fm1) * fg, np.conj(fff) * fm2, np.conj(fm1) * fgg, np.conj(ff) * fg]
-        corr = fft.irfft2(np.stack(products), s=self.shape, axes=(-2, -1), workers=-1)
+        corr = fft.irfft2(np.stack(products), s=self.shape, axes=(-2, -1), workers=self.workers)
         out = {}
         for name in names:
             overlap = np.round(corr[overlap_of[(id(source.masks[name]), self._t[name][0])]])
