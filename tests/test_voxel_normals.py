@@ -91,3 +91,21 @@ def test_level_shape_sees_a_stem_as_a_vertical_line_and_the_ground_as_a_level_pl
     assert abs(normals[0, 2]) > 0.99 and feats[0, 1] > 0.6 and feats[0, 2] < 0.05 and feats[0, 3] < 0.2  # level plane
     assert abs(normals[1, 2]) < 0.2 and feats[1, 3] > 0.9  # vertical surface, vertical main axis
     assert counts.min() >= 3
+
+
+def test_closed_form_eigen_matches_lapack_on_planes_lines_and_scatter():
+    from plotmosaic.align.normals import eigenvalues_sym3, eigenvector_sym3
+
+    rng = np.random.default_rng(6)
+    R = np.linalg.qr(rng.normal(size=(300, 3, 3)))[0]
+    spectra = np.concatenate([np.tile([1e-2, 1e-2, 1e-8], (100, 1)), np.tile([1e-1, 1e-4, 1e-5], (100, 1)),
+                              rng.uniform(1e-4, 1e-2, (100, 3))])  # planes, lines, scatter
+    A = np.einsum("nij,nj,nkj->nik", R, spectra, R)
+    c = {(a, b): A[:, a, b] for a in range(3) for b in range(a, 3)}
+    l1, l2, l3 = eigenvalues_sym3(c)
+    vals, vecs = np.linalg.eigh(A)
+    np.testing.assert_allclose(np.column_stack([l3, l2, l1]), vals, rtol=1e-6, atol=1e-12)
+    small, large = eigenvector_sym3(c, l3), eigenvector_sym3(c, l1)
+    # axial: compare up to sign, where the eigenvalue is well separated (planes' normals, lines' axes)
+    assert np.all(np.abs(np.einsum("ij,ij->i", small[:100], vecs[:100, :, 0])) > 1 - 1e-6)
+    assert np.all(np.abs(np.einsum("ij,ij->i", large[100:200], vecs[100:200, :, 2])) > 1 - 1e-6)

@@ -320,18 +320,21 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
     if prior_levelled is not None:
         yaw = float(np.arctan2(prior_levelled[1, 0], prior_levelled[0, 0]))
         starts.append((prior_levelled, {"score": float("nan"), "yaw": yaw, "overlap": float("nan"), "prior": True}))
-    screened = []
-    for A0, h in starts:
-        A = _refine(src_few, tgt_v, A0, (6 * d,), config.verify_iterations)
-        screened.append((_score(structure_few, tgt_v, A, 2 * d), A, h))
-    screened.sort(key=lambda r: -r[0])
+    def screen(start):
+        A = _refine(src_few, tgt_v, start[0], (6 * d,), config.verify_iterations)
+        return _score(structure_few, tgt_v, A, 2 * d), A, start[1]
+
+    def refine(A):
+        A = _refine(src_v, tgt_v, A, (3 * d, 1.5 * d), config.verify_iterations)
+        return A, _score(structure, tgt_v, A, d)
+
+    with ThreadPoolExecutor(max_workers=2) as pool:  # independent ICPs; KD-tree queries release the GIL
+        screened = sorted(pool.map(screen, starts), key=lambda r: -r[0])
+        top = list(pool.map(refine, [A for _, A, _ in screened[: config.refine_top]]))
     results = []
     for rank, (pre, A, h) in enumerate(screened):
         refined = rank < config.refine_top
-        score = None
-        if refined:
-            A = _refine(src_v, tgt_v, A, (3 * d, 1.5 * d), config.verify_iterations)
-            score = _score(structure, tgt_v, A, d)
+        A, score = top[rank] if refined else (A, None)
         results.append({"T": L_t_inv @ A @ L_s, "refined": refined, "score": score, "screen_score": pre, "raster_score": h["score"], "yaw_deg": float(np.degrees(h["yaw"])), "overlap": h["overlap"], "prior": bool(h.get("prior", False))})
     if not results:
         identity = {"T": np.eye(4), "refined": True, "score": 0.0, "screen_score": 0.0, "raster_score": 0.0, "yaw_deg": 0.0, "overlap": 0.0}

@@ -2,10 +2,13 @@
 
 Two grouping signals, selectable with `AlignConfig.complexity`:
 - "vmf": the paper's path, a K-component mixture of (axial) vMF distributions on the normals.
-- "vmf+eigen": the same mixture, each component also carrying a diagonal Gaussian over the local
-  eigen-features (linearity, planarity, scattering). Normals alone cannot tell a stem's horizontal
-  normals from foliage's random ones reliably; the features can (stems and ground are smooth,
-  foliage is scattered), while the vMF part keeps ground (vertical normals) apart from stems.
+- "vmf+eigen": the same mixture, each component also carrying a diagonal Gaussian over local
+  features of the 0.5 m neighbourhood (linearity, planarity, scattering, verticality of the main
+  axis; normals.level_shape). Normals alone cannot tell a stem's horizontal normals from foliage's
+  random ones; the features can (a stem is a vertical line at 0.5 m, ground a level plane, foliage
+  a scatter), while the vMF part keeps ground (vertical normals) apart from stems.
+Both fit EM on a subsample drawn at the delta0 cloud's density (`weights`), as the paper fits all
+delta0 points, and label every point of the (spatially even) level sample.
 "vmf": SC of level k is eq. 2 (averaged per point so scans of different density compare), levels
 ordered from the most compact (highest SC) and matched on log-compressed SC.
 "vmf+eigen": complexity of a level is its entropy under the joint model (vMF part + features),
