@@ -14,7 +14,6 @@ Every transform here maps source-local to target-local coordinates (see Prepared
 from __future__ import annotations
 
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -26,7 +25,7 @@ from plotmosaic.align.levelling import levelling_rotation
 from plotmosaic.align.normals import local_shape
 from plotmosaic.align.sampling import sample
 from plotmosaic.align.voxel import thin, voxel_centroids
-from plotmosaic.parallel import both
+from plotmosaic.parallel import both, in_two_threads
 from plotmosaic.io.frame import pose_error
 from plotmosaic.align.rasters import CHANNELS, MaskedNCC, PointFeatures, column_bins, point_features, rasterise
 
@@ -204,8 +203,8 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
     yaws = np.arange(0.0, 2 * np.pi, step)
     if prior is not None:
         yaws = [y for y in yaws if _angle_diff(y, prior_yaw) <= np.radians(config.prior_yaw_deg)] + [prior_yaw % (2 * np.pi)]
-    with ThreadPoolExecutor(max_workers=2) as pool:  # rasterising and FFTs release the GIL; order kept
-        candidates = [c for found in pool.map(peaks, [float(y) for y in yaws]) for c in found]
+    # rasterising and FFTs release the GIL: headings two at a time
+    candidates = [c for found in in_two_threads(peaks, [float(y) for y in yaws]) for c in found]
     best_yaws: list[float] = []
     for c in sorted(candidates, key=lambda c: -c["score"]):
         if all(_angle_diff(c["yaw"], y) > 1.5 * step for y in best_yaws):
@@ -213,8 +212,7 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
         if len(best_yaws) >= config.refine_headings:
             break
     refine = [float((yaw + d) % (2 * np.pi)) for yaw in best_yaws for d in (-0.5 * step, 0.5 * step)]
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        candidates += [c for found in pool.map(peaks, refine) for c in found]
+    candidates += [c for found in in_two_threads(peaks, refine) for c in found]
     candidates.sort(key=lambda c: -c["score"])
     chosen: list[dict] = []
     for c in candidates:
@@ -328,9 +326,9 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
         A = _refine(src_v, tgt_v, A, (3 * d, 1.5 * d), config.verify_iterations)
         return A, _score(structure, tgt_v, A, d)
 
-    with ThreadPoolExecutor(max_workers=2) as pool:  # independent ICPs; KD-tree queries release the GIL
-        screened = sorted(pool.map(screen, starts), key=lambda r: -r[0])
-        top = list(pool.map(refine, [A for _, A, _ in screened[: config.refine_top]]))
+    # independent ICPs, two at a time (KD-tree queries release the GIL)
+    screened = sorted(in_two_threads(screen, starts), key=lambda r: -r[0])
+    top = in_two_threads(refine, [A for _, A, _ in screened[: config.refine_top]])
     results = []
     for rank, (pre, A, h) in enumerate(screened):
         refined = rank < config.refine_top
