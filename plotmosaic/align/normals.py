@@ -21,9 +21,9 @@ LEVEL_FEATURE_NAMES = (*FEATURE_NAMES, "verticality")
 CHUNK = 50_000
 
 
-def _shape_chunk(points: np.ndarray, query: np.ndarray, idx: np.ndarray, ok: np.ndarray | None = None
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(normals, features, counts, main axes) of the neighbours `idx` (rows of `points`) kept by `ok`."""
+def _shape_chunk(points: np.ndarray, query: np.ndarray, idx: np.ndarray, ok: np.ndarray | None = None,
+                 main_axes: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """(normals, features, counts, main axes or None) of the neighbours `idx` (rows of `points`) kept by `ok`."""
     ok = idx < len(points) if ok is None else ok
     w = ok.astype(np.float64)
     count = w.sum(axis=1)
@@ -38,9 +38,11 @@ def _shape_chunk(points: np.ndarray, query: np.ndarray, idx: np.ndarray, ok: np.
     inv = np.where(has_plane, 1.0 / np.where(has_plane, l1, 1.0), 0.0)
     # a point without a plane carries no shape: call it fully scattered (scattering = 1)
     features = np.column_stack([(l1 - l2) * inv, (l2 - l3) * inv, np.where(has_plane, l3 * inv, 1.0)])
-    normals, axes = eigenvector_sym3(cov, l3), eigenvector_sym3(cov, l1)
+    normals = eigenvector_sym3(cov, l3)
     normals[~has_plane] = (0.0, 0.0, 1.0)
-    axes[~has_plane] = (0.0, 0.0, 1.0)
+    axes = eigenvector_sym3(cov, l1) if main_axes else None
+    if axes is not None:
+        axes[~has_plane] = (0.0, 0.0, 1.0)
     return normals, features, np.where(has_plane, count, 0).astype(np.int64), axes
 
 
@@ -114,7 +116,7 @@ def level_shape(support: np.ndarray, tree: cKDTree, query: np.ndarray, radius: f
         dist, idx = tree.query(q, k=int(min(max_nn, len(support))), distance_upper_bound=2 * radius)
         dist, idx = dist.reshape(len(q), -1), idx.reshape(len(q), -1)
         normals[s : s + CHUNK], _, counts[s : s + CHUNK], _ = _shape_chunk(support, q, idx, dist <= radius)
-        _, wide, _, axes = _shape_chunk(support, q, idx)
+        _, wide, _, axes = _shape_chunk(support, q, idx, main_axes=True)
         features[s : s + CHUNK] = np.column_stack([wide, np.abs(axes[:, 2])])
 
     _in_chunks(run, m)

@@ -18,6 +18,7 @@ from plotmosaic.io.frame import Frame
 from plotmosaic.io.las import PointCloud
 
 MIN_POINTS = 50
+SPARSE_PROBE = 5_000  # sample points whose neighbour count decides the sparse rule (its median is stable)
 
 
 @dataclass
@@ -73,7 +74,7 @@ def prepare_cloud(cloud: PointCloud, kind: str, levels: int, config: AlignConfig
     chosen = sample(len(keep), config.level_max_points, rng)
     level_points, cube_sizes = points[keep[chosen]], cube_sizes[chosen]
     radius = config.normal_radius
-    probe = level_points[sample(len(level_points), 5_000, rng)]
+    probe = level_points[sample(len(level_points), SPARSE_PROBE, rng)]
     if np.median(local_shape(points, tree, probe, radius, config.normal_max_nn)[2]) < config.sparse_min_neighbors:
         radius = max(radius, config.normal_radius_sparse)  # airborne or far-range: too few points for a plane
     support = points[thin(points, config.level_support_ratio * radius)]

@@ -141,40 +141,39 @@ class MaskedNCC:
         hs, ws = source_shape
         self.shape = (fft.next_fast_len(ht + hs, real=True), fft.next_fast_len(wt + ws, real=True))
         self.min_overlap = min_overlap
-        names = list(target.images)
-        masks = _distinct_masks(target, names)
-        images = [target.images[n] * target.masks[n] for n in names]
-        spectra = self._f([m for m in masks.values()] + [a for g in images for a in (g, g * g)])
-        slot = {key: i for i, key in enumerate(masks)}
-        self._t = {n: (id(target.masks[n]), spectra[slot[id(target.masks[n])]], spectra[len(masks) + 2 * i],
-                       spectra[len(masks) + 2 * i + 1]) for i, n in enumerate(names)}
+        self._t = self._spectra(target, list(target.images))
 
     def _f(self, arrays: list[np.ndarray]) -> np.ndarray:
         # float32: half the time of float64, and ample for picking peaks of occupancy / centred heights
         return fft.rfft2(np.stack(arrays).astype(np.float32), s=self.shape, axes=(-2, -1), workers=self.workers)
 
+    def _spectra(self, raster: Raster, names) -> dict[str, tuple]:
+        """{channel: (mask id, FFT of mask, of masked image, of its square)}, one batched transform;
+        a mask array shared by channels is transformed once."""
+        masks = _distinct_masks(raster, names)
+        images = [raster.images[n] * raster.masks[n] for n in names]
+        spectra = self._f(list(masks.values()) + [a for f in images for a in (f, f * f)])
+        slot = {key: i for i, key in enumerate(masks)}
+        return {n: (id(raster.masks[n]), spectra[slot[id(raster.masks[n])]], spectra[len(masks) + 2 * i],
+                    spectra[len(masks) + 2 * i + 1]) for i, n in enumerate(names)}
+
     def scores(self, source: Raster, names) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """{channel: (NCC, overlap in cells)} for every shift of `source` over the target."""
-        masks = _distinct_masks(source, names)
-        images = [source.images[n] * source.masks[n] for n in names]
-        spectra = self._f([m for m in masks.values()] + [a for f in images for a in (f, f * f)])
-        slot = {key: i for i, key in enumerate(masks)}
+        src = self._spectra(source, names)
         # sum_x a(x) b(x + s) for every shift s is irfft(conj(A) B) (padded: no wrap-around overlaps)
         products, overlap_of, base = [], {}, {}
-        for i, name in enumerate(names):
+        for name in names:
+            s_mask, fm1, ff, fff = src[name]
             t_mask, fm2, fg, fgg = self._t[name]
-            fm1 = spectra[slot[id(source.masks[name])]]
-            ff, fff = spectra[len(masks) + 2 * i], spectra[len(masks) + 2 * i + 1]
-            pair = (id(source.masks[name]), t_mask)
-            if pair not in overlap_of:
-                overlap_of[pair] = len(products)
+            if (s_mask, t_mask) not in overlap_of:
+                overlap_of[s_mask, t_mask] = len(products)
                 products.append(np.conj(fm1) * fm2)
             base[name] = len(products)
             products += [np.conj(ff) * fm2, np.conj(fm1) * fg, np.conj(fff) * fm2, np.conj(fm1) * fgg, np.conj(ff) * fg]
         corr = fft.irfft2(np.stack(products), s=self.shape, axes=(-2, -1), workers=self.workers)
         out = {}
         for name in names:
-            overlap = np.round(corr[overlap_of[(id(source.masks[name]), self._t[name][0])]])
+            overlap = np.round(corr[overlap_of[src[name][0], self._t[name][0]]])
             s_f, s_g, s_ff, s_gg, s_fg = corr[base[name] : base[name] + 5]
             with np.errstate(divide="ignore", invalid="ignore"):
                 num = s_fg - s_f * s_g / overlap
