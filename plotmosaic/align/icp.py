@@ -8,11 +8,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from plotmosaic.align.config import IcpStage
+from plotmosaic.parallel import inner_workers
 
 
 def nearest(tree: cKDTree, points: np.ndarray, distance: float) -> tuple[np.ndarray, np.ndarray]:
     """(distances, indices) of each point's nearest tree point; inf / len(tree) beyond `distance`."""
-    return tree.query(points, distance_upper_bound=distance, workers=-1)
+    return tree.query(points, distance_upper_bound=distance, workers=inner_workers())
 
 
 def evaluate(source: np.ndarray, tree: cKDTree, T: np.ndarray, distance: float) -> tuple[float, float, int]:

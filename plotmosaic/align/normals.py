@@ -10,10 +10,10 @@ an 8M-point scan within seconds.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 from scipy.spatial import cKDTree
+
+from plotmosaic.parallel import in_two_threads
 
 FEATURE_NAMES = ("linearity", "planarity", "scattering")
 # the complexity levels' features: the shape of the wider (2 r) neighbourhood and how vertical its main axis is
@@ -124,14 +124,8 @@ def level_shape(support: np.ndarray, tree: cKDTree, query: np.ndarray, radius: f
 
 
 def _in_chunks(run, m: int) -> None:
-    """run(start) for every CHUNK of m rows, in two threads (KD-tree queries and numpy release the GIL)."""
-    starts = range(0, m, CHUNK)
-    if m > CHUNK:
-        with ThreadPoolExecutor(max_workers=2) as pool:
-            list(pool.map(run, starts))
-    else:
-        for s in starts:
-            run(s)
+    """run(start) for every CHUNK of m rows, two at a time within the thread budget (KD-tree queries and numpy release the GIL)."""
+    in_two_threads(run, range(0, m, CHUNK))
 
 
 class LazyNormals:

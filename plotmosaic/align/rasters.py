@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import fft, ndimage
 
+from plotmosaic.parallel import inner_workers
+
 CHANNELS = ("stems", "canopy", "terrain")
 
 
@@ -135,8 +137,8 @@ class MaskedNCC:
     and each call runs its transforms as one batch (two FFT calls instead of dozens).
     """
 
-    def __init__(self, target: Raster, source_shape: tuple[int, int], min_overlap: float, workers: int = -1):
-        self.target, self.workers = target, workers
+    def __init__(self, target: Raster, source_shape: tuple[int, int], min_overlap: float, workers: int | None = None):
+        self.target, self.workers = target, workers if workers is not None else inner_workers()
         ht, wt = next(iter(target.images.values())).shape
         hs, ws = source_shape
         self.shape = (fft.next_fast_len(ht + hs, real=True), fft.next_fast_len(wt + ws, real=True))

@@ -95,6 +95,9 @@ def _limit_threads() -> None:
     # Several workers on few cores: one thread each, set before numpy/open3d are imported.
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"
+    from plotmosaic.parallel import set_threads
+
+    set_threads(1)  # the pool is the parallelism: no two-thread maps or multi-thread queries inside
 
 
 def _progress(enabled: bool) -> Progress:
