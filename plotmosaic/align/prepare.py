@@ -11,6 +11,7 @@ from scipy.spatial import cKDTree
 from plotmosaic.align.complexity import fit_levels
 from plotmosaic.align.config import AlignConfig
 from plotmosaic.align.normals import LazyNormals, level_shape, local_shape
+from plotmosaic.align.outliers import StrayConfig, stray_mask
 from plotmosaic.align.sampling import sample
 from plotmosaic.align.voxel import thin, thin_with_counts, voxel_centroids, voxelize
 from plotmosaic.errors import InputError
@@ -19,6 +20,9 @@ from plotmosaic.io.las import PointCloud
 
 MIN_POINTS = 50
 SPARSE_PROBE = 5_000  # sample points whose neighbour count decides the sparse rule (its median is stable)
+# Widest cloud registered (m, any axis, after stray points are dropped): a plot or a cropped ALS tile
+# is far smaller; beyond it the coarse rasters would need gigabytes, so it is refused with its extent.
+MAX_EXTENT_M = 20_000.0
 
 
 @dataclass
@@ -37,6 +41,7 @@ class PreparedCloud:
     normal_radius: float
     input_points: int
     seconds: dict = field(default_factory=dict)
+    stray_points: int = 0  # input points dropped as detached from the cloud (see align.outliers)
 
     @property
     def k(self) -> int:
@@ -56,15 +61,16 @@ def prepare_cloud(cloud: PointCloud, kind: str, levels: int, config: AlignConfig
     if levels < 1:
         raise InputError(f"{name}: levels must be >= 1, got {levels}")
     rng = np.random.default_rng(seed)
-    frame = Frame.around(cloud.xyz)
-    grid = voxelize(cloud.xyz, config.voxel, frame.offset)  # local coordinates, no shifted copy of 8M points
+    xyz, strays = robust_points(cloud.xyz, getattr(config, "stray", None) or StrayConfig(), name)
+    frame = Frame.around(xyz)
+    grid = voxelize(xyz, config.voxel, frame.offset)  # local coordinates, no shifted copy of 8M points
     points = grid.centroids
     if len(points) < MIN_POINTS:
         raise InputError(f"{name}: only {len(points)} points after {config.voxel} m voxels, too few to register")
     # final-ICP source: the delta grid of a seeded sample of delta0 cubes, which is a sample of the
     # whole cloud's delta grid without building that grid over all (8M) input points
     cubes = sample(len(points), config.final_max_source_points, rng)
-    fine = voxel_centroids(frame.to_local(cloud.xyz[grid.members(cubes)]), config.final_voxel)
+    fine = voxel_centroids(frame.to_local(xyz[grid.members(cubes)]), config.final_voxel)
     fine_points = fine[sample(len(fine), config.final_max_source_points, rng)]
     del grid, fine
     tree = cKDTree(points, balanced_tree=False, compact_nodes=False)  # half the build time; points are in cube order
@@ -92,4 +98,20 @@ def prepare_cloud(cloud: PointCloud, kind: str, levels: int, config: AlignConfig
         features=features, levels=lv.labels, level_stats=lv.stats, fine_points=fine_points,
         target_normals=LazyNormals(points, tree, radius, config.normal_max_nn), normal_radius=radius,
         input_points=len(cloud), seconds={"voxel": t1 - t0, "normals": t2 - t1, "levels": t3 - t2},
+        stray_points=strays,
     )
+
+
+def robust_points(xyz: np.ndarray, stray: StrayConfig, name: str) -> tuple[np.ndarray, int]:
+    """The cloud without its detached stray points, and how many were dropped; refuses an extent no grid can hold."""
+    keep = stray_mask(xyz, stray)
+    dropped = int(len(keep) - keep.sum())
+    if dropped:
+        xyz = xyz[keep]
+    if len(xyz) < MIN_POINTS:
+        raise InputError(f"{name}: only {len(xyz)} points left after dropping {dropped} stray points")
+    span = np.array([xyz[:, i].max() - xyz[:, i].min() for i in range(3)])
+    if span.max() > MAX_EXTENT_M:
+        raise InputError(f"{name}: the cloud spans {span.round(0).tolist()} m (after dropping {dropped} stray "
+                         f"points), more than {MAX_EXTENT_M:.0f} m; crop it or remove the far points")
+    return xyz, dropped

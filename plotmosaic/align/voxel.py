@@ -18,6 +18,20 @@ from plotmosaic.errors import InputError
 # 1 mm, 0.1 mm, ...), and faces exactly on multiples of the scale would leave many points on a face,
 # where rounding in the last bit (a UTM offset added and removed) decides their cube.
 FACE_PHASE = 0.00246
+# Cells of any dense grid (raster, occupancy image) built from a cloud's extent: 2e8 float64 cells are
+# 1.6 GB. A cloud whose extent needs more is stretched by far points or is too large to register whole.
+MAX_DENSE_CELLS = 200_000_000
+
+
+def check_dense_grid(shape, cell: float, what: str = "grid") -> tuple[int, ...]:
+    """`shape` as ints, or a one-line InputError when the grid would exceed MAX_DENSE_CELLS."""
+    shape = tuple(int(v) for v in shape)
+    cells = float(np.prod([float(v) for v in shape]))
+    if cells > MAX_DENSE_CELLS:
+        extent = " x ".join(f"{v * cell:.0f}" for v in shape)
+        raise InputError(f"{what}: a {extent} m extent at {cell} m cells needs {cells:.3g} cells, more than "
+                         f"{MAX_DENSE_CELLS:.0e}; the cloud has far stray points or must be cropped")
+    return shape
 
 
 def cube_keys(points: np.ndarray, size: float, offset=(0.0, 0.0, 0.0)) -> np.ndarray:

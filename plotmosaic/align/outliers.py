@@ -1,0 +1,60 @@
+"""Stray points: the few returns far from the rest of a cloud (multipath, sky hits, a NaN written as
+x = -2,147,483 m by laspy) that would stretch every extent, raster and voxel grid built from it.
+
+Per axis, the bulk of the cloud (a central quantile range of a strided sample, widened by a margin)
+is kept as it is; points outside it stay while they chain back to the bulk without an empty gap
+wider than `max_gap`; whatever lies beyond such a gap is dropped when it holds at most
+`detached_max_fraction` of the points (a large detached part is real data: kept). Linear time
+(one pass per axis, a sort of the few points outside the bulk), memory a few arrays of N.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class StrayConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    enabled: bool = Field(True, description="drop points detached from the cloud before any grid is built")
+    core_quantile: float = Field(0.02, gt=0, lt=0.25, description="the bulk: quantiles q..1-q per axis (a "
+                                 "cluster of NaN-written points below q cannot move them)")
+    core_margin: float = Field(1.0, ge=0, le=10, description="the bulk widened by this multiple of its width: "
+                               "a scan's sparse far range stays untouched")
+    min_margin_m: float = Field(50.0, ge=0, description="and by at least this much: thin clouds (a flat z range)")
+    max_gap_m: float = Field(20.0, gt=0, description="an empty gap this wide along an axis detaches what lies beyond")
+    detached_max_fraction: float = Field(0.01, ge=0, lt=0.5, description="a detached part holding at most this "
+                                         "share of the points is stray; more is real data")
+    sample_points: int = Field(200_000, ge=1000, description="strided sample for the quantiles (stable to <1 %)")
+
+
+def _axis_strays(v: np.ndarray, keep: np.ndarray, config: StrayConfig) -> None:
+    """Clear `keep` for the detached tails of one coordinate column (a strided view: no copy of N)."""
+    step = max(1, len(v) // config.sample_points)
+    sample = v[::step][keep[::step]]
+    lo, hi = np.quantile(sample, [config.core_quantile, 1.0 - config.core_quantile])
+    margin = max(config.core_margin * (hi - lo), config.min_margin_m)
+    for sign, edge in ((1.0, hi + margin), (-1.0, lo - margin)):
+        if (v.max() <= edge) if sign > 0 else (v.min() >= edge):
+            continue  # the usual case: nothing beyond the bulk's margin, one cheap pass
+        outside = np.flatnonzero((v > edge if sign > 0 else v < edge) & keep)
+        if len(outside) == 0:
+            continue
+        # distance beyond the bulk's edge, sorted outward; the first gap wider than max_gap detaches the rest
+        d = sign * (v[outside] - edge)
+        ds = np.sort(d)
+        gaps = np.flatnonzero(np.diff(ds, prepend=0.0) > config.max_gap_m)
+        if len(gaps) and len(ds) - int(gaps[0]) <= config.detached_max_fraction * int(keep.sum()):
+            keep[outside[d >= ds[int(gaps[0])]]] = False
+
+
+def stray_mask(xyz: np.ndarray, config: StrayConfig | None = None) -> np.ndarray:
+    """Boolean mask of the points to keep (all True when nothing is detached)."""
+    config = config or StrayConfig()
+    keep = np.ones(len(xyz), dtype=bool)
+    if not config.enabled or len(xyz) < 2:
+        return keep
+    for i in range(3):
+        _axis_strays(xyz[:, i], keep, config)
+    return keep
