@@ -45,7 +45,7 @@ class PoseGraphConfig(BaseModel):
     outlier_rotation_deg: float = 0.5
     outlier_translation: float = 0.10
     outlier_chi2: float = 22.46  # 6 dof, p = 0.999
-    max_drops: int = 50
+    max_drops: int = 50  # residual drops (one re-solve each); cycle-vote drops are not counted
     max_iterations: int = 100
 
 
@@ -172,11 +172,22 @@ def spanning_tree_poses(G: nx.Graph, reference: str) -> dict[str, np.ndarray]:
     return poses
 
 
+def triangles(H: nx.Graph) -> list[tuple[str, str, str]]:
+    """Every triangle of `H` once, by neighbour-set intersection: O(edges x degree), not all cliques."""
+    order = {n: k for k, n in enumerate(sorted(H.nodes))}
+    higher = {n: {m for m in H.adj[n] if order[m] > order[n]} for n in H.nodes}
+    out = []
+    for a in sorted(H.nodes):
+        for b in sorted(higher[a], key=order.get):
+            for c in sorted(higher[a] & higher[b], key=order.get):
+                out.append((a, b, c))
+    return out
+
+
 def cycle_errors(G: nx.Graph) -> list[dict]:
     """Every triangle of kept edges with how far composing its three edges is from identity."""
-    H = kept(G)
     out = []
-    for a, b, c in (t for t in nx.enumerate_all_cliques(H) if len(t) == 3):
+    for a, b, c in triangles(kept(G)):
         loop = edge_transform(G, a, b) @ edge_transform(G, b, c) @ edge_transform(G, c, a)
         out.append({"nodes": (a, b, c), "rotation_deg": rotation_deg(loop), "translation": float(np.linalg.norm(loop[:3, 3]))})
     return out
@@ -186,34 +197,84 @@ def _edge_id(u: str, v: str) -> tuple[str, str]:
     return (u, v) if u <= v else (v, u)
 
 
-def triangle_votes(G: nx.Graph, config: PoseGraphConfig) -> dict[tuple[str, str], tuple[int, int]]:
-    """Per kept edge (sorted ids): (inconsistent triangles, triangles) it is part of."""
+def _tri_edges(tri: dict) -> tuple[tuple[str, str], ...]:
+    a, b, c = tri["nodes"]
+    return _edge_id(a, b), _edge_id(b, c), _edge_id(a, c)
+
+
+def _inconsistent(tri: dict, config: PoseGraphConfig) -> bool:
+    return tri["rotation_deg"] > config.cycle_rotation_deg or tri["translation"] > config.cycle_translation
+
+
+def _count(tris: list[dict], config: PoseGraphConfig) -> dict[tuple[str, str], tuple[int, int]]:
     votes: dict[tuple[str, str], list[int]] = {}
-    for tri in cycle_errors(G):
-        a, b, c = tri["nodes"]
-        wrong = tri["rotation_deg"] > config.cycle_rotation_deg or tri["translation"] > config.cycle_translation
-        for e in (_edge_id(a, b), _edge_id(b, c), _edge_id(a, c)):
+    for tri in tris:
+        wrong = _inconsistent(tri, config)
+        for e in _tri_edges(tri):
             n = votes.setdefault(e, [0, 0])
             n[0] += int(wrong)
             n[1] += 1
     return {e: (bad, total) for e, (bad, total) in votes.items()}
 
 
+def triangle_votes(G: nx.Graph, config: PoseGraphConfig) -> dict[tuple[str, str], tuple[int, int]]:
+    """Per kept edge (sorted ids): (inconsistent triangles, triangles) it is part of."""
+    return _count(cycle_errors(G), config)
+
+
+def _outliers(votes: dict[tuple[str, str], tuple[int, int]]) -> list[tuple[str, str]]:
+    return sorted(e for e, (bad, total) in votes.items() if bad >= 2 and bad > total / 2)
+
+
+def _explain(tris: list[dict], config: PoseGraphConfig) -> list[tuple[str, str]]:
+    """Outliers of the vote, the most certain first: a bad triangle blamed on one edge no longer counts
+    against its two other edges (else a good edge next to two wrong ones is dropped with them)."""
+    out: list[tuple[str, str]] = []
+    active = tris
+    while True:
+        votes = _count(active, config)
+        candidates = _outliers(votes)
+        if not candidates:
+            return sorted(out)
+        top = max(votes[e][0] / votes[e][1] for e in candidates)
+        worst = {e for e in candidates if votes[e][0] / votes[e][1] == top}
+        out += sorted(worst)
+        active = [t for t in active if not worst.intersection(_tri_edges(t))]
+
+
 def cycle_outliers(G: nx.Graph, config: PoseGraphConfig) -> list[tuple[str, str]]:
     """Edges inconsistent in most of the triangles they close (needs >= 2 bad triangles to decide)."""
-    return sorted(e for e, (bad, total) in triangle_votes(G, config).items() if bad >= 2 and bad > total / 2)
+    return _explain(cycle_errors(G), config)
+
+
+def _unsure(G: nx.Graph, config: PoseGraphConfig) -> set[tuple[str, str]]:
+    return {_edge_id(u, v) for u, v, e in kept(G).edges(data=True)
+            if e.get("confidence") is not None and e["confidence"] < config.min_confidence}
+
+
+def _unconfirmed(unsure: set, votes: dict) -> list[tuple[str, str]]:
+    return sorted(e for e in unsure if (lambda bt: bt[1] - bt[0])(votes.get(e, (0, 0))) == 0)
 
 
 def unverified(G: nx.Graph, config: PoseGraphConfig) -> list[tuple[str, str]]:
     """Low-confidence edges (coarse stage unsure) that no consistent triangle confirms."""
-    votes = triangle_votes(G, config)
-    out = []
-    for u, v, e in kept(G).edges(data=True):
-        c = e.get("confidence")
-        bad, total = votes.get(_edge_id(u, v), (0, 0))
-        if c is not None and c < config.min_confidence and total - bad == 0:
-            out.append(_edge_id(u, v))
-    return sorted(out)
+    return _unconfirmed(_unsure(G, config), triangle_votes(G, config))
+
+
+def vote(G: nx.Graph, config: PoseGraphConfig) -> tuple[list[tuple[str, str]], list[tuple[str, str]]]:
+    """(cycle outliers, unverified unsure edges) from one pass over the triangles of the kept edges.
+
+    Low-confidence edges stay out of the outlier vote: otherwise a plot with several wrong (and
+    unsure) pairs outvotes its correct edges. An unsure edge is confirmed by a consistent triangle
+    whose other edges are not cycle outliers.
+    """
+    tris = cycle_errors(G)
+    unsure = _unsure(G, config)
+    trusted = [t for t in tris if not unsure.intersection(_tri_edges(t))]
+    gone = set(_explain(trusted, config))
+    outliers = sorted(gone)
+    rest = _count([t for t in tris if not gone.intersection(_tri_edges(t))], config)
+    return outliers, _unconfirmed(unsure, rest)
 
 
 # --- the solve ---------------------------------------------------------------------------------------
@@ -239,19 +300,27 @@ def _noise(info: np.ndarray, config: PoseGraphConfig):
     return gtsam.noiseModel.Robust.Create(kernel, base)
 
 
+def _conditioned(G: nx.Graph, u: str, v: str, config: PoseGraphConfig) -> np.ndarray:
+    """The edge's conditioned information, remembered on the edge (an eigen-decomposition per edge, once)."""
+    e = G.edges[u, v]
+    memo = e.get("_info")
+    if memo is None or memo[0] is not config:
+        memo = e["_info"] = (config, condition_information(e.get("information"), e.get("inlier_rmse"), config))
+    return memo[1]
+
+
 def residual(G: nx.Graph, u: str, v: str, poses: dict[str, np.ndarray], config: PoseGraphConfig) -> dict:
     """Residual of one edge at the given poses: rotation (deg), translation (m) and chi2 (conditioned info)."""
     e = G.edges[u, v]
     i, j = e["source"], e["target"]
     E = inverse(e["transform"]) @ inverse(poses[j]) @ poses[i]  # identity when the edge is satisfied
     xi = gtsam.Pose3.Logmap(_pose3(E))
-    info = condition_information(e.get("information"), e.get("inlier_rmse"), config)
+    info = _conditioned(G, u, v, config)
     return {"rotation_deg": rotation_deg(E), "translation": float(np.linalg.norm(E[:3, 3])), "chi2": float(xi @ info @ xi)}
 
 
-def solve(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None) -> Solution:
-    """Place every scan connected to `reference` (fixed at identity) with robust Levenberg-Marquardt."""
-    config = config or PoseGraphConfig()
+def _solve(G: nx.Graph, reference: str, config: PoseGraphConfig):
+    """One robust LM solve: (Solution without sigmas, factor graph, result values, keys)."""
     init = spanning_tree_poses(G, reference)
     placed = sorted(init)
     keys = {name: gtsam.symbol("x", n) for n, name in enumerate(placed)}
@@ -263,7 +332,7 @@ def solve(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None) ->
     for u, v, e in kept(G).edges(data=True):
         if u not in keys or v not in keys:
             continue
-        info = condition_information(e.get("information"), e.get("inlier_rmse"), config)
+        info = _conditioned(G, u, v, config)
         graph.add(gtsam.BetweenFactorPose3(keys[e["target"]], keys[e["source"]], _pose3(e["transform"]), _noise(info, config)))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(config.max_iterations)
@@ -272,11 +341,23 @@ def solve(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None) ->
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
     before = graph.error(values)
     result = optimizer.optimize()
-    marginals = gtsam.Marginals(graph, result)
     poses = {name: result.atPose3(keys[name]).matrix() for name in placed}
-    sigmas = {name: np.sqrt(np.clip(np.diag(marginals.marginalCovariance(keys[name])), 0, None)) for name in placed}
     unplaced = sorted(n for n in G.nodes if n not in keys)
-    return Solution(poses, sigmas, unplaced, optimizer.iterations(), float(before), float(graph.error(result)))
+    sol = Solution(poses, {}, unplaced, optimizer.iterations(), float(before), float(graph.error(result)))
+    return sol, graph, result, keys
+
+
+def _add_sigmas(sol: Solution, graph, result, keys: dict) -> Solution:
+    """sqrt(diag(marginal covariance)) of every placed scan: one factorisation, after the last solve."""
+    marginals = gtsam.Marginals(graph, result)
+    sol.sigmas = {name: np.sqrt(np.clip(np.diag(marginals.marginalCovariance(k)), 0, None)) for name, k in keys.items()}
+    return sol
+
+
+def solve(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None) -> Solution:
+    """Place every scan connected to `reference` (fixed at identity) with robust Levenberg-Marquardt."""
+    config = config or PoseGraphConfig()
+    return _add_sigmas(*_solve(G, reference, config))
 
 
 def _drop(G: nx.Graph, u: str, v: str, reason: str, dropped: list[dict]) -> None:
@@ -290,28 +371,22 @@ def optimise(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None)
     """Cycle check, robust solve, drop the worst residual outlier and re-solve until none is left.
 
     Edge attributes are updated in place: dropped, drop_reason, residual_before (at the
-    spanning-tree initialisation), residual_after (at the final poses).
+    spanning-tree initialisation), residual_after (at the final poses). The triangle vote runs
+    once and the marginals are computed once, after the last solve.
     """
     config = config or PoseGraphConfig()
     dropped: list[dict] = []
-    # Low-confidence edges stay out of the triangle vote: otherwise a plot with several wrong
-    # (and unsure) pairs outvotes its correct edges. They come back only if a triangle of trusted
-    # edges confirms them.
-    unsure = [(u, v) for u, v, e in kept(G).edges(data=True)
-              if e.get("confidence") is not None and e["confidence"] < config.min_confidence]
-    for u, v in unsure:
-        G.edges[u, v]["dropped"] = True
-    for u, v in cycle_outliers(G, config):
+    outliers, unconfirmed = vote(G, config)
+    for u, v in outliers:
         _drop(G, u, v, "cycle", dropped)
-    for u, v in unsure:
-        G.edges[u, v]["dropped"] = False
-    for u, v in unverified(G, config):
+    for u, v in unconfirmed:
         _drop(G, u, v, "unverified", dropped)
     initial = spanning_tree_poses(G, reference)
     for u, v, e in G.edges(data=True):
         e["residual_before"] = residual(G, u, v, initial, config) if u in initial and v in initial else None
-    for _ in range(config.max_drops + 1):
-        sol = solve(G, reference, config)
+    residual_drops = 0
+    while True:
+        sol, graph, result, keys = _solve(G, reference, config)
         worst, worst_chi2 = None, 0.0
         for u, v, e in kept(G).edges(data=True):
             if u not in sol.poses or v not in sol.poses:
@@ -320,10 +395,14 @@ def optimise(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None)
             metric = r["rotation_deg"] > config.outlier_rotation_deg or r["translation"] > config.outlier_translation
             if metric and r["chi2"] > config.outlier_chi2 and r["chi2"] > worst_chi2:
                 worst, worst_chi2 = (u, v), r["chi2"]
-        if worst is None or len(dropped) >= config.max_drops:
+        if worst is None or residual_drops >= config.max_drops:
             break
         _drop(G, *worst, "residual", dropped)
+        residual_drops += 1
+    _add_sigmas(sol, graph, result, keys)
     for u, v, e in G.edges(data=True):
         e["residual_after"] = residual(G, u, v, sol.poses, config) if u in sol.poses and v in sol.poses else None
+    for u, v, e in G.edges(data=True):
+        e.pop("_info", None)  # not part of the graph's saved form
     sol.dropped = dropped
     return sol
