@@ -14,7 +14,7 @@ from plotmosaic.errors import InputError
 @handle_errors
 def simulate_command(
     outdir: Path = typer.Argument(..., help="Output folder (must be empty unless --force)."),
-    preset: str = typer.Option("small", "--preset", help="small | paper | region | grassland | prepost"),
+    preset: str | None = typer.Option(None, "--preset", help="small (default) | paper | region | grassland | prepost | ..."),
     seed: int = typer.Option(0, "--seed", help="Random seed: the same seed gives the same files."),
     points_per_scan: int | None = typer.Option(None, "--points-per-scan", help="Target points per TLS scan."),
     angular_step: float | None = typer.Option(None, "--angular-step", help="TLS angular step in degrees (overrides --points-per-scan)."),
@@ -29,20 +29,41 @@ def simulate_command(
     approx_sigma: float | None = typer.Option(None, "--approx-sigma", help="Noise of the approximate positions (m)."),
     figures: bool = typer.Option(False, "--figures", help="Also write PNG pictures to OUTDIR/figures."),
     force: bool = typer.Option(False, "--force", help="Write into a non-empty OUTDIR."),
+    from_cloud: Path | None = typer.Option(None, "--from-cloud", help="Cut virtual scans out of this real cloud (LAS/LAZ) instead of simulating."),
+    positions: str | None = typer.Option(None, "--positions", help="--from-cloud: scanner positions 'x,y;x,y' (or x,y,z), cloud coordinates."),
+    views: int | None = typer.Option(None, "--views", min=1, help="--from-cloud: this many positions on a grid around the centre..."),
+    spacing: float | None = typer.Option(None, "--spacing", help="--from-cloud: ...this far apart (m)."),
+    full_density_range: float | None = typer.Option(None, "--full-density-range", help="--from-cloud: points beyond it kept with probability (r0/r)^2 (m)."),
+    range_noise: float | None = typer.Option(None, "--range-noise", help="--from-cloud: range noise std (m), default 0."),
+    occupancy_voxel: float | None = typer.Option(None, "--occupancy-voxel", help="--from-cloud: occupancy voxel for the line of sight (m)."),
 ) -> None:
     """Simulate a forest plot: terrain, trees, understory; TLS scans, an ALS tile, ground truth and a manifest."""
-    from plotmosaic.simulate import simulate
+    from plotmosaic.simulate import make_config, simulate
 
     if outdir.exists() and not outdir.is_dir():
         raise InputError(f"{outdir}: exists and is not a folder")
     if outdir.is_dir() and any(outdir.iterdir()) and not force:
         raise InputError(f"{outdir}: folder is not empty (use --force to write into it)")
+    if from_cloud is not None:
+        given = {"--preset": preset, "--points-per-scan": points_per_scan, "--angular-step": angular_step,
+                 "--als-density": als_density, "--tree-density": tree_density, "--conifer-fraction": conifer_fraction,
+                 "--shrub-density": shrub_density, "--grass-density": grass_density, "--flat-terrain": flat_terrain,
+                 "--approx-positions": approx_positions or None, "--approx-sigma": approx_sigma, "--figures": figures or None}
+        clash = [name for name, value in given.items() if value is not None]
+        if clash:
+            raise InputError(f"--from-cloud: {clash[0]} applies to the simulator only")
+        _cut(outdir, from_cloud, positions, views, spacing, seed, max_range=max_range, full_density_range=full_density_range,
+             range_noise=range_noise, voxel=occupancy_voxel)
+        return
+    if positions is not None or views is not None or spacing is not None:
+        raise InputError("--positions/--views/--spacing need --from-cloud")
     overrides = dict(
         points_per_scan=points_per_scan, angular_step=angular_step, max_range=max_range, als_density=als_density,
         tree_density=tree_density, conifer_fraction=conifer_fraction, shrub_density=shrub_density,
         grass_density=grass_density, flat_terrain=flat_terrain, approx_positions=approx_positions or None,
         approx_sigma_m=approx_sigma,
     )
+    config = make_config(preset or "small", **overrides)  # before the progress bar: a bad preset is one clean line
     columns = [TextColumn("{task.description:<14}"), BarColumn(), TextColumn("{task.completed}/{task.total}"), TimeElapsedColumn()]
     with Progress(*columns, transient=True) as bar:
         task = bar.add_task("building scene", total=None)
@@ -50,7 +71,7 @@ def simulate_command(
         def progress(what: str, done: int, total: int) -> None:
             bar.update(task, description=what, completed=done, total=total)
 
-        result = simulate(outdir, preset=preset, seed=seed, figures=figures, progress=progress, **overrides)
+        result = simulate(outdir, seed=seed, figures=figures, progress=progress, config=config)
     n_tls = sum(v for k, v in result.points.items() if k != "als")
     scans = [k for k in result.points if k != "als"]
     typer.echo(f"simulated {result.config.name} (seed {seed}) in {result.seconds['total']:.1f} s: "
@@ -62,3 +83,21 @@ def simulate_command(
     typer.echo(f"  ALS:          {', '.join(str(p) for p in result.als_paths)}")
     for fig in result.figures:
         typer.echo(f"  figure:       {fig}")
+
+
+def _cut(outdir: Path, cloud: Path, positions: str | None, views: int | None, spacing: float | None, seed: int, **settings) -> None:
+    """`simulate --from-cloud`: virtual scans of a real cloud, ground truth and a manifest."""
+    from plotmosaic.simulate.from_cloud import cut_cloud_to_folder, parse_positions
+
+    if positions is not None and (views is not None or spacing is not None):
+        raise InputError("--from-cloud: give --positions or --views/--spacing, not both")
+    parsed = parse_positions(positions) if positions is not None else None
+    result = cut_cloud_to_folder(outdir, cloud, parsed, views, spacing, seed, **settings)
+    total = sum(result.points.values())
+    typer.echo(f"cut {len(result.points)} virtual scans from {cloud} (seed {seed}) in {result.seconds['total']:.1f} s: "
+               f"{total:,} points ({total // max(len(result.points), 1):,} a scan)")
+    for sid, n in result.points.items():
+        pos = ", ".join(f"{v:.2f}" for v in result.positions[sid])
+        typer.echo(f"  {sid}: {n:,} points, scanner at ({pos})")
+    typer.echo(f"  manifest:     {result.manifest_path}")
+    typer.echo(f"  ground truth: {result.ground_truth_path}")
