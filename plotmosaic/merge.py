@@ -1,7 +1,8 @@
 """Merge posed scans into one LAS/LAZ 1.4 cloud, streaming chunk by chunk.
 
-Memory stays bounded by the chunk size (plus, with voxel thinning, 8 bytes per kept voxel):
-no scan is ever held whole. Each chunk is posed in float64 straight from the file's stored
+Memory stays bounded by the chunk size (with voxel thinning or --tiles, by the tile memory budget:
+points are bucketed by tile into spill files beside the output, then each tile is thinned alone):
+no scan, and no output, is ever held whole. Each chunk is posed in float64 straight from the file's stored
 integers to the output's (one 4x4: input scaling, pose, output scaling), stored at 1 mm around
 an offset rounded to 1 km, so UTM coordinates keep their millimetres. All other fields (intensity,
 returns, classification, gps_time, RGB, user data, flags, unscaled extra dimensions such as
@@ -17,6 +18,9 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
+import shutil
+import signal
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -24,7 +28,7 @@ from pathlib import Path
 
 import laspy
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 from pyproj import CRS
 from pyproj.exceptions import CRSError
 from threadpoolctl import threadpool_limits
@@ -35,13 +39,14 @@ from plotmosaic.io.frame import apply_transform, translation
 from plotmosaic.io.las import CHUNK_SIZE, STANDARD_ATTRIBUTES, HeaderInfo, las_offsets, make_header, read_header_info
 from plotmosaic.io.las import open_las, short_error
 from plotmosaic.manifest import Manifest
+from plotmosaic.parallel import in_two_threads, threads
 from plotmosaic.poses import Poses
 
 SCALE = 0.001  # 1 mm
 VLR_USER_ID = "plotmosaic"
 VLR_RECORD_ID = 1
 MAX_SOURCE_ID = 65535  # point_source_id is a uint16
-_KEY_BITS = 21  # bits per voxel index in the packed int64 key: 2M voxels along each axis
+TILE_INDEX = "index.json"  # the index of a tiled output (--tiles), inside its folder
 
 
 class MergeConfig(BaseModel):
@@ -55,6 +60,13 @@ class MergeConfig(BaseModel):
     force: bool = False
     skip_missing: bool = False
     chunk_size: int = Field(default=CHUNK_SIZE, ge=1)
+    tile_memory_mb: int = Field(
+        default=512, ge=1, le=1 << 20, description="memory (MB) for the tiles thinned at once: tiles are cut to fit it, whatever the output size"
+    )
+    tiles: bool = Field(default=False, description="write one LAZ per square tile into the folder --out, plus index.json")
+    tile_size: float = Field(
+        default=100.0, gt=0, le=100_000, description="tile edge (m) with --tiles, whole mm; tiles are anchored at the output offset (a multiple of 1 km)"
+    )
 
     @field_validator("voxel")
     @classmethod
@@ -62,6 +74,20 @@ class MergeConfig(BaseModel):
         if value is not None and round(value / SCALE) < 1:
             raise ValueError("must be at least 0.001 (1 mm, the output resolution)")
         return value
+
+    @field_validator("tile_size")
+    @classmethod
+    def _tile_mm(cls, value: float) -> float:
+        if abs(round(value / SCALE) * SCALE - value) > 1e-9 * max(1.0, value):
+            raise ValueError("must be a whole number of mm")
+        return value
+
+    @model_validator(mode="after")
+    def _tiles_on_voxel_faces(self) -> "MergeConfig":
+        # a voxel cut by a tile edge would be thinned twice: tiles must be whole voxels
+        if self.tiles and self.voxel and round(self.tile_size / SCALE) % round(self.voxel / SCALE):
+            raise ValueError(f"--tile-size {self.tile_size:g} must be a whole multiple of --voxel {self.voxel:g}")
+        return self
 
     @field_validator("bbox")
     @classmethod
@@ -141,6 +167,7 @@ class MergeSummary:
     seconds: float
     skipped: list[str] = field(default_factory=list)  # manifest scans without a pose (--skip-missing)
     ignored: list[str] = field(default_factory=list)  # posed scans not in the manifest
+    tiles: list[dict] | None = None  # with --tiles: one entry per written tile (file, origin, points, bounds)
 
     @property
     def points_in(self) -> int:
@@ -169,6 +196,7 @@ class MergeSummary:
             "skipped": self.skipped,
             "ignored": self.ignored,
             "seconds": round(self.seconds, 3),
+            **({"tiles": self.tiles} if self.tiles is not None else {}),
         }
 
 
@@ -294,44 +322,155 @@ def read_source_table(path: str | Path) -> list[dict]:
     raise InputError(f"{path}: no plotmosaic source table (not written by plotmosaic merge)")
 
 
-# ---------------------------------------------------------------- thinning
+# ---------------------------------------------------------------- thinning by tiles
+#
+# Which point wins a voxel: the first in stream order (sources in manifest order, points in file
+# order). That rule is local to a voxel, so the cloud can be cut into tiles along voxel faces and
+# each tile thinned alone: the kept set is the whole-cloud thinning, whatever the tiling or chunking.
+# Points are bucketed by tile into raw spill files (in stream order) and each tile is thinned in
+# memory with one sort; a tile over the memory budget is cut in two first (recursively), so memory is
+# bounded by the budget, never by the input or the output.
+
+_SPLIT_SAMPLE = 65_536  # records sampled to choose where an over-budget tile is cut
+_SPILL_READ = 1_000_000  # records read at once when an over-budget tile is re-bucketed
+_BYTES_OVERHEAD = 64  # per point while thinning a tile, beside two copies of its record: indices, keys, sort
 
 
-class FirstInVoxel:
-    """Streaming voxel thinning: keep the first point (in stream order) that falls in each voxel.
+def voxel_ijk(raw: np.ndarray, step: int) -> np.ndarray:
+    """(N, 3) int64 voxel indices of output records (the voxel grid is anchored at the output offset)."""
+    ijk = np.empty((len(raw), 3), dtype=np.int64)
+    for axis, name in enumerate("XYZ"):
+        ijk[:, axis] = np.floor_divide(raw[name], step)
+    return ijk
 
-    Only the keys of the voxels seen so far are kept, as one sorted int64 array (8 bytes per
-    output point), so memory is bounded by the output, never by the input. "First in stream
-    order" depends only on the order of the points (sources in manifest order, points in file
-    order), not on the chunk size. Voxels are counted on the written millimetre integers, so
-    re-reading the file gives the same voxels.
-    """
 
-    def __init__(self, voxel: float):
-        self.step = int(round(voxel / SCALE))  # voxel edge in output integer units (mm)
-        self.keys = np.empty(0, dtype=np.int64)
+def first_in_voxel(ijk: np.ndarray) -> np.ndarray:
+    """Ascending indices of the first row of each distinct voxel (one stable sort)."""
+    if len(ijk) == 0:
+        return np.empty(0, dtype=np.int64)
+    lo = ijk.min(axis=0)
+    bits = [int(v).bit_length() for v in ijk.max(axis=0) - lo]
+    if sum(bits) <= 63:  # pack the indices into one int64 key (always, but for far-flung outliers)
+        rel = ijk - lo
+        key = (rel[:, 0] << (bits[1] + bits[2])) | (rel[:, 1] << bits[2]) | rel[:, 2]
+        order = np.argsort(key, kind="stable")
+        ordered = key[order]
+        new = np.empty(len(order), dtype=bool)
+        new[0], new[1:] = True, ordered[1:] != ordered[:-1]
+    else:
+        order = np.lexsort((ijk[:, 2], ijk[:, 1], ijk[:, 0]))  # stable too
+        ordered = ijk[order]
+        new = np.empty(len(order), dtype=bool)
+        new[0], new[1:] = True, np.any(ordered[1:] != ordered[:-1], axis=1)
+    return np.sort(order[new])
 
-    def voxel_keys(self, q: np.ndarray) -> np.ndarray:
-        """int64 keys of the voxels of points given as output integers (N, 3)."""
-        ijk = np.floor_divide(q, self.step) + (1 << (_KEY_BITS - 1))  # grid anchored at the output offset
-        if len(ijk) and (ijk.min() < 0 or ijk.max() >= 1 << _KEY_BITS):
-            span = (1 << (_KEY_BITS - 1)) * self.step * SCALE
-            raise InputError(f"--voxel {self.step * SCALE:g}: the cloud reaches more than {span:,.0f} m from its offset along an axis")
-        return (ijk[:, 0] << (2 * _KEY_BITS)) | (ijk[:, 1] << _KEY_BITS) | ijk[:, 2]
 
-    def keep(self, q: np.ndarray) -> np.ndarray:
-        """Mask of the points of this chunk (output integers) that are the first in their voxel."""
-        keys = self.voxel_keys(q)
-        unique, first = np.unique(keys, return_index=True)  # index of the first occurrence in the chunk
-        pos = np.searchsorted(self.keys, unique)
-        seen = np.zeros(len(unique), dtype=bool)
-        inside = pos < len(self.keys)
-        seen[inside] = self.keys[pos[inside]] == unique[inside]
-        new = ~seen
-        self.keys = np.insert(self.keys, pos[new], unique[new])  # linear merge, stays sorted
-        mask = np.zeros(len(keys), dtype=bool)
-        mask[first[new]] = True
-        return mask
+@dataclass
+class Bucket:
+    """One tile's spill file: raw output records in stream order, with their voxel-index bounds."""
+
+    path: Path
+    count: int = 0
+    lo: np.ndarray = field(default_factory=lambda: np.full(3, np.iinfo(np.int64).max))
+    hi: np.ndarray = field(default_factory=lambda: np.full(3, np.iinfo(np.int64).min))
+
+    def append(self, raw: np.ndarray, ijk: np.ndarray) -> None:
+        with open(self.path, "ab") as f:
+            f.write(np.ascontiguousarray(raw).data)
+        self.count += len(raw)
+        self.lo, self.hi = np.minimum(self.lo, ijk.min(axis=0)), np.maximum(self.hi, ijk.max(axis=0))
+
+
+def _scatter(raw: np.ndarray, ijk: np.ndarray, labels: np.ndarray, bucket_of) -> None:
+    """Append each group of points with the same label to `bucket_of(label)`, keeping their order."""
+    order = np.argsort(labels, kind="stable")
+    ordered = labels[order]
+    starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
+    for a, b in zip(starts, [*starts[1:], len(order)]):
+        index = order[a:b]
+        bucket_of(ordered[a]).append(raw[index], ijk[index])
+
+
+class TileSpill:
+    """Output records bucketed by square xy tiles (`edge` voxels, anchored at the output offset)."""
+
+    def __init__(self, folder: Path, step: int, edge: int):
+        self.folder, self.step, self.edge = folder, step, edge
+        self.buckets: dict[int, Bucket] = {}
+
+    def add(self, raw: np.ndarray) -> None:
+        if len(raw) == 0:
+            return
+        ijk = voxel_ijk(raw, self.step)
+        cells = (ijk[:, :2] // self.edge + (1 << 31)).astype(np.uint64)  # output integers are int32
+        _scatter(raw, ijk, (cells[:, 0] << np.uint64(32)) | cells[:, 1], self._bucket)
+
+    def _bucket(self, label) -> Bucket:
+        label = int(label)
+        if label not in self.buckets:
+            self.buckets[label] = Bucket(self.folder / f"{label}.bin")
+        return self.buckets[label]
+
+    def tiles(self) -> list[tuple[tuple[int, int], Bucket]]:
+        """(tile index (i, j), bucket) in label order (x, then y)."""
+        return [(((k >> 32) - (1 << 31), (k & 0xFFFFFFFF) - (1 << 31)), self.buckets[k]) for k in sorted(self.buckets)]
+
+
+def _split(bucket: Bucket, dtype: np.dtype, step: int) -> list[Bucket]:
+    """Cut an over-budget tile in two along voxel faces, at the median of a sample on its widest axis."""
+    mapped = np.memmap(bucket.path, dtype=dtype, mode="r", shape=(bucket.count,))
+    sample = voxel_ijk(np.array(mapped[:: max(1, bucket.count // _SPLIT_SAMPLE)]), step)
+    del mapped
+    extent = bucket.hi - bucket.lo
+    spread = np.percentile(sample, 95, axis=0) - np.percentile(sample, 5, axis=0)
+    score = np.where(extent > 0, spread, -1.0)
+    if score.max() <= 0:  # the sample is one voxel wide: fall back on the bounds
+        score = np.where(extent > 0, extent, -1)
+    axis = int(np.argmax(score))
+    cut = int(np.clip(np.median(sample[:, axis]), bucket.lo[axis] + 1, bucket.hi[axis]))  # both halves non-empty
+    halves = [Bucket(bucket.path.with_suffix(f".{k}.bin")) for k in (0, 1)]
+    with open(bucket.path, "rb") as f:
+        while len(raw := np.fromfile(f, dtype=dtype, count=_SPILL_READ)):
+            ijk = voxel_ijk(raw, step)
+            _scatter(raw, ijk, (ijk[:, axis] >= cut).astype(np.int8), lambda k: halves[int(k)])
+    bucket.path.unlink()
+    return halves
+
+
+def thinned_blocks(bucket: Bucket, dtype: np.dtype, step: int | None, max_points: int) -> Iterator[np.ndarray]:
+    """A tile's records, voxel-thinned when `step` is set, in blocks of at most `max_points`, in a
+    fixed order (sub-tile by sub-tile, stream order within each); the spill files are removed as read."""
+    stack = [bucket]
+    while stack:
+        b = stack.pop()
+        if step is None:  # no thinning: stream the tile as it is
+            with open(b.path, "rb") as f:
+                while len(raw := np.fromfile(f, dtype=dtype, count=max_points)):
+                    yield raw
+        elif b.count <= max_points:
+            raw = np.fromfile(b.path, dtype=dtype)
+            yield raw[first_in_voxel(voxel_ijk(raw, step))]
+        elif np.all(b.lo == b.hi):  # a single voxel: its first point
+            yield np.fromfile(b.path, dtype=dtype, count=1)
+        else:
+            stack.extend(reversed(_split(b, dtype, step)))
+            continue
+        b.path.unlink()
+
+
+def tile_points(config: MergeConfig, dtype: np.dtype, parallel: int) -> int:
+    """Points one tile may hold so that `parallel` tiles in memory fit the budget."""
+    per_point = 2 * dtype.itemsize + _BYTES_OVERHEAD
+    return max(1, config.tile_memory_mb * 2**20 // (per_point * parallel))
+
+
+def auto_tile_edge(mins: np.ndarray, maxs: np.ndarray, total: int, max_points: int, step: int) -> int:
+    """Tile edge (voxels) for a single output: about a quarter of the budget a tile at mean density."""
+    if total <= max_points:
+        return 1 << 40  # one tile
+    area = max(float((maxs[0] - mins[0]) * (maxs[1] - mins[1])), 1e-6)
+    edge_m = 0.5 * np.sqrt(area * max_points / total)
+    return max(1, int(edge_m / SCALE) // step)
 
 
 # ---------------------------------------------------------------- merging
@@ -379,20 +518,15 @@ def merge_scans(
     progress: bool = True,
     poses_path: str | Path | None = None,
 ) -> MergeSummary:
-    """Write every posed scan (and optionally the ALS tiles) into one LAS/LAZ 1.4 file, atomically."""
+    """Write every posed scan (and optionally the ALS tiles) into one LAS/LAZ 1.4 file (or, with
+    `tiles`, one LAZ per tile in the folder `out`), atomically."""
     config = config or MergeConfig()
-    out = Path(out)
-    if out.suffix.lower() not in (".las", ".laz"):
-        raise InputError(f"{out}: output must end in .las or .laz")
-    sidecar = sidecar_path(out)
-    if not config.force:
-        for path in (out, sidecar):
-            if path.exists():
-                raise InputError(f"{path}: already exists (use --force to overwrite)")
-    check_writable(out, force=True)
-    if not out.parent.is_dir():
-        raise InputError(f"{out}: output folder {out.parent} is not a folder")
+    with interrupts_win():
+        return _merge_scans(manifest, poses, Path(out), config, progress, poses_path)
 
+
+def _merge_scans(manifest: Manifest, poses: Poses, out: Path, config: MergeConfig, progress: bool, poses_path) -> MergeSummary:
+    sidecar = _check_output(out, config)
     start = time.perf_counter()
     sources, skipped, ignored = plan_sources(manifest, poses, config)
     crs, crs_source = output_crs(manifest, poses, sources)
@@ -409,34 +543,235 @@ def merge_scans(
     header = build_header(sources, crs, mins)
     counts = [SourceCount(s.source_id, s.id, s.kind, str(s.path)) for s in sources]
     total = sum(s.info.point_count for s in sources)
+
+    def summary_of(lo, hi, tiles=None) -> MergeSummary:
+        return MergeSummary(
+            out, sidecar, counts, np.asarray(lo), np.asarray(hi), crs.to_wkt() if crs else None, crs.name if crs else None,
+            crs_source, config.voxel, config.bbox, time.perf_counter() - start, skipped, ignored, tiles,
+        )
+
+    def write_sidecar(summary: MergeSummary) -> None:
+        data = {"poses": str(poses_path) if poses_path else None, "frame": poses.frame, **summary.to_dict()}
+        with atomic_output(sidecar, force=True) as tmp_json:
+            tmp_json.write_text(json.dumps(data, indent=1))
+
     try:
         # One BLAS thread: the 3x3 products are tiny per point, and a multi-threaded OpenBLAS on a
         # busy 2-core machine made apply_transform 20x slower; the LAZ codec uses the cores instead.
-        with threadpool_limits(1, user_api="blas"), atomic_output(out, force=True) as tmp, _progress(progress, total) as bar:
-            with laspy.open(tmp, mode="w", header=header, do_compress=out.suffix.lower() == ".laz") as writer:
-                thin = FirstInVoxel(config.voxel) if config.voxel else None
-                for source, count in zip(sources, counts):
-                    for chunk in read_records(source.path, config.chunk_size):
-                        record = posed_record(source, chunk, header, config.bbox, thin)
-                        write_chunk(writer, record)
-                        count.points_in += len(chunk)
-                        count.points_out += len(record)
-                        if bar is not None:
-                            bar.advance(len(chunk), source.id)
-            if writer.header.point_count == 0:
-                raise InputError("no point left to write (check --bbox)")
-            summary = MergeSummary(
-                out, sidecar, counts, np.array(writer.header.mins), np.array(writer.header.maxs),
-                crs.to_wkt() if crs else None, crs.name if crs else None,
-                crs_source, config.voxel, config.bbox, time.perf_counter() - start, skipped, ignored,
-            )
-            sidecar_data = {"poses": str(poses_path) if poses_path else None, "frame": poses.frame, **summary.to_dict()}
-            with atomic_output(sidecar, force=True) as tmp_json:
-                tmp_json.write_text(json.dumps(sidecar_data, indent=1))
+        with threadpool_limits(1, user_api="blas"), _progress(progress, total) as bar:
+            if config.voxel is None and not config.tiles:
+                with atomic_output(out, force=True) as tmp:
+                    with laspy.open(tmp, mode="w", header=header, do_compress=out.suffix.lower() == ".laz") as writer:
+                        _stream(writer, sources, counts, header, config, bar)
+                    if writer.header.point_count == 0:
+                        raise InputError("no point left to write (check --bbox)")
+                    summary = summary_of(writer.header.mins, writer.header.maxs)
+                    write_sidecar(summary)
+            else:
+                with _spill_folder(out) as folder:
+                    step = int(round(config.voxel / SCALE)) if config.voxel else None
+                    dtype = header.point_format.dtype()
+                    parallel = min(2, threads()) if config.tiles else 1
+                    max_points = tile_points(config, dtype, parallel)
+                    if config.tiles:
+                        edge = int(round(config.tile_size / SCALE)) // (step or 1)
+                    else:
+                        edge = auto_tile_edge(mins, maxs, total, max_points, step or 1)
+                    spill = TileSpill(folder, step or 1, edge)
+                    _bucket(spill, sources, counts, header, config, step, bar)
+                    if not spill.buckets:
+                        raise InputError("no point left to write (check --bbox)")
+                    if config.tiles:
+                        with atomic_folder(out, config.force) as tmp_dir:
+                            tiles = _write_tiles(tmp_dir, spill, header, counts, step, max_points, parallel)
+                            summary = summary_of(np.min([t["min"] for t in tiles], axis=0), np.max([t["max"] for t in tiles], axis=0), tiles)
+                            data = {"poses": str(poses_path) if poses_path else None, "frame": poses.frame, **summary.to_dict()}
+                            (tmp_dir / TILE_INDEX).write_text(json.dumps(data, indent=1))
+                    else:
+                        with atomic_output(out, force=True) as tmp:
+                            with laspy.open(tmp, mode="w", header=header, do_compress=out.suffix.lower() == ".laz") as writer:
+                                for _, bucket in spill.tiles():
+                                    for block in thinned_blocks(bucket, dtype, step, max_points):
+                                        _count_out(counts, block)
+                                        write_chunk(writer, laspy.ScaleAwarePointRecord(block, header.point_format, header.scales, header.offsets))
+                            summary = summary_of(writer.header.mins, writer.header.maxs)
+                            write_sidecar(summary)
     except OSError as exc:  # disk full, folder vanished...: a user problem, not a bug
         raise InputError(f"{out}: cannot write ({exc.strerror or exc})") from None
     summary.seconds = time.perf_counter() - start
     return summary
+
+
+def _check_output(out: Path, config: MergeConfig) -> Path:
+    """Refuse an output that cannot or must not be written; returns its sidecar (or tile index)."""
+    if config.tiles:
+        if out.exists() and not config.force:
+            raise InputError(f"{out}: already exists (use --force to overwrite)")
+        if out.exists() and not (out / TILE_INDEX).is_file():
+            raise InputError(f"{out}: exists and is not a tile folder written by plotmosaic merge --tiles; not replacing it")
+        check_writable(temp_path(out), force=True)
+        return out / TILE_INDEX
+    if out.suffix.lower() not in (".las", ".laz"):
+        raise InputError(f"{out}: output must end in .las or .laz")
+    sidecar = sidecar_path(out)
+    if not config.force:
+        for path in (out, sidecar):
+            if path.exists():
+                raise InputError(f"{path}: already exists (use --force to overwrite)")
+    check_writable(out, force=True)
+    if not out.parent.is_dir():
+        raise InputError(f"{out}: output folder {out.parent} is not a folder")
+    return sidecar
+
+
+def _stream(writer: laspy.LasWriter, sources: list[Source], counts: list[SourceCount], header, config: MergeConfig, bar) -> None:
+    """Plain merge: every chunk posed and written straight away, in stream order."""
+    for source, count in zip(sources, counts):
+        for chunk in read_records(source.path, config.chunk_size):
+            record = posed_record(source, chunk, header, config.bbox)
+            write_chunk(writer, record)
+            count.points_in += len(chunk)
+            count.points_out += len(record)
+            if bar is not None:
+                bar.advance(len(chunk), source.id)
+
+
+def _bucket(spill: TileSpill, sources: list[Source], counts: list[SourceCount], header, config: MergeConfig, step: int | None, bar) -> None:
+    """First pass: every chunk posed, cropped, thinned within itself (a point that is not the first of its
+    voxel in its chunk cannot be the first in the cloud) and bucketed by tile."""
+    for source, count in zip(sources, counts):
+        for chunk in read_records(source.path, config.chunk_size):
+            spill.add(posed_record(source, chunk, header, config.bbox, step).array)
+            count.points_in += len(chunk)
+            if bar is not None:
+                bar.advance(len(chunk), source.id)
+
+
+def _count_out(counts: list[SourceCount], block: np.ndarray) -> None:
+    per_id = np.bincount(block["point_source_id"], minlength=counts[-1].source_id + 1)
+    for count in counts:
+        count.points_out += int(per_id[count.source_id])
+
+
+def _tile_name(origin: np.ndarray) -> str:
+    return "tile_" + "_".join(f"{v:.3f}".rstrip("0").rstrip(".") for v in origin) + ".laz"
+
+
+def _write_tiles(folder: Path, spill: TileSpill, header, counts, step: int | None, max_points: int, parallel: int) -> list[dict]:
+    """One LAZ per tile, `parallel` tiles at a time (each with a single-threaded codec then)."""
+    edge_m = spill.edge * spill.step * SCALE
+    backend = laspy.LazBackend.Lazrs if parallel > 1 else laspy.LazBackend.LazrsParallel
+    dtype = header.point_format.dtype()
+
+    def write(item) -> dict:
+        (i, j), bucket = item
+        origin = header.offsets[:2] + np.array([i, j]) * edge_m
+        tile_counts = [SourceCount(c.source_id, c.id, c.kind, c.path) for c in counts]
+        path = folder / _tile_name(origin)
+        with laspy.open(path, mode="w", header=header, do_compress=True, laz_backend=backend) as writer:
+            for block in thinned_blocks(bucket, dtype, step, max_points):
+                _count_out(tile_counts, block)
+                write_chunk(writer, laspy.ScaleAwarePointRecord(block, header.point_format, header.scales, header.offsets))
+        h = writer.header
+        return {
+            "file": path.name, "origin": [round(float(v), 3) for v in origin], "size": round(edge_m, 3), "points": int(h.point_count),
+            "min": [round(float(v), 3) for v in h.mins], "max": [round(float(v), 3) for v in h.maxs],
+            "_counts": [c.points_out for c in tile_counts],
+        }
+
+    tiles = in_two_threads(write, spill.tiles()) if parallel > 1 else [write(t) for t in spill.tiles()]
+    for tile in tiles:
+        for count, n in zip(counts, tile.pop("_counts")):
+            count.points_out += n
+    return tiles
+
+
+# ---------------------------------------------------------------- temporaries and interrupts
+
+
+def temp_path(path: Path, tag: str = "") -> Path:
+    """A temporary beside `path`, named like plotmosaic.io.atomic's (`.NAME.tmp-PID`) so a later run can
+    find and remove what a killed run left."""
+    return path.with_name(f".{path.name}{tag}.tmp-{os.getpid()}")
+
+
+@contextlib.contextmanager
+def _signals_held() -> Iterator[None]:
+    """Hold SIGINT/SIGTERM while cleaning up, so a second Ctrl-C cannot leave half the temporaries."""
+    held = {signal.SIGINT, signal.SIGTERM}
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
+@contextlib.contextmanager
+def _spill_folder(out: Path) -> Iterator[Path]:
+    """The tile spill folder beside the output, removed at the end whatever happens."""
+    folder = temp_path(out, ".spill")
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir()
+    try:
+        yield folder
+    finally:
+        with _signals_held():
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def atomic_folder(path: Path, force: bool) -> Iterator[Path]:
+    """Yield a temporary folder beside `path`; on success it replaces `path` (an earlier tile folder)."""
+    tmp = temp_path(path)
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    try:
+        yield tmp
+        with _signals_held():
+            if path.exists():
+                if not force:
+                    raise InputError(f"{path}: already exists (use --force to overwrite)")
+                old = temp_path(path, ".old")
+                os.replace(path, old)
+                try:
+                    os.replace(tmp, path)
+                except BaseException:
+                    os.replace(old, path)
+                    raise
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                os.replace(tmp, path)
+    except BaseException:
+        with _signals_held():
+            shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+@contextlib.contextmanager
+def interrupts_win() -> Iterator[None]:
+    """Ctrl-C (or SIGTERM) ends the merge as KeyboardInterrupt (exit 130), also when it lands inside the
+    LAZ codec, which reports it as its own error (LazrsError "Failed to call write")."""
+    received: list[int] = []
+
+    def interrupt(signum, frame):
+        received.append(signum)
+        raise KeyboardInterrupt
+
+    previous = {}
+    try:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, interrupt)
+    except ValueError:  # not the main thread: signals are not ours to handle
+        pass
+    try:
+        yield
+    except Exception:
+        if received:
+            raise KeyboardInterrupt from None
+        raise
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def read_records(path: Path, chunk_size: int) -> Iterator[laspy.ScaleAwarePointRecord]:
@@ -461,9 +796,10 @@ def integer_transform(pose: np.ndarray, in_scales, in_offsets, out_scales, out_o
 
 
 def posed_record(
-    source: Source, chunk: laspy.ScaleAwarePointRecord, header: laspy.LasHeader, bbox: tuple[float, ...] | None, thin: FirstInVoxel | None
+    source: Source, chunk: laspy.ScaleAwarePointRecord, header: laspy.LasHeader, bbox: tuple[float, ...] | None, thin: int | None = None
 ) -> laspy.ScaleAwarePointRecord:
-    """A chunk posed into the output, cropped and thinned, with its source id.
+    """A chunk posed into the output, cropped, with its source id; with `thin` (a voxel edge in output
+    integer units), only the first point of each voxel within the chunk.
 
     Works on the stored integers: one 4x4 maps input integers to output integers, so the
     other fields are copied as they are (the whole record at once when the point formats
@@ -481,7 +817,8 @@ def posed_record(
         xyz = q * header.scales + header.offsets  # the coordinates as written
         index = np.flatnonzero(np.all((xyz >= lo) & (xyz <= hi), axis=1))
     if thin is not None:
-        index = np.flatnonzero(thin.keep(q)) if index is None else index[thin.keep(q[index])]
+        first = first_in_voxel(np.floor_divide(q if index is None else q[index], thin))
+        index = first if index is None else index[first]
     if index is not None:
         raw, q = raw[index], q[index]
     if raw.dtype == header.point_format.dtype():

@@ -11,6 +11,7 @@ from pydantic import ValidationError
 
 from plotmosaic.commands.common import handle_errors
 from plotmosaic.errors import InputError
+from plotmosaic.io.atomic import check_output_dir, check_output_file
 from plotmosaic.manifest import load_manifest
 from plotmosaic.merge import MergeConfig, MergeSummary, merge_scans, parse_bbox
 from plotmosaic.poses import load_poses
@@ -26,15 +27,27 @@ def merge_command(
     bbox: str | None = typer.Option(None, "--bbox", help="Crop to xmin,ymin,xmax,ymax[,zmin,zmax] in output coordinates."),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing output."),
     skip_missing: bool = typer.Option(False, "--skip-missing", help="Leave out scans without a pose instead of failing."),
+    tiles: bool = typer.Option(False, "--tiles", help="Write one LAZ per square tile into the folder --out, plus index.json."),
+    tile_size: float = typer.Option(100.0, "--tile-size", help="Tile edge (m) with --tiles; a whole multiple of --voxel."),
+    memory_mb: int = typer.Option(512, "--memory-mb", help="Memory (MB) for thinning: tiles are cut to fit, whatever the size."),
 ) -> None:
     """Apply each scan's pose and write one LAS/LAZ 1.4 cloud (point_source_id = scan index)."""
     try:
         config = MergeConfig(
-            voxel=voxel, include_als=include_als, bbox=parse_bbox(bbox) if bbox else None, force=force, skip_missing=skip_missing
+            voxel=voxel, include_als=include_als, bbox=parse_bbox(bbox) if bbox else None, force=force, skip_missing=skip_missing,
+            tiles=tiles, tile_size=tile_size, tile_memory_mb=memory_mb,
         )
     except ValidationError as exc:
         err = exc.errors()[0]
-        raise InputError(f"--{str(err['loc'][0]).replace('_', '-')}: {err['msg'].removeprefix('Value error, ')}") from None
+        msg = err["msg"].removeprefix("Value error, ")
+        if not err["loc"]:  # a check across options names them itself
+            raise InputError(msg) from None
+        name = {"tile_memory_mb": "memory_mb"}.get(str(err["loc"][0]), str(err["loc"][0]))
+        raise InputError(f"--{name.replace('_', '-')}: {msg}") from None
+    if tiles:  # the output location is checked (with a real write probe) before any work
+        check_output_dir(out.parent if str(out.parent) else Path("."))
+    else:
+        check_output_file(out, force=True)
     with _terminate_as_interrupt():
         summary = merge_scans(load_manifest(manifest), load_poses(poses), out, config, progress=True, poses_path=poses)
     print_summary(summary)
@@ -78,6 +91,8 @@ def print_summary(summary: MergeSummary) -> None:
         lines.append(f"CRS     none ({summary.crs_source.removeprefix('none: ')})")
     if summary.voxel:
         lines.append(f"voxel   {summary.voxel:g} m (first point of each voxel in scan order)")
+    if summary.tiles is not None:
+        lines.append(f"tiles   {len(summary.tiles)} LAZ files in {summary.out} (index: {summary.sidecar.name})")
     if summary.bbox:
         lines.append(f"bbox    {', '.join(f'{v:.3f}' for v in summary.bbox)}")
     if summary.skipped:
