@@ -7,10 +7,17 @@ Two equivalent forms are accepted:
 
 plus optional `[[als]]` tiles in both. Paths are relative to the manifest file.
 Errors name the file, plot, scan and field.
+
+A scan may point into an E57 file holding several scans: `path = "plot.e57"` with `scan = 3`
+(0-based index) or `scan = "name"` (name or GUID). Loading resolves it to the reference path
+`plot.e57#3` (io/e57.py), which every reader takes. `use_pose = true` offers the scan's stored
+pose as a prior (`Manifest.pair_prior`), never as the answer. Ids go into file names, so they
+are restricted to letters, digits, `-`, `_` and `.` (no `..`).
 """
 
 from __future__ import annotations
 
+import re
 import tomllib
 from enum import Enum
 from pathlib import Path
@@ -21,6 +28,20 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from plotmosaic.errors import InputError
 
 DEFAULT_LEVELS = {"tls": 3, "mls": 3, "uls": 2, "als": 2}
+_SAFE_ID = re.compile(r"^[\w.-]+$")
+
+
+def check_id(value: str) -> str:
+    """An id that is safe as a file name: letters, digits, `-`, `_`, `.`; not `.`/`..`-like."""
+    if not _SAFE_ID.match(value) or ".." in value or value.strip(".") == "":
+        raise ValueError(f"{value!r} is not allowed: ids become file names, use letters, digits, '-', '_' and '.' (no '..', no '/')")
+    return value
+
+
+def safe_id(text: str) -> str:
+    """`text` made into a valid id (other characters become '_')."""
+    out = re.sub(r"[^\w.-]", "_", text).replace("..", "_").strip(".")
+    return out or "scan"
 
 
 class ScanKind(str, Enum):
@@ -43,10 +64,30 @@ class Scan(_Strict):
     approx_position_frame: Literal["crs", "plot"] = "plot"
     levels: int | None = Field(default=None, ge=1, le=6)
     reference: bool = False
+    scan: int | str | None = None  # which scan of an E57 file: 0-based index, or name / GUID
+    use_pose: bool = False  # offer the E57's stored pose as the registration's initial guess
+
+    _id = field_validator("id")(classmethod(lambda cls, v: check_id(v)))
+
+    @field_validator("scan")
+    @classmethod
+    def _scan_selector(cls, value: int | str | None) -> int | str | None:
+        if isinstance(value, int) and value < 0:
+            raise ValueError("a scan index is 0-based and cannot be negative")
+        if isinstance(value, str) and not value:
+            raise ValueError("an empty scan name")
+        return value
 
     @property
     def k(self) -> int:
         return self.levels or DEFAULT_LEVELS[self.kind.value]
+
+    @property
+    def file(self) -> Path:
+        """The file itself (without an E57 reference's `#INDEX`)."""
+        from plotmosaic.io.e57 import split_scan_ref
+
+        return split_scan_ref(self.path)[0] if self.path.suffix.lower().startswith(".e57#") else self.path
 
 
 class AlsTile(_Strict):
@@ -62,6 +103,8 @@ class Plot(_Strict):
     id: str = Field(min_length=1)
     crs: str | None = None
     scans: list[Scan] = Field(min_length=1)
+
+    _id = field_validator("id")(classmethod(lambda cls, v: check_id(v)))
 
     @field_validator("crs")
     @classmethod
@@ -112,6 +155,27 @@ class Manifest(_Strict):
                 return s
         raise InputError(f"{self.source}: no scan with id {scan_id!r}")
 
+    def stored_pose(self, scan_id: str) -> "np.ndarray | None":
+        """The stored pose (4x4, scan -> file frame) of a scan with `use_pose = true`, else None."""
+        from plotmosaic.io.e57 import is_e57, stored_pose
+
+        scan = self.scan(scan_id)
+        path = self.resolve(scan.path)
+        return stored_pose(path) if scan.use_pose and is_e57(path) else None
+
+    def pair_prior(self, source_id: str, target_id: str) -> "np.ndarray | None":
+        """Initial guess source -> target from the stored poses, when both scans offer one.
+
+        None when either has no pose, or both store identity (what many exports write: no
+        information). A prior only: the pairwise path verifies it like any hypothesis.
+        """
+        import numpy as np
+
+        ps, pt = self.stored_pose(source_id), self.stored_pose(target_id)
+        if ps is None or pt is None or (np.allclose(ps, np.eye(4)) and np.allclose(pt, np.eye(4))):
+            return None
+        return np.linalg.inv(pt) @ ps
+
     def plot_of(self, scan_id: str) -> Plot:
         for p in self.plots:
             if any(s.id == scan_id for s in p.scans):
@@ -158,10 +222,11 @@ def load_manifest(path: str | Path, check_files: bool = True) -> Manifest:
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: manifest not found")
-    try:
-        data = tomllib.loads(path.read_text())
+    try:  # utf-8-sig: editors on Windows start files with a byte-order mark
+        data = tomllib.loads(path.read_text(encoding="utf-8-sig"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: not valid TOML ({exc})") from None
+    one_plot = "scans" in data and "plot_id" in data
     try:
         data = _normalise(data)
     except ValueError as exc:
@@ -171,12 +236,48 @@ def load_manifest(path: str | Path, check_files: bool = True) -> Manifest:
     except ValidationError as exc:
         err = exc.errors()[0]
         where = _location(data, tuple(err["loc"]))
+        if one_plot and tuple(err["loc"])[:3] == ("plots", 0, "id"):
+            where = "field 'plot_id'"
         more = f" (+{exc.error_count() - 1} more problems)" if exc.error_count() > 1 else ""
         raise InputError(f"{path}: {where}: {err['msg']}{more}") from None
     _check_unique(manifest, path)
     if check_files:
         _check_paths(manifest, path)
-    return manifest
+    return _resolve_e57(manifest, path, check_files)
+
+
+def _resolve_e57(manifest: Manifest, path: Path, check_files: bool) -> Manifest:
+    """E57 scans -> reference paths `FILE.e57#INDEX` (scans chosen by index, name or GUID)."""
+    from plotmosaic.io.e57 import list_scans, scan_ref, select_scan
+
+    listed: dict[Path, list] = {}
+    plots = []
+    for plot in manifest.plots:
+        scans = []
+        for scan in plot.scans:
+            where = f"{path}: plot {plot.id!r}, scan {scan.id!r}"
+            if scan.path.suffix.lower() != ".e57":
+                if scan.scan is not None or scan.use_pose:
+                    field = "scan" if scan.scan is not None else "use_pose"
+                    raise InputError(f"{where}, field '{field}': only for E57 files, {scan.path} is not one")
+                scans.append(scan)
+                continue
+            if isinstance(scan.scan, int) and not check_files:
+                scans.append(scan.model_copy(update={"path": scan_ref(scan.path, scan.scan)}))
+                continue
+            if not check_files:
+                scans.append(scan)
+                continue
+            file = manifest.resolve(scan.path)
+            try:
+                if file not in listed:
+                    listed[file] = list_scans(file)
+                chosen = select_scan(file, scan.scan, listed[file])
+            except InputError as exc:
+                raise InputError(f"{where}: {exc}") from None
+            scans.append(scan.model_copy(update={"path": scan_ref(scan.path, chosen.index)}))
+        plots.append(plot.model_copy(update={"scans": scans}))
+    return manifest.model_copy(update={"plots": plots})
 
 
 def _check_unique(manifest: Manifest, path: Path) -> None:
@@ -195,7 +296,7 @@ def _check_unique(manifest: Manifest, path: Path) -> None:
 def _check_paths(manifest: Manifest, path: Path) -> None:
     for plot in manifest.plots:
         for scan in plot.scans:
-            if not manifest.resolve(scan.path).is_file():
+            if not manifest.resolve(scan.file).is_file():
                 raise InputError(f"{path}: plot {plot.id!r}, scan {scan.id!r}, field 'path': file not found: {scan.path}")
     for tile in manifest.als:
         if not manifest.resolve(tile.path).is_file():
@@ -216,7 +317,12 @@ def dump_manifest(manifest: Manifest) -> str:
         if plot.crs:
             lines.append(f"crs = {_toml(plot.crs)}")
         for scan in plot.scans:
-            lines += ["", "[[plots.scans]]", f"id = {_toml(scan.id)}", f"path = {_toml(scan.path.as_posix())}", f'kind = "{scan.kind.value}"']
+            lines += ["", "[[plots.scans]]", f"id = {_toml(scan.id)}", f"path = {_toml(scan.file.as_posix())}", f'kind = "{scan.kind.value}"']
+            if scan.scan is not None or scan.file != scan.path:
+                selector = scan.scan if scan.scan is not None else int(str(scan.path).rsplit("#", 1)[1])
+                lines.append(f"scan = {_toml(selector) if isinstance(selector, str) else selector}")
+            if scan.use_pose:
+                lines.append("use_pose = true")
             if scan.approx_position is not None:
                 lines.append("approx_position = [" + ", ".join(f"{v:.3f}" for v in scan.approx_position) + "]")
                 lines.append(f'approx_position_frame = "{scan.approx_position_frame}"')

@@ -1,4 +1,6 @@
-"""LAS/LAZ 1.2-1.4 reading and writing with laspy (lazrs backend).
+"""LAS/LAZ 1.2-1.4 reading and writing with laspy (lazrs backend); the reading entry points
+(`read_header_info`, `iter_chunks`, `read_cloud`, `open_las`) also take E57 scans (io/e57.py, also
+`FILE.e57#INDEX`) and PLY files (io/ply.py), dispatched on the suffix, so every caller reads them.
 
 Coordinates are always float64 in the file's own coordinate system; attributes are kept
 as their LAS dtypes. Reading goes chunk by chunk so memory stays bounded by what is kept.
@@ -67,14 +69,29 @@ class HeaderInfo:
     dimensions: tuple[str, ...]
 
 
+LAS_SUFFIXES = (".las", ".laz")
+READ_SUFFIXES = (".las", ".laz", ".e57", ".ply")
+
+
+def file_format(path: str | Path) -> str:
+    """"las", "e57" or "ply" from the suffix (an E57 reference path `FILE.e57#INDEX` is "e57")."""
+    from plotmosaic.io.e57 import is_e57
+
+    if is_e57(path):
+        return "e57"
+    return "ply" if Path(path).suffix.lower() == ".ply" else "las"
+
+
 def _check_file(path: Path) -> Path:
     path = Path(path)
+    if file_format(path) == "e57":
+        return path  # io/e57.py checks the file (and the scan a reference path names)
     if not path.exists():
         raise InputError(f"{path}: file not found")
     if path.is_dir():
-        raise InputError(f"{path}: is a directory, expected a LAS/LAZ file")
-    if path.suffix.lower() not in (".las", ".laz"):
-        raise InputError(f"{path}: not a LAS/LAZ file (expected .las or .laz)")
+        raise InputError(f"{path}: is a directory, expected a point-cloud file")
+    if path.suffix.lower() not in READ_SUFFIXES:
+        raise InputError(f"{path}: not a point-cloud file (expected .las, .laz, .e57 or .ply)")
     return path
 
 
@@ -84,6 +101,9 @@ XYZ_ONLY = laspy.DecompressionSelection.XY_RETURNS_CHANNEL | laspy.Decompression
 
 
 def open_las(path: Path, xyz_only: bool = False) -> laspy.LasReader:
+    """A laspy reader; for E57/PLY a reader of the same shape (`header`, `chunk_iterator`)."""
+    if file_format(path) != "las":
+        return CloudRecordReader(Path(path))
     try:
         if xyz_only:
             return laspy.open(path, decompression_selection=XYZ_ONLY)
@@ -106,6 +126,8 @@ def _parse_crs(header: laspy.LasHeader) -> CRS | None:
 
 def read_header_info(path: str | Path) -> HeaderInfo:
     path = _check_file(Path(path))
+    if file_format(path) != "las":
+        return _other_header_info(path)
     with open_las(path) as reader:
         h = reader.header
         return HeaderInfo(
@@ -140,6 +162,16 @@ def iter_chunks(
 ) -> Iterator[PointCloud]:
     """Yield the file as PointCloud chunks of at most `chunk_size` points."""
     path = _check_file(Path(path))
+    if file_format(path) == "e57":
+        from plotmosaic.io.e57 import iter_e57_chunks
+
+        yield from iter_e57_chunks(path, min(chunk_size, CHUNK_SIZE), attributes)
+        return
+    if file_format(path) == "ply":
+        from plotmosaic.io.ply import iter_ply_chunks
+
+        yield from iter_ply_chunks(path, chunk_size, attributes)
+        return
     with open_las(path, xyz_only=attributes is False) as reader:
         crs = _parse_crs(reader.header)
         names = _wanted_attributes(reader.header, attributes)
@@ -155,8 +187,10 @@ def iter_chunks(
 
 
 def read_cloud(path: str | Path, attributes: bool | Iterable[str] = True, min_points: int = 1) -> PointCloud:
-    """Read a whole LAS/LAZ file as float64 xyz (+ attributes), validating it on the way."""
+    """Read a whole point-cloud file as float64 xyz (+ attributes), validating it on the way."""
     path = _check_file(Path(path))
+    if file_format(path) != "las":
+        return _read_other(path, attributes, min_points)
     info = read_header_info(path)
     if info.point_count == 0:
         raise InputError(f"{path}: contains no points")
@@ -181,6 +215,95 @@ def read_cloud(path: str | Path, attributes: bool | Iterable[str] = True, min_po
     if n < min_points:
         raise InputError(f"{path}: only {n} points, at least {min_points} needed")
     return PointCloud(xyz, attrs, info.crs)
+
+
+# ---------------------------------------------------------------- E57 / PLY
+
+# Input scale of the LAS records made from E57/PLY points for merge (which works on stored
+# integers): 0.1 mm, ten times finer than merge's output, so the extra rounding is negligible.
+OTHER_SCALE = 1e-4
+_OTHER_INFO: dict[tuple[str, int, int], HeaderInfo] = {}
+
+
+def _read_other(path: Path, attributes: bool | Iterable[str], min_points: int) -> PointCloud:
+    """E57 / PLY: the chunks concatenated (E57 point counts shrink by the invalid points)."""
+    chunks = list(iter_chunks(path, attributes=attributes))
+    n = sum(len(c) for c in chunks)
+    if n == 0:
+        raise InputError(f"{path}: contains no valid points")
+    xyz = np.concatenate([c.xyz for c in chunks])
+    attrs = {k: np.concatenate([c.attrs[k] for c in chunks]) for k in chunks[0].attrs}
+    del chunks
+    if not np.isfinite(xyz).all():
+        bad = ~np.isfinite(xyz).all(axis=1)
+        raise InputError(f"{path}: {int(bad.sum())} points have NaN or infinite coordinates")
+    if n < min_points:
+        raise InputError(f"{path}: only {n} points, at least {min_points} needed")
+    return PointCloud(xyz, attrs, None)
+
+
+def _other_header_info(path: Path) -> HeaderInfo:
+    """HeaderInfo of an E57 scan or a PLY file; bounds from the file (E57) or one streamed pass."""
+    from plotmosaic.io import e57, ply
+
+    fmt = file_format(path)
+    if fmt == "e57":
+        file, scan = e57.resolve_scan(path)
+        # cartesianBounds are in the scan frame by the standard, but some writers (pye57) store
+        # them posed: trusted only where both frames agree (no pose, or identity)
+        trusted = scan.pose is None or np.allclose(scan.pose, np.eye(4))
+        bounds = scan.bounds if trusted else None
+        count, names, version = scan.point_count, e57.attribute_names(scan), "E57"
+        if count == 0:
+            raise InputError(f"{file}: {scan.label}: contains no points")
+    else:
+        file = path
+        count, names, bounds, version = ply.point_count(path), ply.attribute_names(path), None, "PLY"
+    st = file.stat()
+    memo = (str(path), st.st_mtime_ns, st.st_size)
+    if memo in _OTHER_INFO:
+        return _OTHER_INFO[memo]
+    if bounds is None:
+        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+        for chunk in iter_chunks(path, attributes=False):
+            if len(chunk):
+                lo, hi = np.minimum(lo, chunk.xyz.min(axis=0)), np.maximum(hi, chunk.xyz.max(axis=0))
+        bounds = (lo, hi) if np.isfinite(lo).all() else (np.zeros(3), np.zeros(3))
+    info = HeaderInfo(path, count, -1, version, np.asarray(bounds[0], float), np.asarray(bounds[1], float), None,
+                      ("X", "Y", "Z", *names))
+    _OTHER_INFO[memo] = info
+    return info
+
+
+class CloudRecordReader:
+    """An E57/PLY file seen as a laspy reader: a LAS 1.4 header and LAS point records per chunk."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.info = read_header_info(path)
+        attrs = [n for n in self.info.dimensions if n not in ("X", "Y", "Z")]
+        self.extra = {}
+        for chunk in iter_chunks(path, chunk_size=1):  # the extra attributes' dtypes, from one point
+            self.extra = {n: v.dtype for n, v in chunk.attrs.items() if n not in STANDARD_ATTRIBUTES}
+            break
+        self.header = make_header(attrs, self.extra, None, las_offsets(self.info.mins), OTHER_SCALE)
+
+    def __enter__(self) -> "CloudRecordReader":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+    def close(self) -> None:
+        return None
+
+    def chunk_iterator(self, chunk_size: int) -> Iterator[laspy.ScaleAwarePointRecord]:
+        for chunk in iter_chunks(self.path, chunk_size):
+            if not len(chunk):
+                continue
+            # offsets per chunk: stored bounds (cartesianBounds) need not hold the points
+            header = make_header(chunk.attrs.keys(), self.extra, None, las_offsets(chunk.xyz.min(axis=0)), OTHER_SCALE)
+            yield make_record(header, chunk.xyz, chunk.attrs)
 
 
 # ---------------------------------------------------------------- writing

@@ -1,0 +1,158 @@
+"""E57 input: real and broken samples through the CLI, and a 3-scan file with poses written with pye57."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from helpers import assert_one_line_error, invoke
+from plotmosaic.io.e57 import list_scans, scan_ref, stored_pose
+from plotmosaic.io.frame import inverse, pose_error
+from plotmosaic.io.las import iter_chunks, open_las, read_cloud, read_header_info
+from plotmosaic.manifest import load_manifest
+from plotmosaic.poses import load_poses
+
+E57_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "e57"
+
+
+@pytest.fixture(scope="session")
+def e57_dir() -> Path:
+    """The shared E57 samples; tests using them skip only when the folder is absent."""
+    if not E57_DIR.is_dir():
+        pytest.skip("shared/data/e57 not present")
+    return E57_DIR
+
+
+@pytest.mark.parametrize(
+    "name, needles",
+    [
+        ("bad-crc.e57", ("bad-crc.e57", "checksum")),
+        ("empty.e57", ("empty.e57", "no scans")),
+        ("ZeroPoints.e57", ("ZeroPoints.e57", "scan 0", "no points")),
+        ("InvalidCVHeader.e57", ("InvalidCVHeader.e57", "scan 0")),
+    ],
+)
+def test_bad_files_one_line_exit_2(e57_dir, name, needles):
+    assert_one_line_error(invoke("info", e57_dir / name), *needles)
+    assert_one_line_error(invoke("info", "--full", e57_dir / name), *needles)
+
+
+@pytest.mark.parametrize("name, count", [("pumpAVisualReferenceImage.e57", 155_201), ("bunnyDouble.e57", 30_571)])
+def test_real_samples_exact_counts(e57_dir, name, count):
+    result = invoke("info", "--full", e57_dir / name)
+    assert result.exit_code == 0, result.output
+    assert f"{count:,} points" in result.output and "invalid" not in result.output
+    cloud = read_cloud(e57_dir / name)
+    assert len(cloud) == count and cloud.xyz.dtype == np.float64
+    assert read_header_info(e57_dir / name).point_count == count
+
+
+def test_attributes_and_chunks(e57_dir):
+    pump = e57_dir / "pumpAVisualReferenceImage.e57"
+    cloud = read_cloud(pump)
+    assert set(cloud.attrs) == {"intensity", "red", "green", "blue"}
+    assert all(v.dtype == np.uint16 for v in cloud.attrs.values())
+    assert cloud.attrs["intensity"].max() > 1000 and cloud.attrs["red"].max() > 1000  # mapped to the LAS range
+    chunks = list(iter_chunks(pump, chunk_size=40_000))
+    assert [len(c) for c in chunks] == [40_000] * 3 + [35_201]
+    np.testing.assert_array_equal(np.vstack([c.xyz for c in chunks]), cloud.xyz)
+    with open_las(pump) as reader:  # merge's view: LAS records (0.1 mm), same points
+        records = list(reader.chunk_iterator(100_000))
+    xyz = np.vstack([np.column_stack([r.x, r.y, r.z]) for r in records])
+    assert np.abs(xyz - cloud.xyz).max() < 6e-5
+    np.testing.assert_array_equal(np.concatenate([np.asarray(r.intensity) for r in records]), cloud.attrs["intensity"])
+
+
+def test_stored_pose_and_normals(e57_dir):
+    T = stored_pose(e57_dir / "translationWithoutRotation.e57")
+    np.testing.assert_allclose(T, [[1, 0, 0, 4], [0, 1, 0, 5], [0, 0, 1, 6], [0, 0, 0, 1]])
+    assert stored_pose(e57_dir / "bunnyDouble.e57") is None
+    normals = read_cloud(e57_dir / "testWithNormals.e57")
+    assert {"normal_x", "normal_y", "normal_z"} <= set(normals.attrs) and len(normals) == 2
+
+
+# ---------------------------------------------------------------- a 3-scan project file
+
+
+def _quaternion(R: np.ndarray) -> list[float]:
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    return [w, x, y, z]
+
+
+def write_e57(path: Path, scans: list[tuple[str, np.ndarray, np.ndarray, dict]]) -> Path:
+    """An E57 with one scan per (name, local xyz, pose 4x4, extra fields) written with pye57."""
+    import pye57
+
+    with pye57.E57(str(path), mode="w") as e57:
+        for name, xyz, pose, extra in scans:
+            data = {"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2], **extra}
+            e57.write_scan_raw(data, name=name, rotation=_quaternion(pose[:3, :3]), translation=pose[:3, 3])
+    return path
+
+
+SUBSET = ["P1-S0", "P1-S2", "P1-S3"]  # neighbours, as in test_register.py
+
+
+@pytest.fixture(scope="module")
+def project(small_sim, tmp_path_factory):
+    """Three scans of the `small` plot in one E57, each with its true pose (in S0's frame) stored."""
+    truth = load_poses(small_sim.ground_truth_path)
+    manifest = load_manifest(small_sim.manifest_path)
+    rows, points, poses, counts = [], {}, {}, {}
+    for sid in SUBSET:
+        xyz = read_cloud(manifest.resolve(manifest.scan(sid).path), attributes=False).xyz
+        pose = inverse(truth.transform(SUBSET[0])) @ truth.transform(sid)
+        state = np.zeros(len(xyz), np.int8)
+        state[::97] = 2  # missing returns: points flagged invalid are dropped on reading
+        rows.append((sid, xyz, pose, {"cartesianInvalidState": state}))
+        points[sid], poses[sid], counts[sid] = xyz[state == 0], pose, len(xyz)
+    path = write_e57(tmp_path_factory.mktemp("e57") / "plot.e57", rows)
+    return path, SUBSET, points, poses, counts
+
+
+def test_project_scans_points_and_poses(project):
+    path, ids, points, poses, counts = project
+    scans = list_scans(path)
+    assert [s.name for s in scans] == ids
+    for i, sid in enumerate(ids):
+        got = read_cloud(scan_ref(path, i)).xyz  # pye57 writes single-precision coordinates
+        np.testing.assert_array_equal(got, points[sid].astype(np.float32))
+        info = read_header_info(scan_ref(path, i))
+        np.testing.assert_allclose([info.mins, info.maxs], [got.min(axis=0), got.max(axis=0)])
+        np.testing.assert_allclose(stored_pose(path, i), poses[sid], atol=1e-9)
+        np.testing.assert_allclose(stored_pose(path, sid), poses[sid], atol=1e-9)
+
+
+def test_project_info_lists_scans(project):
+    path, ids, points, poses, counts = project
+    result = invoke("info", path)
+    assert result.exit_code == 0, result.output
+    assert "3 scan(s)" in result.output
+    for i, sid in enumerate(ids):
+        t = poses[sid][:3, 3]
+        line = next(line for line in result.output.splitlines() if line.startswith(f"  scan {i} "))
+        assert repr(sid) in line and f"({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f})" in line
+        assert f"{counts[sid]:,} points" in line
+    full = invoke("info", "--full", path)
+    assert f"({counts[ids[0]] - len(points[ids[0]]):,} flagged invalid)" in full.output
+
+
+def test_manifest_scan_selection(project, tmp_path):
+    path, ids, points, poses, counts = project
+    toml = tmp_path / "m.toml"
+    toml.write_text(f'plot_id = "P"\n[[scans]]\nid = "a"\npath = "{path}"\nscan = 2\n'
+                    f'[[scans]]\nid = "b"\npath = "{path}"\nscan = "{ids[0]}"\nuse_pose = true\n')
+    m = load_manifest(toml)
+    np.testing.assert_array_equal(read_cloud(m.resolve(m.scan("a").path)).xyz, points[ids[2]].astype(np.float32))
+    np.testing.assert_array_equal(read_cloud(m.resolve(m.scan("b").path)).xyz, points[ids[0]].astype(np.float32))
+    assert m.stored_pose("a") is None  # use_pose not set
+    np.testing.assert_allclose(m.stored_pose("b"), poses[ids[0]], atol=1e-9)
+
+    toml.write_text(f'plot_id = "P"\n[[scans]]\nid = "a"\npath = "{path}"\n')
+    assert_one_line_error(invoke("info", toml), "m.toml", "scan 'a'", "3 scans", *ids)
+    toml.write_text(f'plot_id = "P"\n[[scans]]\nid = "a"\npath = "{path}"\nscan = 7\n')
+    assert_one_line_error(invoke("info", toml), "m.toml", "scan 'a'", "no scan 7")
+    toml.write_text(f'plot_id = "P"\n[[scans]]\nid = "a"\npath = "{path}"\nscan = "nope"\n')
+    assert_one_line_error(invoke("info", toml), "m.toml", "'nope'")
