@@ -55,12 +55,17 @@ app.command("info")(info.info_command)
 
 
 def main() -> None:
+    from plotmosaic.commands.common import INTERRUPTED, interrupts
+
     try:
         app()
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # outside a command (e.g. while importing): same exit code
         typer.echo("interrupted", err=True)
-        sys.exit(130)
+        sys.exit(INTERRUPTED)
     except Exception as exc:  # a bug, not bad input: one line unless debugging
+        if interrupts.received:  # an interrupt wrapped in another error by a library
+            typer.echo("interrupted", err=True)
+            sys.exit(INTERRUPTED)
         if os.environ.get("PLOTMOSAIC_DEBUG"):
             raise
         typer.echo(f"internal error: {type(exc).__name__}: {exc} (set PLOTMOSAIC_DEBUG=1 for a traceback)", err=True)

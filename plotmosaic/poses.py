@@ -72,18 +72,51 @@ def read_json(path: str | Path, what: str = "JSON file"):
         raise InputError(f"{path}: not valid JSON ({getattr(exc, 'msg', exc)})") from None
 
 
+# |R R^T - I| and |det R - 1| allowed in a transform read from a file: JSON keeps 15-17 digits, so a
+# rigid transform written by us is far inside it; a scaled, sheared or hand-rounded matrix is not.
+RIGID_TOLERANCE = 1e-5
+
+
+def rigid_problem(T: np.ndarray) -> str | None:
+    """Why a 4x4 array is not a finite rigid transform (None if it is one)."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        return f"must be a 4x4 matrix, got shape {list(T.shape)}"
+    if not np.isfinite(T).all():
+        return "has NaN or infinite values"
+    if not np.allclose(T[3], [0, 0, 0, 1], atol=RIGID_TOLERANCE):
+        return f"last row must be [0, 0, 0, 1], got {T[3].tolist()}"
+    R = T[:3, :3]
+    det = float(np.linalg.det(R))
+    if det < 0:
+        return f"is a reflection (determinant {det:+.4f}), not a rotation"
+    if not np.allclose(R @ R.T, np.eye(3), atol=RIGID_TOLERANCE) or abs(det - 1.0) > RIGID_TOLERANCE:
+        return f"rotation part is not orthonormal within {RIGID_TOLERANCE:g} (determinant {det:.6f})"
+    return None
+
+
 def rigid_matrix(value, where: str) -> np.ndarray:
-    """A finite rigid 4x4 transform from JSON data, or a one-line error naming `where`."""
+    """A finite rigid 4x4 transform (det +1) from JSON data, or a one-line error naming `where`."""
     try:
         T = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
         raise InputError(f"{where}: 'transform' is not a 4x4 matrix of numbers") from None
-    if T.shape != (4, 4) or not np.isfinite(T).all():
-        raise InputError(f"{where}: 'transform' must be a finite 4x4 matrix")
-    R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or not np.allclose(T[3], [0, 0, 0, 1]):
-        raise InputError(f"{where}: 'transform' is not a rigid transform")
+    problem = rigid_problem(T)
+    if problem:
+        raise InputError(f"{where}: 'transform' {problem}")
     return T
+
+
+def _sigma(value, where: str) -> np.ndarray | None:
+    if value is None:
+        return None
+    try:
+        sigma = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        sigma = None
+    if sigma is None or sigma.shape != (6,) or np.isnan(sigma).any() or (sigma < 0).any():
+        raise InputError(f"{where}: 'sigma' must be 6 non-negative numbers or null")
+    return sigma
 
 
 def load_poses(path: str | Path) -> Poses:
@@ -96,8 +129,7 @@ def load_poses(path: str | Path) -> Poses:
         where = f"{path}: scan {sid!r}"
         if not isinstance(entry, dict) or "transform" not in entry:
             raise InputError(f"{where}: missing field 'transform'")
-        sigma = entry.get("sigma")
         extra = {k: v for k, v in entry.items() if k not in ("transform", "plot", "sigma")}
-        scans[sid] = ScanPose(rigid_matrix(entry["transform"], where), entry.get("plot"), None if sigma is None else np.asarray(sigma, float), extra)
+        scans[sid] = ScanPose(rigid_matrix(entry["transform"], where), entry.get("plot"), _sigma(entry.get("sigma"), where), extra)
     extra = {k: v for k, v in data.items() if k not in ("frame", "crs", "scans")}
     return Poses(scans, data.get("frame", "plot"), data.get("crs"), extra)

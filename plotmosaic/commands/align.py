@@ -19,6 +19,17 @@ def load_init(path: Path) -> np.ndarray:
     return rigid_matrix(data.get("transform") if isinstance(data, dict) else data, str(path))
 
 
+def check_point_counts(files) -> None:
+    """Each (path, role) can be read and has enough points to register: a header read, before any work."""
+    from plotmosaic.align.prepare import MIN_POINTS
+    from plotmosaic.io.las import read_header_info
+
+    for path, role in files:
+        n = read_header_info(path).point_count
+        if n < MIN_POINTS:
+            raise InputError(f"{path}: only {n} points ({role}), at least {MIN_POINTS} needed to register")
+
+
 def summary_lines(result) -> list[str]:
     from scipy.spatial.transform import Rotation
 
@@ -54,7 +65,7 @@ def align_command(
     """
     from plotmosaic.align.config import KINDS, AlignConfig
     from plotmosaic.align.pipeline import align_files
-    from plotmosaic.io.atomic import check_writable
+    from plotmosaic.io.atomic import check_output_dir, check_output_file
 
     for kind, which in ((source_kind, "--source-kind"), (target_kind, "--target-kind")):
         if kind.lower() not in KINDS:
@@ -65,8 +76,11 @@ def align_command(
     if complexity not in ("vmf", "vmf+eigen"):
         raise InputError(f"--complexity {complexity!r}: expected vmf or vmf+eigen")
     T0 = load_init(init) if init is not None else None
+    check_point_counts([(source, "SOURCE"), (target, "TARGET")])
     if out is not None:
-        check_writable(out)
+        check_output_file(out)
+    if save_levels is not None:
+        check_output_dir(save_levels)
     config = AlignConfig(complexity=complexity)
     config.coarse.enabled = not no_coarse
 

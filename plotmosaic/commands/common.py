@@ -1,23 +1,141 @@
-"""Shared CLI plumbing: user errors become one line on stderr and an exit code."""
+"""Shared CLI plumbing: user errors become one line on stderr and an exit code.
+
+Exit codes: 0 done; 2 bad input (a file, manifest, option or output location that cannot be used,
+named on one line); 3 cannot register (the figures that show why); 130 interrupted (Ctrl-C or
+SIGTERM: outputs are atomic, nothing half-written is left). Anything else is a bug (exit 1).
+"""
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import functools
-from collections.abc import Callable
+import signal
+import threading
+from collections.abc import Callable, Iterator
 
 import typer
 
 from plotmosaic.errors import PlotmosaicError
+
+INTERRUPTED = 130
+# OS errors that describe the user's files or disk, not a bug: reported as bad input (exit 2)
+_USER_ERRNOS = {errno.ENOENT, errno.EACCES, errno.EPERM, errno.ENOTDIR, errno.EISDIR, errno.ENAMETOOLONG,
+                errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.EEXIST, errno.ELOOP}
+
+
+class _Interrupts:
+    """SIGINT / SIGTERM raise KeyboardInterrupt and are remembered: an error that a library wraps
+    around the interrupt (e.g. LazrsError "Failed to call write") still ends as an interrupt."""
+
+    def __init__(self) -> None:
+        self.received = False
+
+    def handler(self, signum, frame):
+        self.received = True
+        raise KeyboardInterrupt
+
+    @contextlib.contextmanager
+    def installed(self) -> Iterator[None]:
+        self.received = False
+        if threading.current_thread() is not threading.main_thread():
+            yield  # signals can only be handled in the main thread
+            return
+        previous = {s: signal.signal(s, self.handler) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            yield
+        finally:
+            for s, h in previous.items():
+                signal.signal(s, h)
+
+
+interrupts = _Interrupts()
+
+
+def _interrupted() -> typer.Exit:
+    typer.echo("interrupted", err=True)
+    return typer.Exit(INTERRUPTED)
 
 
 def handle_errors(func: Callable) -> Callable:
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
         try:
-            return func(*args, **kwargs)
+            with interrupts.installed():
+                return func(*args, **kwargs)
         except PlotmosaicError as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(exc.exit_code) from None
+        except KeyboardInterrupt:
+            raise _interrupted() from None
+        except (typer.Exit, SystemExit):
+            raise
+        except OSError as exc:
+            if interrupts.received:
+                raise _interrupted() from None
+            if exc.errno in _USER_ERRNOS and exc.filename is not None:
+                typer.echo(f"error: {exc.filename}: {exc.strerror}", err=True)
+                raise typer.Exit(2) from None
+            raise
+        except Exception:
+            if interrupts.received:  # the interrupt surfaced wrapped in another error (LazrsError, ...)
+                raise _interrupted() from None
+            raise
 
     return wrapper
 
+
+# ---- pre-work checks shared by the commands: bad input is found before any work starts ----
+
+
+def check_scan_files(manifest_path):
+    """The manifest, after a header read of every scan: each readable, with enough points to register."""
+    from plotmosaic.align.prepare import MIN_POINTS
+    from plotmosaic.errors import InputError
+    from plotmosaic.io.las import read_header_info
+    from plotmosaic.manifest import load_manifest
+
+    manifest = load_manifest(manifest_path)
+    for scan in manifest.scans:
+        path = manifest.resolve(scan.path)
+        n = read_header_info(path).point_count
+        if n < MIN_POINTS:
+            raise InputError(f"{path}: scan {scan.id!r} has only {n} points, at least {MIN_POINTS} needed to register")
+    return manifest
+
+
+def check_poses_match(manifest, poses_path):
+    """The poses file, if it was made for this manifest: shared scan ids, in the same plots."""
+    from plotmosaic.errors import InputError
+    from plotmosaic.poses import load_poses
+
+    poses = load_poses(poses_path)
+    plots = {s.id: p.id for p in manifest.plots for s in p.scans}
+    shared = [sid for sid in poses.scans if sid in plots]
+    if not shared:
+        names = ", ".join(sorted(poses.scans)[:5]) or "none"
+        raise InputError(f"{poses_path}: none of its scans ({names}) is in {manifest.source}; poses of another manifest?")
+    wrong = [sid for sid in shared if poses.scans[sid].plot not in (None, plots[sid])]
+    if wrong:
+        sid = wrong[0]
+        raise InputError(f"{poses_path}: scan {sid!r} is in plot {poses.scans[sid].plot!r} there but in plot "
+                         f"{plots[sid]!r} in {manifest.source}; poses of another manifest?")
+    return poses
+
+
+@contextlib.contextmanager
+def no_empty_output(folder) -> Iterator[None]:
+    """A run that fails leaves no empty output folder it created (folders holding files are kept)."""
+    import os
+    from pathlib import Path
+
+    folder = Path(folder)
+    existed = folder.exists()
+    try:
+        yield
+    except BaseException:
+        if not existed and folder.is_dir():
+            for root, _dirs, _files in sorted(os.walk(folder), key=lambda w: -len(w[0])):  # deepest first
+                with contextlib.suppress(OSError):
+                    os.rmdir(root)  # only succeeds on an empty folder
+        raise

@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from plotmosaic.commands.common import handle_errors
+from plotmosaic.commands.common import check_poses_match, check_scan_files, handle_errors, no_empty_output
+from plotmosaic.io.atomic import check_output_dir
 from plotmosaic.errors import InputError
 
 
@@ -37,6 +38,7 @@ def register_plot_command(
         raise InputError("--scheduler needs --executor dask")
     if max_distance <= 0:
         raise InputError(f"--max-distance must be positive, not {max_distance}")
+    manifest, _ = check_scan_files(manifest), check_output_dir(out)  # bad input found before any work
     result = register_plot(manifest, out, jobs, executor, scheduler, RegisterConfig(max_distance=max_distance), seed, force)
     _summary(result.graph, [(p.plot, p.reference, p.solution.poses, p.solution.sigmas, p.solution.dropped)
                             for p in result.plots], result.unplaced)
@@ -60,7 +62,11 @@ def tie_to_als_command(
     _check_jobs(jobs)
     if buffer < 0:
         raise InputError(f"--buffer must not be negative, not {buffer}")
-    result = tie_to_als(manifest, poses, out, TieConfig(buffer=buffer), seed, jobs)
+    manifest = check_scan_files(manifest)  # bad input found before any work (and before OUT exists)
+    check_poses_match(manifest, poses)
+    check_output_dir(out)
+    with no_empty_output(out):
+        result = tie_to_als(manifest, poses, out, TieConfig(buffer=buffer), seed, jobs)
     from rich.console import Console
     from rich.table import Table
 

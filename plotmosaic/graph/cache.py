@@ -2,21 +2,30 @@
 
 The key hashes both files' contents, their kinds and levels, the align settings, the seed and the
 plotmosaic version, so a re-run (or a run resumed after Ctrl-C or a crash) redoes only what is
-missing. Entries are written atomically: an interrupted run leaves only complete entries.
+missing. Entries are written atomically: an interrupted run leaves only complete entries. An entry
+that does not validate (damaged, edited, truncated) is discarded with one warning line and the
+pair is registered again. An entry holds the pair's own result only: whether the pose graph kept
+the edge is recorded in graph.json, never here.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
+import sys
 from pathlib import Path
+
+import numpy as np
 
 from plotmosaic import __version__
 from plotmosaic.io.atomic import write_text_atomic
+from plotmosaic.poses import rigid_problem
 
 _CHUNK = 1 << 20
 _hashes: dict[tuple[str, int, int], str] = {}
+SCOPE = "pair registration only; the pose graph's keep/drop decision for this edge is in graph.json"
 
 
 def file_hash(path: str | Path) -> str:
@@ -59,13 +68,25 @@ class PairCache:
         return self.folder / f"{key}.json"
 
     def get(self, key: str) -> dict | None:
+        """The cached record, or None when missing or damaged (then one warning line names the file)."""
+        path = self.path(key)
         try:
-            return json.loads(self.path(key).read_text())
-        except (FileNotFoundError, json.JSONDecodeError, UnicodeDecodeError):
-            return None  # missing or unreadable: compute it again
+            record = json.loads(path.read_text())
+        except FileNotFoundError:
+            return None
+        except (OSError, json.JSONDecodeError, UnicodeDecodeError) as exc:
+            return self._discard(path, f"not readable JSON ({getattr(exc, 'msg', exc)})")
+        problem = record_problem(record, key)
+        if problem:
+            return self._discard(path, problem)
+        return record
+
+    def _discard(self, path: Path, why: str) -> None:
+        print(f"warning: {path}: damaged cache entry ({why}); registering the pair again", file=sys.stderr)
+        return None
 
     def put(self, key: str, record: dict) -> None:
-        write_text_atomic(self.path(key), json.dumps(record, indent=1))
+        write_text_atomic(self.path(key), json.dumps({**record, "scope": SCOPE}, indent=1))
         self.writes += 1
 
     def keys(self) -> set[str]:
@@ -74,3 +95,38 @@ class PairCache:
     def clear(self) -> None:
         for p in self.folder.glob("*.json"):
             os.unlink(p)
+
+
+def _finite_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def record_problem(record, key: str) -> str | None:
+    """Why a cached record cannot be used (None if it can): what the graph reads must be present and sane."""
+    if not isinstance(record, dict):
+        return "not a JSON object"
+    if record.get("key") != key:
+        return f"key {record.get('key')!r} does not match the file name"
+    if not isinstance(record.get("source"), str) or not isinstance(record.get("target"), str):
+        return "missing 'source' or 'target'"
+    status = record.get("status")
+    if status == "failed":
+        return None if isinstance(record.get("error"), str) else "failed entry without 'error'"
+    if status != "ok":
+        return f"unknown status {status!r}"
+    if "transform" not in record:
+        return "missing 'transform'"
+    try:
+        T = np.asarray(record["transform"], dtype=np.float64)
+        info = np.asarray(record.get("information"), dtype=np.float64)
+    except (TypeError, ValueError):
+        return "'transform' or 'information' is not numeric"
+    problem = rigid_problem(T)
+    if problem:
+        return f"'transform' {problem}"
+    if info.shape != (6, 6) or not np.isfinite(info).all():
+        return "'information' must be a finite 6x6 matrix"
+    for name in ("fitness", "inlier_rmse", "overlap"):
+        if not _finite_number(record.get(name)):
+            return f"'{name}' must be a finite number"
+    return None
