@@ -94,3 +94,20 @@ def test_invalid_manifests_name_the_field(scans, text, expected):
     message = str(err.value)
     assert str(path) in message and expected in message
     assert "\n" not in message
+
+
+@pytest.mark.parametrize("field, value", [("plot_id", "../../escaped"), ("plot_id", "a/b"), ("plot_id", ".."), ("id", "../s"), ("id", "x\\\\y")])
+def test_ids_that_would_escape_the_output_folder(scans, field, value):
+    from helpers import assert_one_line_error, invoke
+
+    text = f'plot_id = "{value if field == "plot_id" else "P1"}"\n[[scans]]\nid = "{value if field == "id" else "a"}"\npath = "a.laz"\n'
+    result = invoke("info", write(scans, text))
+    assert_one_line_error(result, "m.toml", f"field '{field}'", "not allowed")
+
+
+def test_safe_ids_and_bom(scans):
+    m = load_manifest(write(scans, '\ufeffplot_id = "P1.v2_a-b"\n[[scans]]\nid = "S.0_x-1"\npath = "a.laz"\n'))
+    assert m.plots[0].id == "P1.v2_a-b" and m.scans[0].id == "S.0_x-1"
+    raw = scans / "bom.toml"
+    raw.write_bytes(b"\xef\xbb\xbf" + REGION.encode())
+    assert [p.id for p in load_manifest(raw).plots] == ["P1", "P2"]

@@ -1,9 +1,10 @@
 """PLY input (ASCII and binary) with plyfile: the `vertex` element as float64 xyz plus attributes.
 
-plyfile keeps every property with its own dtype (float64 coordinates and intensity included);
-Open3D's reader turns colours into floats and drops intensity and other properties. Binary
-files are memory-mapped and handed out in chunks; ASCII files are parsed whole (plyfile has no
-streaming ASCII parser), so prefer binary for big clouds.
+plyfile keeps every property with its own dtype (float64 coordinates and intensity included)
+and memory-maps binary files, so they are handed out in chunks with bounded memory. Open3D's
+legacy reader drops intensity and other properties (its tensor reader keeps them, but loads the
+whole file). ASCII files are parsed whole (plyfile has no streaming ASCII parser): prefer binary
+for big clouds.
 
 Mapping: x/y/z -> xyz (float64); intensity / scalar_intensity -> LAS `intensity` (uint16; the raw
 values are kept as `intensity_raw` when that is lossy); red/green/blue (also r/g/b,
