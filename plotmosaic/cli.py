@@ -12,6 +12,7 @@ import typer
 
 from plotmosaic import __version__
 from plotmosaic.commands import align, bench, demo, info, merge, register, report, simulate
+from plotmosaic.commands import manifest_from
 
 HELP = """Targetless, GNSS-free registration of forest LiDAR scans into one georeferenced cloud.
 
@@ -52,6 +53,7 @@ app.command("bench")(bench.bench_command)
 app.command("report")(report.report_command)
 app.command("demo")(demo.demo_command)
 app.command("info")(info.info_command)
+app.command("manifest-from")(manifest_from.manifest_from_command)
 
 
 def main() -> None:

@@ -156,3 +156,31 @@ def test_manifest_scan_selection(project, tmp_path):
     assert_one_line_error(invoke("info", toml), "m.toml", "scan 'a'", "no scan 7")
     toml.write_text(f'plot_id = "P"\n[[scans]]\nid = "a"\npath = "{path}"\nscan = "nope"\n')
     assert_one_line_error(invoke("info", toml), "m.toml", "'nope'")
+
+
+def test_manifest_from_writes_a_valid_manifest(project, tmp_path):
+    path, ids, points, poses, counts = project
+    result = invoke("manifest-from", path, "--use-pose")  # stdout: absolute paths
+    assert result.exit_code == 0, result.output
+    (tmp_path / "stdout.toml").write_text(result.output)
+    out = path.parent / "sub" / "plot.toml"
+    result = invoke("manifest-from", path, "--out", out, "--plot-id", "P1")
+    assert result.exit_code == 0, result.output
+    assert '../plot.e57' not in out.read_text()  # outside the manifest's folder: absolute, no ../ chain
+    for toml in (tmp_path / "stdout.toml", out):
+        m = load_manifest(toml)
+        assert [s.id for s in m.scans] == ids and m.plots[0].reference.id == ids[0]
+        for i, sid in enumerate(ids):
+            np.testing.assert_array_equal(read_cloud(m.resolve(m.scan(sid).path)).xyz, points[ids[i]].astype(np.float32))
+    m = load_manifest(tmp_path / "stdout.toml")
+    rel = m.pair_prior(ids[1], ids[0])  # scan frame of ids[1] -> scan frame of ids[0]
+    np.testing.assert_allclose(rel, np.linalg.inv(poses[ids[0]]) @ poses[ids[1]], atol=1e-9)
+    assert load_manifest(out).pair_prior(ids[1], ids[0]) is None  # written without --use-pose
+    assert_one_line_error(invoke("manifest-from", path, "--out", out), "plot.toml", "already exists")
+    assert_one_line_error(invoke("manifest-from", path, "--plot-id", "../x"), "--plot-id", "not allowed")
+
+
+def test_manifest_from_bad_files(e57_dir):
+    assert_one_line_error(invoke("manifest-from", e57_dir / "empty.e57"), "empty.e57", "no scans")
+    assert_one_line_error(invoke("manifest-from", e57_dir / "ZeroPoints.e57"), "ZeroPoints.e57", "scan 0", "no points")
+    assert_one_line_error(invoke("manifest-from", e57_dir / "bad-crc.e57"), "bad-crc.e57", "checksum")
