@@ -184,3 +184,52 @@ def test_manifest_from_bad_files(e57_dir):
     assert_one_line_error(invoke("manifest-from", e57_dir / "empty.e57"), "empty.e57", "no scans")
     assert_one_line_error(invoke("manifest-from", e57_dir / "ZeroPoints.e57"), "ZeroPoints.e57", "scan 0", "no points")
     assert_one_line_error(invoke("manifest-from", e57_dir / "bad-crc.e57"), "bad-crc.e57", "checksum")
+
+
+def write_spherical_e57(path: Path, rae: np.ndarray, state: np.ndarray, intensity: np.ndarray) -> Path:
+    """A one-scan E57 in spherical coordinates (double range, scaled-integer angles), with libE57 itself."""
+    import pye57
+    from pye57 import libe57
+
+    n = len(rae)
+    with pye57.E57(str(path), mode="w") as e57:
+        imf = e57.image_file
+        scan = libe57.StructureNode(imf)
+        scan.set("guid", libe57.StringNode(imf, "{spherical-test}"))
+        scan.set("name", libe57.StringNode(imf, "sph"))
+        proto = libe57.StructureNode(imf)
+        proto.set("sphericalRange", libe57.FloatNode(imf, 0.0, libe57.E57_DOUBLE, 0.0, 1000.0))
+        for name in ("sphericalAzimuth", "sphericalElevation"):  # 1e-6 rad steps
+            proto.set(name, libe57.ScaledIntegerNode(imf, 0, -4_000_000, 4_000_000, 1e-6, 0.0))
+        proto.set("sphericalInvalidState", libe57.IntegerNode(imf, 0, 0, 2))
+        proto.set("intensity", libe57.IntegerNode(imf, 0, 0, 4095))
+        points = libe57.CompressedVectorNode(imf, proto, libe57.VectorNode(imf, True))
+        scan.set("points", points)
+        e57.data3d.append(scan)
+        arrays = {"sphericalRange": rae[:, 0].copy(), "sphericalAzimuth": rae[:, 1].copy(), "sphericalElevation": rae[:, 2].copy(),
+                  "sphericalInvalidState": state.astype(np.int8), "intensity": intensity.astype(np.uint16)}
+        buffers = libe57.VectorSourceDestBuffer()
+        for name, array in arrays.items():
+            buffers.append(libe57.SourceDestBuffer(imf, name, array, n, True, True))
+        writer = points.writer(buffers)
+        writer.write(n)
+        writer.close()
+    return path
+
+
+def test_spherical_scaled_integer_and_invalid_points(tmp_path):
+    rng = np.random.default_rng(5)
+    n = 3000
+    rae = np.column_stack([rng.uniform(1, 50, n), rng.uniform(-3.1, 3.1, n), rng.uniform(-1.2, 1.2, n)])
+    rae[:, 1:] = np.round(rae[:, 1:] * 1e6) / 1e6  # what the scaled integers hold
+    state = np.where(np.arange(n) % 10 == 0, 2, 0)  # every tenth point missing
+    path = write_spherical_e57(tmp_path / "sph.e57", rae, state, rng.integers(0, 4096, n))
+    chunks = list(iter_chunks(path, chunk_size=1000))
+    assert len(chunks) == 3
+    cloud = read_cloud(path)
+    r, az, el = rae[state == 0].T
+    expected = np.column_stack([r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)])
+    np.testing.assert_allclose(cloud.xyz, expected, atol=1e-9)
+    assert len(cloud) == n - n // 10 and cloud.attrs["intensity"].dtype == np.uint16
+    result = invoke("info", "--full", path)
+    assert result.exit_code == 0 and f"{n:,} points ({n // 10:,} flagged invalid)" in result.output, result.output
