@@ -1,10 +1,13 @@
 """Global coarse alignment: any heading, tens of metres, no GNSS.
 
-  1. level both clouds (normals: ground and stems give the vertical),
-  2. search heading exhaustively and the horizontal shift by masked FFT correlation of forest
-     rasters (stems, canopy, terrain), keeping several hypotheses,
-  3. take the vertical offset from the ground,
-  4. refine each hypothesis with a quick robust ICP and keep the best by how many non-flat points
+  1. several vertical hypotheses per cloud (ground normals, stem normals, a robust ground fit,
+     z-up when airborne or already near vertical: levelling.py), each carried into the search,
+  2. generators, under every vertical pair: heading searched exhaustively and the horizontal shift
+     by masked FFT correlation of forest rasters (stems, canopy, terrain); stem maps matched as
+     point patterns (stemmap.py); FPFH matches with a 4-DoF and a 6-DoF RANSAC (features3d.py),
+  3. the vertical offset of raster and stem hypotheses from the ground,
+  4. screen every hypothesis with a short ICP, refine the best of each generator and the best
+     overall with a quick robust ICP, and keep the best by how many non-flat points with a quick robust ICP and keep the best by how many non-flat points
      (stems, branches, crowns: flat ground matches anywhere) find a partner; the gap to the best
      distinct runner-up is the confidence.
 
@@ -17,45 +20,23 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from pydantic import BaseModel, Field
 from scipy import fft
 from scipy.spatial import cKDTree
 
-from plotmosaic.align.levelling import levelling_rotation
+from plotmosaic.align import features3d, stemmap
+from plotmosaic.align.coarse_config import CoarseConfig
+from plotmosaic.align.levelling import Vertical, vertical_hypotheses
 from plotmosaic.align.normals import local_shape
+from plotmosaic.align.rasters import (CHANNELS, MaskedNCC, PointFeatures, column_bins, height_above_ground,
+                                      point_features, rasterise)
 from plotmosaic.align.sampling import sample
 from plotmosaic.align.voxel import thin, voxel_centroids
-from plotmosaic.parallel import both, in_two_threads
 from plotmosaic.io.frame import pose_error
-from plotmosaic.align.rasters import CHANNELS, MaskedNCC, PointFeatures, column_bins, point_features, rasterise
+from plotmosaic.parallel import both, in_two_threads
+
+__all__ = ["CoarseConfig", "CoarseResult", "coarse_align"]
 
 AIRBORNE = {"als", "uls"}
-
-
-class CoarseConfig(BaseModel):
-    enabled: bool = True
-    feature_voxel: float = Field(0.1, gt=0, description="voxel (m) of the cloud used for levelling and rasters")
-    max_points: int = Field(150_000, gt=1000, description="cap on points used for the rasters")
-    normal_radius: float = Field(0.75, gt=0, description="largest neighbourhood (m) of the coarse stage's own normals")
-    normal_neighbours: int = Field(16, ge=5, description="nearest neighbours per normal: the neighbourhood adapts to density")
-    max_tilt_deg: float = Field(75.0, description="largest roll/pitch the levelling searches")
-    cell: float = Field(1.0, gt=0, description="raster cell (m); grown for large extents")
-    max_fft: int = Field(512, description="largest padded FFT side; the cell grows to respect it")
-    yaw_step_deg: float = Field(4.0, gt=0, le=10, description="heading step of the full-circle search")
-    refine_headings: int = Field(8, ge=0, description="best headings searched again at half a step either side")
-    blur_cells: float = 1.0
-    min_overlap: float = Field(0.08, description="least overlap, as a fraction of the smaller footprint")
-    hypotheses: int = Field(8, ge=1, description="hypotheses refined and verified")
-    peaks_per_yaw: int = 2
-    verify_voxel: float = 0.3
-    verify_points: int = Field(6_000, description="source points used to refine and score the best hypotheses")
-    screen_points: int = Field(3_000, description="of those, the points of the first short ICP that ranks every hypothesis")
-    verify_iterations: int = 10
-    refine_top: int = Field(3, ge=1, description="screened hypotheses refined fully")
-    verify_distance_ground: float = Field(0.2, description="inlier distance (m) between ground-based scans")
-    verify_distance_airborne: float = Field(0.5, description="inlier distance (m) when one cloud is airborne (sparse)")
-    prior_yaw_deg: float = Field(30.0, gt=0, description="with an initial guess: headings searched either side of it")
-    prior_shift_m: float = Field(8.0, gt=0, description="with an initial guess: horizontal distance searched around it")
 
 
 @dataclass
@@ -79,47 +60,76 @@ class CoarseResult:
 
 
 @dataclass
+class _Base:
+    """A cloud as the coarse stage sees it (local frame), with its vertical hypotheses."""
+
+    points: np.ndarray  # one per feature voxel (capped), in cube order
+    normals: np.ndarray
+    verticals: list[Vertical]
+    info: dict
+    levelled: dict = field(default_factory=dict)  # vertical name -> _Levelled, made on demand
+
+
+@dataclass
 class _Levelled:
-    points: np.ndarray  # levelled, one per feature voxel (capped), in cube order
+    points: np.ndarray  # levelled
     normals: np.ndarray
     R: np.ndarray  # levelling rotation (local -> levelled)
     feats: PointFeatures
+    hag: np.ndarray  # height above the rough DTM
+    name: str  # which vertical hypothesis
     info: dict
+    _stems: stemmap.StemMap | None = None
 
 
-def _level(cloud, config: CoarseConfig, rng: np.random.Generator, upright: bool = False) -> _Levelled:
-    """`upright`: take the file's z as the vertical (georeferenced airborne targets) instead of estimating it."""
+def _base(cloud, config: CoarseConfig, rng: np.random.Generator, airborne: bool, upright: bool, limit: int) -> _Base:
+    """`upright`: take the file's z as the only vertical (georeferenced airborne targets)."""
     # own normals over a wider neighbourhood than ForestAlign's 0.25 m: the coarse stage must also
     # work on sparse clouds (far TLS ranges, ALS), where 0.25 m holds too few points for a plane
     pts = voxel_centroids(cloud.points, config.feature_voxel)
     pts = pts[sample(len(pts), config.max_points, rng)]
     tree = cKDTree(pts, balanced_tree=False, compact_nodes=False)
     nrm = local_shape(pts, tree, pts, config.normal_radius, config.normal_neighbours)[0]
-    some_normals = nrm[rng.choice(len(nrm), min(len(nrm), 10_000), replace=False)]
-    R, info = levelling_rotation(some_normals, max_tilt_deg=config.max_tilt_deg)
+    few = sample(len(nrm), config.levelling_normals, rng)
+    verticals, info = vertical_hypotheses(pts[few], nrm[few], config, airborne=airborne, limit=limit)
     if upright:
-        info = {"tilt_deg": 0.0, "estimated_tilt_deg": info["tilt_deg"], "stem_share": info["stem_share"], "upright": True}
-        R = np.eye(3)
-    pts_l, nrm_l = pts @ R.T, nrm @ R.T
-    feats = point_features(pts_l, nrm_l, cell=1.0)
-    info.update(stems=int(feats.stem.sum()), canopy=int(feats.canopy.sum()), ground=int(feats.ground.sum()), points=len(pts))
-    return _Levelled(pts_l, nrm_l, R, feats, info)
+        info = {**info, "estimated_tilt_deg": info["tilt_deg"], "tilt_deg": 0.0, "upright": True,
+                "verticals": [{"name": "z-up", "tilt_deg": 0.0}]}
+        verticals = [Vertical(np.array([0.0, 0.0, 1.0]), "z-up")]
+    return _Base(pts, nrm, verticals, info | {"points": len(pts)})
 
 
-def _levelled(cloud, config: CoarseConfig, seed: int, upright: bool = False) -> _Levelled:
-    """`_level`, remembered on the cloud object: in a plot each scan takes part in several pairs."""
-    key = (config.model_dump_json(), seed, upright)
+def _level(base: _Base, v: Vertical, config: CoarseConfig) -> _Levelled:
+    if v.name not in base.levelled:
+        R = v.R
+        pts_l, nrm_l = base.points @ R.T, base.normals @ R.T
+        hag = height_above_ground(pts_l, config.feature_cell, config)
+        feats = point_features(pts_l, nrm_l, config.feature_cell, config, hag=hag)
+        info = {"stems": int(feats.stem.sum()), "canopy": int(feats.canopy.sum()), "ground": int(feats.ground.sum())}
+        base.levelled[v.name] = _Levelled(pts_l, nrm_l, R, feats, hag, v.name, info)
+    return base.levelled[v.name]
+
+
+def _stems(lv: _Levelled, config: CoarseConfig) -> stemmap.StemMap:
+    if lv._stems is None:
+        lv._stems = stemmap.stem_map(lv.points, lv.normals, lv.hag, config)
+    return lv._stems
+
+
+def _prepared(cloud, config: CoarseConfig, seed: int, airborne: bool, upright: bool, limit: int) -> _Base:
+    """`_base`, remembered on the cloud object: in a plot each scan takes part in several pairs."""
+    key = (config.model_dump_json(), seed, airborne, upright, limit)
     memo = cloud.__dict__.setdefault("_coarse_levelled", {})
     if key not in memo:
         memo.clear()  # one entry is enough and keeps memory bounded
-        memo[key] = _level(cloud, config, np.random.default_rng(seed), upright)
+        memo[key] = _base(cloud, config, np.random.default_rng(seed), airborne, upright, limit)
     return memo[key]
 
 
-def _weights(source_kind: str, target_kind: str) -> dict[str, float]:
+def _weights(source_kind: str, target_kind: str, config: CoarseConfig) -> dict[str, float]:
     if source_kind in AIRBORNE or target_kind in AIRBORNE:
-        return {"stems": 0.25, "canopy": 1.0, "terrain": 1.0}
-    return {"stems": 1.0, "canopy": 0.5, "terrain": 0.5}
+        return dict(config.weights_airborne)
+    return dict(config.weights_ground)
 
 
 def _rot_z(yaw: float) -> np.ndarray:
@@ -143,7 +153,7 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
         s_side = int(np.ceil(2 * radius / cell)) + 1
         if max(fft.next_fast_len(t + s_side, real=True) for t in t_shape) <= config.max_fft:
             break
-        cell *= 1.5
+        cell *= config.cell_growth
     s_shape = (s_side, s_side)
     s_origin = centre - radius
     src_bins, tgt_bins = column_bins(src.feats, cell / 4), column_bins(tgt.feats, cell / 4)
@@ -177,11 +187,11 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
             if name == "canopy":
                 overlap = ov
             if name == "terrain":  # a handful of shared ground cells proves nothing
-                score = np.where(ov >= max(min_cells * 0.25, 4), score, 0.0)
+                score = np.where(ov >= max(min_cells * config.terrain_min_share, config.terrain_min_cells), score, 0.0)
             total = total + weights[name] * score
         total = total / sum(weights.values())
         frac = overlap / max(min(area_s, area_t), 1.0)
-        total = np.where(overlap >= min_cells, total * np.clip(frac, 0, 1) ** 0.25, -1.0)
+        total = np.where(overlap >= min_cells, total * np.clip(frac, 0, 1) ** config.overlap_exponent, -1.0)
         if allowed is not None:
             total = np.where(allowed, total, -1.0)
         found = []
@@ -191,7 +201,7 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
                 break
             t_xy = ncc.shift_to_translation(k, source)
             found.append({"score": float(total[k]), "yaw": float(yaw), "t_xy": t_xy, "overlap": float(min(frac[k], 1.0))})
-            r = max(1, int(round(3.0 / cell)))
+            r = max(1, int(round(config.peak_suppression_m / cell)))
             rows = np.arange(k[0] - r, k[0] + r + 1) % total.shape[0]
             cols = np.arange(k[1] - r, k[1] + r + 1) % total.shape[1]
             total[np.ix_(rows, cols)] = -1.0
@@ -216,7 +226,8 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
     candidates.sort(key=lambda c: -c["score"])
     chosen: list[dict] = []
     for c in candidates:
-        if all(_angle_diff(c["yaw"], o["yaw"]) > np.radians(6) or np.linalg.norm(c["t_xy"] - o["t_xy"]) > 3.0 for o in chosen):
+        if all(_angle_diff(c["yaw"], o["yaw"]) > np.radians(config.distinct_yaw_deg)
+               or np.linalg.norm(c["t_xy"] - o["t_xy"]) > config.distinct_shift_m for o in chosen):
             chosen.append({**c, "centre": centre, "cell": cell})
         if len(chosen) >= config.hypotheses:
             break
@@ -227,7 +238,8 @@ def _angle_diff(a: float, b: float) -> float:
     return abs((a - b + np.pi) % (2 * np.pi) - np.pi)
 
 
-def _hypothesis_transform(h: dict, src: _Levelled, tgt: _Levelled, ground_tree: cKDTree | None) -> np.ndarray:
+def _hypothesis_transform(h: dict, src: _Levelled, tgt: _Levelled, ground_tree: cKDTree | None,
+                          config: CoarseConfig) -> np.ndarray:
     """Full 4x4 (levelled source -> levelled target) of a heading/shift hypothesis, tz from the ground."""
     Rz = np.eye(3)
     Rz[:2, :2] = _rot_z(h["yaw"])
@@ -235,15 +247,23 @@ def _hypothesis_transform(h: dict, src: _Levelled, tgt: _Levelled, ground_tree: 
     A[:3, :3] = Rz
     c = np.array([*h["centre"], 0.0])
     A[:3, 3] = c - Rz @ c + np.array([*h["t_xy"], 0.0])
+    return _with_height(A, src, tgt, ground_tree, config)
+
+
+def _with_height(A: np.ndarray, src: _Levelled, tgt: _Levelled, ground_tree: cKDTree | None,
+                 config: CoarseConfig) -> np.ndarray:
+    """`A` with its vertical offset taken from the shared ground (the median of target - source heights)."""
+    A = A.copy()
     g = src.feats.ground
     if ground_tree is not None and g.any():
         moved = (np.column_stack([src.feats.xy[g], src.feats.z[g]]) @ A[:3, :3].T) + A[:3, 3]
-        d, idx = ground_tree.query(moved[:, :2], distance_upper_bound=0.75)
+        d, idx = ground_tree.query(moved[:, :2], distance_upper_bound=config.tz_ground_radius)
         ok = np.isfinite(d)
-        if ok.sum() >= 20:
-            A[2, 3] = float(np.median(tgt.feats.z[tgt.feats.ground][idx[ok]] - moved[ok, 2]))
+        if ok.sum() >= config.tz_min_ground:
+            A[2, 3] += float(np.median(tgt.feats.z[tgt.feats.ground][idx[ok]] - moved[ok, 2]))
             return A
-    A[2, 3] = float(np.median(tgt.feats.z) - np.median(src.feats.z))  # no shared ground: crude
+    moved_z = src.feats.z * A[2, 2] + A[2, 3]
+    A[2, 3] += float(np.median(tgt.feats.z) - np.median(moved_z))  # no shared ground: crude
     return A
 
 
@@ -265,9 +285,9 @@ def _score(structure: np.ndarray, tgt: tuple, T: np.ndarray, distance: float) ->
     return evaluate(structure, tgt[2], T, distance)[0]
 
 
-def _distinct(A: np.ndarray, B: np.ndarray) -> bool:
+def _distinct(A: np.ndarray, B: np.ndarray, config: CoarseConfig) -> bool:
     degrees, metres = pose_error(A, B)
-    return metres > 1.0 or degrees > 3.0
+    return metres > config.distinct_m or degrees > config.distinct_deg
 
 
 def _homogeneous(R: np.ndarray) -> np.ndarray:
@@ -276,12 +296,93 @@ def _homogeneous(R: np.ndarray) -> np.ndarray:
     return T
 
 
+def _vertical_pairs(src: _Base, tgt: _Base) -> list[tuple[Vertical, Vertical]]:
+    """Every source vertical against the target's first, and the source's first against the target's others."""
+    pairs = [(v, tgt.verticals[0]) for v in src.verticals]
+    return pairs + [(src.verticals[0], v) for v in tgt.verticals[1:]]
+
+
+def _fpfh_starts(src: _Base, tgt: _Base, pairs, config: CoarseConfig, rng: np.random.Generator) -> list[tuple]:
+    """(local 4x4, hypothesis dict) from FPFH matches: 4-DoF per vertical pair, and one 6-DoF search."""
+    fs, ft = features3d.fpfh_features(src.points, config), features3d.fpfh_features(tgt.points, config)
+    i, j = features3d.mutual_matches(fs, ft)
+    p, q = fs.points[i], ft.points[j]
+    out = []
+    for vs, vt in pairs:
+        Rs, Rt = vs.R, vt.R
+        for A, n in features3d.ransac_4dof(p @ Rs.T, q @ Rt.T, config, rng):
+            T = _homogeneous(Rt.T) @ A @ _homogeneous(Rs)
+            out.append((T, {"generator": "fpfh", "vertical": f"{vs.name}/{vt.name}", "votes": n}))
+    if config.fpfh_six_dof:
+        for T, n in features3d.ransac_6dof(p, q, config, rng):
+            out.append((T, {"generator": "fpfh", "vertical": "none (6-DoF)", "votes": n}))
+    return out
+
+
+def _stem_starts(src: _Base, tgt: _Base, pairs, config: CoarseConfig, rng: np.random.Generator) -> list[tuple]:
+    """(local 4x4, hypothesis dict) from stem-map matches per vertical pair."""
+    out = []
+    for vs, vt in pairs:
+        ls, lt = _level(src, vs, config), _level(tgt, vt, config)
+        ms, mt = _stems(ls, config), _stems(lt, config)
+        found = stemmap.match_stem_maps(ms, mt, config, rng)
+        if not found:
+            continue
+        ground_xy = lt.feats.xy[lt.feats.ground]
+        ground_tree = cKDTree(ground_xy) if len(ground_xy) >= config.tz_min_ground else None
+        for yaw, t_xy, n in found:
+            h = {"yaw": yaw, "t_xy": t_xy, "centre": np.zeros(2)}
+            A = _hypothesis_transform(h, ls, lt, ground_tree, config)
+            T = _homogeneous(lt.R.T) @ A @ _homogeneous(ls.R)
+            out.append((T, {"generator": "stems", "vertical": f"{vs.name}/{vt.name}", "votes": n, "yaw": yaw,
+                            "stems": [len(ms.xy), len(mt.xy)]}))
+    return out
+
+
+def _raster_starts(src: _Base, tgt: _Base, pairs, weights, config: CoarseConfig, prior: np.ndarray | None
+                   ) -> tuple[list[tuple], float | None]:
+    """(local 4x4, hypothesis dict) of the raster search per vertical pair, and the raster cell used."""
+    out, cell = [], None
+    for k, (vs, vt) in enumerate(pairs):
+        ls, lt = _level(src, vs, config), _level(tgt, vt, config)
+        prior_l = None if prior is None else _homogeneous(lt.R) @ prior @ _homogeneous(ls.R.T)
+        hyps = _search(ls, lt, weights, config, prior_l)[: config.hypotheses if k == 0 else config.secondary_hypotheses]
+        ground_xy = lt.feats.xy[lt.feats.ground]
+        ground_tree = cKDTree(ground_xy) if len(ground_xy) >= config.tz_min_ground else None
+        for h in hyps:
+            cell = h["cell"] if cell is None else cell
+            T = _homogeneous(lt.R.T) @ _hypothesis_transform(h, ls, lt, ground_tree, config) @ _homogeneous(ls.R)
+            out.append((T, {"generator": "raster", "vertical": f"{vs.name}/{vt.name}", "score": h["score"],
+                            "yaw": h["yaw"], "overlap": h["overlap"]}))
+    return out, cell
+
+
+def _unique_starts(starts: list[tuple], config: CoarseConfig) -> list[tuple]:
+    """Starts without near-duplicates (the first kept; the generators that agreed with it noted in "agree")."""
+    out: list[tuple] = []
+    for T, h in starts:
+        for T2, h2 in out:
+            deg, m = pose_error(T, T2)
+            if m < config.start_duplicate_m and deg < config.start_duplicate_deg and not h.get("prior"):
+                h2.setdefault("agree", []).append(f"{h['generator']}:{h['vertical']}")
+                break
+        else:
+            out.append((T, h))
+    return out
+
+
+def _yaw_deg(T: np.ndarray) -> float:
+    return float(np.degrees(np.arctan2(T[1, 0], T[0, 0])))
+
+
 def coarse_align(source, target, config: CoarseConfig | None = None, seed: int = 0,
                  prior: np.ndarray | None = None) -> CoarseResult:
     """Global alignment of two prepared clouds (anything with local `points` and a `kind`).
 
-    `prior` (source local -> target local, e.g. from --init): search around it instead of everywhere,
-    and verify the prior itself beside the hypotheses found, so a start that is already right stays.
+    Hypotheses come from three generators (forest rasters, FPFH matches, stem maps) under every
+    vertical hypothesis, and all go through one verification. `prior` (source local -> target
+    local, e.g. from --init): the raster search looks around it instead of everywhere, and the prior
+    itself is verified beside the hypotheses found, so a start that is already right stays.
     """
     config = config or CoarseConfig()
     start = time.perf_counter()
@@ -289,60 +390,86 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
     # An airborne target (ALS/ULS) is georeferenced: its z is the vertical, while its ground normals
     # show the terrain's slope (11 deg on the simulated plot) and few stems correct them. Levelling it
     # by its normals tilted it against a TLS source levelled by its stems, and 10 % of TLS -> ALS
-    # starts then took a heading 180 deg off. The source may come in any orientation: always levelled.
-    src, tgt = both(lambda job: _levelled(*job), (source, config, seed, False),
-                    (target, config, seed + 1, target.kind in AIRBORNE))
+    # starts then took a heading 180 deg off. The source may come in any orientation: several
+    # vertical hypotheses (z-up first when it is airborne), each searched.
+    src, tgt = both(lambda job: _prepared(*job), (source, config, seed, source.kind in AIRBORNE, False, config.max_verticals),
+                    (target, config, seed + 1, target.kind in AIRBORNE, target.kind in AIRBORNE, config.max_target_verticals))
+    pairs = _vertical_pairs(src, tgt)
     timing = {"levelling": time.perf_counter() - start}
-    weights = _weights(source.kind, target.kind)
-    L_s, L_t_inv = _homogeneous(src.R), _homogeneous(tgt.R.T)
-    prior_levelled = None if prior is None else _homogeneous(tgt.R) @ np.asarray(prior, dtype=float) @ _homogeneous(src.R.T)
-    hyps = _search(src, tgt, weights, config, prior_levelled)
+    weights = _weights(source.kind, target.kind, config)
+    prior = None if prior is None else np.asarray(prior, dtype=float)
+    starts, cell = _raster_starts(src, tgt, pairs, weights, config, prior)
     timing["search"] = time.perf_counter() - start - timing["levelling"]
+    gen_rng = np.random.default_rng([seed, 1])  # generators draw from their own stream: adding one changes no other
+    if config.fpfh:
+        t = time.perf_counter()
+        starts += _fpfh_starts(src, tgt, pairs, config, gen_rng)
+        timing["fpfh"] = time.perf_counter() - t
+    if config.stems:
+        t = time.perf_counter()
+        starts += _stem_starts(src, tgt, pairs, config, gen_rng)
+        timing["stems"] = time.perf_counter() - t
+    if prior is not None:
+        starts.append((prior, {"generator": "prior", "vertical": "prior", "prior": True}))
+    starts = _unique_starts(starts, config)
+    t_gen = time.perf_counter()
 
     airborne = source.kind in AIRBORNE or target.kind in AIRBORNE
     d = config.verify_distance_airborne if airborne else config.verify_distance_ground
-    # one kept point (and its own normal: averaged axial normals cancel) per verify cube
+    # verification in the clouds' local frames (each hypothesis carries its own verticals); one kept
+    # point (and its own normal: averaged axial normals cancel) per verify cube
     keep = thin(tgt.points, config.verify_voxel)
     tgt_v = (tgt.points[keep], tgt.normals[keep], cKDTree(tgt.points[keep], balanced_tree=False, compact_nodes=False))
     keep = thin(src.points, config.verify_voxel)
     keep = keep[sample(len(keep), config.verify_points, rng)]
     src_v = src.points[keep]
-    structure = src_v[np.abs(src.normals[keep, 2]) < 0.8]
+    # non-flat under the source's first vertical: one fixed set, so every hypothesis is scored on the same points
+    up = src.verticals[0].up
+    flat_ok = np.abs(src.normals[keep] @ up) < config.structure_normal_z
+    structure = src_v[flat_ok]
     few = sample(len(src_v), config.screen_points, rng)
-    src_few, structure_few = src_v[few], src_v[few][np.abs(src.normals[keep[few], 2]) < 0.8]
-    ground_xy = tgt.feats.xy[tgt.feats.ground]
-    ground_tree = cKDTree(ground_xy) if len(ground_xy) >= 20 else None
+    src_few, structure_few = src_v[few], src_v[few][flat_ok[few]]
 
-    # screen every hypothesis with one short ICP, refine the most promising ones fully
-    starts = [(_hypothesis_transform(h, src, tgt, ground_tree), h) for h in hyps]
-    if prior_levelled is not None:
-        yaw = float(np.arctan2(prior_levelled[1, 0], prior_levelled[0, 0]))
-        starts.append((prior_levelled, {"score": float("nan"), "yaw": yaw, "overlap": float("nan"), "prior": True}))
     def screen(start):
-        A = _refine(src_few, tgt_v, start[0], (6 * d,), config.verify_iterations)
-        return _score(structure_few, tgt_v, A, 2 * d), A, start[1]
+        A = _refine(src_few, tgt_v, start[0], (config.screen_distance_factor * d,), config.verify_iterations)
+        return _score(structure_few, tgt_v, A, config.screen_score_factor * d), A, start[1]
 
     def refine(A):
-        A = _refine(src_v, tgt_v, A, (3 * d, 1.5 * d), config.verify_iterations)
+        A = _refine(src_v, tgt_v, A, tuple(f * d for f in config.refine_distance_factors), config.verify_iterations)
         return A, _score(structure, tgt_v, A, d)
 
-    # independent ICPs, two at a time (KD-tree queries release the GIL)
+    # independent ICPs, two at a time (KD-tree queries release the GIL); refined: the best screened
+    # of each generator first (so no generator's best is lost to another's near-duplicates), then by score
     screened = sorted(in_two_threads(screen, starts), key=lambda r: -r[0])
-    top = in_two_threads(refine, [A for _, A, _ in screened[: config.refine_top]])
+    # screened poses have converged: refine distinct ones only, so the runner-up is a real rival
+    distinct: list[int] = []
+    for i, (_, A, _) in enumerate(screened):
+        if all(_distinct(A, screened[j][1], config) for j in distinct):
+            distinct.append(i)
+    chosen = [k for k in (next((i for i in distinct if screened[i][2]["generator"] == gen), None)
+                          for gen in ("raster", "fpfh", "stems", "prior")) if k is not None and screened[k][0] > 0]
+    chosen = sorted(chosen + [i for i in distinct if i not in chosen][: max(0, config.refine_top - len(chosen))])
+    top = dict(zip(chosen, in_two_threads(refine, [screened[i][1] for i in chosen])))
     results = []
     for rank, (pre, A, h) in enumerate(screened):
-        refined = rank < config.refine_top
+        refined = rank in top
         A, score = top[rank] if refined else (A, None)
-        results.append({"T": L_t_inv @ A @ L_s, "refined": refined, "score": score, "screen_score": pre, "raster_score": h["score"], "yaw_deg": float(np.degrees(h["yaw"])), "overlap": h["overlap"], "prior": bool(h.get("prior", False))})
+        results.append({"T": A, "refined": refined, "score": score, "screen_score": pre,
+                        "raster_score": h.get("score", float("nan")),
+                        "yaw_deg": float(np.degrees(h["yaw"])) if "yaw" in h else _yaw_deg(A),
+                        "overlap": h.get("overlap", float("nan")), "prior": bool(h.get("prior", False)),
+                        "generator": h["generator"], "vertical": h["vertical"]}
+                       | {k: h[k] for k in ("votes", "agree") if k in h})
     if not results:
-        identity = {"T": np.eye(4), "refined": True, "score": 0.0, "screen_score": 0.0, "raster_score": 0.0, "yaw_deg": 0.0, "overlap": 0.0}
-        results.append(identity)
+        results.append({"T": np.eye(4), "refined": True, "score": 0.0, "screen_score": 0.0, "raster_score": 0.0,
+                        "yaw_deg": 0.0, "overlap": 0.0, "prior": False, "generator": "none", "vertical": "none"})
     results.sort(key=lambda r: (not r["refined"], -(r["score"] if r["refined"] else r["screen_score"])))
     best = results[0]
     # only refined hypotheses compete: an unrefined one may be the best pose not yet converged
-    runner_up = next((r for r in results[1:] if r["refined"] and _distinct(best["T"], r["T"])), None)
+    runner_up = next((r for r in results[1:] if r["refined"] and _distinct(best["T"], r["T"], config)), None)
     second = runner_up["score"] if runner_up else 0.0
     confidence = float(1.0 - second / best["score"]) if best["score"] > 0 else 0.0
+    counts = {g: sum(r["generator"] == g for r in results) for g in ("raster", "fpfh", "stems", "prior")}
     return CoarseResult(
         transform=best["T"],
         confidence=confidence,
@@ -351,6 +478,7 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
             for r in results
         ],
         seconds=time.perf_counter() - start,
-        levelling={"source": src.info, "target": tgt.info, "raster_cell": hyps[0]["cell"] if hyps else None},
-        timing=timing | {"verify": time.perf_counter() - start - timing["levelling"] - timing["search"]},
+        levelling={"source": src.info, "target": tgt.info, "raster_cell": cell,
+                   "vertical_pairs": [f"{a.name}/{b.name}" for a, b in pairs], "hypotheses_by_generator": counts},
+        timing=timing | {"verify": time.perf_counter() - t_gen},
     )

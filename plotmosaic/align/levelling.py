@@ -1,14 +1,22 @@
-"""Levelling: find a cloud's vertical from its normals and rotate it upright.
+"""Levelling: vertical hypotheses of a cloud from its normals and points, and the rotation upright.
 
-Forests give two strong cues. Ground and other near-horizontal surfaces put their normals
-near the vertical; stems put theirs in the horizontal plane. The first cue alone is biased on
-slopes (the terrain normal is not the vertical), so when there are enough stem-like normals the
-estimate is refined as the direction most perpendicular to them.
+Forests give several cues, none of which is always right. Ground and other near-horizontal
+surfaces put their normals near the vertical (biased on slopes: the terrain normal is not the
+vertical); stems put theirs in the horizontal plane (a leaf-on canopy has few stems and a scatter of
+leaf normals that can pull the estimate 10 deg off); the lowest points per cell lie on the terrain;
+a georeferenced airborne cloud has z up. So several hypotheses are produced and each is carried
+into the search: the verification, not the levelling, decides.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+
+from plotmosaic.align.coarse_config import CoarseConfig
+
+Z = np.array([0.0, 0.0, 1.0])
 
 
 def fibonacci_hemisphere(n: int) -> np.ndarray:
@@ -38,42 +46,132 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.eye(3) + vx + vx @ vx / (1.0 + c)
 
 
-def estimate_up(normals: np.ndarray, max_tilt_deg: float = 75.0, n_candidates: int = 1000) -> tuple[np.ndarray, dict]:
-    """The cloud's up direction (unit vector, z-component positive) and the figures behind it.
+def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle (deg) between two unit vectors."""
+    return float(np.degrees(np.arccos(np.clip(float(np.dot(a, b)), -1.0, 1.0))))
+
+
+def _upper(v: np.ndarray) -> np.ndarray:
+    v = v / np.linalg.norm(v)
+    return v if v[2] >= 0 else -v
+
+
+def _refine(n: np.ndarray, up: np.ndarray, c: CoarseConfig, use_stems: bool, use_ground: bool) -> tuple[np.ndarray, float]:
+    """Refine `up` over shrinking bands on stem normals (perpendicular to up) and/or the ground cluster."""
+    stem_share = 0.0
+    for band in c.refine_bands_deg:
+        d = np.abs(n @ up)
+        stems = n[d < np.sin(np.radians(band))]
+        stem_share = len(stems) / max(len(n), 1)
+        if use_stems and stem_share > c.min_stem_share and len(stems) > c.min_stem_normals:
+            cand = np.linalg.eigh(stems.T @ stems)[1][:, 0]
+        elif use_ground:
+            ground = n[d > np.cos(np.radians(band))]
+            if len(ground) < c.min_ground_normals:
+                break
+            cand = np.linalg.eigh(ground.T @ ground)[1][:, -1]
+        else:
+            break
+        cand = _upper(cand)
+        if angle_deg(cand, up) < 2 * band:
+            up = cand
+    return up, stem_share
+
+
+def _votes(n: np.ndarray, c: CoarseConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    cands = fibonacci_hemisphere(c.up_candidates)
+    cands = cands[cands[:, 2] >= np.cos(np.radians(c.max_tilt_deg))]
+    dots = np.abs(n @ cands.T)  # axial normals: n and -n are the same plane
+    flat = (dots > np.cos(np.radians(c.flat_deg))).mean(axis=0)
+    upright = (dots < np.sin(np.radians(c.upright_deg))).mean(axis=0)
+    return cands, flat, upright
+
+
+def estimate_up(normals: np.ndarray, max_tilt_deg: float = 75.0, n_candidates: int = 1000,
+                config: CoarseConfig | None = None) -> tuple[np.ndarray, dict]:
+    """The cloud's up direction from ground and stem normals together (z-component positive) and its figures.
 
     Up is taken on the side of the file's +z: a scan is never mounted upside down, and the
     search allows tilts up to `max_tilt_deg`.
     """
+    c = (config or CoarseConfig()).model_copy(update={"max_tilt_deg": max_tilt_deg, "up_candidates": n_candidates})
     n = np.asarray(normals, dtype=np.float64)
-    cands = fibonacci_hemisphere(n_candidates)
-    cands = cands[cands[:, 2] >= np.cos(np.radians(max_tilt_deg))]
-    dots = np.abs(n @ cands.T)  # axial normals: n and -n are the same plane
-    flat = (dots > np.cos(np.radians(15))).mean(axis=0)
-    upright = (dots < np.sin(np.radians(8))).mean(axis=0)
-    up = cands[np.argmax(flat + 0.5 * upright)]
+    cands, flat, upright = _votes(n, c)
+    up, stem_share = _refine(n, cands[np.argmax(flat + c.upright_weight * upright)], c, True, True)
+    return up, {"tilt_deg": angle_deg(up, Z), "stem_share": float(stem_share)}
 
-    # refine on stems (perpendicular to up) when there are enough of them, else on the ground cluster
-    stem_share = 0.0
-    for band in (20.0, 12.0, 8.0):
-        d = np.abs(n @ up)
-        stems = n[d < np.sin(np.radians(band))]
-        stem_share = len(stems) / max(len(n), 1)
-        if stem_share > 0.04 and len(stems) > 200:
-            w, v = np.linalg.eigh(stems.T @ stems)
-            cand = v[:, 0]
-        else:
-            ground = n[d > np.cos(np.radians(band))]
-            if len(ground) < 50:
-                break
-            w, v = np.linalg.eigh(ground.T @ ground)
-            cand = v[:, -1]
-        cand = cand if cand[2] >= 0 else -cand
-        if np.degrees(np.arccos(np.clip(cand @ up, -1, 1))) < 2 * band:
-            up = cand / np.linalg.norm(cand)
-    return up, {"tilt_deg": float(np.degrees(np.arccos(np.clip(up[2], -1, 1)))), "stem_share": float(stem_share)}
+
+def ground_fit_up(points: np.ndarray, c: CoarseConfig) -> np.ndarray | None:
+    """Normal of a robust plane through the lowest point per cell, in the frame tilted so `points` are ~level.
+
+    Works on the points (not normals): under a leaf-on canopy the few ground returns are still the lowest.
+    """
+    xy, z = points[:, :2], points[:, 2]
+    ij = np.floor((xy - xy.min(axis=0)) / c.ground_fit_cell).astype(np.int64)
+    key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
+    order = np.lexsort((z, key))
+    first = order[np.r_[True, key[order][1:] != key[order][:-1]]]
+    if len(first) < c.ground_fit_min_cells:
+        return None
+    low = points[first]
+    keep = np.ones(len(low), bool)
+    normal = Z
+    for _ in range(5):  # least squares, dropping points well above the plane (crowns seen from below)
+        if keep.sum() < c.ground_fit_min_cells:
+            return None
+        centre = low[keep].mean(axis=0)
+        normal = _upper(np.linalg.eigh(np.cov((low[keep] - centre).T))[1][:, 0])
+        r = (low - centre) @ normal
+        keep = np.abs(r) < max(c.ground_fit_inlier_m, 2.5 * float(np.median(np.abs(r[keep]))))
+    return normal
+
+
+@dataclass
+class Vertical:
+    up: np.ndarray  # unit vector in the cloud's local frame
+    name: str  # "normals" | "ground" | "stems" | "ground-fit" | "z-up"
+
+    @property
+    def R(self) -> np.ndarray:
+        return rotation_between(self.up, Z)
+
+
+def vertical_hypotheses(points: np.ndarray, normals: np.ndarray, c: CoarseConfig, airborne: bool = False,
+                        limit: int | None = None) -> tuple[list[Vertical], dict]:
+    """Distinct vertical hypotheses, most trusted first, and the figures behind them.
+
+    `airborne` (ALS/ULS, georeferenced): z-up first. z-up is also a candidate of any cloud where an
+    estimate lies within `z_up_max_deg` of it. A tilt up to `max_tilt_deg` stays recoverable.
+    """
+    n = np.asarray(normals, dtype=np.float64)
+    cands, flat, upright = _votes(n, c)
+    first = cands[np.argmax(flat + c.upright_weight * upright)]
+    both, stem_share = _refine(n, first, c, True, True)
+    ground, _ = _refine(n, cands[np.argmax(flat)], c, False, True)
+    # stems alone from the joint vote: the most upright-rich direction of a leafy cloud is noise
+    stems, _ = _refine(n, first, c, True, False)
+    fit = ground_fit_up(points @ rotation_between(both, Z).T, c)  # fit in the roughly levelled frame
+    fit = None if fit is None else _upper(rotation_between(both, Z).T @ fit)
+    found = [Vertical(both, "normals"), Vertical(ground, "ground"), Vertical(stems, "stems")]
+    if fit is not None:
+        found.append(Vertical(fit, "ground-fit"))
+    near_z = any(angle_deg(v.up, Z) <= c.z_up_max_deg for v in found)
+    ordered = ([Vertical(Z.copy(), "z-up")] if airborne else []) + found[:1]
+    if near_z and not airborne:
+        ordered.append(Vertical(Z.copy(), "z-up"))
+    ordered += found[1:]
+    out: list[Vertical] = []
+    for v in ordered:
+        if all(angle_deg(v.up, o.up) > c.vertical_duplicate_deg for o in out):
+            out.append(v)
+    out = out[: limit or c.max_verticals]
+    info = {"tilt_deg": angle_deg(out[0].up, Z), "stem_share": float(stem_share),
+            "candidates": {v.name: round(angle_deg(v.up, Z), 2) for v in found},
+            "verticals": [{"name": v.name, "tilt_deg": round(angle_deg(v.up, Z), 3)} for v in out]}
+    return out, info
 
 
 def levelling_rotation(normals: np.ndarray, **kwargs) -> tuple[np.ndarray, dict]:
     """Rotation R with R @ up = +z, plus the estimate's figures."""
     up, info = estimate_up(normals, **kwargs)
-    return rotation_between(up, np.array([0.0, 0.0, 1.0])), info
+    return rotation_between(up, Z), info

@@ -1,6 +1,6 @@
 """2D forest rasters of a levelled cloud, and masked normalised cross-correlation between them.
 
-Channels (each with its own validity mask):
+Channels (each with its own validity mask; cut-offs in CoarseConfig):
   stems   - occupancy of vertical surfaces 0.5-4 m above ground (what TLS sees best)
   canopy  - occupancy of vegetation more than 3 m above ground (what ALS sees best)
   terrain - ground height (both see it; carries heading through the slope and position through relief)
@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import fft, ndimage
 
+from plotmosaic.align.coarse_config import CoarseConfig
 from plotmosaic.parallel import inner_workers
 
 CHANNELS = ("stems", "canopy", "terrain")
@@ -32,11 +33,13 @@ class PointFeatures:
     ground: np.ndarray  # bool
 
 
-def ground_model(xy: np.ndarray, z: np.ndarray, cell: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def ground_model(xy: np.ndarray, z: np.ndarray, cell: float = 1.0, config: CoarseConfig | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A rough DTM: lowest point per cell, cells standing far above their neighbours dropped.
 
     Returns (dtm, origin, filled) where `filled` marks cells with a ground estimate.
     """
+    c = config or CoarseConfig()
     origin = xy.min(axis=0) - cell
     ij = np.floor((xy - origin) / cell).astype(np.int64)
     shape = tuple(ij.max(axis=0) + 2)
@@ -47,8 +50,8 @@ def ground_model(xy: np.ndarray, z: np.ndarray, cell: float = 1.0) -> tuple[np.n
     filled = np.isfinite(low)
     # the lowest return of a cell seen only through a crown or beside a stem is not ground:
     # compare with the neighbourhood's low quantile and drop cells well above it
-    ref = ndimage.percentile_filter(low, 25, size=5, mode="constant", cval=np.inf)
-    ok = filled & ~(low > ref + 1.0)
+    ref = ndimage.percentile_filter(low, c.dtm_percentile, size=c.dtm_window, mode="constant", cval=np.inf)
+    ok = filled & ~(low > ref + c.dtm_max_step)
     dtm = np.where(ok, low, np.nan)
     # fill holes from the nearest valid cell so every point gets a height above ground
     if ok.any():
@@ -59,18 +62,25 @@ def ground_model(xy: np.ndarray, z: np.ndarray, cell: float = 1.0) -> tuple[np.n
     return dtm, origin, ok
 
 
-def point_features(points: np.ndarray, normals: np.ndarray, cell: float = 1.0) -> PointFeatures:
+def height_above_ground(points: np.ndarray, cell: float = 1.0, config: CoarseConfig | None = None) -> np.ndarray:
+    """Each point's height above the rough DTM of its (levelled) cloud."""
     xy, z = points[:, :2], points[:, 2]
-    dtm, origin, _ = ground_model(xy, z, cell)
+    dtm, origin, _ = ground_model(xy, z, cell, config)
     ij = np.floor((xy - origin) / cell).astype(np.int64)
-    hag = z - dtm[ij[:, 0], ij[:, 1]]
-    vertical_surface = np.abs(normals[:, 2]) < 0.35
+    return z - dtm[ij[:, 0], ij[:, 1]]
+
+
+def point_features(points: np.ndarray, normals: np.ndarray, cell: float = 1.0, config: CoarseConfig | None = None,
+                   hag: np.ndarray | None = None) -> PointFeatures:
+    c = config or CoarseConfig()
+    hag = height_above_ground(points, cell, c) if hag is None else hag
+    vertical_surface = np.abs(normals[:, 2]) < c.vertical_normal_z
     return PointFeatures(
-        xy=xy,
-        z=z,
-        stem=vertical_surface & (hag > 0.5) & (hag < 4.0),
-        canopy=hag > 3.0,
-        ground=(hag < 0.25) & (np.abs(normals[:, 2]) > 0.7),
+        xy=points[:, :2],
+        z=points[:, 2],
+        stem=vertical_surface & (hag > c.stem_min_hag) & (hag < c.stem_max_hag),
+        canopy=hag > c.canopy_min_hag,
+        ground=(hag < c.ground_max_hag) & (np.abs(normals[:, 2]) > c.ground_normal_z),
     )
 
 
