@@ -1,11 +1,13 @@
 """Benchmark `plotmosaic merge`: throughput (points/s) and peak memory on large synthetic scans.
 
 Generates SCANS x POINTS synthetic TLS scans as LAZ (PF 7: intensity, returns, classification,
-gps_time, RGB) in scanner frames with UTM poses (generation is not timed), then runs
-`plotmosaic merge` in a child process and reports wall time, points/s and the child's peak RSS.
+gps_time, RGB) in scanner frames with UTM poses (generation is not timed, written chunk-wise), then
+runs, each as a whole process under /usr/bin/time -v: a read-only pass over the inputs, `plotmosaic
+merge` plain and (with --voxel) voxel-thinned; reports wall, CPU, points/s and peak RSS.
 
-    /work/venv-probe/bin/python benchmarks/bench_merge.py                  # 5 x 8M points
-    /work/venv-probe/bin/python benchmarks/bench_merge.py --scans 2 --points 1000000 --voxel 0.05
+    .venv/bin/python benchmarks/bench_merge.py                  # 5 x 8M points
+    .venv/bin/python benchmarks/bench_merge.py --scans 2 --points 1000000 --voxel 0.05
+    nice -n 10 .venv/bin/python benchmarks/bench_merge.py --scans 25 --points 8000000 --voxel 0.01 --no-plain  # 200M
 """
 
 from __future__ import annotations
@@ -76,27 +78,46 @@ def make_inputs(root: Path, scans: int, points: int) -> Path:
     return root / "manifest.toml"
 
 
+def timed(cmd: list[str]) -> dict:
+    """Run `cmd` under /usr/bin/time -v (the whole process): wall, CPU and peak RSS."""
+    with tempfile.NamedTemporaryFile(suffix=".time") as rep, tempfile.TemporaryFile() as err:
+        t0 = time.perf_counter()
+        proc = subprocess.run(["/usr/bin/time", "-v", "-o", rep.name, *cmd], stdout=subprocess.DEVNULL, stderr=err)
+        wall = time.perf_counter() - t0
+        if proc.returncode != 0:
+            err.seek(0)
+            sys.exit(f"{' '.join(cmd[:4])} ... failed: {err.read().decode().strip()}")
+        fields = dict(line.strip().rsplit(": ", 1) for line in Path(rep.name).read_text().splitlines() if ": " in line)
+    return {
+        "wall_s": wall,
+        "cpu_s": float(fields["User time (seconds)"]) + float(fields["System time (seconds)"]),
+        "peak_rss_mb": int(fields["Maximum resident set size (kbytes)"]) / 1024,
+    }
+
+
+READ_ONLY = """
+import sys
+from pathlib import Path
+from plotmosaic.manifest import load_manifest
+from plotmosaic.merge import read_records
+from plotmosaic.io.las import CHUNK_SIZE
+m = load_manifest(sys.argv[1])
+n = sum(len(c) for s in m.scans for c in read_records(m.resolve(s.path), CHUNK_SIZE))
+print(n)
+"""
+
+
+def run_read(root: Path) -> dict:
+    """Time to just read (decompress) every input, chunk by chunk, in a child process."""
+    return timed([sys.executable, "-c", READ_ONLY, str(root / "manifest.toml")])
+
+
 def run_merge(root: Path, extra: list[str]) -> dict:
     out = root / "merged.laz"
     cmd = [sys.executable, "-m", "plotmosaic", "merge", str(root / "manifest.toml"), "--poses", str(root / "poses.json"), "--out", str(out), "--force", *extra]
-    t0 = time.perf_counter()
-    with tempfile.TemporaryFile() as err:
-        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err)
-        _, status, usage = os.wait4(proc.pid, 0)  # this child's own peak RSS
-        wall = time.perf_counter() - t0
-        if os.waitstatus_to_exitcode(status) != 0:
-            err.seek(0)
-            sys.exit(f"merge failed: {err.read().decode().strip()}")
+    r = timed(cmd)
     side = json.loads(out.with_name(out.name + ".json").read_text())
-    return {
-        "wall_s": wall,
-        "merge_s": side["seconds"],
-        "points_in": side["points_in"],
-        "points_out": side["points_out"],
-        "cpu_s": usage.ru_utime + usage.ru_stime,
-        "peak_rss_mb": usage.ru_maxrss / 1024,
-        "out_mb": out.stat().st_size / 1e6,
-    }
+    return {**r, "merge_s": side["seconds"], "points_in": side["points_in"], "points_out": side["points_out"], "out_mb": out.stat().st_size / 1e6}
 
 
 def profile_merge(root: Path) -> None:
@@ -145,6 +166,8 @@ def main() -> None:
     ap.add_argument("--scans", type=int, default=5)
     ap.add_argument("--points", type=int, default=8_000_000)
     ap.add_argument("--voxel", type=float, default=None, help="also time a run with voxel thinning")
+    ap.add_argument("--memory-mb", type=int, default=None, help="merge --memory-mb for the voxel run")
+    ap.add_argument("--no-plain", action="store_true", help="skip the plain (unthinned) merge")
     ap.add_argument("--workdir", type=Path, default=None, help="keep (and reuse) the generated scans here")
     ap.add_argument("--generate-only", action="store_true", help="only write the inputs (with --workdir)")
     ap.add_argument("--profile", action="store_true", help="also profile one merge in-process (CPU time per stage)")
@@ -159,7 +182,10 @@ def main() -> None:
         if args.generate_only:
             return
         print(f"load average before merging: {', '.join(f'{v:.1f}' for v in os.getloadavg())} (2 cores)")
-        runs = [("plain", [])] + ([(f"voxel {args.voxel:g} m", ["--voxel", str(args.voxel)])] if args.voxel else [])
+        r = run_read(root)
+        print(f"read only: wall {r['wall_s']:.1f} s, CPU {r['cpu_s']:.1f} s, peak RSS {r['peak_rss_mb']:.0f} MB")
+        runs = [] if args.no_plain else [("plain", [])]
+        runs += [(f"voxel {args.voxel:g} m", ["--voxel", str(args.voxel), *(["--memory-mb", str(args.memory_mb)] if args.memory_mb else [])])] if args.voxel else []
         for name, extra in runs:
             r = run_merge(root, extra)
             print(

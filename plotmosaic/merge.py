@@ -679,7 +679,9 @@ def _write_tiles(folder: Path, spill: TileSpill, header, counts, step: int | Non
             "_counts": [c.points_out for c in tile_counts],
         }
 
-    tiles = in_two_threads(write, spill.tiles()) if parallel > 1 else [write(t) for t in spill.tiles()]
+    items, tiles = spill.tiles(), []
+    for k in range(0, len(items), parallel):  # by pairs, not one pool over all: Ctrl-C waits for two tiles at most
+        tiles += in_two_threads(write, items[k : k + parallel]) if parallel > 1 else [write(items[k])]
     for tile in tiles:
         for count, n in zip(counts, tile.pop("_counts")):
             count.points_out += n

@@ -1,6 +1,12 @@
 """`plotmosaic merge`: posed scans streamed into one georeferenced LAS 1.4 file."""
 
+import io
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import laspy
@@ -13,7 +19,7 @@ import plotmosaic.merge as merge_module
 from plotmosaic.errors import InputError
 from plotmosaic.io import PointCloud, write_cloud
 from plotmosaic.io.frame import apply_transform
-from plotmosaic.io.las import read_cloud
+from plotmosaic.io.las import make_header, make_record, read_cloud
 from plotmosaic.manifest import (
     AlsTile,
     Manifest,
@@ -368,3 +374,63 @@ def test_tile_options_are_checked(site, tmp_path):
     (tmp_path / "mine" / "notes.txt").write_text("keep")
     _one_line_error(_run(*base, "--out", tmp_path / "mine", "--force"), "mine", "not a tile folder")
     assert (tmp_path / "mine" / "notes.txt").read_text() == "keep" and not (tmp_path / "t").exists()
+
+
+# ---------------------------------------------------------------- interrupts
+
+
+class _RingingFile(io.BytesIO):
+    """A file that receives SIGINT while the LAZ codec writes compressed points into it."""
+
+    def write(self, data):
+        if len(data) > 1000 and not getattr(self, "rang", False):
+            self.rang = True
+            os.kill(os.getpid(), signal.SIGINT)
+        return super().write(data)
+
+
+def _write_laz(target) -> None:
+    header = make_header(["intensity"])
+    record = make_record(header, np.random.default_rng(0).uniform(0, 10, (200_000, 3)), {})
+    with laspy.open(target, mode="w", header=header, do_compress=True, closefd=False) as writer:
+        writer.write_points(record)
+        writer.write_points(record)
+
+
+def test_interrupt_inside_the_laz_codec_is_an_interrupt():
+    with pytest.raises(Exception, match="Failed to call write"):  # what lazrs makes of a Ctrl-C on its own
+        _write_laz(_RingingFile())
+    with pytest.raises(KeyboardInterrupt), merge_module.interrupts_win():
+        _write_laz(_RingingFile())
+
+
+@pytest.fixture(scope="module")
+def big_site(tmp_path_factory):
+    root = tmp_path_factory.mktemp("merge_big")
+    rng = np.random.default_rng(5)
+    poses = {}
+    for k, sid in enumerate("ab"):
+        write_cloud(root / f"{sid}.laz", _scan_cloud(rng, 400_000, rgb=True))
+        poses[sid] = ScanPose(_pose(rng, k), plot="P1")
+    manifest = Manifest(plots=[Plot(id="P1", crs=UTM, scans=[Scan(id=sid, path=Path(f"{sid}.laz")) for sid in "ab"])])
+    (root / "manifest.toml").write_text(dump_manifest(manifest))
+    Poses(poses, frame="crs", crs=CRS.from_user_input(UTM).to_wkt()).save(root / "poses.json")
+    return root
+
+
+@pytest.mark.parametrize("options, temporary", [([], ".m.laz.tmp-"), (["--voxel", "0.01"], ".m.laz.spill.tmp-")])
+def test_sigint_mid_merge_exits_130_and_leaves_nothing(big_site, tmp_path, options, temporary):
+    out = tmp_path / "out"
+    out.mkdir()
+    cmd = [sys.executable, "-m", "plotmosaic", "merge", big_site / "manifest.toml", "--poses", big_site / "poses.json", "--out", out / "m.laz"]
+    proc = subprocess.Popen([str(c) for c in [*cmd, *options]], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while not any(temporary in p.name for p in out.iterdir()):  # wait until it is writing
+        assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read() if proc.poll() is not None else "timeout"
+        time.sleep(0.005)
+    time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert err.strip() == "interrupted"
+    assert list(out.iterdir()) == []  # no output, no temporaries
