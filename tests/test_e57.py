@@ -233,3 +233,28 @@ def test_spherical_scaled_integer_and_invalid_points(tmp_path):
     assert len(cloud) == n - n // 10 and cloud.attrs["intensity"].dtype == np.uint16
     result = invoke("info", "--full", path)
     assert result.exit_code == 0 and f"{n:,} points ({n // 10:,} flagged invalid)" in result.output, result.output
+
+
+def _cache_takes_scan_refs(path: Path) -> bool:
+    """graph/cache.file_hash must tell scans of one file apart, else their pairs would share a cache key."""
+    from plotmosaic.graph.cache import file_hash
+
+    try:
+        return file_hash(scan_ref(path, 0)) != file_hash(scan_ref(path, 1))
+    except OSError:
+        return False
+
+
+@pytest.mark.slow
+def test_register_plot_from_e57(project, tmp_path):
+    path, ids, points, poses, counts = project
+    if not _cache_takes_scan_refs(path):
+        pytest.skip("graph/cache.file_hash does not take E57 scan references (FILE.e57#INDEX) yet")
+    toml = tmp_path / "m.toml"
+    toml.write_text('plot_id = "P1"\n' + "".join(f'[[scans]]\nid = "{s}"\npath = "{path}"\nscan = {i}\n' for i, s in enumerate(ids)))
+    result = invoke("register-plot", toml, "--out", tmp_path / "out", "-j", "1")
+    assert result.exit_code == 0, result.output
+    got = load_poses(tmp_path / "out" / "poses.json")
+    for sid in ids:  # the stored poses are the truth in S0's frame
+        rot, trans = pose_error(got.transform(sid), poses[sid])
+        assert trans < 0.02 and rot < 0.1, (sid, trans, rot)
