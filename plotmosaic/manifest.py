@@ -23,9 +23,11 @@ from enum import Enum
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from plotmosaic.errors import InputError
+from plotmosaic.io.e57 import is_e57, list_scans, scan_ref, select_scan, split_scan_ref, stored_pose
 
 DEFAULT_LEVELS = {"tls": 3, "mls": 3, "uls": 2, "als": 2}
 _SAFE_ID = re.compile(r"^[\w.-]+$")
@@ -85,8 +87,6 @@ class Scan(_Strict):
     @property
     def file(self) -> Path:
         """The file itself (without an E57 reference's `#INDEX`)."""
-        from plotmosaic.io.e57 import split_scan_ref
-
         return split_scan_ref(self.path)[0] if self.path.suffix.lower().startswith(".e57#") else self.path
 
 
@@ -155,22 +155,18 @@ class Manifest(_Strict):
                 return s
         raise InputError(f"{self.source}: no scan with id {scan_id!r}")
 
-    def stored_pose(self, scan_id: str) -> "np.ndarray | None":
+    def stored_pose(self, scan_id: str) -> np.ndarray | None:
         """The stored pose (4x4, scan -> file frame) of a scan with `use_pose = true`, else None."""
-        from plotmosaic.io.e57 import is_e57, stored_pose
-
         scan = self.scan(scan_id)
         path = self.resolve(scan.path)
         return stored_pose(path) if scan.use_pose and is_e57(path) else None
 
-    def pair_prior(self, source_id: str, target_id: str) -> "np.ndarray | None":
+    def pair_prior(self, source_id: str, target_id: str) -> np.ndarray | None:
         """Initial guess source -> target from the stored poses, when both scans offer one.
 
         None when either has no pose, or both store identity (what many exports write: no
         information). A prior only: the pairwise path verifies it like any hypothesis.
         """
-        import numpy as np
-
         ps, pt = self.stored_pose(source_id), self.stored_pose(target_id)
         if ps is None or pt is None or (np.allclose(ps, np.eye(4)) and np.allclose(pt, np.eye(4))):
             return None
@@ -248,8 +244,6 @@ def load_manifest(path: str | Path, check_files: bool = True) -> Manifest:
 
 def _resolve_e57(manifest: Manifest, path: Path, check_files: bool) -> Manifest:
     """E57 scans -> reference paths `FILE.e57#INDEX` (scans chosen by index, name or GUID)."""
-    from plotmosaic.io.e57 import list_scans, scan_ref, select_scan
-
     listed: dict[Path, list] = {}
     plots = []
     for plot in manifest.plots:

@@ -53,7 +53,7 @@ def _describe_e57(path: Path, full: bool) -> str:
             raise InputError(f"{path}: {s.label}: contains no points")
         valid = ""
         if full:
-            n = sum(len(c) for c in iter_e57_chunks(scan_ref(path, s.index), attributes=False))
+            n = sum(len(xyz) for xyz, _ in iter_e57_chunks(scan_ref(path, s.index), attributes=False))
             valid = f" ({s.point_count - n:,} flagged invalid)" if n != s.point_count else ""
         lines.append(f"  scan {s.index} {repr(s.name) if s.name else '(no name)'} {s.guid or ''}: {s.point_count:,} points{valid}, {pose_text(s.pose)}")
     return "\n".join(lines)

@@ -273,10 +273,9 @@ def _to_uint16(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return np.clip(np.rint(scaled), 0, 65535).astype(np.uint16)
 
 
-def iter_e57_chunks(path: str | Path, chunk_size: int = CHUNK_SIZE, attributes: bool | Iterable[str] = True) -> Iterator:
-    """Yield one scan's valid points as PointCloud chunks (scan frame), reading block by block."""
-    from plotmosaic.io.las import PointCloud
-
+def iter_e57_chunks(path: str | Path, chunk_size: int = CHUNK_SIZE,
+                    attributes: bool | Iterable[str] = True) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
+    """Yield one scan's valid points as (xyz float64, attributes) blocks (scan frame), reading block by block."""
     libe57 = _libe57()
     file, index = split_scan_ref(path)
     imf = _open(file)
@@ -333,7 +332,7 @@ def iter_e57_chunks(path: str | Path, chunk_size: int = CHUNK_SIZE, attributes: 
                         attrs[_RGB[f]] = _to_uint16(v, *clim[f])
                     else:
                         attrs[_NORMALS[f]] = v.astype(np.float32)
-                yield PointCloud(np.column_stack(c), attrs)
+                yield np.column_stack(c), attrs
         finally:
             reader.close()
     finally:

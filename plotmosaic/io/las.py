@@ -17,6 +17,7 @@ import numpy as np
 from pyproj import CRS
 
 from plotmosaic.errors import InputError
+from plotmosaic.io import e57, ply
 from plotmosaic.io.atomic import atomic_output
 
 CHUNK_SIZE = 2_000_000
@@ -75,9 +76,7 @@ READ_SUFFIXES = (".las", ".laz", ".e57", ".ply")
 
 def file_format(path: str | Path) -> str:
     """"las", "e57" or "ply" from the suffix (an E57 reference path `FILE.e57#INDEX` is "e57")."""
-    from plotmosaic.io.e57 import is_e57
-
-    if is_e57(path):
+    if e57.is_e57(path):
         return "e57"
     return "ply" if Path(path).suffix.lower() == ".ply" else "las"
 
@@ -162,15 +161,11 @@ def iter_chunks(
 ) -> Iterator[PointCloud]:
     """Yield the file as PointCloud chunks of at most `chunk_size` points."""
     path = _check_file(Path(path))
-    if file_format(path) == "e57":
-        from plotmosaic.io.e57 import iter_e57_chunks
-
-        yield from iter_e57_chunks(path, min(chunk_size, CHUNK_SIZE), attributes)
-        return
-    if file_format(path) == "ply":
-        from plotmosaic.io.ply import iter_ply_chunks
-
-        yield from iter_ply_chunks(path, chunk_size, attributes)
+    if file_format(path) != "las":  # E57 blocks at most 1M points: libE57's buffers are per field
+        blocks = e57.iter_e57_chunks(path, min(chunk_size, e57.CHUNK_SIZE), attributes) if file_format(path) == "e57" \
+            else ply.iter_ply_chunks(path, chunk_size, attributes)
+        for xyz, attrs in blocks:
+            yield PointCloud(xyz, attrs)
         return
     with open_las(path, xyz_only=attributes is False) as reader:
         crs = _parse_crs(reader.header)
@@ -244,8 +239,6 @@ def _read_other(path: Path, attributes: bool | Iterable[str], min_points: int) -
 
 def _other_header_info(path: Path) -> HeaderInfo:
     """HeaderInfo of an E57 scan or a PLY file; bounds from the file (E57) or one streamed pass."""
-    from plotmosaic.io import e57, ply
-
     fmt = file_format(path)
     if fmt == "e57":
         file, scan = e57.resolve_scan(path)

@@ -108,10 +108,9 @@ def point_count(path: str | Path) -> int:
     return len(_vertices(Path(path)))
 
 
-def iter_ply_chunks(path: str | Path, chunk_size: int = CHUNK_SIZE, attributes: bool | Iterable[str] = True) -> Iterator:
-    """Yield the vertices as PointCloud chunks of at most `chunk_size` points."""
-    from plotmosaic.io.las import PointCloud
-
+def iter_ply_chunks(path: str | Path, chunk_size: int = CHUNK_SIZE,
+                    attributes: bool | Iterable[str] = True) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
+    """Yield the vertices as (xyz float64, attributes) blocks of at most `chunk_size` points."""
     path = Path(path)
     array = _vertices(path)
     if len(array) == 0:
@@ -140,7 +139,7 @@ def iter_ply_chunks(path: str | Path, chunk_size: int = CHUNK_SIZE, attributes: 
                         attrs["intensity_raw"] = values
                 else:
                     attrs[las] = values
-            yield PointCloud(xyz, attrs)
+            yield xyz, attrs
     except InputError:
         raise
     except Exception as exc:  # a truncated binary body surfaces when the map is read
