@@ -4,7 +4,8 @@ x = -2,147,483 m by laspy) that would stretch every extent, raster and voxel gri
 Per axis, the bulk of the cloud (a central quantile range of a strided sample, widened by a margin)
 is kept as it is; points outside it stay while they chain back to the bulk without an empty gap
 wider than `max_gap`; whatever lies beyond such a gap is dropped when it holds at most
-`detached_max_fraction` of the points (a large detached part is real data: kept). Linear time
+`detached_max_fraction` of the points (a large detached part is real data: kept, and what lies
+beyond a further gap past it is judged the same way). Linear time
 (one pass per axis, a sort of the few points outside the bulk), memory a few arrays of N.
 """
 
@@ -45,8 +46,10 @@ def _axis_strays(v: np.ndarray, keep: np.ndarray, config: StrayConfig) -> None:
         d = sign * (v[outside] - edge)
         ds = np.sort(d)
         gaps = np.flatnonzero(np.diff(ds, prepend=0.0) > config.max_gap_m)
-        if len(gaps) and len(ds) - int(gaps[0]) <= config.detached_max_fraction * int(keep.sum()):
-            keep[outside[d >= ds[int(gaps[0])]]] = False
+        # the innermost gap beyond which few enough points lie: a real far part may sit between
+        small = gaps[len(ds) - gaps <= config.detached_max_fraction * int(keep.sum())]
+        if len(small):
+            keep[outside[d >= ds[int(small[0])]]] = False
 
 
 def stray_mask(xyz: np.ndarray, config: StrayConfig | None = None) -> np.ndarray:

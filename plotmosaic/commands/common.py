@@ -129,13 +129,15 @@ def no_empty_output(folder) -> Iterator[None]:
     import os
     from pathlib import Path
 
-    folder = Path(folder)
-    existed = folder.exists()
+    top = None  # the outermost folder this run will create
+    current = Path(folder).absolute()
+    while not current.exists() and current.parent != current:
+        top, current = current, current.parent
     try:
         yield
     except BaseException:
-        if not existed and folder.is_dir():
-            for root, _dirs, _files in sorted(os.walk(folder), key=lambda w: -len(w[0])):  # deepest first
+        if top is not None and top.is_dir():
+            for root, _dirs, _files in sorted(os.walk(top), key=lambda w: -len(w[0])):  # deepest first
                 with contextlib.suppress(OSError):
                     os.rmdir(root)  # only succeeds on an empty folder
         raise
