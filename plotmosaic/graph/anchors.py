@@ -253,33 +253,5 @@ def _anchor_dict(a: Anchor) -> dict:
             "overlap": a.overlap, "confidence": a.confidence, "error": a.error, "crop": a.crop, "residual": a.residual}
 
 
-def write_tie_report(result: TieResult, manifest: Manifest, als: PointCloud, config: TieConfig, seed: int) -> Path:
-    out, G = result.out, result.graph
-    lines = ["# tie-to-als report", "", f"- manifest: `{manifest.source}`",
-             f"- region solved in ALS CRS minus offset ({', '.join(f'{v:.0f}' for v in result.offset)})",
-             f"- plot -> ALS registrations: {len(result.anchors)} ({result.computed} run now, rest cached)", ""]
-    if result.unplaced:
-        lines += [f"**Not placed**: {', '.join(result.unplaced)}", ""]
-    lines += ["## Anchors (plot -> ALS)", "",
-              "| plot | reference scan | status | fitness | inlier RMSE (cm) | overlap | ALS crop | anchor residual (cm / deg) |",
-              "|---|---|---|---|---|---|---|---|"]
-    for a in result.anchors:
-        r = a.residual
-        res = "-" if not r else f"{r['translation'] * 100:.2f} / {r['rotation_deg']:.3f}"
-        status = a.status if a.status == "ok" else f"failed: {a.error}"
-        lines.append(f"| {a.plot} | {a.reference} | {status} | {rep._fmt(a.fitness, 1, 3)} | {rep._fmt(a.inlier_rmse, 100, 2)} "
-                     f"| {rep._fmt(a.overlap, 1, 3)} | {a.crop} | {res} |")
-    lines += ["", "## Poses (ALS CRS)", ""]
-    lines += rep.pose_table([s.id for s in manifest.scans], {k: v.transform for k, v in result.poses.scans.items()},
-                            {k: v.sigma for k, v in result.poses.scans.items()})
-    lines += ["", "## Edges", ""] + rep.edge_table(G) + [""]
-    poses = {k: v.transform for k, v in result.poses.scans.items()}
-    paths = {s.id: manifest.resolve(s.path) for s in manifest.scans}
-    clouds = rep.sample_clouds(paths, poses, config.report_points, seed, lambda p: read_cloud(p, attributes=False).xyz)
-    rng = np.random.default_rng(seed)
-    als_xyz = als.xyz if len(als) <= 50_000 else als.xyz[rng.choice(len(als), 50_000, replace=False)]
-    png = rep.plot_scans(out / "region_scans.png", {"ALS": als_xyz, **clouds}, "region: ALS and scans in the ALS CRS",
-                         origin=result.offset)
-    lines += [f"![region]({png.name})", ""]
-    return write_text_atomic(out / "report.md", "\n".join(lines))
-
+# the report (report.md + report.html) is H-report's: plotmosaic/graph/report.py
+from plotmosaic.graph.report import write_tie_report  # noqa: E402

@@ -166,40 +166,5 @@ def _read_xyz(path: Path) -> np.ndarray:
     return read_cloud(path, attributes=False).xyz
 
 
-def write_register_report(result: RegisterResult, manifest: Manifest, config: RegisterConfig, seed: int) -> Path:
-    out, G = result.out, result.graph
-    kept = sum(1 for *_, e in G.edges(data=True) if not e.get("dropped"))
-    dropped = G.number_of_edges() - kept
-    lines = [
-        "# register-plot report", "",
-        f"- manifest: `{manifest.source}`",
-        f"- pairs: {result.pairs} ({result.computed} registered in this run, {result.pairs - result.computed} from the cache)",
-        f"- edges: {kept} kept, {dropped} dropped, {len(result.failed)} pairs failed",
-        f"- time: {result.seconds:.1f} s", "",
-    ]
-    if result.unplaced:
-        lines += [f"**Not placed** (no pair left linking them to the reference): {', '.join(result.unplaced)}", ""]
-    for r in result.plots:
-        sub = G.subgraph(r.scans)
-        s = rep.residual_summary(sub)
-        lines += [f"## Plot {r.plot}", "", f"Reference scan (plot frame): **{r.reference}**.", ""]
-        if r.unplaced:
-            lines += [f"Not placed: **{', '.join(r.unplaced)}**.", ""]
-        if r.solution.dropped:
-            lines += ["Dropped edges (inconsistent): " + ", ".join(f"{d['source']} -> {d['target']} ({d['reason']})" for d in r.solution.dropped), ""]
-        if s["edges"]:
-            lines += [f"Kept-edge residuals after optimisation: translation RMS {s['translation_rms'] * 100:.2f} cm "
-                      f"(max {s['translation_max'] * 100:.2f}), rotation RMS {s['rotation_rms_deg']:.3f} deg "
-                      f"(max {s['rotation_max_deg']:.3f}).", ""]
-        lines += ["### Poses", ""] + rep.pose_table(r.scans, r.solution.poses, r.solution.sigmas) + [""]
-        lines += ["### Edges", "", "Residuals before = at the spanning-tree initialisation, after = at the optimised poses.", ""]
-        lines += rep.edge_table(sub) + [""]
-        failed = [f for f in result.failed if f["source"] in r.scans]
-        if failed:
-            lines += ["### Failed pairs", ""] + [f"- {f['source']} -> {f['target']}: {f.get('error')}" for f in failed] + [""]
-        paths = {n: Path(G.nodes[n]["path"]) for n in r.scans}
-        clouds = rep.sample_clouds(paths, r.solution.poses, config.report_points, seed, _read_xyz)
-        scans_png = rep.plot_scans(out / f"{r.plot}_scans.png", clouds, f"plot {r.plot}: scans in the plot frame")
-        graph_png = rep.plot_graph(out / f"{r.plot}_graph.png", sub, r.solution.poses, f"plot {r.plot}: pose graph")
-        lines += [f"![scans]({scans_png.name})", "", f"![graph]({graph_png.name})", ""]
-    return write_text_atomic(out / "report.md", "\n".join(lines))
+# the report (report.md + report.html) is H-report's: plotmosaic/graph/report.py
+from plotmosaic.graph.report import write_register_report  # noqa: E402

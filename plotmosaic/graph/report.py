@@ -12,7 +12,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import networkx as nx  # noqa: E402
 import numpy as np  # noqa: E402
 
-from plotmosaic.io.atomic import atomic_output  # noqa: E402
+from plotmosaic.io.atomic import atomic_output, write_text_atomic  # noqa: E402
 from plotmosaic.io.frame import apply_transform  # noqa: E402
 
 
@@ -150,3 +150,150 @@ def residual_summary(G: nx.Graph) -> dict:
     return {"edges": len(kept), "translation_rms": float(np.sqrt(np.mean(t**2))), "translation_max": float(t.max()),
             "rotation_rms_deg": float(np.sqrt(np.mean(r**2))), "rotation_max_deg": float(r.max())}
 
+
+
+# ---------------------------------------------------------------- report.md + report.html of a run
+
+
+def _read_scan(path: Path) -> np.ndarray:
+    from plotmosaic.io.las import read_cloud
+
+    return read_cloud(path, attributes=False).xyz
+
+
+def _pair_seconds(G: nx.Graph, nodes: list[str] | None = None) -> tuple[float | None, int]:
+    """Sum of the recorded per-pair times over the graph's edges (cached pairs keep their first run's time)."""
+    sub = G if nodes is None else G.subgraph(nodes)
+    secs = [e["seconds"] for *_, e in sub.edges(data=True) if isinstance(e.get("seconds"), (int, float))]
+    return (float(sum(secs)) if secs else None), len(secs)
+
+
+def _md_figures(figures: list[tuple[str, str, Path]], plot: str) -> list[str]:
+    lines = []
+    for p, caption, png in figures:
+        if p == plot:
+            lines += [f"![{caption}]({png.name})", ""]
+    return lines
+
+
+def write_register_report(result, manifest, config, seed: int, reader: Callable[[Path], np.ndarray] | None = None) -> Path:
+    """report.md (tables, pictures) and report.html (summary, breast-height slice, distances, map) of register-plot."""
+    from plotmosaic.graph.posegraph import PoseGraphConfig
+    from plotmosaic.report.build import ReportInput, Stage, build_report
+    from plotmosaic.report.config import ReportConfig
+
+    out, G = result.out, result.graph
+    kept = sum(1 for *_, e in G.edges(data=True) if not e.get("dropped"))
+    dropped = G.number_of_edges() - kept
+    lines = [
+        "# register-plot report", "",
+        f"- manifest: `{manifest.source}`",
+        f"- pairs: {result.pairs} ({result.computed} registered in this run, {result.pairs - result.computed} from the cache)",
+        f"- edges: {kept} kept, {dropped} dropped, {len(result.failed)} pairs failed",
+        f"- time: {result.seconds:.1f} s", "",
+        "The same in one page, with the breast-height slice, cloud-to-cloud distances and a map: [report.html](report.html)", "",
+    ]
+    if result.unplaced:
+        lines += [f"**Not placed** (no pair left linking them to the reference): {', '.join(result.unplaced)}", ""]
+    poses = {n: T for r in result.plots for n, T in r.solution.poses.items()}
+    pair_s, n_timed = _pair_seconds(G)
+    stages = [
+        Stage("pairwise registration", pair_s, f"sum of the per-pair times of {n_timed} pairs ({result.computed} run now, "
+              "the rest from the cache); the pairs ran in parallel, so the wall time is shorter"),
+        Stage("register-plot until this report", result.seconds, "pairs, pose graph and its checks, poses.json"),
+    ]
+    tables = []
+    for r in result.plots:
+        tables += [(f"Plot {r.plot}: poses (plot frame)", pose_table(r.scans, r.solution.poses, r.solution.sigmas)),
+                   (f"Plot {r.plot}: edges", edge_table(G.subgraph(r.scans)))]
+    inp = ReportInput(
+        title="register-plot report", out=out, graph=G, poses=poses,
+        paths={n: Path(G.nodes[n]["path"]) for n in G.nodes if "path" in G.nodes[n]},
+        plots={r.plot: r.scans for r in result.plots}, reader=reader or _read_scan, stages=stages,
+        unplaced=result.unplaced, failed=result.failed, tables_md=tables,
+        facts=[f"manifest: {manifest.source}", "frame: the plot frame (each plot's reference scan)"],
+        min_confidence=getattr(getattr(config, "graph", None), "min_confidence", PoseGraphConfig().min_confidence),
+        bundle=residual_summary(G))
+    cfg = ReportConfig(picture_points=getattr(config, "report_points", 20_000))
+    html_path, figures = build_report(inp, cfg, seed, overview=True)
+    for r in result.plots:
+        sub = G.subgraph(r.scans)
+        s = residual_summary(sub)
+        lines += [f"## Plot {r.plot}", "", f"Reference scan (plot frame): **{r.reference}**.", ""]
+        if r.unplaced:
+            lines += [f"Not placed: **{', '.join(r.unplaced)}**.", ""]
+        if r.solution.dropped:
+            lines += ["Dropped edges (inconsistent): " + ", ".join(f"{d['source']} -> {d['target']} ({d['reason']})" for d in r.solution.dropped), ""]
+        if s["edges"]:
+            lines += [f"Kept-edge residuals after optimisation: translation RMS {s['translation_rms'] * 100:.2f} cm "
+                      f"(max {s['translation_max'] * 100:.2f}), rotation RMS {s['rotation_rms_deg']:.3f} deg "
+                      f"(max {s['rotation_max_deg']:.3f}).", ""]
+        lines += ["### Poses", ""] + pose_table(r.scans, r.solution.poses, r.solution.sigmas) + [""]
+        lines += ["### Edges", "", "Residuals before = at the spanning-tree initialisation, after = at the optimised poses.", ""]
+        lines += edge_table(sub) + [""]
+        failed = [f for f in result.failed if f["source"] in r.scans]
+        if failed:
+            lines += ["### Failed pairs", ""] + [f"- {f['source']} -> {f['target']}: {f.get('error')}" for f in failed] + [""]
+        graph_png = plot_graph(out / f"{r.plot}_graph.png", sub, r.solution.poses, f"plot {r.plot}: pose graph")
+        lines += _md_figures(figures, r.plot) + [f"![graph]({graph_png.name})", ""]
+    return write_text_atomic(out / "report.md", "\n".join(lines))
+
+
+def write_tie_report(result, manifest, als, config, seed: int, reader: Callable[[Path], np.ndarray] | None = None) -> Path:
+    """report.md and report.html of tie-to-als: anchors, poses in the ALS CRS, slice and distances, map over the ALS CHM."""
+    from plotmosaic.graph.posegraph import PoseGraphConfig
+    from plotmosaic.report.build import ReportInput, Stage, build_report
+    from plotmosaic.report.config import ReportConfig
+
+    out, G = result.out, result.graph
+    lines = ["# tie-to-als report", "", f"- manifest: `{manifest.source}`",
+             f"- region solved in ALS CRS minus offset ({', '.join(f'{v:.0f}' for v in result.offset)})",
+             f"- plot -> ALS registrations: {len(result.anchors)} ({result.computed} run now, rest cached)", "",
+             "The same in one page, with the breast-height slice, cloud-to-cloud distances and a map over the ALS "
+             "canopy height: [report.html](report.html)", ""]
+    if result.unplaced:
+        lines += [f"**Not placed**: {', '.join(result.unplaced)}", ""]
+    anchor_rows = ["| plot | reference scan | status | fitness | inlier RMSE (cm) | overlap | ALS crop | anchor residual (cm / deg) |",
+                   "|---|---|---|---|---|---|---|---|"]
+    for a in result.anchors:
+        r = a.residual
+        res = "-" if not r else f"{r['translation'] * 100:.2f} / {r['rotation_deg']:.3f}"
+        status = a.status if a.status == "ok" else f"failed: {a.error}"
+        anchor_rows.append(f"| {a.plot} | {a.reference} | {status} | {_fmt(a.fitness, 1, 3)} | {_fmt(a.inlier_rmse, 100, 2)} "
+                           f"| {_fmt(a.overlap, 1, 3)} | {a.crop} | {res} |")
+    pose_rows = pose_table([s.id for s in manifest.scans], {k: v.transform for k, v in result.poses.scans.items()},
+                           {k: v.sigma for k, v in result.poses.scans.items()})
+    edge_rows = edge_table(G)
+    lines += ["## Anchors (plot -> ALS)", "", *anchor_rows, "", "## Poses (ALS CRS)", "", *pose_rows, "",
+              "## Edges", "", *edge_rows, ""]
+    poses = {k: v.transform for k, v in result.poses.scans.items()}
+    plots = {p.id: [s.id for s in p.scans] for p in manifest.plots}
+    anchor_s = [e.get("seconds") for *_, e in G.edges(data=True) if e.get("anchor") and isinstance(e.get("seconds"), (int, float))]
+    stages = [Stage("plot -> ALS registration", float(sum(anchor_s)) if anchor_s else None,
+                    f"sum of the per-pair times of {len(anchor_s)} anchor pairs ({result.computed} run now)"),
+              Stage("tie-to-als until this report", result.seconds or None,
+                    "" if result.seconds else "tie-to-als does not record its time before the report is written")]
+    als_xyz = _als_near(als.xyz, poses, 40.0)
+    inp = ReportInput(
+        title="tie-to-als report (georeferenced)", out=out, graph=G, poses=poses,
+        paths={s.id: manifest.resolve(s.path) for s in manifest.scans}, plots=plots, reader=reader or _read_scan,
+        stages=stages, unplaced=result.unplaced,
+        tables_md=[("Anchors (plot -> ALS)", anchor_rows), ("Poses (ALS CRS)", pose_rows), ("Edges", edge_rows)],
+        facts=[f"manifest: {manifest.source}", "frame: the ALS CRS"], als_xyz=als_xyz,
+        min_confidence=getattr(getattr(config, "graph", None), "min_confidence", PoseGraphConfig().min_confidence),
+        bundle=residual_summary(G))
+    cfg = ReportConfig(picture_points=getattr(config, "report_points", 20_000))
+    _, figures = build_report(inp, cfg, seed, overview=True)
+    for p in plots:
+        lines += _md_figures(figures, p)
+    return write_text_atomic(out / "report.md", "\n".join(lines))
+
+
+def _als_near(als_xyz: np.ndarray, poses: dict[str, np.ndarray], margin: float) -> np.ndarray | None:
+    """ALS points within `margin` of the scanners' bounding box: the map's canopy-height background."""
+    if not len(als_xyz) or not poses:
+        return None
+    xy = np.array([T[:2, 3] for T in poses.values()])
+    lo, hi = xy.min(axis=0) - margin, xy.max(axis=0) + margin
+    keep = np.all((als_xyz[:, :2] >= lo) & (als_xyz[:, :2] <= hi), axis=1)
+    return als_xyz[keep] if keep.sum() >= 100 else None

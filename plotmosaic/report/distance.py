@@ -1,0 +1,56 @@
+"""Cloud-to-cloud distances of registered scans: each source point to the target's local surface."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from plotmosaic.report.config import DistanceConfig
+from plotmosaic.report.slice import flat_keys
+
+
+def thin(xyz: np.ndarray, voxel: float, cap: int, rng: np.random.Generator) -> np.ndarray:
+    """One random point per `voxel` cube (not a centroid, which would smooth a surface), at most `cap`."""
+    if not len(xyz):
+        return xyz
+    perm = rng.permutation(len(xyz))
+    keys = np.floor((xyz[perm] - xyz.min(axis=0)) / voxel).astype(np.int64)
+    _, first = np.unique(flat_keys(keys), return_index=True)
+    idx = np.sort(perm[first])
+    if len(idx) > cap:
+        idx = np.sort(rng.choice(idx, cap, replace=False))
+    return xyz[idx]
+
+
+def edge_distances(source: str, target: str, clouds: dict[str, np.ndarray], trees: dict, cfg: DistanceConfig) -> dict:
+    """Distance of each source point to the plane through its nearest target points, in the overlap.
+
+    The overlap is where the target is dense around the source point (all `neighbours` within
+    `neighbourhood`): elsewhere a nearest-neighbour distance measures the other scan's point spacing
+    (foliage, far ground), not the registration. The local plane (CloudCompare's C2C with a local
+    model) takes the target's sampling out of the figure, so a few millimetres mean aligned.
+    """
+    if target not in trees:
+        trees[target] = cKDTree(clouds[target])
+    src = clouds[source]
+    tgt = clouds[target]
+    _, idx = trees[target].query(src, k=cfg.neighbours, distance_upper_bound=cfg.neighbourhood)
+    ok = (idx < len(tgt)).all(axis=1)
+    p, nb = src[ok], tgt[idx[ok]]
+    centre = nb.mean(axis=1)
+    q = nb - centre[:, None, :]
+    _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", q, q))
+    normal = vecs[:, :, 0]  # the smallest eigenvector: the local plane's normal
+    d = np.abs(np.einsum("ni,ni->n", p - centre, normal))
+    return {"source": source, "target": target, "distances": d, "points": p, "max_distance": 2 * cfg.colour_max,
+            "median": float(np.median(d)) if len(d) else float("nan"),
+            "p90": float(np.quantile(d, 0.9)) if len(d) else float("nan"), "share": float(ok.mean()) if len(ok) else 0.0}
+
+
+def scan_medians(edges: list[dict]) -> dict[str, float]:
+    """Per scan, the median distance pooled over its kept edges (both ends of an edge share its distances)."""
+    pooled: dict[str, list[np.ndarray]] = {}
+    for e in edges:
+        for s in (e["source"], e["target"]):
+            pooled.setdefault(s, []).append(e["distances"])
+    return {s: float(np.median(np.concatenate(v))) for s, v in sorted(pooled.items()) if sum(map(len, v))}
