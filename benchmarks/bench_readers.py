@@ -1,18 +1,25 @@
 """E57 readers compared: pye57 (libE57Format) vs `e57` (Rust), plus plotmosaic's chunked reader.
 
 Each case runs in its own process under `/usr/bin/time -v`: whole-process wall time and peak RSS,
-beside the time spent inside the read call (printed by the child). Run:
+beside the time spent inside the read call (printed by the child). `e57` is not a plotmosaic
+dependency: `.venv/bin/pip install e57` first (its rows are skipped without it). Run:
 
     nice -n 10 .venv/bin/python benchmarks/bench_readers.py [FILE.e57] [--repeat 3]
+    nice -n 10 .venv/bin/python benchmarks/bench_readers.py --big 10000000 --repeat 1   # memory bound
+
+`--big N` writes an N-point scan (pye57, single-precision xyz + intensity) to a temporary folder and
+compares reading it whole with streaming it block by block (peak memory should stay flat).
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import re
 import statistics
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "e57" / "pumpAVisualReferenceImage.e57"
@@ -35,6 +42,31 @@ CASES = {
 }
 
 
+BIG_CASES = {
+    "python + numpy only (baseline)": CASES["python + numpy only (baseline)"],
+    "pye57 read_scan_raw (whole scan)": CASES["pye57 read_scan_raw (all fields)"],
+    "plotmosaic read_cloud (whole scan, float64)": (
+        "from plotmosaic.io.las import read_cloud; t0 = time.perf_counter(); n = len(read_cloud(F))"
+    ),
+    "plotmosaic iter_chunks (streamed, 1M-point blocks)": (
+        "from plotmosaic.io.las import iter_chunks; t0 = time.perf_counter(); n = sum(len(c) for c in iter_chunks(F))"
+    ),
+}
+
+
+def write_big(folder: Path, n: int) -> Path:
+    import numpy as np
+    import pye57
+
+    rng = np.random.default_rng(0)
+    path = folder / "big.e57"
+    with pye57.E57(str(path), mode="w") as e57:
+        xyz = rng.uniform(-50, 50, (n, 3))
+        e57.write_scan_raw({"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2],
+                            "intensity": rng.uniform(0, 1, n)}, name="big")
+    return path
+
+
 def run_case(code: str, path: Path) -> tuple[float, float, float, int]:
     script = f"import time\nF = {str(path)!r}\n{code}\nprint('READ', time.perf_counter() - t0, n)"
     proc = subprocess.run(["/usr/bin/time", "-v", sys.executable, "-c", script], capture_output=True, text=True, check=True)
@@ -50,12 +82,23 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("file", nargs="?", type=Path, default=DEFAULT)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--big", type=int, default=0, help="write and read an N-point scan instead")
     args = ap.parse_args()
-    print(f"file: {args.file} ({args.file.stat().st_size / 1e6:.1f} MB), median of {args.repeat} runs")
+    with tempfile.TemporaryDirectory() as tmp:
+        path, cases = (write_big(Path(tmp), args.big), BIG_CASES) if args.big else (args.file, CASES)
+        table(path, cases, args.repeat)
+
+
+def table(path: Path, cases: dict[str, str], repeat: int) -> None:
+    print(f"file: {path} ({path.stat().st_size / 1e6:.1f} MB), median of {repeat} runs")
     print("| reader | points | process wall s | read call s | peak RSS MB |")
     print("|---|---:|---:|---:|---:|")
-    for name, code in CASES.items():
-        runs = [run_case(code, args.file) for _ in range(args.repeat)]
+    for name, code in cases.items():
+        module = code.split()[1].split(".")[0].rstrip(";")
+        if importlib.util.find_spec(module) is None:
+            print(f"| {name} | not installed | | | |")
+            continue
+        runs = [run_case(code, path) for _ in range(repeat)]
         wall, rss, read = (statistics.median(r[i] for r in runs) for i in range(3))
         print(f"| {name} | {runs[0][3]:,} | {wall:.2f} | {read:.3f} | {rss:.0f} |")
 

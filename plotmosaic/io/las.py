@@ -221,14 +221,25 @@ _OTHER_INFO: dict[tuple[str, int, int], HeaderInfo] = {}
 
 
 def _read_other(path: Path, attributes: bool | Iterable[str], min_points: int) -> PointCloud:
-    """E57 / PLY: the chunks concatenated (E57 point counts shrink by the invalid points)."""
-    chunks = list(iter_chunks(path, attributes=attributes))
-    n = sum(len(c) for c in chunks)
+    """E57 / PLY: the chunks copied into arrays of the record count, cut to the valid points."""
+    count = e57.resolve_scan(path)[1].point_count if file_format(path) == "e57" else ply.point_count(path)
+    xyz = np.empty((count, 3), dtype=np.float64)
+    attrs: dict[str, np.ndarray] = {}
+    n = 0
+    for chunk in iter_chunks(path, attributes=attributes):
+        m = len(chunk)
+        if n + m > count:
+            raise InputError(f"{path}: holds more points than its header says ({count})")
+        xyz[n : n + m] = chunk.xyz
+        for name, values in chunk.attrs.items():
+            if name not in attrs:
+                attrs[name] = np.empty(count, dtype=values.dtype)
+            attrs[name][n : n + m] = values
+        n += m
     if n == 0:
         raise InputError(f"{path}: contains no valid points")
-    xyz = np.concatenate([c.xyz for c in chunks])
-    attrs = {k: np.concatenate([c.attrs[k] for c in chunks]) for k in chunks[0].attrs}
-    del chunks
+    if n < count:  # invalid points dropped: copy, so the cut-off rows are freed
+        xyz, attrs = xyz[:n].copy(), {k: v[:n].copy() for k, v in attrs.items()}
     if not np.isfinite(xyz).all():
         bad = ~np.isfinite(xyz).all(axis=1)
         raise InputError(f"{path}: {int(bad.sum())} points have NaN or infinite coordinates")
