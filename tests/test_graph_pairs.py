@@ -40,7 +40,8 @@ def test_cache_key_follows_content_and_settings(tmp_path):
     assert file_hash(b) != before and pair_key(a, b, "tls", "tls", 3, 3, '{"voxel": 0.05}', 0) != key
     cache = PairCache(tmp_path / "pairs")
     assert cache.get(key) is None
-    cache.put(key, {"status": "ok", "transform": np.eye(4).tolist()})
+    cache.put(key, {"key": key, "source": "s1", "target": "s0", "status": "ok", "transform": np.eye(4).tolist(),
+                    "information": np.eye(6).tolist(), "fitness": 0.5, "inlier_rmse": 0.01, "overlap": 0.5})
     (tmp_path / "pairs" / "broken.json").write_text('{"status": "o')  # e.g. a file cut short by hand
     assert cache.get(key)["status"] == "ok" and cache.get("broken") is None and cache.writes == 1
 
@@ -86,3 +87,37 @@ def test_tie_to_als_needs_als_tile(tmp_path):
     Poses({"a": ScanPose(np.eye(4), "plot")}).save(tmp_path / "poses.json")
     result = runner.invoke(app, ["tie-to-als", str(manifest), "--poses", str(tmp_path / "poses.json"), "--out", str(tmp_path / "g")])
     assert result.exit_code == 2 and "als" in result.output.lower() and "Traceback" not in result.output
+
+
+def _grid_plot(side, spacing=15.0, seed=0):
+    rng = np.random.default_rng(seed)
+    pos = [(i * spacing + rng.normal(0, 1), j * spacing + rng.normal(0, 1), 0.0) for i in range(side) for j in range(side)]
+    return _plot(pos)
+
+
+def test_big_plot_pairs_grow_linearly_connected_with_loops():
+    import networkx as nx
+
+    counts = {}
+    for side in (3, 5, 7):
+        plot = _grid_plot(side)
+        pairs = candidate_pairs(plot, 60.0)
+        G = nx.Graph([(s.id, t.id) for s, t in pairs])
+        n = side * side
+        counts[n] = len(pairs)
+        assert set(G.nodes) == {s.id for s in plot.scans} and nx.is_connected(G)
+        assert max(d for _, d in G.degree()) <= 8  # at most 8 pairs a scan
+        assert min(nx.triangles(G).values()) >= 1  # every scan closes a loop: its edges can be checked
+        assert all(plot.scans.index(s) > plot.scans.index(t) for s, t in pairs)  # later scan is the source
+    assert counts[9] <= 36 and counts[49] <= 4 * 49 and counts[49] / 49 <= 1.2 * counts[25] / 25
+    assert counts[49] < 49 * 48 / 2 / 5  # all pairs would be 1176
+
+
+def test_small_plot_keeps_every_pair_and_far_groups_stay_apart():
+    assert len(candidate_pairs(_grid_plot(2), 60.0)) == 6  # <= 8 scans: all pairs, as for the paper's five
+    from plotmosaic.graph.pairs import neighbour_pairs
+
+    xy = np.array([(x, y) for x in range(0, 60, 15) for y in range(0, 45, 15)] + [(x + 1000, 0) for x in range(0, 45, 15)])
+    pairs = neighbour_pairs(xy, 6, 8, 60.0)
+    assert not any(i < 12 <= j for i, j in pairs)  # 1 km away: not linked, reported unplaced instead
+    assert len(neighbour_pairs(xy, 6, 8, None)) > len(pairs)  # without a distance cap the groups are joined

@@ -1,7 +1,10 @@
-"""Candidate pairs within a plot: every pair whose footprints can overlap.
+"""Candidate pairs within a plot: all pairs of a small plot, neighbours only in a big one.
 
-With approximate positions for all scans of a plot (in one frame) a pair is kept when the scanners
-stood at most `max_distance` apart; without them every pair in the plot is tried.
+A small plot (at most `all_pairs_up_to` scans) tries every pair, or with approximate positions every
+pair whose scanners stood at most `max_distance` apart. A bigger plot with positions (from the
+manifest or from placing each scan on the ALS) registers each scan with its nearest neighbours
+only: at most `max_per_scan` pairs a scan, so the pairs grow linearly with the scans, and the
+graph is kept connected (loops come from the neighbours: each scan has several).
 """
 
 from __future__ import annotations
@@ -9,19 +12,107 @@ from __future__ import annotations
 from itertools import combinations
 
 import numpy as np
+from pydantic import BaseModel, Field
+from scipy.spatial import cKDTree
 
 from plotmosaic.manifest import Plot, Scan
 
 
-def candidate_pairs(plot: Plot, max_distance: float | None = None) -> list[tuple[Scan, Scan]]:
-    """(source, target) pairs; the later scan in the manifest is the source."""
+class PairSelection(BaseModel):
+    """How register-plot chooses the pairs to register."""
+
+    all_pairs_up_to: int = Field(8, ge=2, le=64, description="plots of at most this many scans try every pair")
+    neighbours: int = Field(6, ge=2, le=16, description="nearest scans each scan of a big plot is paired with")
+    max_per_scan: int = Field(8, ge=2, le=16, description="cap on the pairs of one scan (linear growth)")
+
+
+def manifest_positions(plot: Plot) -> dict[str, np.ndarray] | None:
+    """Approximate positions of every scan, when all are given in one frame; else None."""
+    frames = {s.approx_position_frame for s in plot.scans}
+    if len(frames) != 1 or any(s.approx_position is None for s in plot.scans):
+        return None
+    return {s.id: np.asarray(s.approx_position, dtype=np.float64) for s in plot.scans}
+
+
+class _Components:
+    def __init__(self, n: int):
+        self.parent = list(range(n))
+
+    def find(self, i: int) -> int:
+        while self.parent[i] != i:
+            self.parent[i] = self.parent[self.parent[i]]
+            i = self.parent[i]
+        return i
+
+    def join(self, i: int, j: int) -> bool:
+        a, b = self.find(i), self.find(j)
+        if a == b:
+            return False
+        self.parent[max(a, b)] = min(a, b)
+        return True
+
+
+def neighbour_pairs(xy: np.ndarray, neighbours: int = 6, max_per_scan: int = 8,
+                    max_distance: float | None = None) -> list[tuple[int, int]]:
+    """Index pairs (i < j): each point's nearest neighbours, shortest first, at most `max_per_scan` per point,
+    then the shortest links that join what is still apart. O(N log N) with a KD-tree."""
+    xy = np.asarray(xy, dtype=np.float64)[:, :2]
+    n = len(xy)
+    if n < 2:
+        return []
+    tree = cKDTree(xy)
+    k = min(n, neighbours + 1)
+    dist, idx = tree.query(xy, k=k)
+    candidates = sorted({(float(d), min(i, int(j)), max(i, int(j)))
+                         for i in range(n) for d, j in zip(dist[i, 1:], idx[i, 1:])
+                         if max_distance is None or d <= max_distance})
+    degree = np.zeros(n, dtype=int)
+    chosen: set[tuple[int, int]] = set()
+    comps = _Components(n)
+    for _, i, j in candidates:
+        if degree[i] < max_per_scan and degree[j] < max_per_scan:
+            chosen.add((i, j))
+            degree[i] += 1
+            degree[j] += 1
+            comps.join(i, j)
+    # what the caps (or max_distance) left apart: join components by their closest scans
+    while True:
+        roots = np.array([comps.find(i) for i in range(n)])
+        groups = np.unique(roots)
+        if len(groups) == 1:
+            break
+        best = None
+        members = np.flatnonzero(roots == groups[0])  # the first component to its nearest other scan
+        others = np.flatnonzero(roots != groups[0])
+        d, j = cKDTree(xy[others]).query(xy[members], k=1)
+        m = int(np.argmin(d))
+        best = (int(members[m]), int(others[j[m]]))
+        if max_distance is not None and d[m] > max_distance:
+            break  # truly apart (another plot, a wrong position): the pose graph reports them unplaced
+        i, j2 = min(best), max(best)
+        chosen.add((i, j2))
+        comps.join(i, j2)
+    return sorted(chosen)
+
+
+def candidate_pairs(plot: Plot, max_distance: float | None = None, positions: dict[str, np.ndarray] | None = None,
+                    selection: PairSelection | None = None) -> list[tuple[Scan, Scan]]:
+    """(source, target) pairs; the later scan in the manifest is the source.
+
+    `positions`: scan id -> position in one frame (default: the manifest's approximate positions).
+    """
+    selection = selection or PairSelection()
     scans = plot.scans
-    frames = {s.approx_position_frame for s in scans}
-    known = all(s.approx_position is not None for s in scans) and len(frames) == 1
+    positions = positions if positions is not None else manifest_positions(plot)
+    known = positions is not None and all(s.id in positions for s in scans)
+    if known and len(scans) > selection.all_pairs_up_to:
+        xy = np.array([positions[s.id][:2] for s in scans])
+        pairs = neighbour_pairs(xy, selection.neighbours, selection.max_per_scan, max_distance)
+        return [(scans[j], scans[i]) for i, j in pairs]
     pairs = []
     for target, source in combinations(scans, 2):
         if known and max_distance is not None:
-            d = np.linalg.norm(np.subtract(source.approx_position, target.approx_position)[:2])
+            d = np.linalg.norm(np.subtract(positions[source.id], positions[target.id])[:2])
             if d > max_distance:
                 continue
         pairs.append((source, target))
