@@ -88,3 +88,10 @@ def test_real_clips_read_correctly(spanner_dir, name):
         assert cloud.crs is not None and "UTM zone 12N" in cloud.crs.name
     else:
         assert {"red", "green", "blue"} <= set(cloud.attrs)
+
+
+def test_unknown_suffix_names_the_formats(tmp_path):
+    from helpers import assert_one_line_error, invoke
+
+    (tmp_path / "cloud.xyz").write_text("1 2 3\n")
+    assert_one_line_error(invoke("info", tmp_path / "cloud.xyz"), "cloud.xyz", ".las, .laz, .e57 or .ply")

@@ -111,3 +111,27 @@ def test_safe_ids_and_bom(scans):
     raw = scans / "bom.toml"
     raw.write_bytes(b"\xef\xbb\xbf" + REGION.encode())
     assert [p.id for p in load_manifest(raw).plots] == ["P1", "P2"]
+
+
+@pytest.mark.parametrize("extra, field", [("scan = 1\n", "scan"), ("use_pose = true\n", "use_pose"), ("scan = -1\n", "scan")])
+def test_e57_fields_on_other_files_name_the_field(scans, extra, field):
+    path = write(scans, 'plot_id = "P1"\n[[scans]]\nid = "a"\npath = "a.laz"\n' + extra)
+    with pytest.raises(InputError) as err:
+        load_manifest(path)
+    assert str(path) in str(err.value) and f"field '{field}'" in str(err.value)
+
+
+def test_e57_scan_dump_round_trip(tmp_path):
+    """scan (index or name) and use_pose survive dump_manifest; the loaded path names the scan."""
+    import pye57
+    rng = np.random.default_rng(1)
+    with pye57.E57(str(tmp_path / "p.e57"), mode="w") as e57:
+        for name in ("north", "south"):
+            xyz = rng.uniform(-5, 5, (100, 3))
+            e57.write_scan_raw({"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2]}, name=name)
+    m = load_manifest(write(tmp_path, 'plot_id = "P"\n[[scans]]\nid = "n"\npath = "p.e57"\nscan = "north"\nuse_pose = true\n'
+                                      '[[scans]]\nid = "s"\npath = "p.e57"\nscan = 1\n'))
+    assert [s.path.name for s in m.scans] == ["p.e57#0", "p.e57#1"] and m.scan("n").use_pose
+    again = load_manifest(write(tmp_path, dump_manifest(m), "again.toml"))
+    assert again.model_dump(exclude={"source"}) == m.model_dump(exclude={"source"})
+    assert 'scan = "north"' in dump_manifest(m) and 'path = "p.e57"' in dump_manifest(m)
