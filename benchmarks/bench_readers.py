@@ -31,13 +31,15 @@ CASES = {
     ),
     "pye57 read_scan (xyz+intensity+colour, invalid dropped)": (
         "import pye57; t0 = time.perf_counter(); "
-        "d = pye57.E57(F).read_scan(0, intensity=True, colors=True, ignore_missing_fields=True); n = len(d['cartesianX'])"
+        "d = pye57.E57(F).read_scan(0, intensity=True, colors=True, ignore_missing_fields=True); "
+        "n = len(d['cartesianX'])"
     ),
     "e57 read_points (xyz+intensity+colour)": (
         "import e57; t0 = time.perf_counter(); d = e57.read_points(F); n = len(d.points)"
     ),
     "plotmosaic iter_e57_chunks (pye57, 1M-point blocks)": (
-        "from plotmosaic.io.e57 import iter_e57_chunks; t0 = time.perf_counter(); n = sum(len(c) for c in iter_e57_chunks(F))"
+        "from plotmosaic.io.e57 import iter_e57_chunks; t0 = time.perf_counter(); "
+        "n = sum(len(xyz) for xyz, _ in iter_e57_chunks(F))"
     ),
 }
 
@@ -62,14 +64,23 @@ def write_big(folder: Path, n: int) -> Path:
     path = folder / "big.e57"
     with pye57.E57(str(path), mode="w") as e57:
         xyz = rng.uniform(-50, 50, (n, 3))
-        e57.write_scan_raw({"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2],
-                            "intensity": rng.uniform(0, 1, n)}, name="big")
+        e57.write_scan_raw(
+            {
+                "cartesianX": xyz[:, 0],
+                "cartesianY": xyz[:, 1],
+                "cartesianZ": xyz[:, 2],
+                "intensity": rng.uniform(0, 1, n),
+            },
+            name="big",
+        )
     return path
 
 
 def run_case(code: str, path: Path) -> tuple[float, float, float, int]:
     script = f"import time\nF = {str(path)!r}\n{code}\nprint('READ', time.perf_counter() - t0, n)"
-    proc = subprocess.run(["/usr/bin/time", "-v", sys.executable, "-c", script], capture_output=True, text=True, check=True)
+    proc = subprocess.run(
+        ["/usr/bin/time", "-v", sys.executable, "-c", script], capture_output=True, text=True, check=True
+    )
     read_s, n = proc.stdout.split("READ")[1].split()
     wall = re.search(r"Elapsed \(wall clock\) time.*: (?:(\d+):)?(\d+):([\d.]+)", proc.stderr)
     h, m, s = wall.groups()

@@ -36,7 +36,9 @@ _SAFE_ID = re.compile(r"^[\w.-]+$")
 def check_id(value: str) -> str:
     """An id that is safe as a file name: letters, digits, `-`, `_`, `.`; not `.`/`..`-like."""
     if not _SAFE_ID.match(value) or ".." in value or value.strip(".") == "":
-        raise ValueError(f"{value!r} is not allowed: ids become file names, use letters, digits, '-', '_' and '.' (no '..', no '/')")
+        raise ValueError(
+            f"{value!r} is not allowed: ids become file names, use letters, digits, '-', '_' and '.' (no '..', no '/')"
+        )
     return value
 
 
@@ -311,7 +313,8 @@ def dump_manifest(manifest: Manifest) -> str:
         if plot.crs:
             lines.append(f"crs = {_toml(plot.crs)}")
         for scan in plot.scans:
-            lines += ["", "[[plots.scans]]", f"id = {_toml(scan.id)}", f"path = {_toml(scan.file.as_posix())}", f'kind = "{scan.kind.value}"']
+            lines += ["", "[[plots.scans]]", f"id = {_toml(scan.id)}", f"path = {_toml(scan.file.as_posix())}",
+                      f'kind = "{scan.kind.value}"']
             if scan.scan is not None or scan.file != scan.path:
                 selector = scan.scan if scan.scan is not None else int(str(scan.path).rsplit("#", 1)[1])
                 lines.append(f"scan = {_toml(selector) if isinstance(selector, str) else selector}")

@@ -4,8 +4,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from helpers import assert_one_line_error, invoke
+
 from plotmosaic.io.e57 import list_scans, scan_ref, stored_pose
 from plotmosaic.io.frame import inverse, pose_error
 from plotmosaic.io.las import iter_chunks, open_las, read_cloud, read_header_info
@@ -142,8 +142,10 @@ def test_project_info_lists_scans(project):
 def test_manifest_scan_selection(project, tmp_path):
     path, ids, points, poses, counts = project
     toml = tmp_path / "m.toml"
-    toml.write_text(f'plot_id = "P"\n[[scans]]\nid = "a"\npath = "{path}"\nscan = 2\n'
-                    f'[[scans]]\nid = "b"\npath = "{path}"\nscan = "{ids[0]}"\nuse_pose = true\n')
+    toml.write_text(
+        f'plot_id = "P"\n[[scans]]\nid = "a"\npath = "{path}"\nscan = 2\n'
+        f'[[scans]]\nid = "b"\npath = "{path}"\nscan = "{ids[0]}"\nuse_pose = true\n'
+    )
     m = load_manifest(toml)
     np.testing.assert_array_equal(read_cloud(m.resolve(m.scan("a").path)).xyz, points[ids[2]].astype(np.float32))
     np.testing.assert_array_equal(read_cloud(m.resolve(m.scan("b").path)).xyz, points[ids[0]].astype(np.float32))
@@ -166,12 +168,14 @@ def test_manifest_from_writes_a_valid_manifest(project, tmp_path):
     out = path.parent / "sub" / "plot.toml"
     result = invoke("manifest-from", path, "--out", out, "--plot-id", "P1")
     assert result.exit_code == 0, result.output
-    assert '../plot.e57' not in out.read_text()  # outside the manifest's folder: absolute, no ../ chain
+    assert "../plot.e57" not in out.read_text()  # outside the manifest's folder: absolute, no ../ chain
     for toml in (tmp_path / "stdout.toml", out):
         m = load_manifest(toml)
         assert [s.id for s in m.scans] == ids and m.plots[0].reference.id == ids[0]
         for i, sid in enumerate(ids):
-            np.testing.assert_array_equal(read_cloud(m.resolve(m.scan(sid).path)).xyz, points[ids[i]].astype(np.float32))
+            np.testing.assert_array_equal(
+                read_cloud(m.resolve(m.scan(sid).path)).xyz, points[ids[i]].astype(np.float32)
+            )
     m = load_manifest(tmp_path / "stdout.toml")
     rel = m.pair_prior(ids[1], ids[0])  # scan frame of ids[1] -> scan frame of ids[0]
     np.testing.assert_allclose(rel, np.linalg.inv(poses[ids[0]]) @ poses[ids[1]], atol=1e-9)
@@ -206,8 +210,13 @@ def write_spherical_e57(path: Path, rae: np.ndarray, state: np.ndarray, intensit
         points = libe57.CompressedVectorNode(imf, proto, libe57.VectorNode(imf, True))
         scan.set("points", points)
         e57.data3d.append(scan)
-        arrays = {"sphericalRange": rae[:, 0].copy(), "sphericalAzimuth": rae[:, 1].copy(), "sphericalElevation": rae[:, 2].copy(),
-                  "sphericalInvalidState": state.astype(np.int8), "intensity": intensity.astype(np.uint16)}
+        arrays = {
+            "sphericalRange": rae[:, 0].copy(),
+            "sphericalAzimuth": rae[:, 1].copy(),
+            "sphericalElevation": rae[:, 2].copy(),
+            "sphericalInvalidState": state.astype(np.int8),
+            "intensity": intensity.astype(np.uint16),
+        }
         buffers = libe57.VectorSourceDestBuffer()
         for name, array in arrays.items():
             buffers.append(libe57.SourceDestBuffer(imf, name, array, n, True, True))
@@ -251,7 +260,9 @@ def test_register_plot_from_e57(project, tmp_path):
     if not _cache_takes_scan_refs(path):
         pytest.skip("graph/cache.file_hash does not take E57 scan references (FILE.e57#INDEX) yet")
     toml = tmp_path / "m.toml"
-    toml.write_text('plot_id = "P1"\n' + "".join(f'[[scans]]\nid = "{s}"\npath = "{path}"\nscan = {i}\n' for i, s in enumerate(ids)))
+    toml.write_text(
+        'plot_id = "P1"\n' + "".join(f'[[scans]]\nid = "{s}"\npath = "{path}"\nscan = {i}\n' for i, s in enumerate(ids))
+    )
     result = invoke("register-plot", toml, "--out", tmp_path / "out", "-j", "1")
     assert result.exit_code == 0, result.output
     got = load_poses(tmp_path / "out" / "poses.json")

@@ -2,8 +2,8 @@
 
 import numpy as np
 import pytest
-
 from helpers import assert_one_line_error, invoke
+
 from plotmosaic.io.las import iter_chunks, open_las, read_cloud, read_header_info
 
 
@@ -40,7 +40,9 @@ def test_round_trip_keeps_float64_and_attributes(tmp_path, text):
     np.testing.assert_array_equal(cloud.attrs["intensity_raw"], v["intensity"])  # float64 kept as it is
     assert cloud.attrs["intensity_raw"].dtype == np.float64
     lo, hi = v["intensity"].min(), v["intensity"].max()
-    np.testing.assert_array_equal(cloud.attrs["intensity"], np.rint((v["intensity"] - lo) * 65535 / (hi - lo)).astype(np.uint16))
+    np.testing.assert_array_equal(
+        cloud.attrs["intensity"], np.rint((v["intensity"] - lo) * 65535 / (hi - lo)).astype(np.uint16)
+    )
     for c in ("red", "green", "blue"):  # LAS colour is 16-bit: 8-bit values stretched by 257
         np.testing.assert_array_equal(cloud.attrs[c], v[c].astype(np.uint16) * 257)
     for ply, las in (("nx", "normal_x"), ("ny", "normal_y"), ("nz", "normal_z")):

@@ -4,9 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import typer
-
 import numpy as np
+import typer
 
 from plotmosaic.commands.common import handle_errors
 from plotmosaic.errors import InputError
@@ -55,7 +54,8 @@ def _describe_e57(path: Path, full: bool) -> str:
         if full:
             n = sum(len(xyz) for xyz, _ in iter_e57_chunks(scan_ref(path, s.index), attributes=False))
             valid = f" ({s.point_count - n:,} flagged invalid)" if n != s.point_count else ""
-        lines.append(f"  scan {s.index} {repr(s.name) if s.name else '(no name)'} {s.guid or ''}: {s.point_count:,} points{valid}, {pose_text(s.pose)}")
+        name = repr(s.name) if s.name else "(no name)"
+        lines.append(f"  scan {s.index} {name} {s.guid or ''}: {s.point_count:,} points{valid}, {pose_text(s.pose)}")
     return "\n".join(lines)
 
 

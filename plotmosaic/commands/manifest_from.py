@@ -39,18 +39,24 @@ def manifest_for(e57_path: Path, manifest_dir: Path | None, plot_id: str, kind: 
     absolute = e57_path.resolve()
     inside = manifest_dir is not None and absolute.is_relative_to(manifest_dir.resolve())
     path = Path(os.path.relpath(absolute, manifest_dir.resolve())) if inside else absolute  # no ../../ chains
-    entries = [Scan(id=sid, path=path, kind=kind, scan=s.index, use_pose=use_pose, reference=s.index == 0)
-               for sid, s in zip(scan_ids(scans), scans)]
+    entries = [
+        Scan(id=sid, path=path, kind=kind, scan=s.index, use_pose=use_pose, reference=s.index == 0)
+        for sid, s in zip(scan_ids(scans), scans)
+    ]
     return Manifest(name=f"scans of {e57_path.name}", plots=[Plot(id=plot_id, scans=entries)])
 
 
 @handle_errors
 def manifest_from_command(
     path: Path = typer.Argument(..., help="An E57 file holding one or more scans."),
-    out: Path | None = typer.Option(None, "--out", help="Write the manifest here (paths relative to it) instead of to stdout (absolute paths)."),
+    out: Path | None = typer.Option(
+        None, "--out", help="Write the manifest here (paths relative to it) instead of to stdout (absolute paths)."
+    ),
     plot_id: str = typer.Option("plot", "--plot-id", help="The plot's id (letters, digits, '-', '_', '.')."),
     kind: ScanKind = typer.Option(ScanKind.tls, "--kind", help="Kind of every scan."),
-    use_pose: bool = typer.Option(False, "--use-pose", help="Offer each scan's stored pose as the initial guess (verified, never trusted)."),
+    use_pose: bool = typer.Option(
+        False, "--use-pose", help="Offer each scan's stored pose as the initial guess (verified, never trusted)."
+    ),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing --out file."),
 ) -> None:
     """Write a manifest for every scan of an E57 file (`plotmosaic manifest-from plot.e57 > plot.toml`)."""

@@ -90,7 +90,11 @@ def _open(path: Path):
 def _number(node) -> float:
     """The value of an E57 numeric node (float, integer or scaled integer)."""
     libe57 = _libe57()
-    for cast, getter in ((libe57.FloatNode, "value"), (libe57.ScaledIntegerNode, "scaledValue"), (libe57.IntegerNode, "value")):
+    for cast, getter in (
+        (libe57.FloatNode, "value"),
+        (libe57.ScaledIntegerNode, "scaledValue"),
+        (libe57.IntegerNode, "value"),
+    ):
         try:
             return float(getattr(cast(node), getter)())
         except Exception:
@@ -165,7 +169,15 @@ def _describe(node, index: int) -> E57Scan:
     points = libe57.CompressedVectorNode(node.get("points"))
     proto = libe57.StructureNode(points.prototype())
     fields = tuple(proto.get(i).elementName() for i in range(proto.childCount()))
-    return E57Scan(index, _string(node, "name"), _string(node, "guid"), int(points.childCount()), fields, _pose(node), _bounds(node))
+    return E57Scan(
+        index,
+        _string(node, "name"),
+        _string(node, "guid"),
+        int(points.childCount()),
+        fields,
+        _pose(node),
+        _bounds(node),
+    )
 
 
 def list_scans(path: str | Path) -> list[E57Scan]:
@@ -196,11 +208,14 @@ def select_scan(path: str | Path, selector: int | str | None, scans: list[E57Sca
         raise InputError(f"{path}: holds no scans")
     if selector is None:
         if len(scans) > 1:
-            raise InputError(f"{path}: holds {len(scans)} scans, say which with `scan = INDEX or NAME` (scans: {scan_list_text(scans)})")
+            listing = scan_list_text(scans)
+            raise InputError(f"{path}: holds {len(scans)} scans, say which with `scan = INDEX or NAME` ({listing})")
         return scans[0]
     if isinstance(selector, int):
         if not 0 <= selector < len(scans):
-            raise InputError(f"{path}: no scan {selector} (0-based; the file holds {len(scans)}: {scan_list_text(scans)})")
+            raise InputError(
+                f"{path}: no scan {selector} (0-based; the file holds {len(scans)}: {scan_list_text(scans)})"
+            )
         return scans[selector]
     found = [s for s in scans if selector in (s.name, s.guid)]
     if len(found) != 1:
@@ -256,8 +271,11 @@ def _field_range(proto, name: str) -> tuple[float, float]:
     """The value range a field's prototype declares (what the limits default to)."""
     libe57 = _libe57()
     node = proto.get(name)
-    for cast, lo, hi in ((libe57.ScaledIntegerNode, "scaledMinimum", "scaledMaximum"), (libe57.IntegerNode, "minimum", "maximum"),
-                         (libe57.FloatNode, "minimum", "maximum")):
+    for cast, lo, hi in (
+        (libe57.ScaledIntegerNode, "scaledMinimum", "scaledMaximum"),
+        (libe57.IntegerNode, "minimum", "maximum"),
+        (libe57.FloatNode, "minimum", "maximum"),
+    ):
         try:
             n = cast(node)
             a, b = float(getattr(n, lo)()), float(getattr(n, hi)())
@@ -273,8 +291,9 @@ def _to_uint16(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return np.clip(np.rint(scaled), 0, 65535).astype(np.uint16)
 
 
-def iter_e57_chunks(path: str | Path, chunk_size: int = CHUNK_SIZE,
-                    attributes: bool | Iterable[str] = True) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
+def iter_e57_chunks(
+    path: str | Path, chunk_size: int = CHUNK_SIZE, attributes: bool | Iterable[str] = True
+) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
     """Yield one scan's valid points as (xyz float64, attributes) blocks (scan frame), reading block by block."""
     libe57 = _libe57()
     file, index = split_scan_ref(path)
@@ -300,8 +319,16 @@ def iter_e57_chunks(path: str | Path, chunk_size: int = CHUNK_SIZE,
         arrays.update({f: np.empty(n, np.float64) for f in extra})
         if state in scan.fields:
             arrays[state] = np.empty(n, np.int8)
-        ilim = _limits(node, "intensityLimits", "intensityMinimum", "intensityMaximum", _field_range(proto, "intensity")) if "intensity" in extra else None
-        clim = {f: _limits(node, "colorLimits", f"{f}Minimum", f"{f}Maximum", _field_range(proto, f)) for f in _RGB if f in extra}
+        ilim = (
+            _limits(node, "intensityLimits", "intensityMinimum", "intensityMaximum", _field_range(proto, "intensity"))
+            if "intensity" in extra
+            else None
+        )
+        clim = {
+            f: _limits(node, "colorLimits", f"{f}Minimum", f"{f}Maximum", _field_range(proto, f))
+            for f in _RGB
+            if f in extra
+        }
         buffers = libe57.VectorSourceDestBuffer()
         for name, array in arrays.items():
             buffers.append(libe57.SourceDestBuffer(imf, name, array, n, True, True))

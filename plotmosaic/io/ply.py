@@ -23,7 +23,11 @@ from plotmosaic.errors import InputError
 
 CHUNK_SIZE = 2_000_000
 _INTENSITY = ("intensity", "scalar_intensity", "scalar_Intensity", "Intensity")
-_COLOUR = {"red": ("red", "r", "diffuse_red"), "green": ("green", "g", "diffuse_green"), "blue": ("blue", "b", "diffuse_blue")}
+_COLOUR = {
+    "red": ("red", "r", "diffuse_red"),
+    "green": ("green", "g", "diffuse_green"),
+    "blue": ("blue", "b", "diffuse_blue"),
+}
 _NORMALS = {"nx": "normal_x", "ny": "normal_y", "nz": "normal_z"}
 
 
@@ -108,8 +112,9 @@ def point_count(path: str | Path) -> int:
     return len(_vertices(Path(path)))
 
 
-def iter_ply_chunks(path: str | Path, chunk_size: int = CHUNK_SIZE,
-                    attributes: bool | Iterable[str] = True) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
+def iter_ply_chunks(
+    path: str | Path, chunk_size: int = CHUNK_SIZE, attributes: bool | Iterable[str] = True
+) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
     """Yield the vertices as (xyz float64, attributes) blocks of at most `chunk_size` points."""
     path = Path(path)
     array = _vertices(path)
