@@ -18,6 +18,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
+from plyfile import PlyData, PlyParseError
 
 from plotmosaic.errors import InputError
 
@@ -38,8 +39,6 @@ def _short(exc: Exception) -> str:
 
 def _vertices(path: Path):
     """The vertex element's structured array (memory-mapped for binary files)."""
-    from plyfile import PlyData
-
     if not path.exists():
         raise InputError(f"{path}: file not found")
     if path.is_dir():
@@ -57,6 +56,21 @@ def _vertices(path: Path):
     if missing:
         raise InputError(f"{path}: PLY vertices lack {', '.join(missing)} (properties: {', '.join(names)})")
     return array
+
+
+def _vertex_header(path: Path) -> tuple[int, np.dtype]:
+    """(vertex count, vertex dtype) from the header alone: an ASCII body is not parsed for them."""
+    try:
+        with open(path, "rb") as f:
+            header = PlyData._parse_header(f)  # plyfile 1.x; the header parser PlyData.read itself uses
+        vertex = header["vertex"]
+        return int(vertex.count), np.dtype(vertex.dtype())
+    except (AttributeError, TypeError):  # a plyfile without that helper: read the file
+        array = _vertices(path)
+        return len(array), array.dtype
+    except (OSError, KeyError, ValueError, PlyParseError):
+        array = _vertices(path)  # raises the one-line error naming the file
+        return len(array), array.dtype
 
 
 def _pick(names: tuple[str, ...], options: Iterable[str]) -> str | None:
@@ -98,18 +112,18 @@ def _to_uint16(values: np.ndarray, full_range: tuple[float, float] | None) -> tu
 
 def attribute_names(path: str | Path) -> list[str]:
     """The attribute names a read of this file yields (for headers)."""
-    path = Path(path)
-    array = _vertices(path)
-    layout = _layout(array.dtype)
+    dtype = _vertex_header(Path(path))[1]
+    layout = _layout(dtype)
     names = list(layout.values())
     i = next((p for p, a in layout.items() if a == "intensity"), None)
-    if i is not None and array.dtype[i] not in (np.uint16, np.uint8):
+    if i is not None and dtype[i] not in (np.uint16, np.uint8):
         names.append("intensity_raw")
     return names
 
 
 def point_count(path: str | Path) -> int:
-    return len(_vertices(Path(path)))
+    """The vertex count the header gives."""
+    return _vertex_header(Path(path))[0]
 
 
 def iter_ply_chunks(
