@@ -40,10 +40,25 @@ def test_report_for_a_pair(tmp_path):
     assert result.exit_code == 0, result.output
     index = out / "index.md"
     linked = _linked_pngs(index)
-    assert set(linked) == {"before.png", "after.png", "after_slice.png", "levels.png"}
+    assert {"before.png", "after.png", "after_slice.png", "levels.png", "pair_breast_slice.png", "pair_distances.png"} <= set(linked)
+    assert (out / "report.html").is_file() and "report.html" in result.output
     _check_pngs(out, linked)
     text = index.read_text()
     assert "fitness: 0.9100" in text and f"{T[0, 3]: .6f}" in text
+
+
+def test_report_on_a_result_that_names_its_clouds(tmp_path):
+    """`plotmosaic report RESULT.json`: the clouds come from the result's source_path / target_path."""
+    src, tgt = split_pair(synthetic_plot(trees=4))
+    write_cloud(tmp_path / "s.laz", src)
+    write_cloud(tmp_path / "t.laz", tgt)
+    (tmp_path / "r.json").write_text(json.dumps({"transform": np.eye(4).tolist(), "source_path": "s.laz", "target_path": str(tmp_path / "t.laz")}))
+    result = CliRunner().invoke(app, ["report", str(tmp_path / "r.json"), "--points", "3000", "--no-levels"])
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "report-r" / "report.html").is_file()
+    (tmp_path / "q.json").write_text(json.dumps({"transform": np.eye(4).tolist()}))
+    result = CliRunner().invoke(app, ["report", str(tmp_path / "q.json")])
+    assert result.exit_code == 2 and "source_path" in result.output and "--pair" in result.output
 
 
 def test_report_rejects_a_result_without_transform(tmp_path):
@@ -83,6 +98,7 @@ def test_report_for_a_register_plot_folder(tmp_path):
     assert result.exit_code == 0, result.output
     out = reg / "report"
     linked = _linked_pngs(out / "index.md")
-    assert set(linked) == {f"P1_{n}.png" for n in ("before", "after", "slice", "graph", "levels")}
+    assert {f"P1_{n}.png" for n in ("before", "after", "slice", "graph", "levels", "breast_slice", "map", "distances")} <= set(linked)
+    assert (out / "report.html").is_file()
     _check_pngs(out, linked)
     assert "| S1 | S0 |" in (out / "index.md").read_text()

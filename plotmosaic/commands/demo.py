@@ -37,3 +37,4 @@ def demo_command(
     for report in result.reports:
         typer.echo(f"report:      {report} (pictures beside it)")
     typer.echo(f"total time:  {sum(result.seconds.values()):.0f} s")
+    typer.echo(f"open in a browser (one self-contained page): {result.html}")

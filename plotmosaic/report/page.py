@@ -29,6 +29,7 @@ from plotmosaic.report.figures import origin_of, plot_levels, plot_slice, subsam
 class Report:
     index: Path
     figures: list[Path] = field(default_factory=list)
+    html: Path | None = None  # the self-contained page (report.html)
 
 
 def _read(path: Path) -> np.ndarray:
@@ -57,6 +58,20 @@ def _figure_lines(figures: list[tuple[str, Path]]) -> list[str]:
 
 
 # ---------------------------------------------------------------- a pair
+
+
+def pair_files(result_path: str | Path) -> tuple[Path, Path]:
+    """The two clouds an align RESULT.json names ('source_path', 'target_path'; relative to the JSON's folder)."""
+    result_path = Path(result_path)
+    try:
+        data = json.loads(result_path.read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        raise InputError(f"{result_path}: not an align result (a JSON file)") from None
+    paths = [data.get(k) if isinstance(data, dict) else None for k in ("source_path", "target_path")]
+    if not all(isinstance(p, str) and p for p in paths):
+        raise InputError(f"{result_path}: the result does not name its two clouds ('source_path', 'target_path'); "
+                         "pass --pair RESULT.json SOURCE TARGET")
+    return tuple(p if p.is_absolute() else result_path.parent / p for p in map(Path, paths))
 
 
 def report_pair(result_path: str | Path, source_path: str | Path, target_path: str | Path, out: str | Path,
@@ -95,8 +110,31 @@ def report_pair(result_path: str | Path, source_path: str | Path, target_path: s
     ]
     if data.get("levels", {}).get("source"):
         facts += ["Levels (from the result):", "", "```", json.dumps(data["levels"], indent=1)[:3000], "```", ""]
+    html_path, html_figs = _pair_html(data, T, src, tgt, names, out, seed)
+    facts += [f"- one page with the breast-height slice and cloud-to-cloud distances: [report.html]({html_path.name})", ""]
+    figs += [(caption, png) for _, caption, png in html_figs]
     index = write_text_atomic(out / "index.md", "\n".join(["# Pair registration report", "", *facts, *_figure_lines(figs)]))
-    return Report(index, [p for _, p in figs])
+    return Report(index, [p for _, p in figs], html_path)
+
+
+def _pair_html(data: dict, T: np.ndarray, src: Path, tgt: Path, names: tuple[str, str], out: Path, seed: int):
+    """report.html of one pair: the source placed by the transform, the target as it is."""
+    from plotmosaic.report.build import ReportInput, Stage, build_report
+
+    G = nx.Graph()
+    G.add_node(names[0], kind=data.get("source_kind", "tls"))
+    G.add_node(names[1], kind=data.get("target_kind", "tls"))
+    G.add_edge(names[0], names[1], source=names[0], target=names[1], transform=T,
+               **{k: data.get(k) for k in ("fitness", "inlier_rmse", "overlap", "confidence", "seconds")})
+    stages = [Stage(k, float(v), "align") for k, v in (data.get("timings") or {}).items() if isinstance(v, (int, float))]
+    if isinstance(data.get("seconds"), (int, float)):
+        stages.append(Stage("align, whole pair", float(data["seconds"]), "reading included"))
+    facts = [f"source: {src}", f"target: {tgt}"] + [f"{k}: {data[k]:.4f}" for k in ("fitness", "inlier_rmse", "overlap", "confidence")
+                                                   if isinstance(data.get(k), (int, float))]
+    inp = ReportInput(title=f"pair report: {src.name} -> {tgt.name}", out=out, graph=G,
+                      poses={names[0]: T, names[1]: np.eye(4)}, paths={names[0]: src, names[1]: tgt},
+                      plots={"pair": list(names)}, reader=_read, stages=stages, facts=facts)
+    return build_report(inp, seed=seed)
 
 
 # ---------------------------------------------------------------- a register-plot / tie-to-als folder
@@ -179,5 +217,27 @@ def report_dir(directory: str | Path, out: str | Path | None = None, manifest: s
             lines += graph_report.edge_table(G.subgraph(ids)) + [""]
         lines += _figure_lines(figs)
         all_figs += [p for _, p in figs]
+    html_path, html_figs = _dir_html(directory, out, poses, table, G, plots, seed)
+    lines[2:2] = [f"- one page with the breast-height slice, cloud-to-cloud distances and a map: [report.html]({html_path.name})"]
+    lines += ["## Breast-height slice, distances, map", ""] + _figure_lines([(c, p) for _, c, p in html_figs])
+    all_figs += [p for _, _, p in html_figs]
     index = write_text_atomic(out / "index.md", "\n".join(lines))
-    return Report(index, all_figs)
+    return Report(index, all_figs, html_path)
+
+
+def _dir_html(directory: Path, out: Path, poses, table: dict, G, plots: dict[str, list[str]], seed: int):
+    from plotmosaic.graph.report import residual_summary
+    from plotmosaic.report.build import ReportInput, build_report
+
+    if G is None:
+        G = nx.Graph()
+        G.add_nodes_from(table)
+    T = {sid: poses.scans[sid].transform for sid in table if sid in poses.scans}
+    tables = [(f"Plot {p}: edges", graph_report.edge_table(G.subgraph(ids))) for p, ids in plots.items()]
+    tables += [(f"Plot {p}: poses", graph_report.pose_table(ids, T, {s: poses.scans[s].sigma for s in ids if s in poses.scans}))
+               for p, ids in plots.items()]
+    inp = ReportInput(title=f"registration report: {directory.name}", out=out, graph=G, poses=T,
+                      paths={sid: Path(v[0]) for sid, v in table.items()}, plots=plots, reader=_read,
+                      unplaced=[s for ids in plots.values() for s in ids if s not in T], tables_md=tables,
+                      facts=[f"folder: {directory}", f"frame: {poses.frame}"], bundle=residual_summary(G))
+    return build_report(inp, seed=seed)
