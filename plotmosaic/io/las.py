@@ -8,8 +8,9 @@ as their LAS dtypes. Reading goes chunk by chunk so memory stays bounded by what
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
+from functools import cached_property, partial
 from pathlib import Path
 
 import laspy
@@ -60,14 +61,29 @@ class PointCloud:
 
 @dataclass(frozen=True)
 class HeaderInfo:
+    """What a file's header says. `box`: (mins, maxs), or a function giving them (E57 / PLY without
+    trusted bounds: one streamed pass), called on the first use of `mins` / `maxs` only."""
+
     path: Path
     point_count: int
     point_format: int
     version: str
-    mins: np.ndarray
-    maxs: np.ndarray
+    box: tuple[np.ndarray, np.ndarray] | Callable[[], tuple[np.ndarray, np.ndarray]]
     crs: CRS | None
     dimensions: tuple[str, ...]
+
+    @cached_property
+    def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        lo, hi = self.box() if callable(self.box) else self.box
+        return np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+
+    @property
+    def mins(self) -> np.ndarray:
+        return self._bounds[0]
+
+    @property
+    def maxs(self) -> np.ndarray:
+        return self._bounds[1]
 
 
 LAS_SUFFIXES = (".las", ".laz")
@@ -134,8 +150,7 @@ def read_header_info(path: str | Path) -> HeaderInfo:
             point_count=int(h.point_count),
             point_format=int(h.point_format.id),
             version=str(h.version),
-            mins=np.asarray(h.mins, dtype=np.float64),
-            maxs=np.asarray(h.maxs, dtype=np.float64),
+            box=(np.asarray(h.mins, dtype=np.float64), np.asarray(h.maxs, dtype=np.float64)),
             crs=_parse_crs(h),
             dimensions=tuple(h.point_format.dimension_names),
         )
@@ -267,16 +282,19 @@ def _other_header_info(path: Path) -> HeaderInfo:
     memo = (str(path), st.st_mtime_ns, st.st_size)
     if memo in _OTHER_INFO:
         return _OTHER_INFO[memo]
-    if bounds is None:
-        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-        for chunk in iter_chunks(path, attributes=False):
-            if len(chunk):
-                lo, hi = np.minimum(lo, chunk.xyz.min(axis=0)), np.maximum(hi, chunk.xyz.max(axis=0))
-        bounds = (lo, hi) if np.isfinite(lo).all() else (np.zeros(3), np.zeros(3))
-    info = HeaderInfo(path, count, -1, version, np.asarray(bounds[0], float), np.asarray(bounds[1], float), None,
-                      ("X", "Y", "Z", *names))
+    box = bounds if bounds is not None else partial(_streamed_bounds, str(path))  # a partial: pickles
+    info = HeaderInfo(path, count, -1, version, box, None, ("X", "Y", "Z", *names))
     _OTHER_INFO[memo] = info
     return info
+
+
+def _streamed_bounds(path: str) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of the valid points, from one pass over the file."""
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for chunk in iter_chunks(path, attributes=False):
+        if len(chunk):
+            lo, hi = np.minimum(lo, chunk.xyz.min(axis=0)), np.maximum(hi, chunk.xyz.max(axis=0))
+    return (lo, hi) if np.isfinite(lo).all() else (np.zeros(3), np.zeros(3))
 
 
 class CloudRecordReader:
@@ -290,7 +308,8 @@ class CloudRecordReader:
         for chunk in iter_chunks(path, chunk_size=1):  # the extra attributes' dtypes, from one point
             self.extra = {n: v.dtype for n, v in chunk.attrs.items() if n not in STANDARD_ATTRIBUTES}
             break
-        self.header = make_header(attrs, self.extra, None, las_offsets(self.info.mins), OTHER_SCALE)
+        # nominal header (fields, extra dims); each chunk's records carry their own offsets
+        self.header = make_header(attrs, self.extra, None, np.zeros(3), OTHER_SCALE)
 
     def __enter__(self) -> "CloudRecordReader":
         return self
