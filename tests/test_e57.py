@@ -207,6 +207,7 @@ def write_spherical_e57(path: Path, rae: np.ndarray, state: np.ndarray, intensit
             proto.set(name, libe57.ScaledIntegerNode(imf, 0, -4_000_000, 4_000_000, 1e-6, 0.0))
         proto.set("sphericalInvalidState", libe57.IntegerNode(imf, 0, 0, 2))
         proto.set("intensity", libe57.IntegerNode(imf, 0, 0, 4095))
+        proto.set("isIntensityInvalid", libe57.IntegerNode(imf, 0, 0, 1))
         points = libe57.CompressedVectorNode(imf, proto, libe57.VectorNode(imf, True))
         scan.set("points", points)
         e57.data3d.append(scan)
@@ -216,6 +217,7 @@ def write_spherical_e57(path: Path, rae: np.ndarray, state: np.ndarray, intensit
             "sphericalElevation": rae[:, 2].copy(),
             "sphericalInvalidState": state.astype(np.int8),
             "intensity": intensity.astype(np.uint16),
+            "isIntensityInvalid": (np.arange(n) % 7 == 0).astype(np.int8),
         }
         buffers = libe57.VectorSourceDestBuffer()
         for name, array in arrays.items():
@@ -232,7 +234,8 @@ def test_spherical_scaled_integer_and_invalid_points(tmp_path):
     rae = np.column_stack([rng.uniform(1, 50, n), rng.uniform(-3.1, 3.1, n), rng.uniform(-1.2, 1.2, n)])
     rae[:, 1:] = np.round(rae[:, 1:] * 1e6) / 1e6  # what the scaled integers hold
     state = np.where(np.arange(n) % 10 == 0, 2, 0)  # every tenth point missing
-    path = write_spherical_e57(tmp_path / "sph.e57", rae, state, rng.integers(0, 4096, n))
+    intensity = rng.integers(1, 4096, n)
+    path = write_spherical_e57(tmp_path / "sph.e57", rae, state, intensity)
     chunks = list(iter_chunks(path, chunk_size=1000))
     assert len(chunks) == 3
     cloud = read_cloud(path)
@@ -240,6 +243,11 @@ def test_spherical_scaled_integer_and_invalid_points(tmp_path):
     expected = np.column_stack([r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)])
     np.testing.assert_allclose(cloud.xyz, expected, atol=1e-9)
     assert len(cloud) == n - n // 10 and cloud.attrs["intensity"].dtype == np.uint16
+    keep = state == 0
+    no_value = (np.arange(n) % 7 == 0)[keep]  # isIntensityInvalid: written as 0, the others scaled from 0..4095
+    np.testing.assert_array_equal(cloud.attrs["intensity"][no_value], 0)
+    expected_i = np.rint(intensity[keep][~no_value] * 65535 / 4095).astype(np.uint16)
+    np.testing.assert_array_equal(cloud.attrs["intensity"][~no_value], expected_i)
     result = invoke("info", "--full", path)
     assert result.exit_code == 0 and f"{n:,} points ({n // 10:,} flagged invalid)" in result.output, result.output
 

@@ -287,8 +287,9 @@ def _field_range(proto, name: str) -> tuple[float, float]:
 
 
 def _to_uint16(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Values mapped from [lo, hi] to the LAS range 0..65535; NaN (flagged invalid) becomes 0."""
     scaled = (np.asarray(values, dtype=np.float64) - lo) * (65535.0 / (hi - lo))
-    return np.clip(np.rint(scaled), 0, 65535).astype(np.uint16)
+    return np.nan_to_num(np.clip(np.rint(scaled), 0, 65535), nan=0.0).astype(np.uint16)
 
 
 def iter_e57_chunks(
@@ -319,6 +320,13 @@ def iter_e57_chunks(
         arrays.update({f: np.empty(n, np.float64) for f in extra})
         if state in scan.fields:
             arrays[state] = np.empty(n, np.int8)
+        # per-point "no value" flags of intensity / colour: such values are written as 0
+        flags = {f: flag for f, flag in (("intensity", "isIntensityInvalid"), ("colorRed", "isColorInvalid"))
+                 if f in extra and flag in scan.fields}
+        if "colorRed" in flags:
+            flags.update({"colorGreen": "isColorInvalid", "colorBlue": "isColorInvalid"})
+        for flag in set(flags.values()):
+            arrays[flag] = np.empty(n, np.int8)
         ilim = (
             _limits(node, "intensityLimits", "intensityMinimum", "intensityMaximum", _field_range(proto, "intensity"))
             if "intensity" in extra
@@ -353,6 +361,8 @@ def iter_e57_chunks(
                 attrs = {}
                 for f in extra:
                     v = arrays[f][keep][valid]
+                    if f in flags:
+                        v = np.where(arrays[flags[f]][keep][valid] != 0, np.nan, v)
                     if f == "intensity":
                         attrs["intensity"] = _to_uint16(v, *ilim)
                     elif f in _RGB:
