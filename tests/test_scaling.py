@@ -42,3 +42,60 @@ def test_grid_of_150_scans_with_wrong_edges_drops_every_wrong_edge():
     assert not sol.unplaced and set(sol.sigmas) == set(truth)
     assert max(pose_error(sol.poses[k], truth[k])[0] for k in truth) < 0.02
     assert np.isfinite(np.concatenate(list(sol.sigmas.values()))).all()
+
+
+def _pair_jobs(sim, folder, ids=("P1-S0", "P1-S2", "P1-S3")):
+    from plotmosaic.graph.pipeline import RegisterConfig, plan_jobs
+    from plotmosaic.manifest import load_manifest
+
+    m = load_manifest(sim.manifest_path)
+    plot = m.plots[0]
+    sub = m.model_copy(update={"plots": [plot.model_copy(update={"scans": [s for s in plot.scans if s.id in ids]})]})
+    sub = sub.model_copy(update={"source": m.source})
+    return plan_jobs(sub, RegisterConfig(), 0, folder)
+
+
+def test_each_scan_prepared_once_and_cached_on_disk(small_sim, tmp_path):
+    from plotmosaic.graph import prepared as store
+    from plotmosaic.graph.executor import prepare_jobs_for
+    from plotmosaic.graph.pipeline import prepare_scans
+
+    jobs = _pair_jobs(small_sim, tmp_path / "prepared")
+    assert len(jobs) == 3
+    before = store.reads
+    assert prepare_scans(jobs, n_jobs=1, progress=False) == {}
+    assert store.reads - before == 3  # three scans in three pairs: each read and prepared once
+    assert len(list((tmp_path / "prepared").glob("*.npz"))) == 3
+    prepare_scans(jobs, n_jobs=1, progress=False)
+    assert store.reads - before == 3  # a re-run reads nothing
+    # both roles of a scan use the same entry
+    keys = {pj.key for job in jobs for pj in prepare_jobs_for(job)}
+    assert len(keys) == 3
+
+
+def test_prepared_cloud_round_trip_and_damaged_entry(small_sim, tmp_path, capsys):
+    from plotmosaic.graph import prepared as store
+    from plotmosaic.graph.executor import prepare_jobs_for
+
+    (job,) = [j for j in _pair_jobs(small_sim, tmp_path, ("P1-S0", "P1-S2"))]
+    ps, _ = prepare_jobs_for(job)
+    direct = store._compute(ps)
+    path = store.save_prepared(tmp_path / "x.npz", direct)
+    loaded = store.load_prepared(path)
+    for name in ("points", "level_points", "normals", "features", "levels", "fine_points"):
+        assert np.array_equal(getattr(direct, name), getattr(loaded, name)), name
+    assert loaded.level_stats == direct.level_stats or str(loaded.level_stats) == str(direct.level_stats)
+    assert np.array_equal(direct.frame.offset, loaded.frame.offset) and loaded.k == direct.k
+    q = direct.points[::97]
+    assert np.array_equal(direct.tree.query(q, k=3)[1], loaded.tree.query(q, k=3)[1])
+    idx = np.arange(0, len(direct.points), 211)
+    assert np.allclose(direct.target_normals(idx), loaded.target_normals(idx))
+    # a damaged entry (cut short) is prepared again, with one warning line
+    entry = store.entry(ps.folder, ps.key)
+    store.save_prepared(entry, direct)
+    entry.write_bytes(entry.read_bytes()[:1000])
+    store._LOADED.clear()
+    cloud, seconds = store.get_prepared(ps)
+    err = capsys.readouterr().err
+    assert err.count("warning:") == 1 and "damaged prepared cloud" in err and seconds > 0
+    assert np.array_equal(cloud.points, direct.points) and store.load_prepared(entry).k == direct.k

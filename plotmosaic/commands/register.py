@@ -21,10 +21,13 @@ def _check_jobs(jobs: int | None) -> None:
 def register_plot_command(
     manifest: Path = typer.Argument(..., help="Manifest (.toml) of one plot or a region of plots."),
     out: Path = typer.Option(..., "--out", help="Output folder: poses.json, graph.json, report.md, pictures, pairs/ cache."),
-    jobs: int | None = typer.Option(None, "--jobs", "-j", help="Pairs registered at once (default: number of cores)."),
+    jobs: int | None = typer.Option(None, "--jobs", "--workers", "-j", help="Thread budget shared by worker processes, "
+                                    "their two-thread maps and KD-tree queries (default: number of cores)."),
     executor: str = typer.Option("local", "--executor", help="local (process pool) or dask (a Dask distributed cluster)."),
     scheduler: str | None = typer.Option(None, "--scheduler", help="Dask scheduler address, e.g. tcp://host:8786 (with --executor dask)."),
     max_distance: float = typer.Option(60.0, "--max-distance", help="With approximate positions: skip pairs of scans farther apart (m)."),
+    place_on_als: bool = typer.Option(True, "--place-on-als/--no-place-on-als", help="Plots of more than 8 scans without "
+                                      "positions: register each scan to the ALS first, then only neighbours to each other."),
     seed: int = typer.Option(0, "--seed", help="Random seed (same inputs + seed = same result)."),
     force: bool = typer.Option(False, "--force", help="Register every pair again, ignoring the cache in OUT/pairs/."),
 ) -> None:
@@ -39,7 +42,8 @@ def register_plot_command(
     if max_distance <= 0:
         raise InputError(f"--max-distance must be positive, not {max_distance}")
     manifest, _ = check_scan_files(manifest), check_output_dir(out)  # bad input found before any work
-    result = register_plot(manifest, out, jobs, executor, scheduler, RegisterConfig(max_distance=max_distance), seed, force)
+    result = register_plot(manifest, out, jobs, executor, scheduler, RegisterConfig(max_distance=max_distance, place_on_als=place_on_als),
+                           seed, force)
     _summary(result.graph, [(p.plot, p.reference, p.solution.poses, p.solution.sigmas, p.solution.dropped)
                             for p in result.plots], result.unplaced)
     typer.echo(f"pairs: {result.pairs} ({result.computed} registered now, {result.pairs - result.computed} cached); "

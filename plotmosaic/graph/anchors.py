@@ -27,6 +27,7 @@ from plotmosaic.graph import report as rep
 from plotmosaic.graph.cache import PairCache, pair_key
 from plotmosaic.graph.executor import PairJob
 from plotmosaic.graph.pipeline import EDGE_FIELDS, compute_pairs
+from plotmosaic.graph.prepared import load_points
 from plotmosaic.graph.posegraph import (
     PoseGraphConfig,
     Solution,
@@ -87,12 +88,24 @@ def _voxel(xyz: np.ndarray, size: float) -> np.ndarray:
     return frame.to_global(voxel_centroids(frame.to_local(xyz), size))
 
 
-def plot_cloud(manifest: Manifest, plot: Plot, poses: Poses, voxel: float) -> PointCloud:
+def _scan_points(manifest: Manifest, scan, prepared: dict[str, Path]) -> np.ndarray:
+    """The scan's points: register-plot's prepared (delta0-thinned) cloud when it is still there, else the file."""
+    entry = prepared.get(scan.id)
+    if entry is not None and entry.is_file():
+        try:
+            return load_points(entry)
+        except Exception:  # damaged entry: read the scan itself
+            pass
+    return read_cloud(manifest.resolve(scan.path), attributes=False).xyz
+
+
+def plot_cloud(manifest: Manifest, plot: Plot, poses: Poses, voxel: float,
+               prepared: dict[str, Path] | None = None) -> PointCloud:
     """All placed scans of the plot in the plot frame, voxel-thinned."""
     parts = []
     for scan in plot.scans:
         if scan.id in poses.scans:
-            xyz = read_cloud(manifest.resolve(scan.path), attributes=False).xyz
+            xyz = _scan_points(manifest, scan, prepared or {})
             parts.append(_voxel(apply_transform(poses.transform(scan.id), xyz), voxel))
     if not parts:
         raise InputError(f"plot {plot.id!r}: none of its scans has a pose in the poses file")
@@ -179,19 +192,22 @@ def tie_to_als(manifest: str | Path | Manifest, poses_path: str | Path, out: str
     # 1. plot clouds and ALS crops as files, so the plot -> ALS pairs run (and are cached) like any pair
     jobs_list, anchors, refs = [], {}, {}
     config_json = config.align.model_dump_json()
+    # register-plot's prepared clouds (voxel grids of every scan): no scan is read again to build the plots
+    recorded = poses.extra.get("prepared") or {}
+    prepared_scans = {sid: poses_path.parent / "prepared" / Path(name).name for sid, name in recorded.items()}
     for plot in manifest.plots:
         if not any(s.id in poses.scans for s in plot.scans):
             anchors[plot.id] = Anchor(plot.id, "", "failed", error="no scan of this plot was placed by register-plot")
             continue
         ref = refs[plot.id] = _plot_reference(plot, poses, G_plot)
-        cloud = plot_cloud(manifest, plot, poses, config.plot_voxel)
+        cloud = plot_cloud(manifest, plot, poses, config.plot_voxel, prepared_scans)
         crop, how = crop_als(als, plot, cloud, config.buffer)
         src = write_cloud(out / "plots" / f"{plot.id}.laz", cloud)
         tgt = write_cloud(out / "plots" / f"{plot.id}_als.laz", crop, crs=crs)
         kind = plot.reference.kind.value
         key = pair_key(src, tgt, kind, "als", plot.reference.k, als_k, config_json, seed)
         jobs_list.append(PairJob(key, plot.id, ALS_NODE, str(src), str(tgt), kind, "als", plot.reference.k, als_k,
-                                 config_json, seed))
+                                 config_json, seed, str(out / "prepared")))
         anchors[plot.id] = Anchor(plot.id, ref, "pending", crop=how)
     records, computed = compute_pairs(jobs_list, PairCache(out / "pairs"), executor, jobs, scheduler, False, progress)
 

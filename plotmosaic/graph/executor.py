@@ -14,11 +14,14 @@ from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
+from functools import partial
 
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+import numpy as np
+
 from plotmosaic.errors import InputError, RegistrationFailed
-from plotmosaic.graph.cache import file_hash
+from plotmosaic.graph.prepared import PrepareJob, get_prepared, prepared_key
 
 
 @dataclass(frozen=True)
@@ -36,26 +39,37 @@ class PairJob:
     levels_target: int | None
     config_json: str
     seed: int
+    prepared: str | None = None  # DIR/prepared: the prepared-cloud cache shared by every pair and run
+    init: tuple | None = None  # 4x4 rows, source file -> target file: a prior for the coarse stage
+    prepare_json: str | None = None  # settings the scans are prepared with, when not config_json's
 
 
-# Prepared clouds (voxels, normals, levels) of this worker process, so a scan that takes part in
-# several pairs is prepared once per role instead of once per pair. Small: memory stays bounded.
+def prepare_jobs_for(job: PairJob, folder: str | None = None) -> tuple[PrepareJob, PrepareJob]:
+    """The two scans' prepare jobs; each scan is prepared once with the run's seed, whatever its role."""
+    folder = folder or job.prepared
+    out = []
+    for scan, path, kind, levels in ((job.source, job.source_path, job.source_kind, job.levels_source),
+                                     (job.target, job.target_path, job.target_kind, job.levels_target)):
+        settings = job.prepare_json or job.config_json
+        key = prepared_key(path, kind, levels, settings, job.seed)
+        out.append(PrepareJob(key, scan, path, kind, levels, settings, job.seed, folder))
+    return out[0], out[1]
+
+
+# Prepared clouds of this worker process when no cache folder is given (small: memory stays bounded).
 _PREPARED: OrderedDict[tuple, object] = OrderedDict()
-_PREPARED_MAX = 6
+_PREPARED_MAX = 4
 
 
-def _prepared(path: str, kind: str, levels: int | None, config, config_json: str, seed: int, role: str):
-    from plotmosaic.align.config import default_levels
-    from plotmosaic.align.prepare import prepare_cloud
-    from plotmosaic.io.las import read_cloud
-
-    memo = (file_hash(path), kind, levels, config_json, seed, role)
+def _prepared_in_memory(job: PrepareJob):
+    memo = (job.key, job.scan)
     if memo in _PREPARED:
         _PREPARED.move_to_end(memo)
         return _PREPARED[memo], 0.0
     start = time.perf_counter()
-    cloud = read_cloud(path, attributes=False)
-    prepared = prepare_cloud(cloud, kind, levels or default_levels(kind), config, seed, role)
+    from plotmosaic.graph import prepared as store
+
+    prepared = store._compute(job)
     _PREPARED[memo] = prepared
     while len(_PREPARED) > _PREPARED_MAX:
         _PREPARED.popitem(last=False)
@@ -63,10 +77,10 @@ def _prepared(path: str, kind: str, levels: int | None, config, config_json: str
 
 
 def run_pair_job(job: PairJob) -> dict:
-    """Register one pair with ForestAlign; a record with status "ok" (PairResult fields) or "failed".
+    """Register one pair with `register_prepared` (the one pairwise path); a record with status "ok" or "failed".
 
-    Same stages and seeds as plotmosaic.align.pipeline.align_files (source prepared with `seed`,
-    target with `seed + 1`), with the prepared clouds memoised per worker process.
+    Both scans come from the prepared-cloud cache (`job.prepared`), computed there by whichever
+    job needs them first; without a cache folder they are prepared in this process (memoised).
     """
     from plotmosaic.align.config import AlignConfig
     from plotmosaic.align.pipeline import register_prepared
@@ -75,9 +89,12 @@ def run_pair_job(job: PairJob) -> dict:
     record = {"source": job.source, "target": job.target, "key": job.key}
     try:
         config = AlignConfig.model_validate_json(job.config_json)
-        src, t_src = _prepared(job.source_path, job.source_kind, job.levels_source, config, job.config_json, job.seed, "source")
-        tgt, t_tgt = _prepared(job.target_path, job.target_kind, job.levels_target, config, job.config_json, job.seed + 1, "target")
-        result = register_prepared(src, tgt, config, None, job.seed)
+        get = get_prepared if job.prepared else _prepared_in_memory
+        ps, pt = prepare_jobs_for(job, job.prepared or "")
+        src, t_src = get(ps)
+        tgt, t_tgt = get(pt)
+        init = None if job.init is None else np.asarray(job.init, dtype=np.float64)
+        result = register_prepared(src, tgt, config, init, job.seed)
         result.timings = {"prepare_source": t_src, "prepare_target": t_tgt, **result.timings}
         record.update(result.to_dict(), status="ok")
     except RegistrationFailed as exc:  # a real outcome of this pair: cache it, with its figures
@@ -91,13 +108,40 @@ def run_pair_job(job: PairJob) -> dict:
     return record
 
 
-def _limit_threads() -> None:
-    # Several workers on few cores: one thread each, set before numpy/open3d are imported.
+def _limit_threads(n: int = 1) -> None:
+    """Pool initializer: this worker's share of the thread budget, set before numpy/open3d are imported."""
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ[var] = "1"
+        os.environ[var] = str(n)
     from plotmosaic.parallel import set_threads
 
-    set_threads(1)  # the pool is the parallelism: no two-thread maps or multi-thread queries inside
+    set_threads(n)  # two-thread maps and KD-tree queries inside take what this worker has
+
+
+def budget(n_jobs: int | None) -> int:
+    """The run's thread budget: `--jobs` when given, else the cores (never more threads than that)."""
+    return max(1, n_jobs or os.cpu_count() or 1)
+
+
+def split(n_jobs: int | None, n_tasks: int) -> tuple[int, int]:
+    """(worker processes, threads per worker) sharing the budget: processes first (pairs are independent)."""
+    total = budget(n_jobs)
+    workers = max(1, min(total, n_tasks))
+    return workers, max(1, total // workers)
+
+
+def call_with_threads(threads: int, worker: Callable, job):
+    """`worker(job)` with a thread budget (Dask workers: no initializer of ours runs there)."""
+    from threadpoolctl import threadpool_limits
+
+    from plotmosaic.parallel import set_threads, threads as current
+
+    before = current()
+    set_threads(threads)
+    try:
+        with threadpool_limits(threads):
+            return worker(job)
+    finally:
+        set_threads(before)
 
 
 def _progress(enabled: bool) -> Progress:
@@ -108,6 +152,8 @@ def _progress(enabled: bool) -> Progress:
 
 
 def _failed(job, exc: BaseException) -> dict:
+    if isinstance(job, PrepareJob):
+        return {"key": job.key, "scan": job.scan, "kind": "prepare", "status": "failed", "error": f"{type(exc).__name__}: {exc}"}
     return {"source": job.source, "target": job.target, "key": job.key, "status": "failed",
             "error": f"{type(exc).__name__}: {exc}", "cacheable": False}
 
@@ -120,6 +166,7 @@ def run_pairs(
     scheduler: str | None = None,
     progress: bool = True,
     worker: Callable[[PairJob], dict] = run_pair_job,
+    label: str = "registering pairs",
 ) -> list[dict]:
     """Run `worker` on every job; `on_result(record)` is called in this process as each one finishes."""
     if executor not in ("local", "dask"):
@@ -134,7 +181,7 @@ def run_pairs(
             on_result(record)
 
     with _progress(progress) as bar:
-        task = bar.add_task("registering pairs", total=len(jobs))
+        task = bar.add_task(label, total=len(jobs))
 
         def tick(record: dict) -> None:
             done(record)
@@ -148,13 +195,14 @@ def run_pairs(
 
 
 def _run_local(jobs, tick, n_jobs, worker) -> None:
-    n_jobs = n_jobs or os.cpu_count() or 1
-    if n_jobs == 1 or len(jobs) == 1:
+    workers, per_worker = split(n_jobs, len(jobs))
+    if workers == 1:  # in this process, with the whole budget
         for job in jobs:
-            tick(worker(job))
+            tick(call_with_threads(budget(n_jobs), worker, job))
         return
     # spawn: Open3D and BLAS thread pools do not survive fork reliably
-    pool = ProcessPoolExecutor(min(n_jobs, len(jobs)), mp_context=multiprocessing.get_context("spawn"), initializer=_limit_threads)
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_limit_threads,
+                               initargs=(per_worker,))
     try:
         pending = {pool.submit(worker, job): job for job in jobs}
         while pending:
@@ -174,6 +222,10 @@ def _run_local(jobs, tick, n_jobs, worker) -> None:
     pool.shutdown(wait=True)
 
 
+def _kind(job) -> str:
+    return "prepare" if isinstance(job, PrepareJob) else "pair"
+
+
 def _run_dask(jobs, tick, n_jobs, scheduler, worker) -> None:
     try:
         from dask.distributed import Client, LocalCluster, as_completed
@@ -184,13 +236,17 @@ def _run_dask(jobs, tick, n_jobs, scheduler, worker) -> None:
         if scheduler:
             client = Client(scheduler, timeout="20s")
         else:  # no cluster given: a local one, same semantics as the process pool
-            cluster = LocalCluster(n_workers=n_jobs or os.cpu_count() or 1, threads_per_worker=1, dashboard_address=None)
+            workers, per_worker = split(n_jobs, len(jobs))
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, dashboard_address=None)
             client = Client(cluster)
     except (OSError, TimeoutError) as exc:
         raise InputError(f"--scheduler {scheduler}: cannot connect to the Dask scheduler ({exc})") from None
     futures = []
     try:
-        futures = client.map(worker, list(jobs), key=[f"pair-{job.key}-{job.seed}" for job in jobs], pure=False)
+        if scheduler:  # someone else's cluster: one thread per Dask task thread, each already has its core
+            per_worker = 1
+        run = partial(call_with_threads, per_worker, worker)
+        futures = client.map(run, list(jobs), key=[f"{_kind(job)}-{job.key}-{job.seed}" for job in jobs], pure=False)
         by_key = {f.key: job for f, job in zip(futures, jobs)}
         for fut in as_completed(futures):
             try:

@@ -19,8 +19,10 @@ from pydantic import BaseModel, Field
 from plotmosaic.align.config import AlignConfig
 from plotmosaic.errors import InputError
 from plotmosaic.graph.cache import PairCache, pair_key
-from plotmosaic.graph.executor import PairJob, run_pairs
-from plotmosaic.graph.pairs import candidate_pairs
+from plotmosaic.graph.executor import PairJob, prepare_jobs_for, run_pairs
+from plotmosaic.graph.prepared import PrepareJob, entry, load_points, run_prepare_job
+from plotmosaic.graph.pairs import PairSelection, candidate_pairs, manifest_positions
+from plotmosaic.graph.placement import placed_poses, placement_jobs, prior
 from plotmosaic.graph.posegraph import PoseGraphConfig, Solution, build_graph, graph_to_json, optimise
 from plotmosaic.graph import report as rep
 from plotmosaic.io.atomic import write_text_atomic
@@ -42,6 +44,9 @@ class RegisterConfig(BaseModel):
     align: AlignConfig = Field(default_factory=_graph_align_config)
     graph: PoseGraphConfig = Field(default_factory=PoseGraphConfig)
     max_distance: float | None = Field(60.0, gt=0)  # with approximate positions: farther pairs are not tried
+    pairs: PairSelection = Field(default_factory=PairSelection)
+    place_on_als: bool = Field(True, description="big plots without positions: place each scan on the ALS first")
+    placement: AlignConfig = Field(default_factory=AlignConfig, description="scan -> ALS: verified poses only")
     report_points: int = 20_000  # per scan in the pictures
 
 
@@ -73,22 +78,63 @@ class RegisterResult:
         return [s for p in self.plots for s in p.unplaced]
 
 
-def plan_jobs(manifest: Manifest, config: RegisterConfig, seed: int) -> list[PairJob]:
+def plan_jobs(manifest: Manifest, config: RegisterConfig, seed: int, prepared: str | Path | None = None,
+              placed: dict[str, np.ndarray] | None = None) -> list[PairJob]:
+    """The pair jobs of every plot; `prepared`: the prepared-cloud cache folder (DIR/prepared);
+    `placed`: scan poses from the ALS step (positions for the pair selection, priors for the coarse stage)."""
     config_json = config.align.model_dump_json()
+    prepared = None if prepared is None else str(prepared)
+    placed = placed or {}
     jobs = []
     for plot in manifest.plots:
-        for source, target in candidate_pairs(plot, config.max_distance):
+        positions = {s.id: placed[s.id][:3, 3] for s in plot.scans if s.id in placed} or None
+        for source, target in candidate_pairs(plot, config.max_distance, positions, config.pairs):
             sp, tp = manifest.resolve(source.path), manifest.resolve(target.path)
             key = pair_key(sp, tp, source.kind.value, target.kind.value, source.k, target.k, config_json, seed)
             jobs.append(PairJob(key, source.id, target.id, str(sp), str(tp), source.kind.value, target.kind.value,
-                                source.k, target.k, config_json, seed))
+                                source.k, target.k, config_json, seed, prepared, prior(placed, source.id, target.id)))
     return jobs
+
+
+def place_scans(manifest: Manifest, config: RegisterConfig, seed: int, out: Path, executor: str = "local",
+                n_jobs: int | None = None, scheduler: str | None = None, force: bool = False,
+                progress: bool = True) -> tuple[dict[str, np.ndarray], list[PairJob], dict[str, dict]]:
+    """Scans of big plots without positions registered to the ALS tile (N pairs instead of N(N-1)/2)."""
+    if not config.place_on_als:
+        return {}, [], {}
+    jobs = []
+    for plot in manifest.plots:
+        if len(plot.scans) > config.pairs.all_pairs_up_to and manifest_positions(plot) is None:
+            jobs += placement_jobs(manifest, plot, config.placement.model_dump_json(), seed, str(out / "prepared"),
+                                   config.align.model_dump_json())
+    if not jobs:
+        return {}, [], {}
+    records, _ = compute_pairs(jobs, PairCache(out / "placement"), executor, n_jobs, scheduler, force, progress)
+    return placed_poses(jobs, records), jobs, records
+
+
+def prepare_scans(jobs: list[PairJob], executor: str = "local", n_jobs: int | None = None,
+                  scheduler: str | None = None, progress: bool = True) -> dict[str, dict]:
+    """Read and prepare every scan these pairs need, once each, into their prepared-cloud cache.
+
+    Returns the failed preparations by prepared key (their pairs are not run)."""
+    unique: dict[str, PrepareJob] = {}
+    for job in jobs:
+        if job.prepared:
+            for pj in prepare_jobs_for(job):
+                unique.setdefault(pj.key, pj)
+    todo = [pj for pj in unique.values() if not entry(pj.folder, pj.key).is_file()]
+    # entries already on disk are checked when loaded (a damaged one is prepared again there)
+    records = run_pairs(todo, None, executor, n_jobs, scheduler, progress, worker=run_prepare_job, label="preparing scans")
+    return {r["key"]: r for r in records if r.get("status") != "ok"}
 
 
 def compute_pairs(jobs: list[PairJob], cache: PairCache, executor: str = "local", n_jobs: int | None = None,
                   scheduler: str | None = None, force: bool = False, progress: bool = True,
                   on_result: Callable[[dict], None] | None = None) -> tuple[dict[str, dict], int]:
-    """Records for every job, from the cache where present; returns (records by key, number computed)."""
+    """Records for every job, from the cache where present; returns (records by key, number computed).
+
+    Scans are prepared first (one job per scan), then the pairs load them from the cache."""
     records = {} if force else {job.key: r for job in jobs if (r := cache.get(job.key)) is not None}
     todo = [job for job in jobs if job.key not in records]
     computed = 0
@@ -102,7 +148,16 @@ def compute_pairs(jobs: list[PairJob], cache: PairCache, executor: str = "local"
         if on_result is not None:
             on_result(record)
 
-    run_pairs(todo, keep, executor, n_jobs, scheduler, progress)
+    failed = prepare_scans(todo, executor, n_jobs, scheduler, progress)
+    runnable = []
+    for job in todo:
+        bad = [failed[pj.key] for pj in prepare_jobs_for(job) if pj.key in failed] if job.prepared else []
+        if bad:  # the scan itself cannot be used: its error, not a registration failure (not cached)
+            keep({"source": job.source, "target": job.target, "key": job.key, "status": "failed",
+                  "error": f"scan {bad[0]['scan']}: {bad[0].get('error')}", "cacheable": False})
+        else:
+            runnable.append(job)
+    run_pairs(runnable, keep, executor, n_jobs, scheduler, progress)
     return records, computed
 
 
@@ -126,7 +181,9 @@ def register_plot(manifest: str | Path | Manifest, out: str | Path, jobs: int | 
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a folder")
     cache = PairCache(out / "pairs")
-    job_list = plan_jobs(manifest, config, seed)
+    placed, placement, placement_records = place_scans(manifest, config, seed, out, executor, jobs, scheduler, force,
+                                                       progress)
+    job_list = plan_jobs(manifest, config, seed, out / "prepared", placed)
     records, computed = compute_pairs(job_list, cache, executor, jobs, scheduler, force, progress, on_result)
 
     nodes = {}
@@ -151,18 +208,40 @@ def register_plot(manifest: str | Path | Manifest, out: str | Path, jobs: int | 
         "plots": {r.plot: {"reference": r.reference, "unplaced": r.unplaced, "dropped": r.solution.dropped} for r in results},
         "unplaced": [s for r in results for s in r.unplaced],
     }
+    if placement:  # scan -> ALS step of big plots without positions: which scans it placed
+        extra["placement"] = {j.source: "ok" if j.source in placed else placement_records[j.key].get("error")
+                              for j in placement}
+    by_path = {str(manifest.resolve(s.path)): s.id for s in manifest.scans}
+    extra["prepared"] = {}  # scan id -> its prepared cloud under OUT/prepared (tie-to-als reuses them)
+    for job in job_list:
+        for pj in prepare_jobs_for(job):
+            extra["prepared"][by_path[pj.path]] = entry(pj.folder, pj.key).name
     poses = Poses(scans, frame="plot", crs=None, extra=extra)
     result = RegisterResult(out, poses, G, results, len(job_list), computed, failed, 0.0)
 
     write_text_atomic(out / "graph.json", json.dumps(graph_to_json(G)))
     poses.save(out / "poses.json")
     result.seconds = time.perf_counter() - start
+    _PREPARED_ENTRIES.clear()
+    _PREPARED_ENTRIES.update({p: out / "prepared" / extra["prepared"][sid] for p, sid in by_path.items()
+                              if sid in extra["prepared"]})
     write_register_report(result, manifest, config, seed)
     result.seconds = time.perf_counter() - start
     return result
 
 
+# scan file -> its prepared-cloud cache entry, set by register_plot: the report's pictures use the
+# prepared (voxel-thinned) points instead of reading every scan a second time
+_PREPARED_ENTRIES: dict[str, Path] = {}
+
+
 def _read_xyz(path: Path) -> np.ndarray:
+    cached = _PREPARED_ENTRIES.get(str(path))
+    if cached is not None and cached.is_file():
+        try:
+            return load_points(cached)
+        except Exception:  # damaged entry: the scan itself
+            pass
     return read_cloud(path, attributes=False).xyz
 
 

@@ -1,0 +1,52 @@
+"""Place each scan of a big plot on the ALS first, so that only neighbours are registered to each other.
+
+Without approximate positions a plot of N scans would need N(N-1)/2 pairs. Registering each scan
+to the ALS tile instead is N pairs (the coarse stage finds a scan in a whole tile): the verified
+poses give positions for the neighbour selection (graph/pairs.py) and each pair's prior for the
+coarse stage. These scan -> ALS runs are ordinary pairs: same pairwise path, same pair and
+prepared-cloud caches. A scan that cannot be placed is simply paired with every other scan.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from plotmosaic.graph.cache import pair_key
+from plotmosaic.graph.executor import PairJob
+from plotmosaic.io.frame import inverse
+from plotmosaic.manifest import Manifest, Plot
+
+ALS_ID = "ALS"
+
+
+def placement_jobs(manifest: Manifest, plot: Plot, config_json: str, seed: int, prepared: str | None,
+                   prepare_json: str | None = None) -> list[PairJob]:
+    """One scan -> ALS job per scan of the plot (the first ALS tile; none when the manifest has no ALS).
+
+    `prepare_json`: the settings the scans are prepared with (register-plot's), so the same prepared
+    clouds serve the placement and the pairs."""
+    if not manifest.als:
+        return []
+    tile = manifest.als[0]
+    tp = manifest.resolve(tile.path)
+    jobs = []
+    for scan in plot.scans:
+        sp = manifest.resolve(scan.path)
+        key = pair_key(sp, tp, scan.kind.value, "als", scan.k, tile.k, config_json, seed)
+        jobs.append(PairJob(key, scan.id, ALS_ID, str(sp), str(tp), scan.kind.value, "als", scan.k, tile.k,
+                            config_json, seed, prepared, None, prepare_json))
+    return jobs
+
+
+def placed_poses(jobs: list[PairJob], records: dict[str, dict]) -> dict[str, np.ndarray]:
+    """scan id -> its pose in the ALS CRS (scan file -> ALS file coordinates), verified pairs only."""
+    return {j.source: np.asarray(records[j.key]["transform"], dtype=np.float64)
+            for j in jobs if records.get(j.key, {}).get("status") == "ok"}
+
+
+def prior(poses: dict[str, np.ndarray], source: str, target: str) -> tuple | None:
+    """source file -> target file from two placed scans (rows of a 4x4), or None when either is not placed."""
+    if source not in poses or target not in poses:
+        return None
+    T = inverse(poses[target]) @ poses[source]
+    return tuple(tuple(float(v) for v in row) for row in T)

@@ -1,0 +1,181 @@
+"""The prepared-cloud cache: each scan read and prepared once per run, kept under DIR/prepared/.
+
+One `.npz` per scan, keyed by the file's content hash, its kind and levels, the align settings, the
+seed and the plotmosaic version, so every pair, plot, worker and re-run (and tie-to-als) shares it.
+Arrays are stored as such and the rest as JSON (no pickle: nothing in the folder can run code);
+the KD-tree and the lazy ICP-target normals are rebuilt on load, which is cheap beside reading
+and preparing the scan. Writes are atomic; a damaged entry is prepared again with one warning line.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import sys
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from plotmosaic import __version__
+from plotmosaic.align.prepare import PreparedCloud
+from plotmosaic.graph.cache import file_hash
+from plotmosaic.io.atomic import atomic_output
+from plotmosaic.io.frame import Frame
+
+FORMAT = 1
+_REBUILT = ("tree", "target_normals")  # derived from `points` on load
+_FIELDS = tuple(f.name for f in dataclasses.fields(PreparedCloud))
+
+
+def prepared_key(path, kind: str, levels: int | None, config_json: str, seed: int) -> str:
+    """What determines a prepared cloud (the role in a pair does not: one preparation serves both)."""
+    parts = {"file": file_hash(path), "kind": kind, "levels": levels, "config": json.loads(config_json), "seed": seed,
+             "version": __version__, "format": FORMAT, "fields": _FIELDS}
+    return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:32]
+
+
+def _plain(value):
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (np.floating, np.integer, np.bool_)):
+        return value.item()
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
+
+
+def save_prepared(path: str | Path, cloud: PreparedCloud) -> Path:
+    """Write `cloud` atomically as one .npz (arrays + a JSON "meta" entry)."""
+    arrays, meta = {}, {}
+    for name in _FIELDS:
+        if name in _REBUILT:
+            continue
+        value = getattr(cloud, name)
+        if name == "frame":
+            arrays["frame_offset"] = np.asarray(value.offset, dtype=np.float64)
+        elif isinstance(value, np.ndarray):
+            arrays[name] = value
+        else:
+            meta[name] = value
+    meta["normal_max_nn"] = cloud.target_normals.max_nn
+    arrays["meta"] = np.frombuffer(json.dumps(meta, default=_plain).encode(), dtype=np.uint8)
+    with atomic_output(path) as tmp:
+        with open(tmp, "wb") as f:  # a file object: np.savez would append ".npz" to the temporary name
+            np.savez(f, **arrays)
+    return Path(path)
+
+
+def load_prepared(path: str | Path) -> PreparedCloud:
+    """The cloud saved by `save_prepared`; raises ValueError (or OSError) when the file is damaged."""
+    from plotmosaic.align.normals import LazyNormals
+
+    with np.load(path, allow_pickle=False) as data:
+        arrays = {k: data[k] for k in data.files}
+    meta = json.loads(arrays.pop("meta").tobytes().decode())
+    max_nn = meta.pop("normal_max_nn")
+    values = {**meta, **{k: v for k, v in arrays.items() if k != "frame_offset"}}
+    values["frame"] = Frame(arrays["frame_offset"])
+    points = values["points"]
+    if points.ndim != 2 or points.shape[1] != 3 or not len(points):
+        raise ValueError("points are not an (N, 3) array")
+    values["tree"] = tree = cKDTree(points, balanced_tree=False, compact_nodes=False)
+    values["target_normals"] = LazyNormals(points, tree, values["normal_radius"], max_nn)
+    missing = [n for n in _FIELDS if n not in values]
+    if missing:
+        raise ValueError(f"missing {', '.join(missing)}")
+    if len(values["levels"]) != len(values["level_points"]):
+        raise ValueError("levels and level points differ in length")
+    return PreparedCloud(**{n: values[n] for n in _FIELDS})
+
+
+def load_points(path: str | Path) -> np.ndarray:
+    """Just the delta0 points of a cached cloud, in file coordinates (pictures: no tree, no re-read of the scan)."""
+    with np.load(path, allow_pickle=False) as data:
+        return data["points"] + data["frame_offset"]
+
+
+@dataclass(frozen=True)
+class PrepareJob:
+    """One scan to read and prepare into the cache (plain data: pickles to any process or machine)."""
+
+    key: str
+    scan: str  # scan id, for messages
+    path: str
+    kind: str
+    levels: int | None
+    config_json: str
+    seed: int
+    folder: str  # DIR/prepared
+
+
+def entry(folder: str | Path, key: str) -> Path:
+    return Path(folder) / f"{key}.npz"
+
+
+# Loaded clouds of this process: a scan in several pairs is loaded once per worker while it is used.
+_LOADED: OrderedDict[str, PreparedCloud] = OrderedDict()
+_LOADED_MAX = 4
+reads = 0  # scans read and prepared by this process (tests and benchmarks count them)
+
+
+def _compute(job: PrepareJob) -> PreparedCloud:
+    global reads
+    from plotmosaic.align.config import AlignConfig, default_levels
+    from plotmosaic.align.prepare import prepare_cloud
+    from plotmosaic.io.las import read_cloud
+
+    config = AlignConfig.model_validate_json(job.config_json)
+    cloud = read_cloud(job.path, attributes=False)
+    reads += 1
+    return prepare_cloud(cloud, job.kind, job.levels or default_levels(job.kind), config, job.seed, job.scan)
+
+
+def _load_or_warn(path: Path, scan: str) -> PreparedCloud | None:
+    """The cached cloud, or None when absent or damaged (then one warning line: it is prepared again)."""
+    if not path.is_file():
+        return None
+    try:
+        return load_prepared(path)
+    except Exception as exc:  # truncated, foreign or edited file
+        print(f"warning: {path}: damaged prepared cloud of scan {scan} ({type(exc).__name__}: {exc}); preparing it again",
+              file=sys.stderr)
+        return None
+
+
+def get_prepared(job: PrepareJob) -> tuple[PreparedCloud, float]:
+    """(prepared cloud, seconds spent reading and preparing it here): from memory, the cache, or computed and cached."""
+    if job.key in _LOADED:
+        _LOADED.move_to_end(job.key)
+        return _LOADED[job.key], 0.0
+    path = entry(job.folder, job.key)
+    cloud = _load_or_warn(path, job.scan)
+    seconds = 0.0
+    if cloud is None:
+        start = time.perf_counter()
+        cloud = _compute(job)
+        seconds = time.perf_counter() - start
+        save_prepared(path, cloud)
+    _LOADED[job.key] = cloud
+    while len(_LOADED) > _LOADED_MAX:
+        _LOADED.popitem(last=False)
+    return cloud, seconds
+
+
+def run_prepare_job(job: PrepareJob) -> dict:
+    """Worker: make sure the scan's prepared cloud is in the cache; a record with status "ok" or "failed"."""
+    start = time.perf_counter()
+    record = {"key": job.key, "scan": job.scan, "kind": "prepare", "computed": False}
+    try:
+        path = entry(job.folder, job.key)
+        if _load_or_warn(path, job.scan) is None:
+            save_prepared(path, _compute(job))
+            record["computed"] = True
+        record["status"] = "ok"
+    except Exception as exc:  # unreadable scan, too few points, out of memory: its pairs fail with this
+        record.update(status="failed", error=f"{type(exc).__name__}: {exc}" if not str(exc).startswith(job.scan)
+                      else str(exc))
+    record["seconds"] = time.perf_counter() - start
+    return record
