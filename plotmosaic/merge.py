@@ -333,7 +333,8 @@ def read_source_table(path: str | Path) -> list[dict]:
 
 _SPLIT_SAMPLE = 65_536  # records sampled to choose where an over-budget tile is cut
 _SPILL_READ = 1_000_000  # records read at once when an over-budget tile is re-bucketed
-_BYTES_OVERHEAD = 64  # per point while thinning a tile, beside two copies of its record: indices, keys, sort
+_PRETHIN_WORTH = 0.8  # in-chunk thinning goes on for a source while it drops at least 20 % of the points
+_BYTES_OVERHEAD = 96  # per point while thinning a tile, beside two copies of its record: voxel indices, key, sort order
 
 
 def voxel_ijk(raw: np.ndarray, step: int) -> np.ndarray:
@@ -344,16 +345,40 @@ def voxel_ijk(raw: np.ndarray, step: int) -> np.ndarray:
     return ijk
 
 
+def column_bounds(ijk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-column min and max of an (N, 3) array (column by column: ~6x faster than axis=0)."""
+    return np.array([ijk[:, k].min() for k in range(3)]), np.array([ijk[:, k].max() for k in range(3)])
+
+
+def take_records(raw: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """raw[index] for a structured point array, as whole rows of bytes (~15x faster than numpy's
+    field-by-field gather of a structured dtype)."""
+    raw = np.ascontiguousarray(raw)
+    rows = raw.view(np.uint8).reshape(len(raw), raw.dtype.itemsize)
+    return np.take(rows, index, axis=0).reshape(-1).view(raw.dtype)
+
+
+def stable_order(keys: np.ndarray, key_bits: int) -> np.ndarray:
+    """argsort(keys, kind="stable") for non-negative int64 keys below 2**key_bits: one plain sort of
+    key and index packed together when they fit 63 bits (several times faster), else a stable argsort."""
+    index_bits = max(1, int(len(keys) - 1).bit_length())
+    if key_bits + index_bits > 63:
+        return np.argsort(keys, kind="stable")
+    packed = np.sort((keys << index_bits) | np.arange(len(keys), dtype=np.int64))
+    return packed & ((1 << index_bits) - 1)
+
+
 def first_in_voxel(ijk: np.ndarray) -> np.ndarray:
-    """Ascending indices of the first row of each distinct voxel (one stable sort)."""
+    """Ascending indices of the first row of each distinct voxel (one sort)."""
     if len(ijk) == 0:
         return np.empty(0, dtype=np.int64)
-    lo = ijk.min(axis=0)
-    bits = [int(v).bit_length() for v in ijk.max(axis=0) - lo]
-    if sum(bits) <= 63:  # pack the indices into one int64 key (always, but for far-flung outliers)
-        rel = ijk - lo
-        key = (rel[:, 0] << (bits[1] + bits[2])) | (rel[:, 1] << bits[2]) | rel[:, 2]
-        order = np.argsort(key, kind="stable")
+    lo, hi = column_bounds(ijk)
+    bits = [int(v).bit_length() for v in hi - lo]
+    if sum(bits) <= 62:  # pack the indices into one int64 key (always, but for far-flung outliers)
+        key = (ijk[:, 0] - lo[0]) << (bits[1] + bits[2])
+        key |= (ijk[:, 1] - lo[1]) << bits[2]
+        key |= ijk[:, 2] - lo[2]
+        order = stable_order(key, sum(bits))
         ordered = key[order]
         new = np.empty(len(order), dtype=bool)
         new[0], new[1:] = True, ordered[1:] != ordered[:-1]
@@ -362,7 +387,9 @@ def first_in_voxel(ijk: np.ndarray) -> np.ndarray:
         ordered = ijk[order]
         new = np.empty(len(order), dtype=bool)
         new[0], new[1:] = True, np.any(ordered[1:] != ordered[:-1], axis=1)
-    return np.sort(order[new])
+    keep = np.zeros(len(order), dtype=bool)
+    keep[order[new]] = True  # back in stream order without a second sort
+    return np.flatnonzero(keep)
 
 
 @dataclass
@@ -378,17 +405,23 @@ class Bucket:
         with open(self.path, "ab") as f:
             f.write(np.ascontiguousarray(raw).data)
         self.count += len(raw)
-        self.lo, self.hi = np.minimum(self.lo, ijk.min(axis=0)), np.maximum(self.hi, ijk.max(axis=0))
+        lo, hi = column_bounds(ijk)
+        self.lo, self.hi = np.minimum(self.lo, lo), np.maximum(self.hi, hi)
 
 
 def _scatter(raw: np.ndarray, ijk: np.ndarray, labels: np.ndarray, bucket_of) -> None:
-    """Append each group of points with the same label to `bucket_of(label)`, keeping their order."""
-    order = np.argsort(labels, kind="stable")
+    """Append each group of points with the same (integer) label to `bucket_of(label)`, keeping their order."""
+    lo, hi = labels.min(), labels.max()
+    if lo == hi:  # the whole chunk in one tile: no sort
+        bucket_of(lo).append(raw, ijk)
+        return
+    span_bits = int(hi - lo).bit_length()
+    order = stable_order((labels - lo).astype(np.int64), span_bits) if span_bits <= 62 else np.argsort(labels, kind="stable")
     ordered = labels[order]
     starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
     for a, b in zip(starts, [*starts[1:], len(order)]):
         index = order[a:b]
-        bucket_of(ordered[a]).append(raw[index], ijk[index])
+        bucket_of(ordered[a]).append(take_records(raw, index), ijk[index])
 
 
 class TileSpill:
@@ -432,7 +465,7 @@ def _split(bucket: Bucket, dtype: np.dtype, step: int) -> list[Bucket]:
     with open(bucket.path, "rb") as f:
         while len(raw := np.fromfile(f, dtype=dtype, count=_SPILL_READ)):
             ijk = voxel_ijk(raw, step)
-            _scatter(raw, ijk, (ijk[:, axis] >= cut).astype(np.int8), lambda k: halves[int(k)])
+            _scatter(raw, ijk, (ijk[:, axis] >= cut).astype(np.int64), lambda k: halves[int(k)])
     bucket.path.unlink()
     return halves
 
@@ -449,7 +482,7 @@ def thinned_blocks(bucket: Bucket, dtype: np.dtype, step: int | None, max_points
                     yield raw
         elif b.count <= max_points:
             raw = np.fromfile(b.path, dtype=dtype)
-            yield raw[first_in_voxel(voxel_ijk(raw, step))]
+            yield take_records(raw, first_in_voxel(voxel_ijk(raw, step)))
         elif np.all(b.lo == b.hi):  # a single voxel: its first point
             yield np.fromfile(b.path, dtype=dtype, count=1)
         else:
@@ -640,8 +673,12 @@ def _bucket(spill: TileSpill, sources: list[Source], counts: list[SourceCount], 
     """First pass: every chunk posed, cropped, thinned within itself (a point that is not the first of its
     voxel in its chunk cannot be the first in the cloud) and bucketed by tile."""
     for source, count in zip(sources, counts):
+        prethin = step is not None
         for chunk in read_records(source.path, config.chunk_size):
-            spill.add(posed_record(source, chunk, header, config.bbox, step).array)
+            record = posed_record(source, chunk, header, config.bbox, step if prethin else None)
+            spill.add(record.array)
+            # a fine voxel keeps nearly every point: then the in-chunk pass costs a sort and saves nothing
+            prethin = prethin and len(record) < _PRETHIN_WORTH * len(chunk)
             count.points_in += len(chunk)
             if bar is not None:
                 bar.advance(len(chunk), source.id)
@@ -822,7 +859,7 @@ def posed_record(
         first = first_in_voxel(np.floor_divide(q if index is None else q[index], thin))
         index = first if index is None else index[first]
     if index is not None:
-        raw, q = raw[index], q[index]
+        raw, q = take_records(raw, index), q[index]
     if raw.dtype == header.point_format.dtype():
         record = laspy.ScaleAwarePointRecord(raw, header.point_format, header.scales, header.offsets)
     else:  # another point format (LAS 1.2 PF 3, no RGB, other extra bytes): copy the fields by name

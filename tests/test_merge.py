@@ -434,3 +434,10 @@ def test_sigint_mid_merge_exits_130_and_leaves_nothing(big_site, tmp_path, optio
     assert proc.returncode == 130, err
     assert err.strip() == "interrupted"
     assert list(out.iterdir()) == []  # no output, no temporaries
+
+
+def test_stable_order_packed_and_fallback_agree():
+    keys = np.random.default_rng(1).integers(0, 50, 10_000)
+    want = np.argsort(keys, kind="stable")
+    assert np.array_equal(merge_module.stable_order(keys, 6), want)
+    assert np.array_equal(merge_module.stable_order(keys, 60), want)  # too wide to pack with the index
