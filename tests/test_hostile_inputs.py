@@ -211,11 +211,14 @@ def test_stale_temporaries_are_removed_by_the_next_run(small_sim, tmp_path):
     out.parent.mkdir()
     stale = out.parent / f".merged.laz.tmp-{dead_pid()}"
     stale.write_bytes(b"\0" * 1000)
+    stale_dir = out.parent / f".merged.laz.spill.tmp-{dead_pid()}"  # a killed run's temporary folder
+    (stale_dir / "tile").mkdir(parents=True)
+    (stale_dir / "tile" / "0.bin").write_bytes(b"\0")
     live = out.parent / f".other.laz.tmp-{os.getpid()}"  # a live run's temporary is not touched
     live.write_bytes(b"\0")
     res = invoke("merge", small_sim.manifest_path, "--poses", small_sim.ground_truth_path, "--out", out)
     assert res.exit_code == 0, res.output
-    assert out.is_file() and not stale.exists() and live.exists()
+    assert out.is_file() and not stale.exists() and not stale_dir.exists() and live.exists()
     assert remove_stale_temporaries(out.parent) == []  # once per folder and process
 
 
@@ -363,10 +366,14 @@ def test_sigkill_register_plot_leaves_no_orphans_and_resumes(small_sim, tmp_path
     assert pairs_line(res.output) == (3, 3 - done)  # only the missing pairs were registered again
     assert not [p for p in tree(out) if ".tmp-" in p]
 
-    # a damaged entry (NaN in the transform) is discarded with one warning and registered again
+    # a damaged entry (NaN in the transform; a failed pair's entry without its status) is discarded with
+    # one warning and registered again
     entry = sorted((out / "pairs").glob("*.json"))[0]
     record = json.loads(entry.read_text())
-    record["transform"][0][3] = float("nan")
+    if record["status"] == "ok":
+        record["transform"][0][3] = float("nan")
+    else:
+        del record["status"]
     entry.write_text(json.dumps(record))
     res = invoke("register-plot", manifest, "--out", out, "-j", "1")
     assert res.exit_code == 0, res.output

@@ -12,6 +12,7 @@ import contextlib
 import errno
 import os
 import re
+import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -39,7 +40,7 @@ def _alive(pid: int) -> bool:
 
 
 def remove_stale_temporaries(folder: str | Path) -> list[Path]:
-    """Delete `.NAME.tmp-PID` files in `folder` whose process no longer runs (once per folder and process)."""
+    """Delete `.NAME.tmp-PID` files (and folders) in `folder` whose process no longer runs (once per folder and process)."""
     folder = Path(folder)
     tag = str(folder.resolve()) if folder.exists() else str(folder)
     if tag in _cleaned or not folder.is_dir():
@@ -52,10 +53,14 @@ def remove_stale_temporaries(folder: str | Path) -> list[Path]:
         return []
     for entry in entries:
         m = TEMP_NAME.match(entry.name)
-        if m and entry.is_file(follow_symlinks=False) and not _alive(int(m.group(1))):
-            with contextlib.suppress(OSError):
+        if not m or entry.is_symlink() or _alive(int(m.group(1))):
+            continue
+        with contextlib.suppress(OSError):
+            if entry.is_dir(follow_symlinks=False):  # a temporary folder (merge's tiles and spill files)
+                shutil.rmtree(entry.path)
+            else:
                 os.unlink(entry.path)
-                removed.append(Path(entry.path))
+            removed.append(Path(entry.path))
     return removed
 
 
