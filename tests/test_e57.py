@@ -322,3 +322,20 @@ def test_merge_carries_intensity_and_colour(e57_dir, tmp_path):
     cube = read_cloud(cube)
     np.testing.assert_allclose(np.column_stack([las.x, las.y, las.z])[~mine], cube.xyz + [10, 0, 0], atol=6e-4)
     np.testing.assert_array_equal(np.asarray(las.blue)[~mine], cube.attrs["blue"])
+
+
+def test_bad_stored_pose_only_matters_where_used(tmp_path):
+    """A non-unit quaternion: the points still read, info says why, use_pose names file and scan."""
+    import pye57
+
+    xyz = np.random.default_rng(2).uniform(-5, 5, (200, 3))
+    path = tmp_path / "q.e57"
+    with pye57.E57(str(path), mode="w") as e57:
+        data = {"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2]}
+        e57.write_scan_raw(data, name="q", rotation=np.array([2.0, 0, 0, 0]), translation=np.array([1.0, 2, 3]))
+    assert len(read_cloud(path)) == 200
+    assert "unusable stored pose" in invoke("info", path).output
+    toml = tmp_path / "m.toml"
+    toml.write_text(f'plot_id = "P"\n[[scans]]\nid = "a"\npath = "{path}"\nuse_pose = true\n')
+    with pytest.raises(InputError, match="q.e57: scan 0 \\('q'\\): unusable stored pose"):
+        load_manifest(toml).stored_pose("a")

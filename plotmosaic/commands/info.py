@@ -55,7 +55,8 @@ def _describe_e57(path: Path, full: bool) -> str:
             n = sum(len(xyz) for xyz, _ in iter_e57_chunks(scan_ref(path, s.index), attributes=False))
             valid = f" ({s.point_count - n:,} flagged invalid)" if n != s.point_count else ""
         name = repr(s.name) if s.name else "(no name)"
-        lines.append(f"  scan {s.index} {name} {s.guid or ''}: {s.point_count:,} points{valid}, {pose_text(s.pose)}")
+        pose = f"unusable stored pose ({s.pose_problem})" if s.pose_problem else pose_text(s.pose)
+        lines.append(f"  scan {s.index} {name} {s.guid or ''}: {s.point_count:,} points{valid}, {pose}")
     return "\n".join(lines)
 
 

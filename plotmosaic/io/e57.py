@@ -58,6 +58,7 @@ class E57Scan:
     fields: tuple[str, ...]
     pose: np.ndarray | None  # 4x4 scan -> file frame, None when the file stores none
     bounds: tuple[np.ndarray, np.ndarray] | None  # cartesianBounds (scan frame), when stored
+    pose_problem: str | None = None  # why a stored pose was unusable (an error only where the pose is used)
 
     @property
     def label(self) -> str:
@@ -169,15 +170,12 @@ def _describe(node, index: int) -> E57Scan:
     points = libe57.CompressedVectorNode(node.get("points"))
     proto = libe57.StructureNode(points.prototype())
     fields = tuple(proto.get(i).elementName() for i in range(proto.childCount()))
-    return E57Scan(
-        index,
-        _string(node, "name"),
-        _string(node, "guid"),
-        int(points.childCount()),
-        fields,
-        _pose(node),
-        _bounds(node),
-    )
+    try:
+        pose, problem = _pose(node), None
+    except Exception as exc:  # the points are still usable: registration does not need the pose
+        pose, problem = None, _short(exc)
+    return E57Scan(index, _string(node, "name"), _string(node, "guid"), int(points.childCount()), fields, pose,
+                   _bounds(node), problem)
 
 
 def list_scans(path: str | Path) -> list[E57Scan]:
@@ -233,7 +231,10 @@ def resolve_scan(path: str | Path) -> tuple[Path, E57Scan]:
 def stored_pose(path: str | Path, scan: int | str | None = None) -> np.ndarray | None:
     """The scan's stored pose (4x4, scan frame -> file frame), None when the file stores none."""
     file, index = split_scan_ref(path)
-    return select_scan(file, index if scan is None else scan).pose
+    chosen = select_scan(file, index if scan is None else scan)
+    if chosen.pose_problem:
+        raise InputError(f"{file}: {chosen.label}: unusable stored pose ({chosen.pose_problem})")
+    return chosen.pose
 
 
 def _wanted(fields: tuple[str, ...], attributes: bool | Iterable[str]) -> list[str]:
