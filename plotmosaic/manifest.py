@@ -163,16 +163,25 @@ class Manifest(_Strict):
         path = self.resolve(scan.path)
         return stored_pose(path) if scan.use_pose and is_e57(path) else None
 
-    def pair_prior(self, source_id: str, target_id: str) -> np.ndarray | None:
-        """Initial guess source -> target from the stored poses, when both scans offer one.
+    def stored_poses(self) -> dict[str, np.ndarray]:
+        """Stored poses (file frame) of the scans with `use_pose = true`, by scan id: what
+        graph.pipeline.plan_jobs takes as `placed`. A plot whose stored poses are all identity gives
+        none (what many exports write when they know nothing)."""
+        out: dict[str, np.ndarray] = {}
+        for plot in self.plots:
+            poses = {s.id: T for s in plot.scans if (T := self.stored_pose(s.id)) is not None}
+            if not all(np.allclose(T, np.eye(4)) for T in poses.values()):
+                out.update(poses)
+        return out
 
-        None when either has no pose, or both store identity (what many exports write: no
-        information). A prior only: the pairwise path verifies it like any hypothesis.
-        """
-        ps, pt = self.stored_pose(source_id), self.stored_pose(target_id)
-        if ps is None or pt is None or (np.allclose(ps, np.eye(4)) and np.allclose(pt, np.eye(4))):
+    def pair_prior(self, source_id: str, target_id: str) -> np.ndarray | None:
+        """Initial guess source file -> target file from `stored_poses`, when both scans (of one plot)
+        offer one. A prior only: the pairwise path verifies it like any hypothesis. For many pairs,
+        call `stored_poses` once (each call reads every scan's header)."""
+        poses = self.stored_poses()
+        if source_id not in poses or target_id not in poses or self.plot_of(source_id) != self.plot_of(target_id):
             return None
-        return np.linalg.inv(pt) @ ps
+        return np.linalg.inv(poses[target_id]) @ poses[source_id]
 
     def plot_of(self, scan_id: str) -> Plot:
         for p in self.plots:

@@ -96,11 +96,15 @@ def test_invalid_manifests_name_the_field(scans, text, expected):
     assert "\n" not in message
 
 
-@pytest.mark.parametrize("field, value", [("plot_id", "../../escaped"), ("plot_id", "a/b"), ("plot_id", ".."), ("id", "../s"), ("id", "x\\\\y")])
+@pytest.mark.parametrize(
+    "field, value",
+    [("plot_id", "../../escaped"), ("plot_id", "a/b"), ("plot_id", ".."), ("id", "../s"), ("id", "x\\\\y")],
+)
 def test_ids_that_would_escape_the_output_folder(scans, field, value):
     from helpers import assert_one_line_error, invoke
 
-    text = f'plot_id = "{value if field == "plot_id" else "P1"}"\n[[scans]]\nid = "{value if field == "id" else "a"}"\npath = "a.laz"\n'
+    plot_id, scan_id = (value, "a") if field == "plot_id" else ("P1", value)
+    text = f'plot_id = "{plot_id}"\n[[scans]]\nid = "{scan_id}"\npath = "a.laz"\n'
     result = invoke("info", write(scans, text))
     assert_one_line_error(result, "m.toml", f"field '{field}'", "not allowed")
 
@@ -113,7 +117,9 @@ def test_safe_ids_and_bom(scans):
     assert [p.id for p in load_manifest(raw).plots] == ["P1", "P2"]
 
 
-@pytest.mark.parametrize("extra, field", [("scan = 1\n", "scan"), ("use_pose = true\n", "use_pose"), ("scan = -1\n", "scan")])
+@pytest.mark.parametrize(
+    "extra, field", [("scan = 1\n", "scan"), ("use_pose = true\n", "use_pose"), ("scan = -1\n", "scan")]
+)
 def test_e57_fields_on_other_files_name_the_field(scans, extra, field):
     path = write(scans, 'plot_id = "P1"\n[[scans]]\nid = "a"\npath = "a.laz"\n' + extra)
     with pytest.raises(InputError) as err:
@@ -129,9 +135,33 @@ def test_e57_scan_dump_round_trip(tmp_path):
         for name in ("north", "south"):
             xyz = rng.uniform(-5, 5, (100, 3))
             e57.write_scan_raw({"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2]}, name=name)
-    m = load_manifest(write(tmp_path, 'plot_id = "P"\n[[scans]]\nid = "n"\npath = "p.e57"\nscan = "north"\nuse_pose = true\n'
+    m = load_manifest(write(tmp_path, 'plot_id = "P"\n'
+                                      '[[scans]]\nid = "n"\npath = "p.e57"\nscan = "north"\nuse_pose = true\n'
                                       '[[scans]]\nid = "s"\npath = "p.e57"\nscan = 1\n'))
     assert [s.path.name for s in m.scans] == ["p.e57#0", "p.e57#1"] and m.scan("n").use_pose
     again = load_manifest(write(tmp_path, dump_manifest(m), "again.toml"))
     assert again.model_dump(exclude={"source"}) == m.model_dump(exclude={"source"})
     assert 'scan = "north"' in dump_manifest(m) and 'path = "p.e57"' in dump_manifest(m)
+
+
+def test_stored_poses_skip_plots_that_store_only_identity(tmp_path):
+    """Identity everywhere (what many exports write) is no prior; one real pose beside identity is."""
+    import pye57
+
+    rng = np.random.default_rng(4)
+    T = np.eye(4)
+    T[:3, 3] = [5.0, -2.0, 0.5]
+    for name, second in (("ident.e57", np.zeros(3)), ("posed.e57", T[:3, 3])):
+        with pye57.E57(str(tmp_path / name), mode="w") as e57:
+            for t in (np.zeros(3), second):
+                xyz = rng.uniform(-5, 5, (100, 3))
+                data = {"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2]}
+                e57.write_scan_raw(data, rotation=np.array([1.0, 0, 0, 0]), translation=t)
+    scan = '[[scans]]\nid = "s{i}"\npath = "FILE"\nscan = {i}\nuse_pose = true\n'
+    text = 'plot_id = "P"\n' + "".join(scan.format(i=i) for i in (0, 1))
+    ident = load_manifest(write(tmp_path, text.replace("FILE", "ident.e57"), "i.toml"))
+    assert ident.stored_poses() == {} and ident.pair_prior("s1", "s0") is None
+    posed = load_manifest(write(tmp_path, text.replace("FILE", "posed.e57"), "p.toml"))
+    assert sorted(posed.stored_poses()) == ["s0", "s1"]
+    np.testing.assert_allclose(posed.pair_prior("s1", "s0"), T, atol=1e-12)
+    np.testing.assert_allclose(posed.pair_prior("s0", "s1"), np.linalg.inv(T), atol=1e-12)
