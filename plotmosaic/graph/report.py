@@ -176,6 +176,14 @@ def _md_figures(figures: list[tuple[str, str, Path]], plot: str) -> list[str]:
     return lines
 
 
+def _recorded(result) -> list:
+    """Stages a result records in a `timings` dict (name -> wall seconds), when its pipeline keeps one."""
+    from plotmosaic.report.build import Stage
+
+    timings = getattr(result, "timings", None)
+    return [Stage(k, float(v), "wall time") for k, v in timings.items() if isinstance(v, (int, float))] if isinstance(timings, dict) else []
+
+
 def write_register_report(result, manifest, config, seed: int, reader: Callable[[Path], np.ndarray] | None = None) -> Path:
     """report.md (tables, pictures) and report.html (summary, breast-height slice, distances, map) of register-plot."""
     from plotmosaic.graph.posegraph import PoseGraphConfig
@@ -201,6 +209,7 @@ def write_register_report(result, manifest, config, seed: int, reader: Callable[
         Stage("pairwise registration", pair_s, f"sum of the per-pair times of {n_timed} pairs ({result.computed} run now, "
               "the rest from the cache); the pairs ran in parallel, so the wall time is shorter"),
         Stage("register-plot until this report", result.seconds, "pairs, pose graph and its checks, poses.json"),
+        *_recorded(result),
     ]
     tables = []
     for r in result.plots:
@@ -272,7 +281,8 @@ def write_tie_report(result, manifest, als, config, seed: int, reader: Callable[
     stages = [Stage("plot -> ALS registration", float(sum(anchor_s)) if anchor_s else None,
                     f"sum of the per-pair times of {len(anchor_s)} anchor pairs ({result.computed} run now)"),
               Stage("tie-to-als until this report", result.seconds or None,
-                    "" if result.seconds else "tie-to-als does not record its time before the report is written")]
+                    "" if result.seconds else "tie-to-als does not record its time before the report is written"),
+              *_recorded(result)]
     als_xyz = _als_near(als.xyz, poses, 40.0)
     inp = ReportInput(
         title="tie-to-als report (georeferenced)", out=out, graph=G, poses=poses,

@@ -68,7 +68,7 @@ def collect(plot: str, scans: list[str], paths: dict[str, Path], poses: dict[str
             continue
         xyz = apply_transform(poses[sid], reader(paths[sid]))
         minima = merge_minima(minima, cell_minima(xyz, cfg.slice.dtm_cell))
-        low[sid] = low_stratum(xyz, cfg.slice)
+        low[sid] = thin(low_stratum(xyz, cfg.slice), cfg.slice.stratum_voxel, len(xyz), rng)  # memory: area, not points
         view.thinned[sid] = thin(xyz, cfg.distance.voxel, cfg.distance.max_points, rng)
         del xyz
     if not low:

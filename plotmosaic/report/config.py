@@ -14,6 +14,7 @@ class SliceConfig(BaseModel):
     dtm_spike: float = Field(0.3, gt=0, le=5, description="a cell this much above the opened ground saw no ground (stem base, log)")
     keep_low: float = Field(0.5, ge=0, le=1.2, description="per scan, points this close above its own cell minimum are ground, not kept")
     keep_high: float = Field(2.5, ge=1.4, le=10, description="per scan, points this far above its own cell minimum cannot be in the slice")
+    stratum_voxel: float = Field(0.005, gt=0, le=0.05, description="one point per cube (m) of the kept low stratum: bounds memory, keeps mm rings")
     stem_cell: float = Field(0.1, gt=0.005, le=0.5, description="raster cell that joins a stem's ring points into one cluster (m)")
     stem_min_points: int = Field(8, ge=4, le=10_000, description="fewest slice points of one scan for a circle fit on its arc")
     stem_max_radius: float = Field(0.6, gt=0.02, le=3, description="largest stem radius (m): bigger clusters are shrubs or logs")

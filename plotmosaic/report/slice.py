@@ -59,6 +59,7 @@ class Ground:
     y0: float
     cell: float
     z: np.ndarray
+    seen: np.ndarray | None = None  # cells that held points (the rest is filled from neighbours)
 
     def at(self, xy: np.ndarray) -> np.ndarray:
         """Bilinear ground height under each (x, y); outside the grid the edge value."""
@@ -72,8 +73,8 @@ class Ground:
         slope = np.arctan(np.hypot(gx, gy))
         aspect = np.arctan2(-gx, gy)
         az, alt = np.radians(azimuth), np.radians(altitude)
-        shade = np.sin(alt) * np.cos(slope) + np.cos(alt) * np.sin(slope) * np.cos(az - aspect)
-        return np.clip(shade, 0, 1)
+        shade = np.clip(np.sin(alt) * np.cos(slope) + np.cos(alt) * np.sin(slope) * np.cos(az - aspect), 0, 1)
+        return shade if self.seen is None else np.where(self.seen, shade, np.nan)
 
     @property
     def extent(self) -> tuple[float, float, float, float]:
@@ -96,7 +97,7 @@ def ground_model(minima: tuple[np.ndarray, np.ndarray], cell: float, spike: floa
     opened = ndimage.grey_opening(filled, size=(opening, opening), mode="nearest")
     grid = np.where(empty | (filled > opened + spike), opened, filled)
     grid = ndimage.median_filter(grid, size=3, mode="nearest") if min(shape) >= 3 else grid
-    return Ground(float(lo[0] * cell), float(lo[1] * cell), cell, grid)
+    return Ground(float(lo[0] * cell), float(lo[1] * cell), cell, grid, ~empty)
 
 
 def _fill_nearest(grid: np.ndarray) -> np.ndarray:

@@ -143,7 +143,8 @@ def plot_map(path: Path, G: nx.Graph, positions: dict[str, np.ndarray], backgrou
     if background is not None:
         img, ext, label = background
         e = (ext[0] - origin[0], ext[1] - origin[0], ext[2] - origin[1], ext[3] - origin[1])
-        im = ax.imshow(img, origin="lower", extent=e, cmap="Greens" if "canopy" in label else "gray", alpha=0.75)
+        im = ax.imshow(np.ma.masked_invalid(img), origin="lower", extent=e, cmap="Greens" if "canopy" in label else "gray",
+                       alpha=0.75, vmin=0 if "canopy" not in label else None, vmax=1 if "canopy" not in label else None)
         if "canopy" in label:
             fig.colorbar(im, ax=ax, label=label, shrink=0.7)
     pos = {n: positions[n][:2] - origin[:2] for n in G.nodes if n in positions}
