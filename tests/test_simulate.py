@@ -208,3 +208,50 @@ def test_cli(tmp_path):
     assert again.exit_code == 2 and "not empty" in again.output
     bad = runner.invoke(app, ["simulate", str(tmp_path / "x"), "--preset", "huge"])
     assert bad.exit_code == 2 and "unknown preset" in bad.output
+
+
+def test_scale_presets_validate():
+    from plotmosaic.simulate.config import grid_layout
+
+    large = PRESETS["large"]
+    assert len(large.scan_layout) >= 36 and not large.approx_positions and len(large.plot_centres) == 1
+    xy = np.array(large.scan_layout)
+    gaps = np.sort(np.linalg.norm(xy[:, None] - xy[None], axis=2), axis=1)[:, 1]
+    assert 15.0 <= gaps.min() and gaps.max() <= 20.0
+    assert 0.7e4 <= np.ptp(xy[:, 0]) * np.ptp(xy[:, 1]) and (np.ptp(xy[:, 0]) + 30) * (np.ptp(xy[:, 1]) + 30) <= 1.5e4  # ~1 ha
+    assert large.tls.points_per_scan == 1_000_000
+    region = PRESETS["region10"]
+    centres = np.array(region.plot_centres)
+    assert len(centres) >= 10 and np.sort(np.linalg.norm(centres[:, None] - centres[None], axis=2), axis=1)[:, 1].min() >= 60
+    under = PRESETS["understorey"]
+    assert under.forest.shrubs_per_ha >= 5000 and len(under.scan_layout) >= 2
+    assert grid_layout(3, 10.0) == [(x, y) for y in (-10.0, 0.0, 10.0) for x in (-10.0, 0.0, 10.0)]
+    assert make_config("large", points_per_scan=60_000).tls.points_per_scan == 60_000
+
+
+def test_tiny_large_and_understorey_simulate(tmp_path):
+    from plotmosaic.simulate.config import grid_layout
+
+    tiny = dict(points_per_scan=4000, tree_density=80, shrub_density=200, grass_density=0.2, scene_margin_m=6.0,
+                scan_layout=grid_layout(2, 16.0), **{"terrain.cell": 1.0})
+    large = simulate(tmp_path / "large", "large", seed=0, **tiny)
+    m = load_manifest(large.manifest_path)
+    assert len(m.scans) == 4 and all(s.approx_position is None for s in m.scans)
+    under = simulate(tmp_path / "under", "understorey", seed=0, points_per_scan=8000, scene_margin_m=6.0)
+    near = [np.mean(np.linalg.norm(read_cloud(p, attributes=False).xyz, axis=1) <= 5.0) for p in under.scan_paths.values()]
+    assert len(near) == 3 and min(near) > 0.5  # most returns from within 5 m of the scanner
+
+
+def test_cli_scan_grid_and_one_line_errors(tmp_path):
+    runner = CliRunner()
+    bad = runner.invoke(app, ["simulate", str(tmp_path / "x"), "--preset", "huge"])
+    assert bad.exit_code == 2 and bad.output.startswith("error: unknown preset") and len(bad.output.splitlines()) == 1
+    assert not (tmp_path / "x").exists()
+    res = runner.invoke(app, ["simulate", str(tmp_path / "g"), "--preset", "small", "--scan-grid", "2", "--scan-spacing", "15",
+                              "--points-per-scan", "3000", "--tree-density", "60", "--grass-density", "0.2"])
+    assert res.exit_code == 0, res.output
+    truth = load_poses(tmp_path / "g" / "ground_truth.json")
+    xy = np.array([p.transform[:2, 3] for p in truth.scans.values()])
+    assert len(xy) == 4 and 14.0 < np.sort(np.linalg.norm(xy[:, None] - xy[None], axis=2), axis=1)[:, 1].min()
+    mixed = runner.invoke(app, ["simulate", str(tmp_path / "y"), "--views", "2"])
+    assert mixed.exit_code == 2 and "--from-cloud" in mixed.output

@@ -14,7 +14,7 @@ from plotmosaic.errors import InputError
 @handle_errors
 def simulate_command(
     outdir: Path = typer.Argument(..., help="Output folder (must be empty unless --force)."),
-    preset: str | None = typer.Option(None, "--preset", help="small (default) | paper | region | grassland | prepost | ..."),
+    preset: str | None = typer.Option(None, "--preset", help="small (default) | paper | region | grassland | prepost | large | region10 | understorey"),
     seed: int = typer.Option(0, "--seed", help="Random seed: the same seed gives the same files."),
     points_per_scan: int | None = typer.Option(None, "--points-per-scan", help="Target points per TLS scan."),
     angular_step: float | None = typer.Option(None, "--angular-step", help="TLS angular step in degrees (overrides --points-per-scan)."),
@@ -25,6 +25,8 @@ def simulate_command(
     shrub_density: float | None = typer.Option(None, "--shrub-density", help="Shrubs per hectare."),
     grass_density: float | None = typer.Option(None, "--grass-density", help="Grass tufts per m2."),
     flat_terrain: bool | None = typer.Option(None, "--flat-terrain/--sloped-terrain", help="Near-flat terrain (the hard case)."),
+    scan_grid: int | None = typer.Option(None, "--scan-grid", min=1, help="Scan positions on an N x N grid per plot (replaces the preset's layout)."),
+    scan_spacing: float = typer.Option(18.0, "--scan-spacing", help="With --scan-grid: metres between grid positions."),
     approx_positions: bool = typer.Option(False, "--approx-positions", help="Write noisy approximate scanner positions (CRS frame)."),
     approx_sigma: float | None = typer.Option(None, "--approx-sigma", help="Noise of the approximate positions (m)."),
     figures: bool = typer.Option(False, "--figures", help="Also write PNG pictures to OUTDIR/figures."),
@@ -39,6 +41,7 @@ def simulate_command(
 ) -> None:
     """Simulate a forest plot: terrain, trees, understory; TLS scans, an ALS tile, ground truth and a manifest."""
     from plotmosaic.simulate import make_config, simulate
+    from plotmosaic.simulate.config import grid_layout
 
     if outdir.exists() and not outdir.is_dir():
         raise InputError(f"{outdir}: exists and is not a folder")
@@ -48,7 +51,7 @@ def simulate_command(
         given = {"--preset": preset, "--points-per-scan": points_per_scan, "--angular-step": angular_step,
                  "--als-density": als_density, "--tree-density": tree_density, "--conifer-fraction": conifer_fraction,
                  "--shrub-density": shrub_density, "--grass-density": grass_density, "--flat-terrain": flat_terrain,
-                 "--approx-positions": approx_positions or None, "--approx-sigma": approx_sigma, "--figures": figures or None}
+                 "--approx-positions": approx_positions or None, "--scan-grid": scan_grid, "--approx-sigma": approx_sigma, "--figures": figures or None}
         clash = [name for name, value in given.items() if value is not None]
         if clash:
             raise InputError(f"--from-cloud: {clash[0]} applies to the simulator only")
@@ -62,6 +65,7 @@ def simulate_command(
         tree_density=tree_density, conifer_fraction=conifer_fraction, shrub_density=shrub_density,
         grass_density=grass_density, flat_terrain=flat_terrain, approx_positions=approx_positions or None,
         approx_sigma_m=approx_sigma,
+        scan_layout=None if scan_grid is None else grid_layout(scan_grid, scan_spacing),
     )
     config = make_config(preset or "small", **overrides)  # before the progress bar: a bad preset is one clean line
     columns = [TextColumn("{task.description:<14}"), BarColumn(), TextColumn("{task.completed}/{task.total}"), TimeElapsedColumn()]

@@ -6,6 +6,7 @@ the origin) and `origin` (EPSG:26912, NAD83 / UTM 12N) is added in float64 when 
 
 from __future__ import annotations
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 CRS_EPSG = 26912
@@ -108,6 +109,19 @@ class SimulationConfig(_Model):
     fire: FireConfig = Field(default_factory=FireConfig)
 
 
+def grid_layout(n_side: int, spacing: float, n: int | None = None) -> list[tuple[float, float]]:
+    """Scan positions on an n_side x n_side grid `spacing` apart, centred on the plot centre (first `n` of them)."""
+    half = (n_side - 1) / 2.0
+    cells = [((i - half) * spacing, (j - half) * spacing) for j in range(n_side) for i in range(n_side)]
+    return cells[: n if n is not None else len(cells)]
+
+
+def grid_centres(n: int, spacing: float) -> list[tuple[float, float]]:
+    """`n` plot centres on a near-square grid `spacing` apart, plot P1 at the origin."""
+    cols = int(np.ceil(np.sqrt(n)))
+    return [(float((k % cols) * spacing), float((k // cols) * spacing)) for k in range(n)]
+
+
 def _preset(name: str, **changes) -> SimulationConfig:
     data = SimulationConfig(name=name).model_dump()
     for key, value in changes.items():
@@ -169,6 +183,48 @@ PRESETS: dict[str, SimulationConfig] = {
     ),
     # The same plot before and after a low-intensity fire that thinned grass and shrubs.
     "prepost": _preset("prepost", prepost=True, **{"tls.points_per_scan": 2_000_000}),
+    # A 1-ha inventory plot scanned on a 6 x 6 grid 18 m apart (36 positions, none in the manifest).
+    "large": _preset(
+        "large",
+        scan_layout=grid_layout(6, 18.0),
+        scene_margin_m=30.0,
+        **{
+            "terrain.cell": 0.5,
+            "forest.detail_radius_m": 75.0,
+            "tls.points_per_scan": 1_000_000,
+        },
+    ),
+    # Ten plots of the paper layout 90 m apart under one ALS survey (a region of 50 scans).
+    "region10": _preset(
+        "region10",
+        plot_centres=grid_centres(10, 90.0),
+        scene_margin_m=30.0,
+        **{
+            "terrain.cell": 0.6,
+            "forest.detail_radius_m": 35.0,
+            "forest.coarse_factor": 10,
+            "forest.grass_tufts_per_m2": 1.0,
+            "tls.points_per_scan": 1_000_000,
+            "als.margin_m": 25.0,
+        },
+    ),
+    # Dense understorey: shrubs and saplings everywhere, so most returns come from within 5 m of the
+    # scanner; three scans 7 m apart (the hard real-forest case of issue 15).
+    "understorey": _preset(
+        "understorey",
+        scan_layout=[(0.0, 0.0), (7.0, 0.0), (3.5, 6.0)],
+        scene_margin_m=25.0,
+        **{
+            "forest.trees_per_ha": 600.0,
+            "forest.conifer_fraction": 0.4,
+            "forest.broadleaf_height_m": (6.0, 12.0),  # a low leafy subcanopy closes the sky within ~5 m
+            "forest.shrubs_per_ha": 9000.0,
+            "forest.saplings_per_ha": 6000.0,
+            "forest.clearance_m": 1.0,
+            "tls.points_per_scan": 500_000,
+            "tls.max_range_m": 40.0,
+        },
+    ),
 }
 
 # Short names for the knobs the CLI and `simulate(**overrides)` expose.
