@@ -349,11 +349,17 @@ def _raster_starts(src: _Base, tgt: _Base, pairs, weights, config: CoarseConfig,
         hyps = _search(ls, lt, weights, config, prior_l)[: config.hypotheses if k == 0 else config.secondary_hypotheses]
         ground_xy = lt.feats.xy[lt.feats.ground]
         ground_tree = cKDTree(ground_xy) if len(ground_xy) >= config.tz_min_ground else None
+        # a narrow scene (a 12 m understorey view is 12 cells at 1 m) also gets a finer-cell search
+        # beside, never instead of, the usual one: finer cells alone found a wrong pose with full confidence
+        side = float(np.ptp(ls.feats.xy, axis=0).min())
+        if k == 0 and side < config.small_scene_cells * config.cell and config.cell > config.min_cell:
+            fine = config.model_copy(update={"cell": max(config.min_cell, side / config.small_scene_cells)})
+            hyps = hyps + [h | {"fine": True} for h in _search(ls, lt, weights, fine, prior_l)[: config.secondary_hypotheses]]
         for h in hyps:
             cell = h["cell"] if cell is None else cell
             T = _homogeneous(lt.R.T) @ _hypothesis_transform(h, ls, lt, ground_tree, config) @ _homogeneous(ls.R)
-            out.append((T, {"generator": "raster", "vertical": f"{vs.name}/{vt.name}", "score": h["score"],
-                            "yaw": h["yaw"], "overlap": h["overlap"]}))
+            out.append((T, {"generator": "raster", "vertical": f"{vs.name}/{vt.name}" + (" fine" if h.get("fine") else ""),
+                            "score": h["score"], "yaw": h["yaw"], "overlap": h["overlap"], "cell": h["cell"]}))
     return out, cell
 
 

@@ -119,12 +119,14 @@ def ransac_4dof(p: np.ndarray, q: np.ndarray, config: CoarseConfig, rng: np.rand
     c = config
     if len(p) < 2:
         return []
-    ij = _sample_sets(len(p), 2, c.fpfh_iterations, rng)
+    ij = _sample_sets(len(p), 2, c.fpfh_draws, rng)
     dp, dq = p[ij[:, 1]] - p[ij[:, 0]], q[ij[:, 1]] - q[ij[:, 0]]
-    # a rigid motion about z keeps horizontal lengths and height differences: drop inconsistent samples
+    # a rigid motion about z keeps horizontal lengths and height differences: of many cheap draws,
+    # only consistent ones are scored (2 % right matches leave few all-right pairs among random ones)
     hp, hq = np.hypot(dp[:, 0], dp[:, 1]), np.hypot(dq[:, 0], dq[:, 1])
     ok = (np.abs(hp - hq) < c.fpfh_inlier_m) & (np.abs(dp[:, 2] - dq[:, 2]) < c.fpfh_inlier_m) & (hp > 2 * c.fpfh_inlier_m)
-    ij, dp, dq = ij[ok], dp[ok], dq[ok]
+    keep = np.flatnonzero(ok)[: c.fpfh_iterations]
+    ij, dp, dq = ij[keep], dp[keep], dq[keep]
     if not len(ij):
         return []
     yaw = np.arctan2(dq[:, 1], dq[:, 0]) - np.arctan2(dp[:, 1], dp[:, 0])
@@ -139,7 +141,7 @@ def ransac_6dof(p: np.ndarray, q: np.ndarray, config: CoarseConfig, rng: np.rand
     c = config
     if len(p) < 3:
         return []
-    ijk = _sample_sets(len(p), 3, 4 * c.fpfh_iterations, rng)
+    ijk = _sample_sets(len(p), 3, 2 * c.fpfh_draws, rng)
     ok = np.ones(len(ijk), bool)
     for a, b in ((0, 1), (0, 2), (1, 2)):  # edge lengths are kept by any rigid motion
         lp = np.linalg.norm(p[ijk[:, a]] - p[ijk[:, b]], axis=1)
@@ -173,8 +175,8 @@ def _best(R: np.ndarray, t: np.ndarray, p: np.ndarray, q: np.ndarray, c: CoarseC
         if counts[k] < c.fpfh_min_inliers or len(out) >= c.fpfh_hypotheses:
             break
         Rk, tk = R[k], t[k]
-        for _ in range(2):  # re-fit on the inliers, then once more on the re-fitted pose's inliers
-            inl = ((p @ Rk.T + tk - q) ** 2).sum(axis=1) < c.fpfh_inlier_m**2
+        for f in (2.0, 1.5, 1.0, 1.0):  # re-fit on the inliers of a shrinking radius (a 3-point pose is rough)
+            inl = ((p @ Rk.T + tk - q) ** 2).sum(axis=1) < (f * c.fpfh_inlier_m) ** 2
             if inl.sum() < 3:
                 break
             Rk, tk = _rigid(p[inl], q[inl], four_dof)

@@ -1,0 +1,128 @@
+"""Hypothesis generators of the coarse stage (FPFH, stem map), vertical hypotheses, on two views of a real plot."""
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from plotmosaic.align import features3d, stemmap
+from plotmosaic.align.coarse import CoarseConfig, coarse_align
+from plotmosaic.align.levelling import Z, angle_deg, vertical_hypotheses
+from plotmosaic.align.normals import local_shape
+from plotmosaic.align.rasters import height_above_ground
+from plotmosaic.align.voxel import voxel_centroids
+from plotmosaic.io import read_cloud
+from plotmosaic.io.frame import pose_error
+
+TREELS = Path(__file__).resolve().parents[2] / "shared" / "data" / "treels" / "pine_plot.laz"
+
+
+@dataclass
+class Cloud:
+    points: np.ndarray
+    kind: str = "tls"
+
+
+def rigid(rot_deg, t, centre) -> np.ndarray:
+    R = Rotation.from_euler("xyz", rot_deg, degrees=True).as_matrix()
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, centre - R @ centre + np.asarray(t, float)
+    return T
+
+
+def move(T, pts):
+    return pts @ T[:3, :3].T + T[:3, 3]
+
+
+@pytest.fixture(scope="module")
+def views():
+    """Two overlapping views of the TreeLS plot (x < 8 m and x > 2 m), thinned, in a local frame."""
+    if not TREELS.is_file():
+        pytest.skip("shared/data/treels not present")
+    xyz = read_cloud(TREELS, attributes=False).xyz
+    xyz = voxel_centroids(xyz - [5.0, 5.0, 55.0], 0.05)
+    return xyz[xyz[:, 0] < 3.0], xyz[xyz[:, 0] > -3.0]
+
+
+def normals_of(pts, radius=0.75):
+    return local_shape(pts, cKDTree(pts), pts, radius, 16)[0]
+
+
+def test_vertical_hypotheses_include_the_truth_on_a_tilted_cloud(views):
+    pts = voxel_centroids(views[0], 0.15)
+    T = rigid([38, -25, 70], [0, 0, 0], pts.mean(axis=0))
+    moved = move(T, pts)
+    verticals, info = vertical_hypotheses(moved, normals_of(moved), CoarseConfig())
+    true_up = T[:3, :3] @ Z
+    assert min(angle_deg(v.up, true_up) for v in verticals) < 3.0, info  # its stems lean ~2 deg on a 4 deg slope
+    assert all(angle_deg(a.up, b.up) > 2.0 for i, a in enumerate(verticals) for b in verticals[i + 1 :])
+    # airborne (georeferenced) clouds put z-up first; a cloud already near upright has z-up among its candidates
+    assert vertical_hypotheses(pts, normals_of(pts), CoarseConfig(), airborne=True)[0][0].name == "z-up"
+    assert min(angle_deg(v.up, Z) for v in vertical_hypotheses(pts, normals_of(pts), CoarseConfig())[0]) < 3.0
+
+
+def test_fpfh_generator_recovers_a_pose_with_and_without_a_vertical(views):
+    c = CoarseConfig()
+    src, tgt = views
+    T = rigid([0, 0, 130], [4.0, -3.0, 1.0], src.mean(axis=0))
+    fs, ft = features3d.fpfh_features(move(T, src), c), features3d.fpfh_features(tgt, c)
+    i, j = features3d.mutual_matches(fs, ft)
+    truth = np.linalg.inv(T)
+    best4 = features3d.ransac_4dof(fs.points[i], ft.points[j], c, np.random.default_rng(0))[0][0]
+    deg, m = pose_error(best4, truth)
+    assert deg < 2.0 and m < 0.5, (deg, m)
+    # 6-DoF: the source also tilted, no vertical trusted
+    T6 = rigid([30, -20, 130], [4.0, -3.0, 1.0], src.mean(axis=0))
+    fs6 = features3d.fpfh_features(move(T6, src), c)
+    i, j = features3d.mutual_matches(fs6, ft)
+    found6 = features3d.ransac_6dof(fs6.points[i], ft.points[j], c, np.random.default_rng(0))
+    errors = [pose_error(A, np.linalg.inv(T6)) for A, _ in found6]
+    assert any(deg < 3.0 and m < 0.5 for deg, m in errors), errors
+
+
+def test_stem_map_generator_recovers_heading_and_shift(views):
+    c = CoarseConfig()
+    src, tgt = (voxel_centroids(v, 0.05) for v in views)
+    yaw, t = np.radians(-100.0), np.array([6.0, 2.0])
+    Rz = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+    moved = src.copy()
+    moved[:, :2] = src[:, :2] @ Rz.T + t
+    maps = [stemmap.stem_map(p, normals_of(p, 0.3), height_above_ground(p, 1.0, c), c) for p in (moved, tgt)]
+    assert len(maps[0].xy) >= 5 and len(maps[1].xy) >= 5
+    found = stemmap.match_stem_maps(maps[0], maps[1], c, np.random.default_rng(0))
+    y, shift, n = found[0]
+    # truth: moved -> target is the inverse of (Rz, t)
+    true_yaw = -yaw
+    true_t = -(Rz.T @ t)
+    assert abs((y - true_yaw + np.pi) % (2 * np.pi) - np.pi) < np.radians(2.0)
+    assert np.linalg.norm(shift - true_t) < 0.3 and n >= 4
+
+
+@pytest.fixture(scope="module")
+def tilted_pair(views):
+    src, tgt = (voxel_centroids(v, 0.1) for v in views)
+    T = rigid([40, -35, 150], [9.0, -12.0, 5.0], src.mean(axis=0))
+    return Cloud(move(T, src)), Cloud(tgt), np.linalg.inv(T)
+
+
+def test_coarse_recovers_a_45_degree_tilted_source_and_is_deterministic(tilted_pair):
+    src, tgt, truth = tilted_pair
+    c = CoarseConfig(max_points=20_000)
+    result = coarse_align(src, tgt, c, seed=3)
+    deg, m = pose_error(result.transform, truth)
+    assert deg < 1.0 and m < 0.2, (deg, m, result.hypotheses[:3])
+    gens = {h["generator"] for h in result.hypotheses}
+    assert {"raster", "fpfh", "stems"} <= gens
+    assert {"transform", "score", "refined", "screen_score", "raster_score", "yaw_deg", "overlap", "prior", "generator",
+            "vertical"} <= set(result.hypotheses[0])
+    # every generator put the truth among its own starts (a duplicate of another's start is noted in "agree")
+    for gen in ("raster", "fpfh", "stems"):
+        near = [h for h in result.hypotheses if (h["generator"] == gen or any(a.startswith(gen) for a in h.get("agree", [])))
+                and max(pose_error(np.asarray(h["transform"]), truth)[0] / 2, pose_error(np.asarray(h["transform"]), truth)[1] / 0.5) < 1]
+        assert near, gen
+    again = coarse_align(Cloud(src.points.copy()), Cloud(tgt.points.copy()), c, seed=3)
+    assert [h["generator"] for h in again.hypotheses] == [h["generator"] for h in result.hypotheses]
+    np.testing.assert_allclose(again.transform, result.transform, atol=1e-9)
