@@ -42,7 +42,7 @@ def _axis_strays(v: np.ndarray, keep: np.ndarray, config: StrayConfig) -> None:
         outside = np.flatnonzero((v > edge if sign > 0 else v < edge) & keep)
         if len(outside) == 0:
             continue
-        # distance beyond the bulk's edge, sorted outward; the first gap wider than max_gap detaches the rest
+        # distance beyond the bulk's edge, sorted outward; a gap wider than max_gap detaches what lies beyond
         d = sign * (v[outside] - edge)
         ds = np.sort(d)
         gaps = np.flatnonzero(np.diff(ds, prepend=0.0) > config.max_gap_m)
