@@ -289,7 +289,7 @@ def write_tie_report(result, manifest, als, config, seed: int, reader: Callable[
         paths={s.id: manifest.resolve(s.path) for s in manifest.scans}, plots=plots, reader=reader or _read_scan,
         stages=stages, unplaced=result.unplaced,
         tables_md=[("Anchors (plot -> ALS)", anchor_rows), ("Poses (ALS CRS)", pose_rows), ("Edges", edge_rows)],
-        facts=[f"manifest: {manifest.source}", "frame: the ALS CRS"], als_xyz=als_xyz,
+        facts=[f"manifest: {manifest.source}", "frame: the ALS CRS"] + [_anchor_fact(a) for a in result.anchors], als_xyz=als_xyz,
         min_confidence=getattr(getattr(config, "graph", None), "min_confidence", PoseGraphConfig().min_confidence),
         bundle=residual_summary(G))
     cfg = ReportConfig(picture_points=getattr(config, "report_points", 20_000))
@@ -297,6 +297,15 @@ def write_tie_report(result, manifest, als, config, seed: int, reader: Callable[
     for p in plots:
         lines += _md_figures(figures, p)
     return write_text_atomic(out / "report.md", "\n".join(lines))
+
+
+def _anchor_fact(a) -> str:
+    if a.status != "ok":
+        return f"plot {a.plot} -> ALS: failed ({a.error})"
+    r = a.residual
+    res = f", {r['translation'] * 100:.2f} cm / {r['rotation_deg']:.3f} deg off the joint solution" if r else ""
+    return (f"plot {a.plot} -> ALS (through {a.reference}): fitness {_fmt(a.fitness, 1, 3)}, "
+            f"inlier RMSE {_fmt(a.inlier_rmse, 100, 1)} cm{res}")
 
 
 def _als_near(als_xyz: np.ndarray, poses: dict[str, np.ndarray], margin: float) -> np.ndarray | None:

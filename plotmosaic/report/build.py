@@ -249,12 +249,6 @@ def build_report(inp: ReportInput, cfg: ReportConfig | None = None, seed: int = 
             continue
         origin = origin_of(list(v.thinned.values()))
         colours = views.scan_colours(v.scans)
-        if overview:
-            rng = np.random.default_rng(seed)
-            small = {s: p if len(p) <= cfg.picture_points else p[np.sort(rng.choice(len(p), cfg.picture_points, replace=False))]
-                     for s, p in v.thinned.items()}
-            figs.append((v.plot, f"Plot {v.plot}: placed scans from above and from the side, one colour per scan",
-                         scans_picture(out / f"{v.plot}_scans.png", small, f"plot {v.plot}: placed scans", origin)))
         figs.append((v.plot, f"Plot {v.plot}: breast-height slice ({cfg.slice.height:g} m +- {cfg.slice.half_width * 100:.0f} cm "
                      "above the ground from the scans), one colour per scan; right: stems most scans see, 1 cm grid",
                      views.plot_breast_slice(out / f"{v.plot}_breast_slice.png", v.slices, v.stems,
@@ -272,6 +266,12 @@ def build_report(inp: ReportInput, cfg: ReportConfig | None = None, seed: int = 
             spreads = {s: ring_spread(v.stems, s) for s in v.medians}
             figs.append((v.plot, f"Plot {v.plot}: per scan, median distance to its neighbours and ring spread of its stems",
                          views.plot_scan_distances(out / f"{v.plot}_scan_distances.png", v.medians, spreads)))
+        if overview:  # the dense all-points view last: it cannot show centimetres
+            rng = np.random.default_rng(seed)
+            small = {s: p if len(p) <= cfg.picture_points else p[np.sort(rng.choice(len(p), cfg.picture_points, replace=False))]
+                     for s, p in v.thinned.items()}
+            figs.append((v.plot, f"Plot {v.plot}: placed scans from above and from the side, one colour per scan",
+                         scans_picture(out / f"{v.plot}_scans.png", small, f"plot {v.plot}: placed scans", origin)))
     view3d = write_3d_view(out / "view3d.html", views_, cfg, seed)
     inp.stages.append(Stage("report (this page)", time.perf_counter() - t0, "reading every scan once more, slice, distances, figures"))
     return _write_page(inp, views_, figs, warnings, view3d, cfg), figs
@@ -309,7 +309,7 @@ def _write_page(inp: ReportInput, views_: list[PlotView], figs, warnings: list[s
     page.raw(H.bullets(inp.facts + summary))
     page.heading("Warnings", 3)
     page.raw(H.bullets(warnings, "warn") if warnings else '<p class="ok">none: every scan is held by two or more edges, '
-             "no edge was dropped, the slice shows single rings.</p>")
+             f"no edge was dropped, the stem rings at breast height agree (median spread under {cfg.weak_ring_spread * 100:.0f} cm).</p>")
     page.raw("</div>")
     if view3d is not None:
         page.link(view3d.name, f"Interactive 3D view of the thinned merged cloud, coloured by scan ({view3d.name})")

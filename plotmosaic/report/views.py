@@ -82,7 +82,7 @@ def _stem_inset(ax, st: Stem, colours: dict, origin: np.ndarray, number: int) ->
 def plot_edge_distances(path: Path, edges: list[dict], origin: np.ndarray, colour_max: float, cell: float = 0.25) -> Path:
     """Per edge: histogram of nearest-neighbour distances in the overlap and a top view coloured by distance."""
     n = max(1, len(edges))
-    fig, axes = plt.subplots(n, 2, figsize=(12, 4.3 * n), squeeze=False, gridspec_kw={"width_ratios": [1, 1.25]})
+    fig, axes = plt.subplots(n, 2, figsize=(12, 4.3 * n), squeeze=False, gridspec_kw={"width_ratios": [1, 1.25], "hspace": 0.45})
     cmap = plt.get_cmap("turbo")
     for (hist, top), e in zip(axes, edges):
         d = e["distances"]
