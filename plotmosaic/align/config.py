@@ -7,6 +7,7 @@ from typing import Literal
 from pydantic import BaseModel, Field
 
 from plotmosaic.align.coarse import CoarseConfig
+from plotmosaic.align.judge_config import JudgeConfig
 
 KINDS = ("tls", "mls", "uls", "als")
 
@@ -76,5 +77,9 @@ class AlignConfig(BaseModel):
     max_inlier_rmse: float = 0.2  # point-to-point at 0.25 m; a sparse ALS target alone gives ~0.16
     # coarse confidence below this => ambiguous => exit 3: a distinct rival pose scored almost as well
     # (right pairs gave 0.62-1.0, wrong ones 0.00-0.12; register-plot sets 0 and lets its loops decide)
-    min_confidence: float = 0.2
+    min_confidence: float = Field(0.2, ge=0, le=1, description="least judge confidence (margin over the best distinct rival)")
+    # the final ICP takes its planes from the denser cloud: planes of a sparse ALS target (1 m
+    # normals) bias yaw by ~0.2 deg on UAS -> ALS; registered the other way round and inverted
+    final_reverse_ratio: float = Field(2.0, ge=1, description="target spacing / source spacing above which the final ICP runs target -> source")
     coarse: CoarseConfig = CoarseConfig()
+    judge: JudgeConfig = JudgeConfig()

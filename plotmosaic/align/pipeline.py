@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import time
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,12 +20,13 @@ from plotmosaic import __version__
 from plotmosaic.align.coarse import coarse_align
 from plotmosaic.align.complexity import match_levels
 from plotmosaic.align.config import KINDS, AlignConfig, default_levels
+from plotmosaic.align import judge as judge_mod
 from plotmosaic.align.icp import evaluate, information_matrix, point_to_plane_icp
 from plotmosaic.align.prepare import PreparedCloud, prepare_cloud
 from plotmosaic.align.sampling import sample
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.io.atomic import write_text_atomic
-from plotmosaic.io.frame import rotation_deg, to_global_transform, to_local_transform
+from plotmosaic.io.frame import inverse, rotation_deg, to_global_transform, to_local_transform
 from plotmosaic.io.las import PointCloud, read_cloud
 from plotmosaic.parallel import both
 
@@ -46,7 +48,8 @@ class PairResult:
     target_offset: list = field(default_factory=lambda: [0.0, 0.0, 0.0])
     sigma: float = float("nan")  # point-to-plane residual std behind `information`
     coarse: dict | None = None
-    confidence: float | None = None
+    confidence: float | None = None  # the judge's: margin over the best distinct rival pose, 0-1
+    judge: dict | None = None  # the judge's profile figures of this pose and of its best rival
     timings: dict = field(default_factory=dict)
     config: dict = field(default_factory=dict)
     method: str = METHOD
@@ -70,6 +73,7 @@ class PairResult:
             "source_offset": list(self.source_offset),
             "target_offset": list(self.target_offset),
             "confidence": self.confidence,
+            "judge": self.judge,
             "coarse": self.coarse,
             "config": self.config,
         }
@@ -91,6 +95,7 @@ class PairResult:
             sigma=float(d.get("sigma", float("nan")) if d.get("sigma") is not None else float("nan")),
             coarse=d.get("coarse"),
             confidence=d.get("confidence"),
+            judge=d.get("judge"),  # absent from results cached before the judge
             timings=d.get("timings", {}),
             config=d.get("config", {}),
             method=d.get("method", METHOD),
@@ -132,38 +137,152 @@ def incremental_steps(matching: dict[int, int]) -> list[tuple[list[int], list[in
     return steps
 
 
+def global_search(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig, seed: int):
+    """The coarse stage from anywhere (no prior), remembered per pair: the default path's pose and the
+    rivals of a local result (--no-coarse, --init) are the same search."""
+    key = (config.coarse.model_dump_json(exclude={"enabled"}), seed)
+    memo = src.__dict__.get("_global_search")
+    if memo is None or memo[0]() is not tgt or memo[1] != key:
+        # one pair kept, the target by weak reference: a cache of prepared clouds stays the only owner
+        memo = (weakref.ref(tgt), key, coarse_align(src, tgt, config.coarse, seed, prior=None))
+        src.__dict__["_global_search"] = memo
+    return memo[2]
+
+
+def _candidates(hypotheses: list[dict], start: np.ndarray) -> list[tuple[np.ndarray, str]]:
+    """Rival poses: every hypothesis (refined ones first, by score), then the start as handed over."""
+    order = sorted(range(len(hypotheses)), key=lambda i: (not hypotheses[i].get("refined", False),
+                                                           -float(hypotheses[i].get("score") or 0.0)))
+    out = [(np.asarray(hypotheses[i]["transform"], dtype=float),
+            f"{hypotheses[i].get('generator', 'coarse')} hypothesis {i}") for i in order]
+    return out + [(start, "start")]
+
+
+def final_icp(src: PreparedCloud, tgt: PreparedCloud, T: np.ndarray, config: AlignConfig):
+    """Final point-to-plane ICP with the planes of the denser cloud; (T, p, q, n) with the last
+    correspondences in local coordinates: source points p, target points q, target-side normals n."""
+    s_sp, t_sp = judge_mod.spacing(src, config.judge), judge_mod.spacing(tgt, config.judge)
+    if t_sp > config.final_reverse_ratio * s_sp:
+        # sparse target (ALS under a drone or ground scan): register it onto the dense source's planes
+        res = point_to_plane_icp(tgt.fine_points, src.points, src.target_normals, inverse(T), config.final_schedule,
+                                 tree=src.tree, kernel_floor=config.robust_kernel, tol=config.final_tol)
+        T = inverse(res.T)
+        p, q = src.points[res.target_index], tgt.fine_points[res.source_index]
+        n = src.target_normals(res.target_index) @ T[:3, :3].T  # the same planes, in target coordinates
+        return T, p, q, n, res.iterations, True
+    res = point_to_plane_icp(src.fine_points, tgt.points, tgt.target_normals, T, config.final_schedule,
+                             tree=tgt.tree, kernel_floor=config.robust_kernel, tol=config.final_tol)
+    return (res.T, src.fine_points[res.source_index], tgt.points[res.target_index],
+            tgt.target_normals(res.target_index), res.iterations, False)
+
+
 def register_prepared(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig, init: np.ndarray | None = None,
                       seed: int = 0, progress: Callable[[str], None] | None = None) -> PairResult:
     """Registration of two prepared clouds; `init` (source file -> target file) is a prior for the coarse stage, or the start itself with the coarse stage off."""
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
     coarse = None
-    confidence = None
     T = to_local_transform(np.eye(4) if init is None else np.asarray(init, dtype=float), src.frame, tgt.frame)
+    T_start = T.copy()
+    hypotheses: list[dict] = []
     if config.coarse.enabled:
         # with an initial guess the coarse stage searches around it and keeps it if it verifies best:
         # ICP alone from a guess 10 deg / 2 m off can settle in a wrong minimum that still looks fit
         say("coarse alignment")
-        cres = coarse_align(src, tgt, config.coarse, seed, prior=T if init is not None else None)
+        cres = coarse_align(src, tgt, config.coarse, seed, prior=T) if init is not None else global_search(src, tgt, config, seed)
         T = np.asarray(cres.transform, dtype=float)
         coarse = cres.to_dict()
-        confidence = float(cres.confidence)
+        hypotheses = list(cres.hypotheses)
+    if config.judge.enabled and config.judge.global_rivals and (init is not None or not config.coarse.enabled):
+        # a local result (from --init or --no-coarse) has no rivals of its own: the global search gives them
+        say("searching for rival poses")
+        hypotheses += global_search(src, tgt, config, seed).hypotheses
     T_init = T.copy()
     t_coarse = time.perf_counter()
 
     rng = np.random.default_rng(seed)
+    T, steps, start_fit, level_fit, reverted, matching = _level_stage(src, tgt, config, T, coarse is not None, rng)
+    t_levels = time.perf_counter()
+
+    say("final ICP")
+    T, p, q, n, iterations, reverse = final_icp(src, tgt, T, config)
+    t_final = time.perf_counter()
+
+    verdict = None
+    if config.judge.enabled:
+        say("judging the pose against its rivals")
+        candidates = _candidates(hypotheses, T_start)
+        verdict = judge_mod.judge(src, tgt, T, candidates, config.judge)
+        if verdict.rival_better and config.coarse.enabled and verdict.rival_transform is not None:
+            # the global search's pick lost to another of its hypotheses once both are refined:
+            # finish that one the same way and keep whichever the judge prefers
+            say("final ICP from a better rival")
+            T2, p2, q2, n2, it2, rev2 = final_icp(src, tgt, verdict.rival_transform, config)
+            second = judge_mod.judge(src, tgt, T2, candidates + [(T, "first pose")], config.judge)
+            if second.score > verdict.score:
+                T, p, q, n, iterations, reverse, verdict = T2, p2, q2, n2, it2, rev2, second
+    t_judge = time.perf_counter()
+
+    say("quality")
+    # fitness / RMSE / overlap on seeded subsamples of the query side: same figures to ~0.1 %, a
+    # fraction of the nearest-neighbour queries on 8M-point scans
+    s_q = src.points[sample(len(src.points), config.quality_max_points, rng)]
+    t_q = tgt.points[sample(len(tgt.points), config.quality_max_points, rng)]
+    fitness, rmse, n_s = evaluate(s_q, tgt.tree, T, config.quality_distance)
+    _, _, n_t = evaluate(t_q, src.tree, np.linalg.inv(T), config.quality_distance)
+    ov = float((n_s + n_t) / max(1, len(s_q) + len(t_q)))
+    # information from the final point-to-plane problem (its last correspondences), in file coordinates
+    T_file = to_global_transform(T, src.frame, tgt.frame)
+    if len(p):
+        info, sigma = information_matrix(src.frame.to_global(p), tgt.frame.to_global(q), n, T_file)
+    else:
+        info, sigma = np.zeros((6, 6)), float("nan")
+    t_end = time.perf_counter()
+
+    moved = T @ np.linalg.inv(T_init)
+    result = PairResult(
+        transform=T_file, fitness=fitness, inlier_rmse=rmse, overlap=ov, information=info, sigma=sigma,
+        levels={"source": _level_table(src, matching, True), "target": _level_table(tgt, matching, False),
+                "matching": {str(k): v for k, v in matching.items()}, "steps": steps,
+                "fitness_before": start_fit, "fitness_after": level_fit, "reverted": reverted},
+        seconds=t_end - t0, source_kind=src.kind, target_kind=tgt.kind,
+        source_offset=[float(v) for v in src.frame.offset], target_offset=[float(v) for v in tgt.frame.offset],
+        coarse=coarse, confidence=None if verdict is None else verdict.confidence,
+        judge=None if verdict is None else _judge_record(verdict, src, tgt),
+        timings={"coarse": t_coarse - t0, "levels_icp": t_levels - t_coarse, "final_icp": t_final - t_levels,
+                 "final_iterations": iterations, "final_reversed": reverse, "judge": t_judge - t_final,
+                 "quality": t_end - t_judge,
+                 "correction_deg": rotation_deg(moved),
+                 "correction_m": float(np.linalg.norm(moved[:3, 3]))},
+        config=config.model_dump(),
+    )
+    check_quality(result, config, local=not config.coarse.enabled or init is not None)
+    return result
+
+
+def _judge_record(verdict, src: PreparedCloud, tgt: PreparedCloud) -> dict:
+    """The judge's figures for PairResult, the rival's transform in file coordinates."""
+    d = verdict.to_dict()
+    if verdict.rival_transform is not None:
+        d["rival_transform"] = to_global_transform(verdict.rival_transform, src.frame, tgt.frame).tolist()
+    return d
+
+
+def _level_stage(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig, T: np.ndarray, after_coarse: bool,
+                 rng: np.random.Generator):
+    """Incremental ICP over the matched levels; reverted when it ends worse than it started."""
+    T_init = T.copy()
     matching = match_levels([s["match_value"] for s in src.level_stats], [s["match_value"] for s in tgt.level_stats],
                             compress=False)
     steps = []
     for j, (ls, lt) in enumerate(incremental_steps(matching)):
-        say(f"ICP on levels {ls} -> {lt}")
         sp, _ = src.subset(ls)
         tp, tn = tgt.subset(lt)
         if len(sp) < 10 or len(tp) < 10:
             continue
         sp = sp[sample(len(sp), config.level_max_source_points, rng)]
         schedule = config.level_schedule[min(j, len(config.level_schedule) - 1)]
-        if coarse is not None:  # a verified coarse pose is within decimetres: the widest stages only cost time
+        if after_coarse:  # a verified coarse pose is within decimetres: the widest stages only cost time
             schedule = [st for st in schedule if st.max_distance <= config.level_max_distance_after_coarse] or schedule[-1:]
         res = point_to_plane_icp(sp, tp, tn, T, schedule, min_eig_ratio=config.min_eig_ratio, tol=config.level_tol)
         T = res.T
@@ -178,56 +297,14 @@ def register_prepared(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfi
     reverted = bool(steps) and level_fit < config.level_keep_ratio * start_fit
     if reverted:
         T = T_init.copy()
-    t_levels = time.perf_counter()
-
-    say("final ICP")
-    # the source's delta grid against the target's delta0 points and their 0.25 m planes, which
-    # are computed only where the source finds a partner
-    res = point_to_plane_icp(src.fine_points, tgt.points, tgt.target_normals, T, config.final_schedule,
-                             tree=tgt.tree, kernel_floor=config.robust_kernel, tol=config.final_tol)
-    T = res.T
-    t_final = time.perf_counter()
-
-    say("quality")
-    # fitness / RMSE / overlap on seeded subsamples of the query side: same figures to ~0.1 %, a
-    # fraction of the nearest-neighbour queries on 8M-point scans
-    s_q = src.points[sample(len(src.points), config.quality_max_points, rng)]
-    t_q = tgt.points[sample(len(tgt.points), config.quality_max_points, rng)]
-    fitness, rmse, n_s = evaluate(s_q, tgt.tree, T, config.quality_distance)
-    _, _, n_t = evaluate(t_q, src.tree, np.linalg.inv(T), config.quality_distance)
-    ov = float((n_s + n_t) / max(1, len(s_q) + len(t_q)))
-    # information from the final point-to-plane problem (its last correspondences), in file coordinates
-    T_file = to_global_transform(T, src.frame, tgt.frame)
-    if len(res.source_index):
-        p = src.frame.to_global(src.fine_points[res.source_index])
-        q = tgt.frame.to_global(tgt.points[res.target_index])
-        info, sigma = information_matrix(p, q, tgt.target_normals(res.target_index), T_file)
-    else:
-        info, sigma = np.zeros((6, 6)), float("nan")
-    t_end = time.perf_counter()
-
-    moved = T @ np.linalg.inv(T_init)
-    result = PairResult(
-        transform=T_file, fitness=fitness, inlier_rmse=rmse, overlap=ov, information=info, sigma=sigma,
-        levels={"source": _level_table(src, matching, True), "target": _level_table(tgt, matching, False),
-                "matching": {str(k): v for k, v in matching.items()}, "steps": steps,
-                "fitness_before": start_fit, "fitness_after": level_fit, "reverted": reverted},
-        seconds=t_end - t0, source_kind=src.kind, target_kind=tgt.kind,
-        source_offset=[float(v) for v in src.frame.offset], target_offset=[float(v) for v in tgt.frame.offset],
-        coarse=coarse, confidence=confidence,
-        timings={"coarse": t_coarse - t0, "levels_icp": t_levels - t_coarse, "final_icp": t_final - t_levels,
-                 "final_iterations": res.iterations,
-                 "quality": t_end - t_final,
-                 "correction_deg": rotation_deg(moved),
-                 "correction_m": float(np.linalg.norm(moved[:3, 3]))},
-        config=config.model_dump(),
-    )
-    check_quality(result, config)
-    return result
+    return T, steps, start_fit, level_fit, reverted, matching
 
 
-def check_quality(result: PairResult, config: AlignConfig) -> None:
-    """Refuse a transform the figures do not support (exit 3), never return it silently."""
+def check_quality(result: PairResult, config: AlignConfig, local: bool = False) -> None:
+    """Refuse a transform the figures do not support (exit 3), never return it silently.
+
+    `local`: the pose came from a start (--no-coarse or --init), which the message names when a rival wins.
+    """
     problems = []
     if not np.isfinite(result.transform).all():
         problems.append("transform is not finite")
@@ -237,8 +314,17 @@ def check_quality(result: PairResult, config: AlignConfig) -> None:
         problems.append(f"overlap {result.overlap:.3f} < {config.min_overlap}")
     if not result.inlier_rmse <= config.max_inlier_rmse:
         problems.append(f"inlier RMSE {result.inlier_rmse:.3f} m > {config.max_inlier_rmse} m")
-    if result.confidence is not None and result.confidence < config.min_confidence:
-        problems.append(f"ambiguous: a distinct pose fits almost as well (confidence {result.confidence:.2f} < {config.min_confidence})")
+    j = result.judge
+    if j is not None:
+        if j["score"] < config.judge.min_score:
+            problems.append(f"judge score {j['score']:.3f} < {config.judge.min_score} (the clouds hardly fit anywhere)")
+        if j["margin"] <= 0:  # also with min_confidence 0 (register-plot): this pose is not the best one found
+            hint = ": rerun without --no-coarse" if local and not config.coarse.enabled else ""
+            problems.append(f"a distinct pose fits as well or better (judge score {j['rival_score']:.3f} against {j['score']:.3f},"
+                            f" from {j['rival_source']}){hint}")
+        elif result.confidence is not None and result.confidence < config.min_confidence:
+            problems.append(f"ambiguous: a distinct pose fits almost as well (confidence {result.confidence:.2f} <"
+                            f" {config.min_confidence}; judge score {j['score']:.3f}, rival {j['rival_score']:.3f})")
     if problems:
         err = RegistrationFailed(
             "pair cannot be registered: " + "; ".join(problems)

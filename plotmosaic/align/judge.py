@@ -1,0 +1,181 @@
+"""The pose judge: one verification that every pairwise result goes through (coarse, --init, --no-coarse).
+
+A pose is scored by a residual profile: the share of sample points within several distances
+(2-25 cm at the delta0 spacing, stretched for sparse clouds) of the other cloud, on non-flat points
+(stems, branches, crowns: flat ground fits anywhere) and on all points, in both directions.
+The pose must beat the best *distinct* rival (other hypotheses of the global search, the start as
+handed over), each refined by a short ICP and scored the same way; the relative margin is the
+confidence. Every transform here maps source-local to target-local coordinates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from plotmosaic.align.config import IcpStage
+from plotmosaic.align.icp import nearest, point_to_plane_icp
+from plotmosaic.align.judge_config import JudgeConfig
+from plotmosaic.align.sampling import sample
+from plotmosaic.io.frame import inverse, rotation_deg
+
+
+@dataclass
+class _Samples:
+    everything: np.ndarray  # profile sample of the cloud (its level points: even density)
+    structure: np.ndarray  # the non-flat part of it
+    spacing: float  # median nearest-neighbour spacing of the delta0 points (m)
+    fine: np.ndarray  # source points of a rival's refinement ICP
+
+
+def _samples(cloud, config: JudgeConfig) -> _Samples:
+    """Seeded samples of a prepared cloud, remembered on it (a scan takes part in several pairs)."""
+    key = config.model_dump_json(include={"profile_points", "structure_max_planarity", "rival_points"})
+    memo = cloud.__dict__.setdefault("_judge_samples", {})
+    if key not in memo:
+        memo.clear()
+        rng = np.random.default_rng(20_261_201)
+        pts = cloud.level_points
+        planarity = np.nan_to_num(np.asarray(cloud.features)[:, 1], nan=1.0)
+        flat = planarity >= config.structure_max_planarity
+        every = pts[sample(len(pts), config.profile_points, rng)]
+        struct = pts[~flat]
+        struct = struct[sample(len(struct), config.profile_points, rng)]
+        probe = pts[sample(len(pts), 2_000, rng)]
+        d, _ = cloud.tree.query(probe, k=2)
+        spacing = float(np.median(d[:, 1])) if len(probe) > 1 else config.reference_spacing
+        fine = cloud.fine_points[sample(len(cloud.fine_points), config.rival_points, rng)]
+        memo[key] = _Samples(every, struct, spacing, fine)
+    return memo[key]
+
+
+def spacing(cloud, config: JudgeConfig) -> float:
+    """Median nearest-neighbour spacing (m) of a prepared cloud's delta0 points."""
+    return _samples(cloud, config).spacing
+
+
+def scale_factor(src, tgt, config: JudgeConfig) -> float:
+    """How much the profile distances stretch: the sparser cloud is judged at its own resolution."""
+    spacing = max(_samples(src, config).spacing, _samples(tgt, config).spacing)
+    return float(np.clip(spacing / config.reference_spacing, 1.0, config.max_scale_factor))
+
+
+def _shares(points: np.ndarray, tree, T: np.ndarray, scales: np.ndarray) -> list[float]:
+    if len(points) == 0:
+        return [0.0] * len(scales)
+    d, _ = nearest(tree, points @ T[:3, :3].T + T[:3, 3], float(scales[-1]))
+    return [float(np.mean(d <= s)) for s in scales]
+
+
+def profile(src, tgt, T: np.ndarray, config: JudgeConfig) -> dict:
+    """Residual profile of pose T: shares of points within each scale, structure and all, both directions.
+
+    `score` is the mean share over the scales and the two directions on structure points.
+    """
+    s, t = _samples(src, config), _samples(tgt, config)
+    scales = np.asarray(config.scales) * scale_factor(src, tgt, config)
+    Ti = inverse(T)
+    out = {
+        "scales": [float(v) for v in scales],
+        "structure_st": _shares(s.structure, tgt.tree, T, scales),
+        "structure_ts": _shares(t.structure, src.tree, Ti, scales),
+        "all_st": _shares(s.everything, tgt.tree, T, scales),
+        "all_ts": _shares(t.everything, src.tree, Ti, scales),
+    }
+    out["score"] = float(np.mean(out["structure_st"] + out["structure_ts"]))
+    out["score_all"] = float(np.mean(out["all_st"] + out["all_ts"]))
+    return out
+
+
+def separation(A: np.ndarray, B: np.ndarray, centre: np.ndarray) -> tuple[float, float]:
+    """(rotation deg, displacement m of the source point `centre`) between two poses."""
+    return rotation_deg(inverse(B) @ A), float(np.linalg.norm((A[:3, :3] - B[:3, :3]) @ centre + A[:3, 3] - B[:3, 3]))
+
+
+def distinct(A: np.ndarray, B: np.ndarray, centre: np.ndarray, config: JudgeConfig) -> bool:
+    deg, m = separation(A, B, centre)
+    return m > config.distinct_m or deg > config.distinct_deg
+
+
+def refine(src, tgt, T: np.ndarray, config: JudgeConfig) -> np.ndarray:
+    """A rival's short robust point-to-plane ICP, the same for every rival (distances x the scale factor)."""
+    f = scale_factor(src, tgt, config)
+    stages = [IcpStage(max_distance=d * f, iterations=n) for d, n in config.rival_schedule]
+    res = point_to_plane_icp(_samples(src, config).fine, tgt.points, tgt.target_normals, T, stages, tree=tgt.tree,
+                             kernel_floor=0.1 * f, tol=1e-4)
+    return res.T
+
+
+@dataclass
+class Verdict:
+    score: float  # judge score of the pose
+    rival_score: float  # of the best distinct rival (0 when none)
+    margin: float  # 1 - rival_score / score (negative: a rival fits better)
+    confidence: float  # margin / full_margin clipped to 0-1
+    profile: dict
+    rival_profile: dict | None
+    rival_transform: np.ndarray | None  # source local -> target local
+    rival_source: str | None
+    candidates: int  # rivals refined and scored
+    distinct_rivals: int
+    seconds: float = 0.0
+    rivals: list[dict] = field(default_factory=list)
+
+    @property
+    def rival_better(self) -> bool:
+        return self.margin < 0
+
+    def to_dict(self) -> dict:
+        return {
+            "score": self.score, "rival_score": self.rival_score, "margin": self.margin, "confidence": self.confidence,
+            "profile": self.profile, "rival_profile": self.rival_profile,
+            "rival_transform": None if self.rival_transform is None else np.asarray(self.rival_transform).tolist(),
+            "rival_source": self.rival_source, "candidates": self.candidates, "distinct_rivals": self.distinct_rivals,
+            "seconds": self.seconds, "rivals": self.rivals,
+        }
+
+
+def _shortlist(T: np.ndarray, candidates: list[tuple[np.ndarray, str]], centre: np.ndarray,
+               config: JudgeConfig) -> list[tuple[np.ndarray, str]]:
+    """Candidates distinct from T and from each other, in the order given, at most `max_rivals`."""
+    kept: list[tuple[np.ndarray, str]] = []
+    for A, name in candidates:
+        A = np.asarray(A, dtype=float)
+        if len(kept) >= config.max_rivals:
+            break
+        if not np.isfinite(A).all() or not distinct(A, T, centre, config):
+            continue
+        if all(distinct(A, B, centre, config) for B, _ in kept):
+            kept.append((A, name))
+    return kept
+
+
+def judge(src, tgt, T: np.ndarray, candidates: list[tuple[np.ndarray, str]], config: JudgeConfig) -> Verdict:
+    """Score pose T against the distinct rivals among `candidates` ((transform, where from), source local ->
+    target local), each refined first; a rival that ends within the distinct radius of T is T itself."""
+    import time
+
+    t0 = time.perf_counter()
+    centre = src.points.mean(axis=0)
+    mine = profile(src, tgt, T, config)
+    best, best_T, best_name, best_prof, n_distinct, table = 0.0, None, None, None, 0, []
+    shortlist = _shortlist(T, candidates, centre, config)
+    for A, name in shortlist:
+        A = refine(src, tgt, A, config)
+        deg, m = separation(A, T, centre)
+        if m <= config.distinct_m and deg <= config.distinct_deg:
+            table.append({"from": name, "distinct": False, "deg": deg, "m": m})
+            continue
+        prof = profile(src, tgt, A, config)
+        n_distinct += 1
+        table.append({"from": name, "distinct": True, "deg": deg, "m": m, "score": prof["score"]})
+        if prof["score"] > best:
+            best, best_T, best_name, best_prof = prof["score"], A, name, prof
+    score = mine["score"]
+    margin = 1.0 - best / score if score > 0 else -1.0
+    confidence = float(np.clip(margin / config.full_margin, 0.0, 1.0))
+    return Verdict(score=score, rival_score=best, margin=float(margin), confidence=confidence, profile=mine,
+                   rival_profile=best_prof, rival_transform=best_T, rival_source=best_name,
+                   candidates=len(shortlist), distinct_rivals=n_distinct, seconds=time.perf_counter() - t0,
+                   rivals=table)
