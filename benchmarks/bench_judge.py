@@ -1,0 +1,319 @@
+"""Calibration of the pose judge (align/judge.py) on right and wrong poses of real and simulated pairs.
+
+For every case (a pair with exact or refined truth, each cloud in its own random frame):
+  * every hypothesis of the global search and the start are refined like a rival and profiled;
+    each refined pose is labelled right (within 1 deg / 10 cm of the truth) or wrong, and its
+    margin over the best pose distinct from it is what the judge's confidence is made of;
+  * the pipeline itself runs on the default path, --no-coarse from the start the files came in,
+    and the true-pose control (source handed over in its true pose, coarse on and off).
+Prints score / confidence distributions of right and wrong poses, a reliability table and the
+outcomes, and says whether the configured thresholds accept any wrong pose.
+
+    nice -n 10 .venv/bin/python benchmarks/bench_judge.py            # all cases
+    nice -n 10 .venv/bin/python benchmarks/bench_judge.py --quick    # sim pairs only
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from plotmosaic.align import judge
+from plotmosaic.align.config import AlignConfig
+from plotmosaic.align.pipeline import global_search, prepare_pair, register_prepared
+from plotmosaic.errors import RegistrationFailed
+from plotmosaic.io.frame import rotation_deg, to_local_transform
+from plotmosaic.io.las import PointCloud, read_cloud
+from plotmosaic.poses import load_poses
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+RIGHT_DEG, RIGHT_M = 1.0, 0.10
+MAX_POSES = 16  # hypotheses per case refined and profiled (refined ones first, by score)
+
+
+def random_frame(rng: np.random.Generator, centre: np.ndarray, tilt_deg: float = 3.0) -> np.ndarray:
+    """A rigid transform putting a view in its own frame: any heading, a small tilt, centred away from the data."""
+    R = Rotation.from_euler("zyx", [rng.uniform(0, 360), *rng.uniform(-tilt_deg, tilt_deg, 2)], degrees=True).as_matrix()
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = -R @ centre + rng.uniform(-50, 50, 3)
+    return T
+
+
+def apply(T: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    return xyz @ T[:3, :3].T + T[:3, 3]
+
+
+def view_pair(points: np.ndarray, a_xy, b_xy, range_a: float, range_b: float, seed: int):
+    """Two views: occlusion-aware virtual scans (simulate/from_cloud.py) when available, else range crops."""
+    try:
+        from plotmosaic.simulate.from_cloud import cut_views
+
+        va = cut_views(points, [a_xy], seed=seed, max_range=range_a)[0]
+        vb = cut_views(points, [b_xy], seed=seed + 1, max_range=range_b)[0]
+        return va.points, vb.points, np.linalg.inv(vb.truth) @ va.truth, "from_cloud"
+    except ImportError:
+        rng = np.random.default_rng(seed)
+        out = []
+        for xy, r in ((a_xy, range_a), (b_xy, range_b)):
+            ground = np.percentile(points[np.linalg.norm(points[:, :2] - xy, axis=1) < 2, 2], 2)
+            keep = np.linalg.norm(points - [*xy, ground + 1.5], axis=1) < r
+            F = random_frame(rng, np.array([*xy, ground + 1.5]))
+            out.append((apply(F, points[keep]), F))
+        (pa, Fa), (pb, Fb) = out
+        return pa, pb, Fb @ np.linalg.inv(Fa), "range crop"
+
+
+def cases(quick: bool, sim_root: Path):
+    """(name, source xyz, target xyz, source kind, target kind, truth source -> target, related)."""
+    from plotmosaic.simulate import simulate
+
+    sims = {}
+    for seed in (0, 1):
+        out = sim_root / f"sim{seed}"
+        if not (out / "ground_truth.json").exists():
+            simulate(out, "small", seed=seed)
+        sims[seed] = out
+    for seed, pairs in ((0, [("S1", "S0"), ("S2", "S0"), ("S3", "S4")]), (1, [("S1", "S0"), ("S4", "S2")])):
+        truth = load_poses(sims[seed] / "ground_truth.json")
+        for a, b in pairs:
+            T = np.linalg.inv(truth.transform(f"P1-{b}")) @ truth.transform(f"P1-{a}")
+            yield (f"sim{seed} {a}->{b}", read_cloud(sims[seed] / "P1" / f"P1-{a}.laz", attributes=False).xyz,
+                   read_cloud(sims[seed] / "P1" / f"P1-{b}.laz", attributes=False).xyz, "tls", "tls", T, True)
+    s0 = read_cloud(sims[0] / "P1" / "P1-S1.laz", attributes=False).xyz
+    s1 = read_cloud(sims[1] / "P1" / "P1-S0.laz", attributes=False).xyz
+    yield "unrelated sim0 S1 vs sim1 S0", s0, s1, "tls", "tls", None, False
+    if quick or not DATA.is_dir():
+        return
+    rng = np.random.default_rng(15)
+    pine = read_cloud(DATA / "treels" / "pine_plot.laz", attributes=False).xyz
+    c = pine[:, :2].mean(axis=0)
+    pa, pb, T, how = view_pair(pine, c + [-3.5, 0.5], c + [3.5, -0.5], 12.0, 12.0, 1)
+    yield f"treels views 7 m apart ({how})", pa, pb, "tls", "tls", T, True
+    treels_view = pb
+    mls = read_cloud(DATA / "spanner" / "MLS_Clip.laz", attributes=False).xyz
+    c = mls[:, :2].mean(axis=0)
+    pa, pb, T, how = view_pair(mls, c + [-4.0, 0.0], c + [4.0, 0.0], 15.0, 15.0, 2)
+    yield f"MLS views 8 m apart ({how})", pa, pb, "mls", "mls", T, True
+    pa, pb, T, how = view_pair(mls, c + [-4.0, 0.0], c + [4.0, 0.0], 6.0, 15.0, 3)
+    yield f"MLS views 8 m apart, source boxed to 6 m ({how})", pa, pb, "mls", "mls", T, True
+    uas = read_cloud(DATA / "spanner" / "UAS_Clip.laz", attributes=False).xyz
+    als = read_cloud(DATA / "spanner" / "ALS_Clip.laz", attributes=False).xyz
+    F = random_frame(rng, uas.mean(axis=0))
+    # truth: the clips' co-registration (UAS and ALS agree to a few cm / ~0.1 deg, see fine part)
+    yield "UAS -> ALS (UAS in a random frame)", apply(F, uas), als, "uls", "als", np.linalg.inv(F), True
+    strip = uas[np.abs(uas[:, 0] - uas[:, 0].mean()) < 2.5]
+    F = random_frame(rng, strip.mean(axis=0))
+    yield "UAS strip 5 m wide -> ALS", apply(F, strip), als, "uls", "als", np.linalg.inv(F), True
+    yield "unrelated sim0 S1 vs treels view", s0, treels_view, "tls", "tls", None, False
+
+
+def right(T: np.ndarray, truth_local: np.ndarray | None, centre: np.ndarray) -> bool:
+    if truth_local is None:
+        return False
+    deg, m = judge.separation(T, truth_local, centre)
+    return deg < RIGHT_DEG and m < RIGHT_M
+
+
+def run_case(name, xs, xt, ks, kt, T_true, related, cfg: AlignConfig, rows: list, outcomes: list) -> None:
+    t0 = time.perf_counter()
+    ps, pt = prepare_pair(PointCloud(xs), PointCloud(xt), ks, kt, 3 if ks in ("tls", "mls") else 2,
+                          3 if kt in ("tls", "mls") else 2, cfg, 0)
+    truth_local = None if T_true is None else to_local_transform(T_true, ps.frame, pt.frame)
+    centre = ps.points.mean(axis=0)
+    jc = cfg.judge
+    cres = global_search(ps, pt, cfg, 0)
+    # every hypothesis and the start, refined the way a rival is, then profiled
+    poses = []
+    order = sorted(cres.hypotheses, key=lambda h: (not h.get("refined", False), -float(h.get("score") or 0.0)))
+    for h in order[:MAX_POSES]:
+        A = judge.refine(ps, pt, np.asarray(h["transform"], float), jc)
+        poses.append((A, judge.profile(ps, pt, A, jc)["score"], h.get("generator", "coarse")))
+    start = to_local_transform(np.eye(4), ps.frame, pt.frame)
+    A = judge.refine(ps, pt, start, jc)
+    poses.append((A, judge.profile(ps, pt, A, jc)["score"], "start"))
+    for i, (A, score, gen) in enumerate(poses):
+        rivals = [s for j, (B, s, _) in enumerate(poses) if j != i and judge.distinct(A, B, centre, jc)]
+        best = max(rivals, default=0.0)
+        margin = 1.0 - best / score if score > 0 else -1.0
+        rows.append({"case": name, "generator": gen, "right": right(A, truth_local, centre), "score": score,
+                     "margin": margin, "confidence": float(np.clip(margin / jc.full_margin, 0, 1))})
+    # the pipeline on its three paths and the true-pose control
+    local = cfg.model_copy(deep=True)
+    local.coarse.enabled = False
+    for path, c, init in (("default", cfg, None), ("--no-coarse", local, None),
+                          ("true pose, --no-coarse", local, T_true), ("true pose, --init", cfg, T_true)):
+        if init is None and path.startswith("true"):
+            continue
+        if path.startswith("true") and T_true is None:
+            continue
+        try:
+            r = register_prepared(ps, pt, c, init, 0)
+            accepted = True
+        except RegistrationFailed as exc:
+            r, accepted = exc.result, False
+        if r is None:
+            outcomes.append({"case": name, "path": path, "accepted": False, "right": False, "deg": None, "m": None,
+                             "confidence": None, "score": None, "rival": None})
+            continue
+        T_local = to_local_transform(r.transform, ps.frame, pt.frame)
+        deg, m = (None, None) if truth_local is None else judge.separation(T_local, truth_local, centre)
+        j = r.judge or {}
+        outcomes.append({"case": name, "path": path, "accepted": accepted, "right": right(T_local, truth_local, centre),
+                         "deg": deg, "m": m, "confidence": r.confidence, "score": j.get("score"),
+                         "rival": j.get("rival_score"), "judge_s": r.timings.get("judge")})
+    print(f"  {name}: {len(poses)} poses, {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+
+
+def histogram(values, edges) -> list[int]:
+    return np.histogram(np.asarray(values, float), bins=edges)[0].tolist()
+
+
+def report(rows: list, outcomes: list, cfg: AlignConfig) -> str:
+    jc = cfg.judge
+    lines = []
+    r = [x for x in rows if x["right"]]
+    w = [x for x in rows if not x["right"]]
+    lines.append(f"refined poses: {len(r)} right, {len(w)} wrong, over {len({x['case'] for x in rows})} cases\n")
+    edges = [-1e9, 0.0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0]
+    lines.append("| confidence bin | right poses | wrong poses | share right |")
+    lines.append("|---|---|---|---|")
+    cr, cw = histogram([x["confidence"] for x in r], edges[1:]), histogram([x["confidence"] for x in w], edges[1:])
+    for k in range(len(edges) - 2):
+        n = cr[k] + cw[k]
+        lines.append(f"| {edges[k + 1]:.2f}-{edges[k + 2]:.2f} | {cr[k]} | {cw[k]} | {cr[k] / n:.2f} |" if n else
+                     f"| {edges[k + 1]:.2f}-{edges[k + 2]:.2f} | 0 | 0 | - |")
+    lines.append("")
+    lines.append("| case | right: score, confidence | best wrong: score, confidence |")
+    lines.append("|---|---|---|")
+    for case in dict.fromkeys(x["case"] for x in rows):
+        rr = [x for x in r if x["case"] == case]
+        ww = [x for x in w if x["case"] == case]
+        a = max(rr, key=lambda x: x["confidence"], default=None)
+        b = max(ww, key=lambda x: x["confidence"], default=None)
+        fa = f"{a['score']:.3f}, {a['confidence']:.2f}" if a else "not found"
+        fb = f"{b['score']:.3f}, {b['confidence']:.2f} ({b['generator']})" if b else "-"
+        lines.append(f"| {case} | {fa} | {fb} |")
+    worst_wrong = max((x["confidence"] for x in w if x["score"] >= jc.min_score), default=0.0)
+    lines.append(f"\nhighest confidence of a wrong pose with score >= min_score {jc.min_score}: {worst_wrong:.3f}"
+                 f" (min_confidence {cfg.min_confidence})")
+    lines.append(f"right poses passing both thresholds: {sum(x['confidence'] >= cfg.min_confidence and x['score'] >= jc.min_score for x in r)} / {len(r)}")
+    lines.append("\n| case | path | outcome | error deg / m | confidence | judge score / rival | judge s |")
+    lines.append("|---|---|---|---|---|---|---|")
+    bad = 0
+    for o in outcomes:
+        verdict = ("right" if o["right"] else "WRONG") if o["accepted"] else "refused (exit 3)"
+        bad += o["accepted"] and not o["right"]
+        err = "-" if o["deg"] is None else f"{o['deg']:.3f} / {o['m']:.3f}"
+        conf = "-" if o["confidence"] is None else f"{o['confidence']:.2f}"
+        sc = "-" if o["score"] is None else f"{o['score']:.3f} / {o['rival']:.3f}"
+        js = "-" if o.get("judge_s") is None else f"{o['judge_s']:.2f}"
+        lines.append(f"| {o['case']} | {o['path']} | {verdict} | {err} | {conf} | {sc} | {js} |")
+    lines.append(f"\nwrong poses accepted (exit 0): {bad}")
+    return "\n".join(lines)
+
+
+def refined_truth(uas: np.ndarray, als: np.ndarray, cache: Path) -> np.ndarray:
+    """UAS file -> ALS file pose from three independent fine methods (Open3D), ALS onto the dense UAS, over
+    0.5 / 0.25 / 0.1 m: point-to-point, point-to-plane, GICP; their mean (they agree to ~0.07 deg / 2 cm)."""
+    if cache.exists():
+        return np.asarray(json.loads(cache.read_text())["transform"])
+    import open3d as o3d
+
+    off = als.mean(axis=0).round()
+    U = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(uas - off))
+    A = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(als - off))
+    U.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.25, max_nn=30))
+    A.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=1.0, max_nn=30))
+    reg = o3d.pipelines.registration
+    crit = reg.ICPConvergenceCriteria(1e-10, 1e-10, 300)
+    found = []
+    for fn, est in ((reg.registration_icp, reg.TransformationEstimationPointToPoint()),
+                    (reg.registration_icp, reg.TransformationEstimationPointToPlane()),
+                    (reg.registration_generalized_icp, reg.TransformationEstimationForGeneralizedICP())):
+        T = np.eye(4)
+        for d in (0.5, 0.25, 0.1):
+            T = fn(A, U, d, T, est, crit).transformation
+        found.append(np.linalg.inv(T))
+    c = uas.mean(axis=0) - off
+    for i in range(3):
+        for j in range(i + 1, 3):
+            deg, m = judge.separation(found[i], found[j], c)
+            print(f"  refined truth: methods {i} and {j} differ by {deg:.3f} deg / {100 * m:.2f} cm", file=sys.stderr)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_matrix([F[:3, :3] for F in found]).mean().as_matrix()
+    T[:3, 3] = np.mean([F[:3, 3] for F in found], axis=0)
+    S = np.eye(4)
+    S[:3, 3] = off
+    T = S @ T @ np.linalg.inv(S)
+    cache.write_text(json.dumps({"transform": T.tolist()}))
+    return T
+
+
+def bench_fine(work: Path, n: int) -> str:
+    """UAS -> ALS from +-10 deg / +-2 m starts (coarse on: the start is a prior) and from the refined truth
+    (--no-coarse), with the final ICP on the dense side (default) and on the sparse ALS planes (before)."""
+    uas = read_cloud(DATA / "spanner" / "UAS_Clip.laz", attributes=False).xyz
+    als = read_cloud(DATA / "spanner" / "ALS_Clip.laz", attributes=False).xyz
+    T_true = refined_truth(uas, als, work / "uas_als_refined_truth.json")
+    lines = ["| final ICP planes | start | trials | rotation RMSE deg (x / y / z) | translation RMSE cm (x / y / z) | exit 3 |",
+             "|---|---|---|---|---|---|"]
+    centre = uas.mean(axis=0)
+    for label, ratio in (("denser cloud (UAS), default", None), ("target (sparse ALS), before", 1e9)):
+        cfg = AlignConfig() if ratio is None else AlignConfig(final_reverse_ratio=ratio)
+        ps, pt = prepare_pair(PointCloud(uas), PointCloud(als), "uls", "als", 2, 2, cfg, 0)
+        local = cfg.model_copy(deep=True)
+        local.coarse.enabled = False
+        rng = np.random.default_rng(4)
+        for start, c, count in (("refined truth, --no-coarse", local, 1), ("+-10 deg / +-2 m, --init", cfg, n)):
+            errs, refused = [], 0
+            for _ in range(count):
+                P = np.eye(4)
+                if count > 1:
+                    P[:3, :3] = Rotation.from_euler("xyz", rng.uniform(-10, 10, 3), degrees=True).as_matrix()
+                    P[:3, 3] = centre - P[:3, :3] @ centre + rng.uniform(-2, 2, 3)
+                try:
+                    r = register_prepared(ps, pt, c, T_true @ P, 0)
+                except RegistrationFailed as exc:
+                    refused += 1
+                    r = exc.result
+                D = np.linalg.inv(T_true) @ r.transform
+                errs.append(np.r_[Rotation.from_matrix(D[:3, :3]).as_euler("xyz", degrees=True),
+                                  D[:3, :3] @ centre + D[:3, 3] - centre])
+            e = np.sqrt(np.mean(np.square(errs), axis=0))
+            lines.append(f"| {label} | {start} | {count} | {' / '.join(f'{v:.3f}' for v in e[:3])} | "
+                         f"{' / '.join(f'{100 * v:.2f}' for v in e[3:])} | {refused} |")
+            print(lines[-1], file=sys.stderr, flush=True)
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="simulated pairs only")
+    ap.add_argument("--json", type=Path, help="write the raw rows here")
+    ap.add_argument("--fine", type=int, default=0, metavar="N",
+                    help="instead: fine-stage accuracy on UAS -> ALS against a refined truth, N perturbed starts")
+    ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "plotmosaic-bench-judge")
+    args = ap.parse_args()
+    cfg = AlignConfig()
+    rows, outcomes = [], []
+    args.work.mkdir(parents=True, exist_ok=True)
+    if args.fine:
+        print(bench_fine(args.work, args.fine))
+        return
+    for case in cases(args.quick, args.work):
+        run_case(*case, cfg, rows, outcomes)
+    print(report(rows, outcomes, cfg))
+    if args.json:
+        args.json.write_text(json.dumps({"rows": rows, "outcomes": outcomes}, indent=1, default=float))
+
+
+if __name__ == "__main__":
+    main()
