@@ -1,6 +1,10 @@
 """Render a report.html in headless Chromium to a PNG: what a user sees when opening the page.
 
     python benchmarks/render_report.py demo-output/georeferenced/report.html --out docs/report_page.png
+    python benchmarks/render_report.py --slices SIM_DIR --out docs/report_slice_doubled.png
+
+The second form takes a `plotmosaic simulate` folder, draws the breast-height slice at the true
+poses and with one scan moved by 5 cm / 0.2 deg, and prints the ring spreads of both.
 
 Needs Debian's `chromium` (apt-get install -y chromium). The page is opened from its file (no
 server), which also checks that it is self-contained. The screenshot is shrunk with Pillow to
@@ -45,21 +49,72 @@ def render(page: Path, out: Path, window: tuple[int, int], width: int, colours: 
         if img.width > width:
             img = img.resize((width, round(img.height * width / img.width)), Image.LANCZOS)
         out.parent.mkdir(parents=True, exist_ok=True)
-        img.quantize(colors=colours, method=Image.Quantize.MEDIANCUT).save(out, optimize=True)
+        img.quantize(colors=colours, method=Image.Quantize.FASTOCTREE).save(out, optimize=True)  # octree keeps the scan colours
     return {"page_bytes": page.stat().st_size, "render_s": seconds, "screenshot": full, "png": img.size,
             "png_bytes": out.stat().st_size}
 
 
+def slices(sim: Path, out: Path, moved: str, width: int) -> None:
+    """Breast-height slices at the true poses and with `moved` off by 5 cm / 0.2 deg; prints the ring spreads."""
+    import numpy as np
+    from PIL import Image
+
+    from plotmosaic.bench.protocol import params_to_matrix
+    from plotmosaic.io.las import read_cloud
+    from plotmosaic.poses import load_poses
+    from plotmosaic.report.build import collect, origin_of
+    from plotmosaic.report.config import ReportConfig
+    from plotmosaic.report.slice import ring_spread
+    from plotmosaic.report.views import plot_breast_slice, scan_colours
+
+    truth = load_poses(sim / "ground_truth.json")
+    poses = {k: v.transform for k, v in truth.scans.items()}
+    paths = {k: sim / v.plot / f"{k}.laz" for k, v in truth.scans.items()}
+    raw = {p: read_cloud(p, attributes=False).xyz for p in paths.values()}
+    ids = sorted(poses)
+    off = dict(poses)
+    off[moved] = poses[moved] @ params_to_matrix([0, 0, 0.2, 0.03, 0.04, 0])
+    cfg = ReportConfig()
+    pngs = []
+    for name, P in (("true poses", poses), (f"{moved} moved by 5 cm / 0.2 deg", off)):
+        t0 = time.perf_counter()
+        v = collect("P1", ids, paths, P, raw.__getitem__, cfg, 0)
+        seconds = time.perf_counter() - t0
+        print(f"{name}: {len(v.stems)} stems, median ring spread {ring_spread(v.stems) * 100:.2f} cm, "
+              f"of the stems {moved} sees {ring_spread(v.stems, moved) * 100:.2f} cm ({seconds:.1f} s)")
+        png = out.with_name(out.stem + f"_{len(pngs)}.png")
+        plot_breast_slice(png, v.slices, v.stems, f"breast-height slice, {name}", origin_of(list(v.thinned.values())),
+                          4, scan_colours(ids))
+        pngs.append(png)
+    ims = [Image.open(p).convert("RGB") for p in pngs]
+    w = min(width, min(i.width for i in ims))
+    ims = [i.resize((w, round(i.height * w / i.width)), Image.LANCZOS) for i in ims]
+    both = Image.new("RGB", (w, sum(i.height for i in ims)), "white")
+    y = 0
+    for i in ims:
+        both.paste(i, (0, y))
+        y += i.height
+    both.quantize(colors=256, method=Image.Quantize.FASTOCTREE).save(out, optimize=True)
+    for p in pngs:
+        p.unlink()
+    print(f"wrote {out}: {both.width}x{both.height}, {out.stat().st_size / 1e3:.0f} kB")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("page", type=Path, help="a report.html")
+    ap.add_argument("page", type=Path, nargs="?", help="a report.html")
+    ap.add_argument("--slices", type=Path, help="a `plotmosaic simulate` folder: single vs doubled breast-height slices")
+    ap.add_argument("--moved", default="P1-S2", help="with --slices: the scan moved by 5 cm / 0.2 deg")
     ap.add_argument("--out", type=Path, default=Path("docs/report_page.png"))
     ap.add_argument("--window", type=int, nargs=2, default=(1300, 4200), metavar=("W", "H"),
                     help="browser window in CSS pixels; the height is how much of the page is captured")
     ap.add_argument("--width", type=int, default=1000, help="width of the saved PNG (pixels)")
     ap.add_argument("--colours", type=int, default=256, help="palette size of the saved PNG")
     args = ap.parse_args()
-    if not args.page.is_file():
+    if args.slices is not None:
+        slices(args.slices, args.out, args.moved, args.width)
+        return
+    if args.page is None or not args.page.is_file():
         sys.exit(f"error: {args.page}: no such file")
     r = render(args.page, args.out, tuple(args.window), args.width, args.colours)
     print(f"page {args.page}: {r['page_bytes'] / 1e6:.2f} MB; chromium render + screenshot {r['render_s']:.1f} s "
