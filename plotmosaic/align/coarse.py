@@ -92,10 +92,8 @@ def _base(cloud, config: CoarseConfig, rng: np.random.Generator, airborne: bool,
     nrm = local_shape(pts, tree, pts, config.normal_radius, config.normal_neighbours)[0]
     few = sample(len(nrm), config.levelling_normals, rng)
     verticals, info = vertical_hypotheses(pts[few], nrm[few], config, airborne=airborne, limit=limit)
-    if upright:
-        info = {**info, "estimated_tilt_deg": info["tilt_deg"], "tilt_deg": 0.0, "upright": True,
-                "verticals": [{"name": "z-up", "tilt_deg": 0.0}]}
-        verticals = [Vertical(np.array([0.0, 0.0, 1.0]), "z-up")]
+    if upright:  # z-up first, and one estimate: on a slope a ground-levelled source pairs with a ground-levelled target
+        info = {**info, "estimated_tilt_deg": info["tilt_deg"], "tilt_deg": 0.0, "upright": True}
     return _Base(pts, nrm, verticals, info | {"points": len(pts)})
 
 
@@ -296,10 +294,12 @@ def _homogeneous(R: np.ndarray) -> np.ndarray:
     return T
 
 
-def _vertical_pairs(src: _Base, tgt: _Base) -> list[tuple[Vertical, Vertical]]:
-    """Every source vertical against the target's first, and the source's first against the target's others."""
+def _vertical_pairs(src: _Base, tgt: _Base, config: CoarseConfig) -> list[tuple[Vertical, Vertical]]:
+    """Vertical pairs searched: the first of each first, then every source vertical against the target's
+    first, then the rest (two estimates biased alike by the same sloped terrain still level the pair alike)."""
     pairs = [(v, tgt.verticals[0]) for v in src.verticals]
-    return pairs + [(src.verticals[0], v) for v in tgt.verticals[1:]]
+    pairs += [(a, b) for b in tgt.verticals[1:] for a in src.verticals]
+    return pairs[: config.max_vertical_pairs]
 
 
 def _fpfh_starts(src: _Base, tgt: _Base, pairs, config: CoarseConfig, rng: np.random.Generator) -> list[tuple]:
@@ -308,7 +308,7 @@ def _fpfh_starts(src: _Base, tgt: _Base, pairs, config: CoarseConfig, rng: np.ra
     i, j = features3d.mutual_matches(fs, ft)
     p, q = fs.points[i], ft.points[j]
     out = []
-    for vs, vt in pairs:
+    for vs, vt in pairs[: config.fpfh_vertical_pairs]:
         Rs, Rt = vs.R, vt.R
         for A, n in features3d.ransac_4dof(p @ Rs.T, q @ Rt.T, config, rng):
             T = _homogeneous(Rt.T) @ A @ _homogeneous(Rs)
@@ -400,7 +400,7 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
     # vertical hypotheses (z-up first when it is airborne), each searched.
     src, tgt = both(lambda job: _prepared(*job), (source, config, seed, source.kind in AIRBORNE, False, config.max_verticals),
                     (target, config, seed + 1, target.kind in AIRBORNE, target.kind in AIRBORNE, config.max_target_verticals))
-    pairs = _vertical_pairs(src, tgt)
+    pairs = _vertical_pairs(src, tgt, config)
     timing = {"levelling": time.perf_counter() - start}
     weights = _weights(source.kind, target.kind, config)
     prior = None if prior is None else np.asarray(prior, dtype=float)

@@ -123,7 +123,8 @@ def ground_fit_up(points: np.ndarray, c: CoarseConfig) -> np.ndarray | None:
         normal = _upper(np.linalg.eigh(np.cov((low[keep] - centre).T))[1][:, 0])
         r = (low - centre) @ normal
         keep = np.abs(r) < max(c.ground_fit_inlier_m, 2.5 * float(np.median(np.abs(r[keep]))))
-    return normal
+    # a strip a few cells wide fits any plane through its long axis: a fit far from level is no ground
+    return normal if angle_deg(normal, Z) <= c.ground_fit_max_deg else None
 
 
 @dataclass
