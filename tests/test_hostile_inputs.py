@@ -179,12 +179,18 @@ def test_damaged_cache_entries_are_discarded_with_one_warning(tmp_path, capsys):
 # ---- item 6: unwritable outputs, found before the work starts -------------------------------------
 
 
-def test_unwritable_outputs_are_refused_before_work(small_sim, tmp_path):
+def test_unwritable_outputs_are_refused_before_work(small_sim, tmp_path, monkeypatch):
     blocker = tmp_path / "a_file"
     blocker.write_text("x")
     src, tgt = small_sim.scan_paths["P1-S1"], small_sim.scan_paths["P1-S0"]
+
+    def started(*args, **kwargs):
+        raise AssertionError("the work started before the output location was checked")
+
+    for where in ("plotmosaic.align.pipeline.align_files", "plotmosaic.graph.pipeline.register_plot",
+                  "plotmosaic.commands.merge.merge_scans"):
+        monkeypatch.setattr(where, started)
     before = tree(tmp_path)
-    t0 = time.perf_counter()
     assert_one_line_error(invoke("align", src, tgt, "--out", blocker / "r.json"), "a_file", "is a file")
     assert_one_line_error(invoke("register-plot", small_sim.manifest_path, "--out", blocker / "reg"), "a_file")
     assert_one_line_error(invoke("register-plot", small_sim.manifest_path, "--out", "/proc/plotmosaic-reg"), "/proc")
@@ -192,7 +198,6 @@ def test_unwritable_outputs_are_refused_before_work(small_sim, tmp_path):
     assert_one_line_error(invoke("merge", small_sim.manifest_path, "--poses", small_sim.ground_truth_path,
                                  "--out", long), "255")
     assert_one_line_error(invoke("info", long), "too long")
-    assert time.perf_counter() - t0 < 20  # nothing was registered or merged first
     assert_nothing_left(tmp_path, before)
     assert not Path("/proc/plotmosaic-reg").exists()
 
@@ -284,7 +289,7 @@ def test_a_three_point_file_is_named(small_sim, tmp_path):
 # ---- faults: SIGKILL of register-plot -j 2, resume, damaged cache --------------------------------
 
 
-def thinned_manifest(tmp_path: Path, sim, scans: list[str], step: int = 3) -> Path:
+def thinned_manifest(tmp_path: Path, sim, scans: list[str], step: int = 4) -> Path:
     """A plot of every `step`-th point of the given scans: the same pairs, registered faster."""
     from plotmosaic.io.las import PointCloud, write_cloud
 
