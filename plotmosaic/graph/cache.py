@@ -21,6 +21,7 @@ import numpy as np
 
 from plotmosaic import __version__
 from plotmosaic.io.atomic import write_text_atomic
+from plotmosaic.io.e57 import split_scan_ref
 from plotmosaic.poses import rigid_problem
 
 _CHUNK = 1 << 20
@@ -29,8 +30,13 @@ SCOPE = "pair registration only; the pose graph's keep/drop decision for this ed
 
 
 def file_hash(path: str | Path) -> str:
-    """sha256 of a file's content, remembered per (path, mtime, size) for this process."""
-    path = Path(path).resolve()
+    """sha256 of a file's content, remembered per (path, mtime, size) for this process.
+
+    A scan inside a multi-scan file (`plot.e57#3`) is the file's hash plus the scan index, so the
+    scans of one file never share a cache entry.
+    """
+    file, scan = split_scan_ref(path)
+    path = Path(file).resolve()
     st = path.stat()
     memo = (str(path), st.st_mtime_ns, st.st_size)
     if memo not in _hashes:
@@ -39,7 +45,7 @@ def file_hash(path: str | Path) -> str:
             while block := f.read(_CHUNK):
                 h.update(block)
         _hashes[memo] = h.hexdigest()
-    return _hashes[memo]
+    return _hashes[memo] if scan is None else f"{_hashes[memo]}#{scan}"
 
 
 def pair_key(source_path, target_path, source_kind: str, target_kind: str, levels_source: int | None,
