@@ -53,18 +53,31 @@ def scanner_at(xyz: np.ndarray, xy: np.ndarray, height: float = 1.5) -> np.ndarr
     return np.array([*xy, ground + height])
 
 
-def cases(which: set[str]) -> list[dict]:
+def _from_cloud(xyz: np.ndarray, positions: list, ranges: tuple[float, float], seed: int = 0) -> tuple:
+    """Two views cut by plotmosaic.simulate.from_cloud (occlusion through an occupancy grid, range thinning,
+    each view in its own random frame): (source points, target points, truth source view -> target view)."""
+    from plotmosaic.simulate.from_cloud import cut_views
+
+    a = cut_views(xyz, [positions[0]], seed=seed, max_range=ranges[0])[0]
+    b = cut_views(xyz, [positions[1]], seed=seed + 1, max_range=ranges[1])[0]
+    return a.points, b.points, np.linalg.inv(b.truth) @ a.truth
+
+
+def cases(which: set[str], cutter: str = "zbuffer") -> list[dict]:
     out = []
     if "mls" in which or "mls-boxed" in which:
         mls = read_cloud(DATA / "spanner" / "MLS_Clip.laz", attributes=False).xyz
         c = (mls[:, :2].min(axis=0) + mls[:, :2].max(axis=0)) / 2
         a, b = scanner_at(mls, c + [-4.0, 0.0]), scanner_at(mls, c + [4.0, 0.0])
-        ta = mls[visible(mls, b, 30.0)]
-        if "mls" in which:
-            out.append({"name": "MLS views 8 m apart", "source": mls[visible(mls, a, 30.0)], "target": ta, "sk": "tls", "tk": "tls"})
-        if "mls-boxed" in which:
-            out.append({"name": "MLS boxed source (6 m range), 8 m apart", "source": mls[visible(mls, a, 6.0)], "target": ta,
-                        "sk": "tls", "tk": "tls"})
+        for key, name, rng_a in (("mls", "MLS views 8 m apart", 30.0), ("mls-boxed", "MLS boxed source (6 m range), 8 m apart", 6.0)):
+            if key not in which:
+                continue
+            if cutter == "from-cloud":
+                sp, tp, truth = _from_cloud(mls, [tuple(c + [-4.0, 0.0]), tuple(c + [4.0, 0.0])], (rng_a, 30.0))
+                out.append({"name": name + " (from_cloud)", "source": sp, "target": tp, "sk": "tls", "tk": "tls", "truth": truth})
+            else:
+                out.append({"name": name, "source": mls[visible(mls, a, rng_a)], "target": mls[visible(mls, b, 30.0)],
+                            "sk": "tls", "tk": "tls"})
     if "uas-strip" in which or "uas-als" in which:
         uas = read_cloud(DATA / "spanner" / "UAS_Clip.laz", attributes=False).xyz
         als = read_cloud(DATA / "spanner" / "ALS_Clip.laz", attributes=False).xyz
@@ -76,9 +89,14 @@ def cases(which: set[str]) -> list[dict]:
             out.append({"name": "UAS -> ALS whole", "source": uas, "target": als, "sk": "uls", "tk": "als"})
     if "treels" in which:
         tr = read_cloud(DATA / "treels" / "pine_plot.laz", attributes=False).xyz
-        a, b = scanner_at(tr, np.array([2.0, 5.0])), scanner_at(tr, np.array([8.0, 5.0]))
-        out.append({"name": "TreeLS views 6 m apart", "source": tr[visible(tr, a, 20.0)], "target": tr[visible(tr, b, 20.0)],
-                    "sk": "tls", "tk": "tls"})
+        if cutter == "from-cloud":
+            sp, tp, truth = _from_cloud(tr, [(2.0, 5.0), (8.0, 5.0)], (20.0, 20.0))
+            out.append({"name": "TreeLS views 6 m apart (from_cloud)", "source": sp, "target": tp, "sk": "tls", "tk": "tls",
+                        "truth": truth})
+        else:
+            a, b = scanner_at(tr, np.array([2.0, 5.0])), scanner_at(tr, np.array([8.0, 5.0]))
+            out.append({"name": "TreeLS views 6 m apart", "source": tr[visible(tr, a, 20.0)], "target": tr[visible(tr, b, 20.0)],
+                        "sk": "tls", "tk": "tls"})
     if "sim" in which:
         from plotmosaic.manifest import load_manifest
         from plotmosaic.poses import load_poses
@@ -146,12 +164,14 @@ def main() -> None:
     ap.add_argument("--protocols", default="paper,beyond")
     ap.add_argument("--cases", default="mls,mls-boxed,uas-strip,treels,uas-als,sim")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--cutter", choices=("zbuffer", "from-cloud"), default="zbuffer",
+                    help="how ground-based views are cut: this script's z-buffer, or plotmosaic.simulate.from_cloud")
     ap.add_argument("--json", type=Path, default=None, help="also write the tallies here")
     ap.add_argument("--quiet", action="store_true")
     args = ap.parse_args()
     log = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
     rows = []
-    for case in cases(set(args.cases.split(","))):
+    for case in cases(set(args.cases.split(",")), args.cutter):
         log(f"{case['name']}: source {len(case['source'])} pts, target {len(case['target'])} pts")
         for protocol in args.protocols.split(","):
             t = run_case(case, protocol, args.trials, args.seed, log)

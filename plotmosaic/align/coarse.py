@@ -416,7 +416,7 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
         starts += _stem_starts(src, tgt, pairs, config, gen_rng)
         timing["stems"] = time.perf_counter() - t
     if prior is not None:
-        starts.append((prior, {"generator": "prior", "vertical": "prior", "prior": True}))
+        starts.append((prior, {"generator": "prior", "vertical": "prior", "prior": True}))  # never merged away
     starts = _unique_starts(starts, config)
     t_gen = time.perf_counter()
 
@@ -461,9 +461,9 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
         refined = rank in top
         A, score = top[rank] if refined else (A, None)
         results.append({"T": A, "refined": refined, "score": score, "screen_score": pre,
-                        "raster_score": h.get("score", float("nan")),
+                        "raster_score": h.get("score"),  # None for other generators (strict JSON: no NaN)
                         "yaw_deg": float(np.degrees(h["yaw"])) if "yaw" in h else _yaw_deg(A),
-                        "overlap": h.get("overlap", float("nan")), "prior": bool(h.get("prior", False)),
+                        "overlap": h.get("overlap"), "prior": bool(h.get("prior", False)),
                         "generator": h["generator"], "vertical": h["vertical"]}
                        | {k: h[k] for k in ("votes", "agree") if k in h})
     if not results:
