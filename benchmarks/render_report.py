@@ -56,7 +56,6 @@ def render(page: Path, out: Path, window: tuple[int, int], width: int, colours: 
 
 def slices(sim: Path, out: Path, moved: str, width: int) -> None:
     """Breast-height slices at the true poses and with `moved` off by 5 cm / 0.2 deg; prints the ring spreads."""
-    import numpy as np
     from PIL import Image
 
     from plotmosaic.bench.protocol import params_to_matrix
@@ -83,7 +82,7 @@ def slices(sim: Path, out: Path, moved: str, width: int) -> None:
         print(f"{name}: {len(v.stems)} stems, median ring spread {ring_spread(v.stems) * 100:.2f} cm, "
               f"of the stems {moved} sees {ring_spread(v.stems, moved) * 100:.2f} cm ({seconds:.1f} s)")
         png = out.with_name(out.stem + f"_{len(pngs)}.png")
-        plot_breast_slice(png, v.slices, v.stems, f"breast-height slice, {name}", origin_of(list(v.thinned.values())),
+        plot_breast_slice(png, v.slices, v.stems, f"breast-height slice, {name}", origin_of(v.thinned),
                           4, scan_colours(ids))
         pngs.append(png)
     ims = [Image.open(p).convert("RGB") for p in pngs]

@@ -224,7 +224,7 @@ def write_register_report(result, manifest, config, seed: int, reader: Callable[
         min_confidence=getattr(getattr(config, "graph", None), "min_confidence", PoseGraphConfig().min_confidence),
         bundle=residual_summary(G))
     cfg = ReportConfig(picture_points=getattr(config, "report_points", 20_000))
-    html_path, figures = build_report(inp, cfg, seed, overview=True)
+    _, figures = build_report(inp, cfg, seed, overview=True)
     for r in result.plots:
         sub = G.subgraph(r.scans)
         s = residual_summary(sub)
@@ -234,9 +234,9 @@ def write_register_report(result, manifest, config, seed: int, reader: Callable[
         if r.solution.dropped:
             lines += ["Dropped edges (inconsistent): " + ", ".join(f"{d['source']} -> {d['target']} ({d['reason']})" for d in r.solution.dropped), ""]
         if s["edges"]:
-            lines += [f"Kept-edge residuals after optimisation: translation RMS {s['translation_rms'] * 100:.2f} cm "
+            lines += [(f"Kept-edge residuals after optimisation: translation RMS {s['translation_rms'] * 100:.2f} cm "
                       f"(max {s['translation_max'] * 100:.2f}), rotation RMS {s['rotation_rms_deg']:.3f} deg "
-                      f"(max {s['rotation_max_deg']:.3f}).", ""]
+                      f"(max {s['rotation_max_deg']:.3f})."), ""]
         lines += ["### Poses", ""] + pose_table(r.scans, r.solution.poses, r.solution.sigmas) + [""]
         lines += ["### Edges", "", "Residuals before = at the spanning-tree initialisation, after = at the optimised poses.", ""]
         lines += edge_table(sub) + [""]
@@ -258,8 +258,8 @@ def write_tie_report(result, manifest, als, config, seed: int, reader: Callable[
     lines = ["# tie-to-als report", "", f"- manifest: `{manifest.source}`",
              f"- region solved in ALS CRS minus offset ({', '.join(f'{v:.0f}' for v in result.offset)})",
              f"- plot -> ALS registrations: {len(result.anchors)} ({result.computed} run now, rest cached)", "",
-             "The same in one page, with the breast-height slice, cloud-to-cloud distances and a map over the ALS "
-             "canopy height: [report.html](report.html)", ""]
+             ("The same in one page, with the breast-height slice, cloud-to-cloud distances and a map over the ALS "
+             "canopy height: [report.html](report.html)"), ""]
     if result.unplaced:
         lines += [f"**Not placed**: {', '.join(result.unplaced)}", ""]
     anchor_rows = ["| plot | reference scan | status | fitness | inlier RMSE (cm) | overlap | ALS crop | anchor residual (cm / deg) |",

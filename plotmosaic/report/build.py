@@ -21,8 +21,18 @@ from plotmosaic.report import html as H
 from plotmosaic.report import views
 from plotmosaic.report.config import ReportConfig
 from plotmosaic.report.distance import edge_distances, scan_medians, thin
-from plotmosaic.report.slice import (Ground, Stem, breast_height_slice, cell_minima, find_stems, ground_model,
-                                     low_stratum, merge_minima, ring_spread)
+from plotmosaic.report.figures import origin_of
+from plotmosaic.report.slice import (
+    Ground,
+    Stem,
+    breast_height_slice,
+    cell_minima,
+    find_stems,
+    ground_model,
+    low_stratum,
+    merge_minima,
+    ring_spread,
+)
 
 
 @dataclass
@@ -48,12 +58,6 @@ class PlotView:
     @property
     def spread(self) -> float:
         return ring_spread(self.stems)
-
-
-def origin_of(points: list[np.ndarray]) -> np.ndarray:
-    """A round 10 m corner for axis labels of UTM-sized coordinates, else zero."""
-    lo = np.min([p.min(axis=0) for p in points if len(p)], axis=0) if any(len(p) for p in points) else np.zeros(3)
-    return np.floor(lo / 10.0) * 10.0 if np.abs(lo).max() > 1e4 else np.zeros(3)
 
 
 def collect(plot: str, scans: list[str], paths: dict[str, Path], poses: dict[str, np.ndarray],
@@ -247,10 +251,10 @@ def build_report(inp: ReportInput, cfg: ReportConfig | None = None, seed: int = 
     for v in views_:
         if not v.thinned:
             continue
-        origin = origin_of(list(v.thinned.values()))
+        origin = origin_of(v.thinned)
         colours = views.scan_colours(v.scans)
-        figs.append((v.plot, f"Plot {v.plot}: breast-height slice ({cfg.slice.height:g} m +- {cfg.slice.half_width * 100:.0f} cm "
-                     "above the ground from the scans), one colour per scan; right: stems most scans see, 1 cm grid",
+        figs.append((v.plot, (f"Plot {v.plot}: breast-height slice ({cfg.slice.height:g} m +- {cfg.slice.half_width * 100:.0f} cm "
+                     "above the ground from the scans), one colour per scan; right: stems most scans see, 1 cm grid"),
                      views.plot_breast_slice(out / f"{v.plot}_breast_slice.png", v.slices, v.stems,
                                              f"plot {v.plot}: breast-height slice", origin, cfg.slice.insets, colours)))
         positions = {s: scan_position(inp.poses[s], v.thinned.get(s)) for s in v.scans if s in inp.poses}
@@ -260,8 +264,8 @@ def build_report(inp: ReportInput, cfg: ReportConfig | None = None, seed: int = 
                                     origin, unsure)))
         shown = sorted(v.edges, key=lambda e: -e["median"])[:cfg.distance.edge_figures]
         if shown:
-            figs.append((v.plot, f"Plot {v.plot}: cloud-to-cloud distances per kept edge (worst {len(shown)} of {len(v.edges)} "
-                         "by median), histogram and map of the overlap",
+            figs.append((v.plot, (f"Plot {v.plot}: cloud-to-cloud distances per kept edge (worst {len(shown)} of {len(v.edges)} "
+                         "by median), histogram and map of the overlap"),
                          views.plot_edge_distances(out / f"{v.plot}_distances.png", shown, origin, cfg.distance.colour_max)))
             spreads = {s: ring_spread(v.stems, s) for s in v.medians}
             figs.append((v.plot, f"Plot {v.plot}: per scan, median distance to its neighbours and ring spread of its stems",
@@ -322,7 +326,7 @@ def _write_page(inp: ReportInput, views_: list[PlotView], figs, warnings: list[s
         for plot, caption, png in figs:
             if plot == v.plot:
                 page.raw(H.image(png, caption))
-        origin = origin_of(list(v.thinned.values())) if v.thinned else np.zeros(3)
+        origin = origin_of(v.thinned) if v.thinned else np.zeros(3)
         page.raw(stem_table(v, origin))
         rows = [[e["source"], e["target"], len(e["distances"]), f"{e['median'] * 100:.2f}", f"{e['p90'] * 100:.2f}",
                  f"{e['share'] * 100:.0f}"] for e in v.edges]

@@ -15,7 +15,6 @@ from scipy import ndimage
 
 from plotmosaic.report.config import SliceConfig
 
-
 # ---------------------------------------------------------------- ground
 
 

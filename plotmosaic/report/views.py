@@ -80,7 +80,7 @@ def _stem_inset(ax, st: Stem, colours: dict, origin: np.ndarray, number: int) ->
 
 
 def plot_edge_distances(path: Path, edges: list[dict], origin: np.ndarray, colour_max: float, cell: float = 0.25) -> Path:
-    """Per edge: histogram of nearest-neighbour distances in the overlap and a top view coloured by distance."""
+    """Per edge: histogram of distances to the other scan's local surface in the overlap, and a map of them from above."""
     n = max(1, len(edges))
     fig, axes = plt.subplots(n, 2, figsize=(12, 4.3 * n), squeeze=False, gridspec_kw={"width_ratios": [1, 1.25], "hspace": 0.45})
     cmap = plt.get_cmap("turbo")
