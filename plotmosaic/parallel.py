@@ -8,9 +8,10 @@ more threads run than the budget allows.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 
 _budget = max(1, os.cpu_count() or 1)
@@ -27,6 +28,22 @@ def set_threads(n: int | None) -> int:
 def threads() -> int:
     """Threads the current thread may use (the whole budget outside our pools)."""
     return getattr(_local, "share", _budget)
+
+
+@contextlib.contextmanager
+def limited(n: int) -> Iterator[int]:
+    """Within the block, the current thread (and the maps it starts) use at most `n` threads.
+
+    Thread-local, so several jobs in one process (a threaded Dask worker) each keep their own share."""
+    had = getattr(_local, "share", None)
+    _local.share = max(1, min(int(n), _budget if had is None else had))
+    try:
+        yield _local.share
+    finally:
+        if had is None:
+            del _local.share
+        else:
+            _local.share = had
 
 
 def inner_workers() -> int:

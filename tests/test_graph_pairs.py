@@ -121,3 +121,28 @@ def test_small_plot_keeps_every_pair_and_far_groups_stay_apart():
     pairs = neighbour_pairs(xy, 6, 8, 60.0)
     assert not any(i < 12 <= j for i, j in pairs)  # 1 km away: not linked, reported unplaced instead
     assert len(neighbour_pairs(xy, 6, 8, None)) > len(pairs)  # without a distance cap the groups are joined
+
+
+def test_positions_from_the_als_step_select_pairs_and_give_priors():
+    from plotmosaic.graph.placement import prior
+
+    plot = _plot([None] * 12)
+    rng = np.random.default_rng(2)
+    poses = {}
+    for k, s in enumerate(plot.scans[:-1]):  # the last scan could not be placed on the ALS
+        T = np.eye(4)
+        c, si = np.cos(k), np.sin(k)
+        T[:2, :2] = [[c, -si], [si, c]]
+        T[:3, 3] = [(k % 4) * 15.0 + 470000.0, (k // 4) * 15.0 + 3810000.0, rng.normal()]
+        poses[s.id] = T
+    pairs = candidate_pairs(plot, 60.0, {sid: T[:3, 3] for sid, T in poses.items()})
+    ids = {(s.id, t.id) for s, t in pairs}
+    lost = plot.scans[-1].id
+    partners = [t for s, t in ids if s == lost]  # unplaced: its neighbours in the manifest, nearest first, capped
+    assert "s10" in partners and 2 <= len(partners) <= 8
+    import networkx as nx
+
+    assert max(d for _, d in nx.Graph(list(ids)).degree()) <= 8
+    assert len(ids) < 66 and all(plot.scans.index(s) > plot.scans.index(t) for s, t in pairs)
+    P = np.asarray(prior(poses, "s3", "s1"))
+    assert np.allclose(poses["s1"] @ P, poses["s3"]) and prior(poses, lost, "s1") is None

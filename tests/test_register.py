@@ -114,6 +114,12 @@ def test_dask_executor_gives_the_same_edge(runs, tmp_path):
     if local["status"] == "ok":
         assert np.allclose(local["transform"], remote["transform"], atol=1e-6)
         assert local["fitness"] == pytest.approx(remote["fitness"], abs=1e-6)
+    # the same plot through the local pool (its pair from the local run's cache): the same poses
+    PairCache(tmp_path / "local" / "pairs").put(job.key, local)
+    here = register_plot(manifest, tmp_path / "local", jobs=1, progress=False)
+    assert here.computed == 0 and set(here.poses.scans) == set(result.poses.scans)
+    for sid in here.poses.scans:
+        assert np.allclose(here.poses.transform(sid), result.poses.transform(sid), atol=1e-6)
 
 
 def test_tie_to_als_georeferences_every_scan(runs, tmp_path):

@@ -27,7 +27,7 @@ from plotmosaic.graph import report as rep
 from plotmosaic.graph.cache import PairCache, pair_key
 from plotmosaic.graph.executor import PairJob
 from plotmosaic.graph.pipeline import EDGE_FIELDS, compute_pairs
-from plotmosaic.graph.prepared import load_points
+from plotmosaic.graph.prepared import load_points, points_reader
 from plotmosaic.graph.posegraph import (
     PoseGraphConfig,
     Solution,
@@ -259,7 +259,8 @@ def tie_to_als(manifest: str | Path | Manifest, poses_path: str | Path, out: str
     result = TieResult(out, result_poses, G, list(anchors.values()), sol, als_frame.offset, unplaced, computed)
     write_text_atomic(out / "graph.json", json.dumps(graph_to_json(G)))
     result_poses.save(out / "poses.json")
-    write_tie_report(result, manifest, als, config, seed)
+    entries = {str(manifest.resolve(s.path)): prepared_scans[s.id] for s in manifest.scans if s.id in prepared_scans}
+    write_tie_report(result, manifest, als, config, seed, reader=points_reader(entries))
     result.seconds = time.perf_counter() - start
     return result
 

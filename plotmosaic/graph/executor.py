@@ -130,18 +130,13 @@ def split(n_jobs: int | None, n_tasks: int) -> tuple[int, int]:
 
 
 def call_with_threads(threads: int, worker: Callable, job):
-    """`worker(job)` with a thread budget (Dask workers: no initializer of ours runs there)."""
+    """`worker(job)` within a thread budget (Dask workers: no initializer of ours runs there)."""
     from threadpoolctl import threadpool_limits
 
-    from plotmosaic.parallel import set_threads, threads as current
+    from plotmosaic.parallel import limited
 
-    before = current()
-    set_threads(threads)
-    try:
-        with threadpool_limits(threads):
-            return worker(job)
-    finally:
-        set_threads(before)
+    with limited(threads), threadpool_limits(threads):
+        return worker(job)
 
 
 def _progress(enabled: bool) -> Progress:

@@ -4,7 +4,8 @@ A small plot (at most `all_pairs_up_to` scans) tries every pair, or with approxi
 pair whose scanners stood at most `max_distance` apart. A bigger plot with positions (from the
 manifest or from placing each scan on the ALS) registers each scan with its nearest neighbours
 only: at most `max_per_scan` pairs a scan, so the pairs grow linearly with the scans, and the
-graph is kept connected (loops come from the neighbours: each scan has several).
+graph is kept connected (loops come from the neighbours: each scan has several). A scan without a
+position is paired with its neighbours in the manifest's order (the order of acquisition).
 """
 
 from __future__ import annotations
@@ -105,10 +106,34 @@ def candidate_pairs(plot: Plot, max_distance: float | None = None, positions: di
     scans = plot.scans
     positions = positions if positions is not None else manifest_positions(plot)
     known = positions is not None and all(s.id in positions for s in scans)
-    if known and len(scans) > selection.all_pairs_up_to:
-        xy = np.array([positions[s.id][:2] for s in scans])
-        pairs = neighbour_pairs(xy, selection.neighbours, selection.max_per_scan, max_distance)
-        return [(scans[j], scans[i]) for i, j in pairs]
+    placed = [s for s in scans if positions is not None and s.id in positions]
+    if len(scans) > selection.all_pairs_up_to and len(placed) >= 3:
+        xy = np.array([positions[s.id][:2] for s in placed])
+        chosen = {(placed[i].id, placed[j].id)
+                  for i, j in neighbour_pairs(xy, selection.neighbours, selection.max_per_scan, max_distance)}
+        order = {s.id: k for k, s in enumerate(scans)}
+        # no position: paired with its neighbours in the manifest, which lists scans as they were
+        # taken (a walk through the plot), so pairs stay bounded; an unconfirmed scan is reported unplaced
+        degree = {s.id: 0 for s in scans}
+        for a, b in chosen:
+            degree[a] += 1
+            degree[b] += 1
+        for k, s in enumerate(scans):
+            if s.id in positions:
+                continue
+            near = (m for d in range(1, len(scans)) for m in (k - d, k + d) if 0 <= m < len(scans))
+            for m in near:  # nearest in the list first
+                if degree[s.id] >= selection.max_per_scan:
+                    break
+                a, b = sorted((k, m))
+                pair = (scans[a].id, scans[b].id)
+                if m != k and pair not in chosen and degree[scans[m].id] < selection.max_per_scan:
+                    chosen.add(pair)
+                    degree[s.id] += 1
+                    degree[scans[m].id] += 1
+        by_id = {s.id: s for s in scans}
+        return [(by_id[j], by_id[i]) for i, j in sorted(chosen, key=lambda e: (order[e[0]], order[e[1]]))
+                if order[i] < order[j]]
     pairs = []
     for target, source in combinations(scans, 2):
         if known and max_distance is not None:

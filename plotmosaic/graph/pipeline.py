@@ -20,7 +20,7 @@ from plotmosaic.align.config import AlignConfig
 from plotmosaic.errors import InputError
 from plotmosaic.graph.cache import PairCache, pair_key
 from plotmosaic.graph.executor import PairJob, prepare_jobs_for, run_pairs
-from plotmosaic.graph.prepared import PrepareJob, entry, load_points, run_prepare_job
+from plotmosaic.graph.prepared import PrepareJob, entry, points_reader, run_prepare_job
 from plotmosaic.graph.pairs import PairSelection, candidate_pairs, manifest_positions
 from plotmosaic.graph.placement import placed_poses, placement_jobs, prior
 from plotmosaic.graph.posegraph import PoseGraphConfig, Solution, build_graph, graph_to_json, optimise
@@ -47,6 +47,8 @@ class RegisterConfig(BaseModel):
     pairs: PairSelection = Field(default_factory=PairSelection)
     place_on_als: bool = Field(True, description="big plots without positions: place each scan on the ALS first")
     placement: AlignConfig = Field(default_factory=AlignConfig, description="scan -> ALS: verified poses only")
+    placement_min_confidence: float = Field(0.5, ge=0, le=1, description="a scan placed on the ALS less surely than "
+                                            "this is paired with every scan instead (a wrong place would pick wrong pairs)")
     report_points: int = 20_000  # per scan in the pictures
 
 
@@ -110,7 +112,7 @@ def place_scans(manifest: Manifest, config: RegisterConfig, seed: int, out: Path
     if not jobs:
         return {}, [], {}
     records, _ = compute_pairs(jobs, PairCache(out / "placement"), executor, n_jobs, scheduler, force, progress)
-    return placed_poses(jobs, records), jobs, records
+    return placed_poses(jobs, records, config.placement_min_confidence), jobs, records
 
 
 def prepare_scans(jobs: list[PairJob], executor: str = "local", n_jobs: int | None = None,
@@ -222,27 +224,11 @@ def register_plot(manifest: str | Path | Manifest, out: str | Path, jobs: int | 
     write_text_atomic(out / "graph.json", json.dumps(graph_to_json(G)))
     poses.save(out / "poses.json")
     result.seconds = time.perf_counter() - start
-    _PREPARED_ENTRIES.clear()
-    _PREPARED_ENTRIES.update({p: out / "prepared" / extra["prepared"][sid] for p, sid in by_path.items()
-                              if sid in extra["prepared"]})
-    write_register_report(result, manifest, config, seed)
+    # the pictures use the prepared (voxel-thinned) points: no scan is read a second time
+    entries = {p: out / "prepared" / extra["prepared"][sid] for p, sid in by_path.items() if sid in extra["prepared"]}
+    write_register_report(result, manifest, config, seed, reader=points_reader(entries))
     result.seconds = time.perf_counter() - start
     return result
-
-
-# scan file -> its prepared-cloud cache entry, set by register_plot: the report's pictures use the
-# prepared (voxel-thinned) points instead of reading every scan a second time
-_PREPARED_ENTRIES: dict[str, Path] = {}
-
-
-def _read_xyz(path: Path) -> np.ndarray:
-    cached = _PREPARED_ENTRIES.get(str(path))
-    if cached is not None and cached.is_file():
-        try:
-            return load_points(cached)
-        except Exception:  # damaged entry: the scan itself
-            pass
-    return read_cloud(path, attributes=False).xyz
 
 
 # the report (report.md + report.html) is H-report's: plotmosaic/graph/report.py

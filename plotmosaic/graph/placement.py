@@ -38,10 +38,14 @@ def placement_jobs(manifest: Manifest, plot: Plot, config_json: str, seed: int, 
     return jobs
 
 
-def placed_poses(jobs: list[PairJob], records: dict[str, dict]) -> dict[str, np.ndarray]:
-    """scan id -> its pose in the ALS CRS (scan file -> ALS file coordinates), verified pairs only."""
-    return {j.source: np.asarray(records[j.key]["transform"], dtype=np.float64)
-            for j in jobs if records.get(j.key, {}).get("status") == "ok"}
+def placed_poses(jobs: list[PairJob], records: dict[str, dict], min_confidence: float = 0.0) -> dict[str, np.ndarray]:
+    """scan id -> its pose in the ALS CRS (scan file -> ALS file coordinates): verified pairs at least this sure."""
+    out = {}
+    for j in jobs:
+        r = records.get(j.key, {})
+        if r.get("status") == "ok" and (r.get("confidence") is None or r["confidence"] >= min_confidence):
+            out[j.source] = np.asarray(r["transform"], dtype=np.float64)
+    return out
 
 
 def prior(poses: dict[str, np.ndarray], source: str, target: str) -> tuple | None:

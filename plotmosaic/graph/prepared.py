@@ -97,6 +97,23 @@ def load_points(path: str | Path) -> np.ndarray:
         return data["points"] + data["frame_offset"]
 
 
+def points_reader(entries: dict[str, Path]):
+    """A reader for the report's pictures: scan file -> points, from its prepared cloud when cached
+    (`entries`: scan file path -> cache entry), else from the file (a damaged or missing entry)."""
+    def read(path) -> np.ndarray:
+        cached = entries.get(str(path))
+        if cached is not None and Path(cached).is_file():
+            try:
+                return load_points(cached)
+            except Exception:  # damaged entry: the scan itself
+                pass
+        from plotmosaic.io.las import read_cloud
+
+        return read_cloud(path, attributes=False).xyz
+
+    return read
+
+
 @dataclass(frozen=True)
 class PrepareJob:
     """One scan to read and prepare into the cache (plain data: pickles to any process or machine)."""
