@@ -140,3 +140,46 @@ def test_report_html_is_self_contained(small_sim, tmp_path):
     # the 3D view, when plotly is there, is a separate file linked from the page
     if any(h and h.endswith("view3d.html") for h in page.links):
         assert (tmp_path / "view3d.html").stat().st_size < 20e6
+
+
+def _arc(centre, r, a0, a1, n, rng, noise=0.002):
+    t = np.linspace(a0, a1, n)
+    return np.column_stack([centre[0] + r * np.cos(t), centre[1] + r * np.sin(t)]) + rng.normal(0, noise, (n, 2))
+
+
+def test_ring_spread_reads_the_offset_between_two_half_rings():
+    """Two scans see opposite sides of a 20 cm stem; the second one's ring is 3 cm off, or not at all."""
+    from plotmosaic.report.config import SliceConfig
+    from plotmosaic.report.slice import find_stems
+
+    rng = np.random.default_rng(1)
+    for shift in (0.0, 0.03):
+        slices = {"A": np.column_stack([_arc((5.0, 5.0), 0.2, 0.2, np.pi - 0.2, 80, rng), np.zeros(80)]),
+                  "B": np.column_stack([_arc((5.0 + shift, 5.0), 0.2, np.pi + 0.2, 2 * np.pi - 0.2, 60, rng), np.zeros(60)])}
+        (stem,) = find_stems(slices, SliceConfig())
+        assert stem.scans == ["A", "B"]
+        assert abs(stem.spread - shift) < 0.004, (shift, stem.spread)
+        assert abs(stem.radius - 0.2) < 0.02
+
+
+def test_warnings_in_plain_words():
+    import networkx as nx
+
+    from plotmosaic.report.build import warnings_for
+    from plotmosaic.report.config import ReportConfig
+
+    G = nx.Graph()
+    G.add_edge("S1", "S2", source="S1", target="S2")
+    G.add_edge("S2", "S3", source="S2", target="S3")
+    G.add_edge("S3", "S1", source="S3", target="S1")
+    G.add_edge("S4", "S1", source="S4", target="S1")
+    G.add_edge("S2", "S5", source="S2", target="S5", dropped=True, drop_reason="cycle",
+               residual_after={"translation": 0.4, "rotation_deg": 0.3})
+    G.add_edge("S4", "S3", source="S4", target="S3", confidence=0.1, dropped=True, drop_reason="unverified",
+               residual_after={"translation": 12.0, "rotation_deg": 90.0})
+    w = warnings_for(G, [], ["S5"], [{"source": "S5", "target": "S3", "error": "too few points"}], ReportConfig(), set())
+    assert "scan S5 is not placed: no kept pair links it to the reference" in w
+    assert any(x.startswith("scan S4 is held by one edge only (S1)") for x in w)
+    assert "edge S2-S5 dropped: its loops with the other edges do not close; it is 40 cm / 0.30 deg off the solution" in w
+    assert any("edge S4-S3 dropped" in x and "12.0 m" in x for x in w)
+    assert "pair S5-S3 could not be registered: too few points" in w

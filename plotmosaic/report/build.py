@@ -116,6 +116,14 @@ REASONS = {
 }
 
 
+def _length(metres: float) -> str:
+    return f"{metres * 100:.0f} cm" if metres < 1 else f"{metres:.1f} m"
+
+
+def _cm(metres: float) -> str:
+    return "-" if not np.isfinite(metres) else f"{metres * 100:.2f}"
+
+
 def warnings_for(G: nx.Graph, views_: list[PlotView], unplaced: list[str], failed: list[dict], cfg: ReportConfig,
                  unsure: set) -> list[str]:
     """Plain-words warnings: weak links first, then what the slice and the distances say."""
@@ -127,7 +135,7 @@ def warnings_for(G: nx.Graph, views_: list[PlotView], unplaced: list[str], faile
     for u, v, e in sorted(G.edges(data=True), key=lambda t: (t[2].get("source", t[0]), t[2].get("target", t[1]))):
         if e.get("dropped"):
             r = e.get("residual_after")
-            off = f"; it is {r['translation'] * 100:.0f} cm / {r['rotation_deg']:.2f} deg off the solution" if r else ""
+            off = f"; it is {_length(r['translation'])} / {r['rotation_deg']:.2f} deg off the solution" if r else ""
             out.append(f"edge {e.get('source', u)}-{e.get('target', v)} dropped: "
                        f"{REASONS.get(e.get('drop_reason'), e.get('drop_reason'))}{off}")
         elif tuple(sorted((u, v))) in unsure:
@@ -333,7 +341,7 @@ def _write_page(inp: ReportInput, views_: list[PlotView], figs, warnings: list[s
         page.raw(H.table(["source", "target", "overlap points", "median (cm)", "90 % (cm)", "share of source in overlap (%)"],
                          rows, f"Plot {v.plot}: cloud-to-cloud distances of the kept edges"))
         page.raw(H.table(["scan", "median distance to neighbours (cm)", "median ring spread of its stems (cm)"],
-                         [[s, f"{m * 100:.2f}", f"{ring_spread(v.stems, s) * 100:.2f}"] for s, m in v.medians.items()],
+                         [[s, _cm(m), _cm(ring_spread(v.stems, s))] for s, m in v.medians.items()],
                          f"Plot {v.plot}: per scan after the joint solve"))
     for caption, lines in inp.tables_md:
         page.heading(caption)
