@@ -2,6 +2,7 @@
 
     python benchmarks/bench_register.py --preset paper --workdir /tmp/bench_register
     python benchmarks/bench_register.py --preset region --workdir /tmp/bench_register
+    python benchmarks/bench_register.py --preset large --points-per-scan 60000 --jobs 2 --no-tie
 
 Simulates the preset (once; reused when the folder exists), runs register-plot (pairs cached in
 WORKDIR/<preset>/reg/pairs, so a re-run only re-does the pose graph), prints each scan's pose error
@@ -87,6 +88,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--jobs", type=int, default=None)
     ap.add_argument("--no-tie", action="store_true", help="skip tie-to-als")
+    ap.add_argument("--points-per-scan", type=int, default=None, help="simulate with this many points a scan")
     args = ap.parse_args()
 
     root = args.workdir / args.preset
@@ -95,7 +97,8 @@ def main() -> None:
     if (root / "sim" / "manifest.toml").is_file():
         sim_manifest, gt_path = root / "sim" / "manifest.toml", root / "sim" / "ground_truth.json"
     else:
-        sim = simulate(root / "sim", args.preset, seed=args.seed)
+        extra = {} if args.points_per_scan is None else {"points_per_scan": args.points_per_scan}
+        sim = simulate(root / "sim", args.preset, seed=args.seed, **extra)
         sim_manifest, gt_path = sim.manifest_path, sim.ground_truth_path
     timings["simulate"] = time.perf_counter() - t
     truth = load_poses(gt_path)
@@ -107,6 +110,19 @@ def main() -> None:
           f"dropped: {[d for p in reg.plots for d in p.solution.dropped]}, unplaced: {reg.unplaced}")
     pair_seconds = [r["seconds"] for r in map(lambda f: json.loads(f.read_text()), (root / "reg" / "pairs").glob("*.json"))
                     if "seconds" in r]
+    pairs_of = {}
+    for u, v in reg.graph.edges():
+        pairs_of[u] = pairs_of.get(u, 0) + 1
+        pairs_of[v] = pairs_of.get(v, 0) + 1
+    for f in reg.graph.graph.get("failed", []):
+        pairs_of[f["source"]] = pairs_of.get(f["source"], 0) + 1
+        pairs_of[f["target"]] = pairs_of.get(f["target"], 0) + 1
+    n_scans = reg.graph.number_of_nodes()
+    print(f"pairs per scan: {reg.pairs / max(1, n_scans):.2f} (at most {max(pairs_of.values(), default=0)} for one scan), "
+          f"{n_scans} scans; all pairs would be {n_scans * (n_scans - 1) // 2}")
+    placement = reg.poses.extra.get("placement")
+    if placement:
+        print(f"placed on the ALS first: {sum(v == 'ok' for v in placement.values())} of {len(placement)} scans")
     if pair_seconds:
         print(f"pair time: median {np.median(pair_seconds):.1f} s, total {np.sum(pair_seconds):.0f} s (CPU-side, as run)")
     show("register-plot poses vs ground truth (plot frame)", errors_in_plot_frame(reg.poses, truth, reg.plots), 2.0, 0.1)
