@@ -285,7 +285,7 @@ def build_report(inp: ReportInput, cfg: ReportConfig | None = None, seed: int = 
             figs.append((v.plot, f"Plot {v.plot}: placed scans from above and from the side, one colour per scan",
                          scans_picture(out / f"{v.plot}_scans.png", small, f"plot {v.plot}: placed scans", origin)))
     view3d = write_3d_view(out / "view3d.html", views_, cfg, seed)
-    inp.stages.append(Stage("report (this page)", time.perf_counter() - t0, "reading every scan once more, slice, distances, figures"))
+    inp.stages.append(Stage("report (this page)", time.perf_counter() - t0, "each scan's points once (its prepared cloud or its file), slice, distances, figures"))
     return _write_page(inp, views_, figs, warnings, view3d, cfg), figs
 
 
