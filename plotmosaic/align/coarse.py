@@ -422,6 +422,7 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
 
     airborne = source.kind in AIRBORNE or target.kind in AIRBORNE
     d = config.verify_distance_airborne if airborne else config.verify_distance_ground
+    iterations = config.verify_iterations_airborne if airborne else config.verify_iterations
     # verification in the clouds' local frames (each hypothesis carries its own verticals); one kept
     # point (and its own normal: averaged axial normals cancel) per verify cube
     keep = thin(tgt.points, config.verify_voxel)
@@ -437,11 +438,11 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
     src_few, structure_few = src_v[few], src_v[few][flat_ok[few]]
 
     def screen(start):
-        A = _refine(src_few, tgt_v, start[0], (config.screen_distance_factor * d,), config.verify_iterations)
+        A = _refine(src_few, tgt_v, start[0], (config.screen_distance_factor * d,), iterations)
         return _score(structure_few, tgt_v, A, config.screen_score_factor * d), A, start[1]
 
     def refine(A):
-        A = _refine(src_v, tgt_v, A, tuple(f * d for f in config.refine_distance_factors), config.verify_iterations)
+        A = _refine(src_v, tgt_v, A, tuple(f * d for f in config.refine_distance_factors), iterations)
         return A, _score(structure, tgt_v, A, d)
 
     # independent ICPs, two at a time (KD-tree queries release the GIL); refined: the best screened

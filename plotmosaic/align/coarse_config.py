@@ -108,6 +108,8 @@ class CoarseConfig(BaseModel):
     verify_points: int = Field(6_000, ge=100, le=1_000_000, description="source points used to refine and score the best hypotheses")
     screen_points: int = Field(3_000, ge=100, le=1_000_000, description="of those, the points of the first short ICP that ranks every hypothesis")
     verify_iterations: int = Field(10, ge=1, le=200, description="ICP iterations per verification stage")
+    verify_iterations_airborne: int = Field(30, ge=1, le=200, description="the same when a cloud is airborne: a leaf-on strip "
+                                            "levelled 5 deg off needs them to tilt into place (sparse targets: cheap)")
     refine_top: int = Field(4, ge=1, le=64, description="distinct screened poses refined fully (each generator's best among them)")
     structure_normal_z: float = Field(0.8, gt=0, le=1, description="|normal z| below this: a non-flat point that scores (flat ground matches anywhere)")
     screen_distance_factor: float = Field(6.0, gt=0, le=50, description="screening ICP distance, in inlier distances")
