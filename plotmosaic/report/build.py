@@ -129,8 +129,9 @@ def warnings_for(G: nx.Graph, views_: list[PlotView], unplaced: list[str], faile
     """Plain-words warnings: weak links first, then what the slice and the distances say."""
     out = [f"scan {s} is not placed: no kept pair links it to the reference" for s in unplaced]
     K = nx.Graph([(u, v) for u, v, e in G.edges(data=True) if not e.get("dropped")])
-    for n in sorted(G.nodes):
-        if n in K and K.degree(n) == 1 and G.nodes[n].get("kind") != "als" and n not in unplaced:
+    scans = [n for n in G.nodes if G.nodes[n].get("kind") != "als"]
+    for n in sorted(scans) if len(scans) > 2 else []:  # a lone pair has one edge by definition
+        if n in K and K.degree(n) == 1 and n not in unplaced:
             out.append(f"scan {n} is held by one edge only ({next(iter(K[n]))}): nothing checks that link")
     for u, v, e in sorted(G.edges(data=True), key=lambda t: (t[2].get("source", t[0]), t[2].get("target", t[1]))):
         if e.get("dropped"):
@@ -295,9 +296,10 @@ def _write_page(inp: ReportInput, views_: list[PlotView], figs, warnings: list[s
     G = inp.graph
     scans = [s for ids in inp.plots.values() for s in ids]
     placed = [s for s in scans if s in inp.poses]
+    n_kept = sum(1 for *_, e in G.edges(data=True) if not e.get("dropped"))
     kept = [(u, v, e) for u, v, e in G.edges(data=True) if not e.get("dropped") and e.get("residual_after")]
     summary = [f"scans placed: {len(placed)} of {len(scans)}" + (f" (not placed: {', '.join(inp.unplaced)})" if inp.unplaced else "")]
-    summary.append(f"edges: {len(kept)} kept, {sum(1 for *_, e in G.edges(data=True) if e.get('dropped'))} dropped, "
+    summary.append(f"edges: {n_kept} kept, {sum(1 for *_, e in G.edges(data=True) if e.get('dropped'))} dropped, "
                    f"{len(inp.failed)} pairs failed")
     if kept:
         u, v, e = max(kept, key=lambda t: t[2]["residual_after"]["translation"])
