@@ -201,10 +201,11 @@ def write_3d_view(path: Path, views_: list[PlotView], cfg: ReportConfig, seed: i
         return None
     origin = np.floor(np.min([p.min(axis=0) for p in allp], axis=0))
     colours = views.scan_colours([s for v in views_ for s in v.thinned])
+    per_scan = max(100, min(cfg.view3d_points, cfg.view3d_total // len(allp)))
     fig = go.Figure()
     for v in views_:
         for s, p in v.thinned.items():
-            q = p if len(p) <= cfg.view3d_points else p[np.sort(rng.choice(len(p), cfg.view3d_points, replace=False))]
+            q = p if len(p) <= per_scan else p[np.sort(rng.choice(len(p), per_scan, replace=False))]
             q = np.round(q - origin, 3)
             c = colours[s]
             fig.add_trace(go.Scatter3d(x=q[:, 0], y=q[:, 1], z=q[:, 2], mode="markers", name=s,

@@ -39,6 +39,7 @@ class ReportConfig(BaseModel):
     distance: DistanceConfig = Field(default_factory=DistanceConfig)
     picture_points: int = Field(20_000, ge=1000, le=1_000_000, description="points per scan in the overview pictures")
     view3d_points: int = Field(20_000, ge=0, le=1_000_000, description="points per scan in the interactive 3D view (0: none)")
+    view3d_total: int = Field(300_000, ge=1000, le=5_000_000, description="points over all scans in the 3D view: keeps the page under view3d_max_mb")
     view3d_max_mb: float = Field(20.0, gt=0, le=200, description="the 3D page is skipped above this size: it must open quickly")
     weak_ring_spread: float = Field(0.02, gt=0, le=1, description="a median ring spread above this (m) is flagged as doubled stems")
     weak_distance: float = Field(0.03, gt=0, le=1, description="a scan's median distance to neighbours above this (m) is flagged")
