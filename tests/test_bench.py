@@ -233,3 +233,71 @@ def test_bench_draws_forestalign_failures(tmp_path):
     icp = next(r for r in rows if r["method"] == "icp")
     assert not fa["success"] and fa["picture"] and not icp["picture"]
     assert (tmp_path / "f" / fa["picture"]).stat().st_size > 10_000
+
+
+# ---------------------------------------------------------------- the real-data suite
+
+
+def _row(case, proto, method, err, failed=False, confidence=None):
+    from plotmosaic.bench.real_suite import outcome
+
+    e = np.asarray(err, dtype=float)
+    r = {"case": case, "protocol": proto, "method": method, **dict(zip(PARAMS, e)), "success": bool(is_success(e)[0]),
+         "failed": failed, "seconds": 1.0, "confidence": confidence}
+    return {**r, "outcome": outcome(r)}
+
+
+def test_real_suite_counts_found_refused_and_wrong_with_exit_0(tmp_path):
+    from plotmosaic.bench.real_suite import markdown, reliability, summarise, write_outputs
+
+    rows = [_row("c", "paper", "forestalign", [0.1, 0, 0, 0.01, 0, 0], confidence=0.9),
+            _row("c", "paper", "forestalign", [0.3, 0, 0, 0.0, 0.02, 0], confidence=0.95),
+            _row("c", "paper", "forestalign", [20, 0, 0, 3, 0, 0], failed=True, confidence=0.2),
+            _row("c", "paper", "forestalign", [5, 0, 0, 1, 0, 0], confidence=0.6),
+            _row("c", "paper", "icp", [40, 0, 0, 10, 0, 0])]
+    s = {x["method"]: x for x in summarise(rows)}
+    fa = s["forestalign"]
+    assert (fa["n"], fa["found"], fa["refused"], fa["wrong"]) == (4, 2, 1, 1)
+    assert fa["rmse_roll"] == pytest.approx(np.sqrt((0.1**2 + 0.3**2) / 2)) and fa["t_rmse_m"] == pytest.approx(np.sqrt((0.01**2 + 0.02**2) / 2))
+    assert fa["wrong_errors"] == [pytest.approx((5.0, 1.0), rel=1e-3)]
+    assert (s["icp"]["found"], s["icp"]["wrong"], s["icp"]["rmse_roll"]) == (0, 1, None)
+    assert "| c | paper | forestalign | 4 | 2 | 1 | **1** |" in markdown(summarise(rows))
+    bins = reliability(rows)
+    assert sum(b["n"] for b in bins) == 4 and bins[9]["found"] == 2 and bins[6]["wrong_returned"] == 1 and bins[2]["returned"] == 0
+    paths = write_outputs(rows, {"cases": {"c": {"note": "a case"}}, "skipped": {}}, tmp_path, "cmd")
+    assert paths["figure"].stat().st_size > 10_000 and "a case" in paths["table"].read_text()
+
+
+def test_refine_truth_recovers_a_small_offset_of_a_real_like_cloud():
+    from plotmosaic.bench.protocol import rotation_angle
+    from plotmosaic.bench.real_cases import random_frame, refine_truth
+    from plotmosaic.io.frame import apply_transform
+
+    cloud = synthetic_plot(3, size=20.0, trees=12)
+    src, tgt = split_pair(cloud)
+    true = params_to_matrix([0.4, -0.3, 0.8, 0.15, -0.1, 0.05], tgt.xyz.mean(axis=0))
+    moved = apply_transform(np.linalg.inv(true), src.xyz)  # true maps `moved` back onto the target
+    T, meta = refine_truth(moved, tgt.xyz, voxel=0.1, distances=(1.0, 0.3, 0.1))
+    err = pose_error(T, true, tgt.xyz.mean(axis=0))
+    rot, trans = float(rotation_angle(err)[0]), float(np.linalg.norm(err[3:]))
+    assert rot < 0.1 and trans < 0.03 and meta["spread_deg"] < 0.1 and len(meta["methods"]) == 3
+    G = random_frame(cloud.xyz, np.random.default_rng(0))
+    assert np.allclose(G[:3, :3] @ G[:3, :3].T, np.eye(3)) and np.abs(apply_transform(G, cloud.xyz)).max() < 60
+
+
+def test_real_cases_treels_pair_has_exact_truth_in_own_frames():
+    from pathlib import Path
+
+    from plotmosaic.bench.real_cases import build_case
+    from plotmosaic.io.frame import apply_transform
+
+    if not (Path(__file__).resolve().parents[2] / "shared" / "data" / "treels").is_dir():
+        pytest.skip("shared/data/treels not present")
+    case = build_case("treels-2views", seed=1)
+    assert case.meta["distance_m"] >= 6.0 and (case.source_kind, case.target_kind) == ("tls", "tls")
+    assert np.abs(case.source.xyz).max() < 40 and np.abs(case.target.xyz).max() < 40  # scanner frames
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(case.target.xyz).query(apply_transform(case.truth, case.source.xyz))
+    assert np.mean(d < 1e-6) > 0.05  # points both views saw land exactly on each other
+    assert case.bench_pair().name == "treels-2views"

@@ -59,6 +59,7 @@ class MethodOutput:
     seconds: float
     failed: bool = False  # the method reported failure (identity, or its refused estimate, is scored)
     note: str = ""
+    confidence: float | None = None  # forestalign's own confidence in its answer (also when it refused)
 
 
 @dataclass
@@ -91,13 +92,15 @@ def run_method(name: str, pair: PairInput, config: MethodsConfig, seed: int) -> 
     (so its error is the initial error), or as the estimate it refused when it reports one."""
     start = time.perf_counter()
     try:
-        T = _RUNNERS[name](pair, config, seed)
-        return MethodOutput(T, time.perf_counter() - start)
+        out = _RUNNERS[name](pair, config, seed)
+        T, confidence = out if isinstance(out, tuple) else (out, None)
+        return MethodOutput(T, time.perf_counter() - start, confidence=confidence)
     except RegistrationFailed as exc:
         # the pipeline refused its own answer (quality gate): score the transform it had, flag the refusal
         result = getattr(exc, "result", None)
         T = np.asarray(result.transform, dtype=np.float64) if result is not None else np.eye(4)
-        return MethodOutput(T, time.perf_counter() - start, True, str(exc).splitlines()[0][:200])
+        confidence = getattr(result, "confidence", None)
+        return MethodOutput(T, time.perf_counter() - start, True, str(exc).splitlines()[0][:200], confidence)
     except RuntimeError as exc:  # Open3D / probreg numerical trouble counts as a failed trial
         return MethodOutput(np.eye(4), time.perf_counter() - start, True, f"{type(exc).__name__}: {exc}"[:200])
 
@@ -105,7 +108,7 @@ def run_method(name: str, pair: PairInput, config: MethodsConfig, seed: int) -> 
 # ---------------------------------------------------------------- forestalign
 
 
-def _forestalign(pair: PairInput, config: MethodsConfig, seed: int) -> np.ndarray:
+def _forestalign(pair: PairInput, config: MethodsConfig, seed: int) -> tuple[np.ndarray, float | None]:
     from plotmosaic.align.config import AlignConfig
     from plotmosaic.align.pipeline import align_clouds
 
@@ -115,7 +118,7 @@ def _forestalign(pair: PairInput, config: MethodsConfig, seed: int) -> np.ndarra
         cfg = cfg.model_copy(update={"coarse": cfg.coarse.model_copy(update={"enabled": False})})
         init = np.eye(4)
     result = align_clouds(pair.source, pair.target, source_kind=pair.source_kind, target_kind=pair.target_kind, config=cfg, init=init, seed=seed)
-    return np.asarray(result.transform, dtype=np.float64)
+    return np.asarray(result.transform, dtype=np.float64), result.confidence
 
 
 # ---------------------------------------------------------------- Open3D baselines

@@ -123,6 +123,7 @@ def run_bench(pairs: list[BenchPair], config: BenchConfig, progress: bool = True
                                 "failed": out.failed,
                                 "seconds": out.seconds,
                                 "note": out.note,
+                                "confidence": out.confidence,
                                 "picture": "",
                             }
                         )
@@ -179,7 +180,7 @@ def _progress(enabled: bool):
 
 # ---------------------------------------------------------------- outputs
 
-CSV_FIELDS = ["pair", "overlap_wanted", "overlap", "method", "trial", *[f"init_{p}" for p in PARAMS], *PARAMS, "success", "failed", "seconds", "note", "picture"]
+CSV_FIELDS = ["pair", "overlap_wanted", "overlap", "method", "trial", *[f"init_{p}" for p in PARAMS], *PARAMS, "success", "failed", "seconds", "note", "confidence", "picture"]
 
 
 def write_trials_csv(rows: list[dict], path: str | Path) -> Path:
@@ -206,6 +207,7 @@ def read_trials_csv(path: str | Path) -> list[dict]:
             row["success"] = r["success"] == "True"
             row["failed"] = r["failed"] == "True"
             row["seconds"] = float(r["seconds"])
+            row["confidence"] = float(r["confidence"]) if r.get("confidence") not in (None, "") else None
             rows.append(row)
     return rows
 
