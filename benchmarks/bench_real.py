@@ -42,14 +42,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--data", type=Path, default=None, help="folder holding spanner/ and treels/ (default ../shared/data)")
     ap.add_argument("--out", type=Path, default=Path("bench_real"), help="folder for trials.csv, table.md, summary.json")
     ap.add_argument("--figure", type=Path, default=None, help="reliability PNG (default OUT/reliability.png)")
+    ap.add_argument("--merge", type=Path, nargs="+", default=None, help="only combine earlier runs' OUT folders into --out")
     args = ap.parse_args(argv)
+    command = "nice -n 10 .venv/bin/python benchmarks/bench_real.py " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
+    if args.merge:
+        return merge(args.merge, args.out, command, args.figure)
     cases = _names(args.cases, CASES, "--cases")
     methods = _names(args.methods, METHODS, "--methods")
     protos = _names(args.protocol, SUITE_PROTOCOLS, "--protocol")
     if args.n < 1 or args.n_true < 1:
         sys.exit("error: --n and --n-true must be at least 1")
     counts = {p: (args.n_true if p == "true" else args.n) for p in protos}
-    command = "nice -n 10 .venv/bin/python benchmarks/bench_real.py " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
     t0 = time.perf_counter()
 
     def save(rows, info):  # after every case: an interrupted run keeps what it measured
@@ -63,6 +66,26 @@ def main(argv: list[str] | None = None) -> int:
     wrong = sum(r["outcome"] == "wrong" for r in rows if r["method"] == "forestalign")
     print(f"forestalign wrong poses with exit 0: {wrong} of {sum(r['method'] == 'forestalign' for r in rows)} trials; "
           f"{time.perf_counter() - t0:.0f} s in all; wrote {', '.join(str(p) for p in paths.values())}")
+    return 0
+
+
+def merge(folders: list[Path], out: Path, command: str, figure: Path | None) -> int:
+    """Tables and the reliability diagram over the trials of several runs (e.g. cases split over two processes)."""
+    import json
+
+    from plotmosaic.bench.run import read_trials_csv
+
+    rows, info = [], {"cases": {}, "skipped": {}, "runs": []}
+    for folder in folders:
+        for r in read_trials_csv(folder / "trials.csv"):
+            r["failed"] = bool(r["failed"])
+            rows.append(r)
+        data = json.loads((folder / "summary.json").read_text())
+        info["cases"].update(data["info"]["cases"])
+        info["skipped"].update(data["info"]["skipped"])
+        info["runs"].append(data["command"])
+    write_outputs(rows, info, out, command + "\n# runs merged:\n" + "\n".join(info["runs"]), figure)
+    print(markdown(summarise(rows)))
     return 0
 
 

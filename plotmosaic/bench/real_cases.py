@@ -102,7 +102,7 @@ def _pcd(xyz: np.ndarray, voxel: float):
     return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz)).voxel_down_sample(voxel)
 
 
-def refine_truth(source: np.ndarray, target: np.ndarray, init: np.ndarray = np.eye(4), voxel: float = 0.1,
+def refine_truth(source: np.ndarray, target: np.ndarray, init: np.ndarray | None = None, voxel: float = 0.1,
                  distances: tuple[float, ...] = (1.0, 0.3, 0.1)) -> tuple[np.ndarray, dict]:
     """Mean of three independent fine registrations from `init` (source -> target) and their spread.
 
@@ -115,7 +115,7 @@ def refine_truth(source: np.ndarray, target: np.ndarray, init: np.ndarray = np.e
     reg = o3d.pipelines.registration
     offset = np.floor(target.mean(axis=0))  # local frame: UTM keeps its millimetres in Open3D
     src, tgt = _pcd(source - offset, voxel), _pcd(target - offset, voxel)
-    T0 = translation(-offset) @ init @ translation(offset)
+    T0 = translation(-offset) @ (np.eye(4) if init is None else init) @ translation(offset)
     flip = len(src.points) > len(tgt.points)
     moving, fixed, start = (tgt, src, inverse(T0)) if flip else (src, tgt, T0)
     for pcd in (moving, fixed):

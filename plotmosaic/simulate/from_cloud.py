@@ -291,7 +291,7 @@ def _cut_one(local: np.ndarray, tree: cKDTree, scanner: np.ndarray, cfg: CutConf
     view_pts = rel @ R  # R.T @ rel per row: cloud axes -> view axes
     truth = translation(offset) @ translation(scanner)
     truth[:3, :3] = R
-    stats = {"candidates": int(cand.sum()), "seen": int(len(idx)), "voxel": grid.voxel, "seconds": time.perf_counter() - t0,
+    stats = {"candidates": int(cand.sum()), "seen": len(idx), "voxel": grid.voxel, "seconds": time.perf_counter() - t0,
              "within_5m": float(np.mean(np.linalg.norm(rel, axis=1) <= 5.0))}
     return View(view_pts, truth, idx, scanner + offset, stats)
 
