@@ -25,7 +25,7 @@ from scipy.spatial import cKDTree
 
 from plotmosaic.align import features3d, stemmap
 from plotmosaic.align.coarse_config import CoarseConfig
-from plotmosaic.align.levelling import Vertical, vertical_hypotheses
+from plotmosaic.align.levelling import Vertical, rotate, vertical_hypotheses
 from plotmosaic.align.normals import local_shape
 from plotmosaic.align.rasters import (CHANNELS, MaskedNCC, PointFeatures, column_bins, height_above_ground,
                                       point_features, rasterise)
@@ -100,7 +100,7 @@ def _base(cloud, config: CoarseConfig, rng: np.random.Generator, airborne: bool,
 def _level(base: _Base, v: Vertical, config: CoarseConfig) -> _Levelled:
     if v.name not in base.levelled:
         R = v.R
-        pts_l, nrm_l = base.points @ R.T, base.normals @ R.T
+        pts_l, nrm_l = rotate(base.points, R), rotate(base.normals, R)
         hag = height_above_ground(pts_l, config.feature_cell, config)
         feats = point_features(pts_l, nrm_l, config.feature_cell, config, hag=hag)
         info = {"stems": int(feats.stem.sum()), "canopy": int(feats.canopy.sum()), "ground": int(feats.ground.sum())}
@@ -254,7 +254,7 @@ def _with_height(A: np.ndarray, src: _Levelled, tgt: _Levelled, ground_tree: cKD
     A = A.copy()
     g = src.feats.ground
     if ground_tree is not None and g.any():
-        moved = (np.column_stack([src.feats.xy[g], src.feats.z[g]]) @ A[:3, :3].T) + A[:3, 3]
+        moved = rotate(np.column_stack([src.feats.xy[g], src.feats.z[g]]), A[:3, :3]) + A[:3, 3]
         d, idx = ground_tree.query(moved[:, :2], distance_upper_bound=config.tz_ground_radius)
         ok = np.isfinite(d)
         if ok.sum() >= config.tz_min_ground:
@@ -310,7 +310,7 @@ def _fpfh_starts(src: _Base, tgt: _Base, pairs, config: CoarseConfig, rng: np.ra
     out = []
     for vs, vt in pairs[: config.fpfh_vertical_pairs]:
         Rs, Rt = vs.R, vt.R
-        for A, n in features3d.ransac_4dof(p @ Rs.T, q @ Rt.T, config, rng):
+        for A, n in features3d.ransac_4dof(rotate(p, Rs), rotate(q, Rt), config, rng):
             T = _homogeneous(Rt.T) @ A @ _homogeneous(Rs)
             out.append((T, {"generator": "fpfh", "vertical": f"{vs.name}/{vt.name}", "votes": n}))
     if config.fpfh_six_dof:

@@ -16,6 +16,7 @@ import numpy as np
 import open3d as o3d
 
 from plotmosaic.align.coarse_config import CoarseConfig
+from plotmosaic.align.levelling import rotate
 from plotmosaic.align.voxel import voxel_centroids
 
 CHUNK = 256  # hypotheses scored per batch: bounds memory at CHUNK x correspondences
@@ -36,8 +37,8 @@ def fpfh_features(points: np.ndarray, config: CoarseConfig) -> Features:
     # different places and leave almost no repeatable descriptors (8 right matches of 1,900 on MLS views)
     voxel = c.fpfh_voxel
     pts = voxel_centroids(points, voxel)
-    while len(pts) > c.fpfh_max_points:
-        voxel *= 1.2
+    while len(pts) > c.fpfh_max_points:  # surfaces: the count falls ~ voxel^-2, so one or two steps do
+        voxel *= max(1.05, float(np.sqrt(len(pts) / c.fpfh_max_points)))
         pts = voxel_centroids(points, voxel)
     scale = voxel / c.fpfh_voxel  # neighbourhoods keep their size in voxels
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
@@ -176,7 +177,7 @@ def _best(R: np.ndarray, t: np.ndarray, p: np.ndarray, q: np.ndarray, c: CoarseC
             break
         Rk, tk = R[k], t[k]
         for f in (2.0, 1.5, 1.0, 1.0):  # re-fit on the inliers of a shrinking radius (a 3-point pose is rough)
-            inl = ((p @ Rk.T + tk - q) ** 2).sum(axis=1) < (f * c.fpfh_inlier_m) ** 2
+            inl = ((rotate(p, Rk) + tk - q) ** 2).sum(axis=1) < (f * c.fpfh_inlier_m) ** 2
             if inl.sum() < 3:
                 break
             Rk, tk = _rigid(p[inl], q[inl], four_dof)

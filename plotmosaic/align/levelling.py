@@ -46,6 +46,11 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.eye(3) + vx + vx @ vx / (1.0 + c)
 
 
+def rotate(points: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """points @ R.T, column by column: numpy's (N, 3) @ (3, 3) goes through BLAS and is ~50x slower."""
+    return np.column_stack([points[:, 0] * R[i, 0] + points[:, 1] * R[i, 1] + points[:, 2] * R[i, 2] for i in range(3)])
+
+
 def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     """Angle (deg) between two unit vectors."""
     return float(np.degrees(np.arccos(np.clip(float(np.dot(a, b)), -1.0, 1.0))))
@@ -151,7 +156,7 @@ def vertical_hypotheses(points: np.ndarray, normals: np.ndarray, c: CoarseConfig
     ground, _ = _refine(n, cands[np.argmax(flat)], c, False, True)
     # stems alone from the joint vote: the most upright-rich direction of a leafy cloud is noise
     stems, _ = _refine(n, first, c, True, False)
-    fit = ground_fit_up(points @ rotation_between(both, Z).T, c)  # fit in the roughly levelled frame
+    fit = ground_fit_up(rotate(points, rotation_between(both, Z)), c)  # fit in the roughly levelled frame
     fit = None if fit is None else _upper(rotation_between(both, Z).T @ fit)
     found = [Vertical(both, "normals"), Vertical(ground, "ground"), Vertical(stems, "stems")]
     if fit is not None:
