@@ -151,9 +151,11 @@ def _shortlist(T: np.ndarray, candidates: list[tuple[np.ndarray, str]], centre: 
     return kept
 
 
-def judge(src, tgt, T: np.ndarray, candidates: list[tuple[np.ndarray, str]], config: JudgeConfig) -> Verdict:
+def judge(src, tgt, T: np.ndarray, candidates: list[tuple[np.ndarray, str]], config: JudgeConfig,
+          memo: dict | None = None) -> Verdict:
     """Score pose T against the distinct rivals among `candidates` ((transform, where from), source local ->
-    target local), each refined first; a rival that ends within the distinct radius of T is T itself."""
+    target local), each refined first; a rival that ends within the distinct radius of T is T itself.
+    `memo`: refined rivals and profiles by candidate name, shared by calls on the same pair."""
     import time
 
     t0 = time.perf_counter()
@@ -161,13 +163,16 @@ def judge(src, tgt, T: np.ndarray, candidates: list[tuple[np.ndarray, str]], con
     mine = profile(src, tgt, T, config)
     best, best_T, best_name, best_prof, n_distinct, table = 0.0, None, None, None, 0, []
     shortlist = _shortlist(T, candidates, centre, config)
-    for A, name in shortlist:
-        A = refine(src, tgt, A, config)
+    memo = {} if memo is None else memo
+    for A0, name in shortlist:
+        if name not in memo:
+            A = refine(src, tgt, A0, config)
+            memo[name] = (A, profile(src, tgt, A, config))
+        A, prof = memo[name]
         deg, m = separation(A, T, centre)
         if m <= config.distinct_m and deg <= config.distinct_deg:
             table.append({"from": name, "distinct": False, "deg": deg, "m": m})
             continue
-        prof = profile(src, tgt, A, config)
         n_distinct += 1
         table.append({"from": name, "distinct": True, "deg": deg, "m": m, "score": prof["score"]})
         if prof["score"] > best:

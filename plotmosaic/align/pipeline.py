@@ -212,13 +212,14 @@ def register_prepared(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfi
     if config.judge.enabled:
         say("judging the pose against its rivals")
         candidates = _candidates(hypotheses, T_start)
-        verdict = judge_mod.judge(src, tgt, T, candidates, config.judge)
+        refined: dict = {}  # rivals refined once for both verdicts
+        verdict = judge_mod.judge(src, tgt, T, candidates, config.judge, refined)
         if verdict.rival_better and config.coarse.enabled and verdict.rival_transform is not None:
             # the global search's pick lost to another of its hypotheses once both are refined:
             # finish that one the same way and keep whichever the judge prefers
             say("final ICP from a better rival")
             T2, p2, q2, n2, it2, rev2 = final_icp(src, tgt, verdict.rival_transform, config)
-            second = judge_mod.judge(src, tgt, T2, candidates + [(T, "first pose")], config.judge)
+            second = judge_mod.judge(src, tgt, T2, candidates + [(T, "first pose")], config.judge, refined)
             if second.score > verdict.score:
                 T, p, q, n, iterations, reverse, verdict = T2, p2, q2, n2, it2, rev2, second
     t_judge = time.perf_counter()
