@@ -281,7 +281,7 @@ def _adjusted_gps_time(sources: list[Source]) -> bool:
     flags = []
     for s in sources:
         if "gps_time" in s.info.dimensions:
-            with laspy.open(s.path) as reader:
+            with open_las(s.path) as reader:
                 flags.append(reader.header.global_encoding.gps_time_type == laspy.header.GpsTimeType.STANDARD)
     return bool(flags) and all(flags)
 
@@ -291,7 +291,7 @@ def output_extra_dims(sources: list[Source]) -> dict[str, np.dtype]:
     with one dtype everywhere; zero where an input lacks them. Others are dropped."""
     found: dict[str, set] = {}
     for s in sources:
-        with laspy.open(s.path) as reader:
+        with open_las(s.path) as reader:
             for dim in reader.header.point_format.extra_dimensions:
                 ok = not dim.is_scaled and dim.num_elements == 1
                 found.setdefault(dim.name, set()).add(np.dtype(dim.dtype) if ok else None)
