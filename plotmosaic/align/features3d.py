@@ -37,8 +37,8 @@ def fpfh_features(points: np.ndarray, config: CoarseConfig) -> Features:
     # different places and leave almost no repeatable descriptors (8 right matches of 1,900 on MLS views)
     voxel = c.fpfh_voxel
     pts = voxel_centroids(points, voxel)
-    while len(pts) > c.fpfh_max_points:  # surfaces: the count falls ~ voxel^-2, so one or two steps do
-        voxel *= max(1.05, float(np.sqrt(len(pts) / c.fpfh_max_points)))
+    while len(pts) > c.fpfh_max_points:  # bounded: each step removes ~30 % of the points
+        voxel *= 1.2
         pts = voxel_centroids(points, voxel)
     scale = voxel / c.fpfh_voxel  # neighbourhoods keep their size in voxels
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
