@@ -7,6 +7,7 @@ a crash of the whole run. The scheduling itself is concurrent.futures' or Dask's
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing
 import os
 import time
@@ -76,6 +77,22 @@ def _prepared_in_memory(job: PrepareJob):
     return prepared, time.perf_counter() - start
 
 
+# One view of a prepared cloud per role: the same arrays, but what the stages remember on the object
+# (the coarse stage's levelled sample, seeded per role) survives a scan's alternating roles.
+_ROLES: OrderedDict[tuple[str, str], tuple[object, object]] = OrderedDict()
+
+
+def _in_role(cloud, key: str, role: str):
+    memo = (key, role)
+    held = _ROLES.get(memo)
+    if held is None or held[0] is not cloud:
+        held = _ROLES[memo] = (cloud, dataclasses.replace(cloud))
+    _ROLES.move_to_end(memo)
+    while len(_ROLES) > 2 * _PREPARED_MAX:
+        _ROLES.popitem(last=False)
+    return held[1]
+
+
 def run_pair_job(job: PairJob) -> dict:
     """Register one pair with `register_prepared` (the one pairwise path); a record with status "ok" or "failed".
 
@@ -93,6 +110,7 @@ def run_pair_job(job: PairJob) -> dict:
         ps, pt = prepare_jobs_for(job, job.prepared or "")
         src, t_src = get(ps)
         tgt, t_tgt = get(pt)
+        src, tgt = _in_role(src, ps.key, "source"), _in_role(tgt, pt.key, "target")
         init = None if job.init is None else np.asarray(job.init, dtype=np.float64)
         result = register_prepared(src, tgt, config, init, job.seed)
         result.timings = {"prepare_source": t_src, "prepare_target": t_tgt, **result.timings}
