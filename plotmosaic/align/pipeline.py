@@ -251,7 +251,7 @@ def register_prepared(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfi
         coarse=coarse, confidence=None if verdict is None else verdict.confidence,
         judge=None if verdict is None else _judge_record(verdict, src, tgt),
         timings={"coarse": t_coarse - t0, "levels_icp": t_levels - t_coarse, "final_icp": t_final - t_levels,
-                 "final_iterations": iterations, "final_reversed": reverse, "judge": t_judge - t_final,
+                 "final_iterations": iterations, "final_planes": "source" if reverse else "target", "judge": t_judge - t_final,
                  "quality": t_end - t_judge,
                  "correction_deg": rotation_deg(moved),
                  "correction_m": float(np.linalg.norm(moved[:3, 3]))},
