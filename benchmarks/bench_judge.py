@@ -29,7 +29,7 @@ from plotmosaic.align import judge
 from plotmosaic.align.config import AlignConfig
 from plotmosaic.align.pipeline import global_search, prepare_pair, register_prepared
 from plotmosaic.errors import RegistrationFailed
-from plotmosaic.io.frame import rotation_deg, to_local_transform
+from plotmosaic.io.frame import to_local_transform
 from plotmosaic.io.las import PointCloud, read_cloud
 from plotmosaic.poses import load_poses
 

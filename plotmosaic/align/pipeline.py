@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 
 from plotmosaic import __version__
+from plotmosaic.align import judge as judge_mod
 from plotmosaic.align.coarse import coarse_align
 from plotmosaic.align.complexity import match_levels
 from plotmosaic.align.config import KINDS, AlignConfig, default_levels
-from plotmosaic.align import judge as judge_mod
 from plotmosaic.align.icp import evaluate, information_matrix, point_to_plane_icp
 from plotmosaic.align.prepare import PreparedCloud, prepare_cloud
 from plotmosaic.align.sampling import sample
@@ -189,7 +189,10 @@ def register_prepared(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfi
         # with an initial guess the coarse stage searches around it and keeps it if it verifies best:
         # ICP alone from a guess 10 deg / 2 m off can settle in a wrong minimum that still looks fit
         say("coarse alignment")
-        cres = coarse_align(src, tgt, config.coarse, seed, prior=T) if init is not None else global_search(src, tgt, config, seed)
+        if init is not None:
+            cres = coarse_align(src, tgt, config.coarse, seed, prior=T)
+        else:
+            cres = global_search(src, tgt, config, seed)
         T = np.asarray(cres.transform, dtype=float)
         coarse = cres.to_dict()
         hypotheses = list(cres.hypotheses)
@@ -251,7 +254,8 @@ def register_prepared(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfi
         coarse=coarse, confidence=None if verdict is None else verdict.confidence,
         judge=None if verdict is None else _judge_record(verdict, src, tgt),
         timings={"coarse": t_coarse - t0, "levels_icp": t_levels - t_coarse, "final_icp": t_final - t_levels,
-                 "final_iterations": iterations, "final_planes": "source" if reverse else "target", "judge": t_judge - t_final,
+                 "final_iterations": iterations, "final_planes": "source" if reverse else "target",
+                 "judge": t_judge - t_final,
                  "quality": t_end - t_judge,
                  "correction_deg": rotation_deg(moved),
                  "correction_m": float(np.linalg.norm(moved[:3, 3]))},
@@ -321,8 +325,8 @@ def check_quality(result: PairResult, config: AlignConfig, local: bool = False) 
             problems.append(f"judge score {j['score']:.3f} < {config.judge.min_score} (the clouds hardly fit anywhere)")
         if j["margin"] <= 0:  # also with min_confidence 0 (register-plot): this pose is not the best one found
             hint = ": rerun without --no-coarse" if local and not config.coarse.enabled else ""
-            problems.append(f"a distinct pose fits as well or better (judge score {j['rival_score']:.3f} against {j['score']:.3f},"
-                            f" from {j['rival_source']}){hint}")
+            problems.append(f"a distinct pose fits as well or better (judge score {j['rival_score']:.3f}"
+                            f" against {j['score']:.3f}, from {j['rival_source']}){hint}")
         elif result.confidence is not None and result.confidence < config.min_confidence:
             problems.append(f"ambiguous: a distinct pose fits almost as well (confidence {result.confidence:.2f} <"
                             f" {config.min_confidence}; judge score {j['score']:.3f}, rival {j['rival_score']:.3f})")
