@@ -121,7 +121,8 @@ def candidate_pairs(plot: Plot, max_distance: float | None = None, positions: di
         for k, s in enumerate(scans):
             if s.id in positions:
                 continue
-            near = (m for d in range(1, len(scans)) for m in (k - d, k + d) if 0 <= m < len(scans))
+            reach = min(len(scans), selection.max_per_scan + 1)  # not beyond the scans taken around it
+            near = (m for d in range(1, reach) for m in (k - d, k + d) if 0 <= m < len(scans))
             for m in near:  # nearest in the list first
                 if degree[s.id] >= selection.max_per_scan:
                     break
