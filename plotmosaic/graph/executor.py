@@ -130,9 +130,11 @@ def _limit_threads(n: int = 1) -> None:
     """Pool initializer: this worker's share of the thread budget, set before numpy/open3d are imported."""
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = str(n)
+    from plotmosaic.lifetime import bind_to_parent
     from plotmosaic.parallel import set_threads
 
     set_threads(n)  # two-thread maps and KD-tree queries inside take what this worker has
+    bind_to_parent()  # a SIGKILLed run leaves no orphaned workers
 
 
 def budget(n_jobs: int | None) -> int:

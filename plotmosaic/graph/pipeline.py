@@ -185,6 +185,12 @@ def register_plot(manifest: str | Path | Manifest, out: str | Path, jobs: int | 
     cache = PairCache(out / "pairs")
     placed, placement, placement_records = place_scans(manifest, config, seed, out, executor, jobs, scheduler, force,
                                                        progress)
+    # poses stored in the scan files (E57 `use_pose = true`) are priors like the ALS step's, one
+    # plot at a time so that frames never mix within a plot; the pairwise judge verifies them
+    stored = manifest.stored_poses()
+    for plot in manifest.plots:
+        if not any(s.id in placed for s in plot.scans):
+            placed.update({s.id: stored[s.id] for s in plot.scans if s.id in stored})
     job_list = plan_jobs(manifest, config, seed, out / "prepared", placed)
     records, computed = compute_pairs(job_list, cache, executor, jobs, scheduler, force, progress, on_result)
 
