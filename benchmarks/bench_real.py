@@ -20,7 +20,7 @@ from pathlib import Path
 
 from plotmosaic.bench.methods import METHODS
 from plotmosaic.bench.real_cases import CASES
-from plotmosaic.bench.real_suite import SUITE_PROTOCOLS, markdown, run_suite, summarise, write_outputs
+from plotmosaic.bench.real_suite import SUITE_PROTOCOLS, markdown, outcome, run_suite, summarise, write_outputs
 
 
 def _names(text: str, allowed, option: str) -> list[str]:
@@ -79,6 +79,7 @@ def merge(folders: list[Path], out: Path, command: str, figure: Path | None) -> 
     for folder in folders:
         for r in read_trials_csv(folder / "trials.csv"):
             r["failed"] = bool(r["failed"])
+            r["outcome"] = outcome(r)  # recomputed: older runs counted a refused right estimate as found
             rows.append(r)
         data = json.loads((folder / "summary.json").read_text())
         info["cases"].update(data["info"]["cases"])

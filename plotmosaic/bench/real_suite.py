@@ -1,7 +1,7 @@
 """The real-data suite (benchmarks/bench_real.py): run the cases under the protocols, count outcomes, draw reliability.
 
-Outcomes per trial: found (within 1 deg / 10 cm), refused (the method reported failure: exit 3 /
-RegistrationFailed for forestalign), wrong (neither: a wrong pose returned with exit 0).
+Outcomes per trial: refused (the method reported failure: exit 3 / RegistrationFailed for forestalign, whatever its
+estimate), found (returned and within 1 deg / 10 cm), wrong (a wrong pose returned with exit 0).
 """
 
 from __future__ import annotations
@@ -26,9 +26,10 @@ SUITE_PROTOCOLS: dict[str, Protocol] = {
 
 
 def outcome(row: dict) -> str:
-    if row["success"]:
-        return "found"
-    return "refused" if row["failed"] else "wrong"
+    """found = returned and right; refused = the method said no (even if its estimate was right); wrong = returned, wrong."""
+    if row["failed"]:
+        return "refused"
+    return "found" if row["success"] else "wrong"
 
 
 def run_suite(cases: list[str], protocols: dict[str, int], methods: list[str], seed: int = 0, data: str | Path | None = None,
