@@ -173,7 +173,7 @@ def test_sample_manifests_match_the_simulator(small_sim):
 
 
 def test_presets_are_valid():
-    assert set(PRESETS) == {"small", "paper", "region", "grassland", "prepost"}
+    assert set(PRESETS) == {"small", "paper", "region", "region10", "large", "understorey", "grassland", "prepost"}
     assert PRESETS["small"].tls.points_per_scan <= 60_000
     assert PRESETS["grassland"].forest.trees_per_ha == 0
     assert len(PRESETS["region"].plot_centres) >= 3 and PRESETS["prepost"].prepost

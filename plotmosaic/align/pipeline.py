@@ -54,6 +54,8 @@ class PairResult:
     config: dict = field(default_factory=dict)
     method: str = METHOD
     version: str = __version__
+    source_path: str | None = None  # the two files, when registered from files (`plotmosaic report RESULT.json`)
+    target_path: str | None = None
 
     def to_dict(self) -> dict:
         return {
@@ -76,6 +78,8 @@ class PairResult:
             "judge": self.judge,
             "coarse": self.coarse,
             "config": self.config,
+            "source_path": self.source_path,
+            "target_path": self.target_path,
         }
 
     @classmethod
@@ -100,6 +104,8 @@ class PairResult:
             config=d.get("config", {}),
             method=d.get("method", METHOD),
             version=d.get("version", __version__),
+            source_path=d.get("source_path"),
+            target_path=d.get("target_path"),
         )
 
     def save(self, path: str | Path) -> Path:
@@ -387,4 +393,5 @@ def align_files(source_path, target_path, source_kind: str = "tls", target_kind:
                           seed, progress, save_levels)
     result.timings = {"read": t_read, **result.timings}
     result.seconds = time.perf_counter() - t0
+    result.source_path, result.target_path = str(Path(source_path).resolve()), str(Path(target_path).resolve())
     return result
