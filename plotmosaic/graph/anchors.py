@@ -23,7 +23,6 @@ from pydantic import BaseModel, Field
 from plotmosaic.align.config import AlignConfig
 from plotmosaic.align.voxel import voxel_centroids
 from plotmosaic.errors import InputError, RegistrationFailed
-from plotmosaic.graph import report as rep
 from plotmosaic.graph.cache import PairCache, pair_key
 from plotmosaic.graph.executor import PairJob
 from plotmosaic.graph.pipeline import EDGE_FIELDS, compute_pairs

@@ -24,9 +24,8 @@ from plotmosaic.graph.prepared import PrepareJob, entry, points_reader, run_prep
 from plotmosaic.graph.pairs import PairSelection, candidate_pairs, manifest_positions
 from plotmosaic.graph.placement import placed_poses, placement_jobs, prior
 from plotmosaic.graph.posegraph import PoseGraphConfig, Solution, build_graph, graph_to_json, optimise
-from plotmosaic.graph import report as rep
 from plotmosaic.io.atomic import write_text_atomic
-from plotmosaic.io.las import read_cloud, read_header_info
+from plotmosaic.io.las import read_header_info
 from plotmosaic.manifest import Manifest, Plot, load_manifest
 from plotmosaic.poses import Poses, ScanPose
 
