@@ -16,6 +16,8 @@ import argparse
 import time
 from pathlib import Path
 
+import numpy as np
+
 from plotmosaic.bench.pairs import manifest_pairs
 from plotmosaic.bench.protocol import get_protocol
 from plotmosaic.bench.run import BenchConfig, BenchPair, run_bench, write_outputs
@@ -23,8 +25,6 @@ from plotmosaic.io import read_cloud
 from plotmosaic.manifest import load_manifest
 from plotmosaic.poses import load_poses
 from plotmosaic.simulate.run import simulate
-
-import numpy as np
 
 SPANNER = Path(__file__).resolve().parents[2] / "shared" / "data" / "spanner"
 
@@ -40,7 +40,9 @@ def simulated_pairs(out: Path, points_per_scan: int, which: str, max_pairs: int)
 def real_pairs() -> list[BenchPair]:
     if not SPANNER.is_dir():
         return []
-    clip = {n: read_cloud(SPANNER / f"{n}_Clip.laz", attributes=False) for n in ("UAS", "ALS", "MLS")}
+    clip = {
+        n: read_cloud(SPANNER / f"{n}_Clip.laz", attributes=False) for n in ("UAS", "ALS", "MLS")
+    }
     return [
         BenchPair("UAS->ALS (real)", clip["UAS"], clip["ALS"], np.eye(4), "uls", "als"),
         BenchPair("MLS->UAS (real)", clip["MLS"], clip["UAS"], np.eye(4), "mls", "uls"),
@@ -48,7 +50,9 @@ def real_pairs() -> list[BenchPair]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--trials", type=int, default=50)
     ap.add_argument("--points-per-scan", type=int, default=800_000)
     ap.add_argument("--max-pairs", type=int, default=2, help="simulated TLS-TLS pairs used")
@@ -63,17 +67,28 @@ def main() -> None:
             for pair in real_pairs():
                 cases[pair.name] = [pair]
         else:
-            cases[f"simulated {case}"] = simulated_pairs(args.out, args.points_per_scan, case, args.max_pairs)
+            cases[f"simulated {case}"] = simulated_pairs(
+                args.out, args.points_per_scan, case, args.max_pairs
+            )
     for protocol in args.protocols.split(","):
         for name, pairs in cases.items():
             if not pairs:
                 continue
             start = time.perf_counter()
-            config = BenchConfig(protocol=get_protocol(protocol), trials=args.trials, methods=["forestalign"], seed=0)
-            slug = f"{protocol}-{name}".replace(" ", "_").replace(">", "").replace("(", "").replace(")", "")
+            config = BenchConfig(
+                protocol=get_protocol(protocol), trials=args.trials, methods=["forestalign"], seed=0
+            )
+            slug = (
+                f"{protocol}-{name}".replace(" ", "_")
+                .replace(">", "")
+                .replace("(", "")
+                .replace(")", "")
+            )
             result = run_bench(pairs, config, progress=False, failures=args.out / slug / "failures")
             write_outputs(result, args.out / slug, title=f"{name}, protocol {protocol}")
-            print(f"\n### {name}, protocol `{protocol}`: {len(pairs)} pair(s) x {args.trials} trials, {time.perf_counter() - start:.0f} s")
+            print(
+                f"\n### {name}, protocol `{protocol}`: {len(pairs)} pair(s) x {args.trials} trials, {time.perf_counter() - start:.0f} s"
+            )
             print(result.table)
             for r in result.rows:
                 if r["picture"]:

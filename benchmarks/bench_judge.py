@@ -40,7 +40,9 @@ MAX_POSES = 16  # hypotheses per case refined and profiled (refined ones first, 
 
 def random_frame(rng: np.random.Generator, centre: np.ndarray, tilt_deg: float = 3.0) -> np.ndarray:
     """A rigid transform putting a view in its own frame: any heading, a small tilt, centred away from the data."""
-    R = Rotation.from_euler("zyx", [rng.uniform(0, 360), *rng.uniform(-tilt_deg, tilt_deg, 2)], degrees=True).as_matrix()
+    R = Rotation.from_euler(
+        "zyx", [rng.uniform(0, 360), *rng.uniform(-tilt_deg, tilt_deg, 2)], degrees=True
+    ).as_matrix()
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = -R @ centre + rng.uniform(-50, 50, 3)
@@ -81,12 +83,22 @@ def cases(quick: bool, sim_root: Path):
         if not (out / "ground_truth.json").exists():
             simulate(out, "small", seed=seed)
         sims[seed] = out
-    for seed, pairs in ((0, [("S1", "S0"), ("S2", "S0"), ("S3", "S4")]), (1, [("S1", "S0"), ("S4", "S2")])):
+    for seed, pairs in (
+        (0, [("S1", "S0"), ("S2", "S0"), ("S3", "S4")]),
+        (1, [("S1", "S0"), ("S4", "S2")]),
+    ):
         truth = load_poses(sims[seed] / "ground_truth.json")
         for a, b in pairs:
             T = np.linalg.inv(truth.transform(f"P1-{b}")) @ truth.transform(f"P1-{a}")
-            yield (f"sim{seed} {a}->{b}", read_cloud(sims[seed] / "P1" / f"P1-{a}.laz", attributes=False).xyz,
-                   read_cloud(sims[seed] / "P1" / f"P1-{b}.laz", attributes=False).xyz, "tls", "tls", T, True)
+            yield (
+                f"sim{seed} {a}->{b}",
+                read_cloud(sims[seed] / "P1" / f"P1-{a}.laz", attributes=False).xyz,
+                read_cloud(sims[seed] / "P1" / f"P1-{b}.laz", attributes=False).xyz,
+                "tls",
+                "tls",
+                T,
+                True,
+            )
     s0 = read_cloud(sims[0] / "P1" / "P1-S1.laz", attributes=False).xyz
     s1 = read_cloud(sims[1] / "P1" / "P1-S0.laz", attributes=False).xyz
     yield "unrelated sim0 S1 vs sim1 S0", s0, s1, "tls", "tls", None, False
@@ -108,7 +120,15 @@ def cases(quick: bool, sim_root: Path):
     als = read_cloud(DATA / "spanner" / "ALS_Clip.laz", attributes=False).xyz
     F = random_frame(rng, uas.mean(axis=0))
     # truth: the clips' co-registration (UAS and ALS agree to a few cm / ~0.1 deg, see fine part)
-    yield "UAS -> ALS (UAS in a random frame)", apply(F, uas), als, "uls", "als", np.linalg.inv(F), True
+    yield (
+        "UAS -> ALS (UAS in a random frame)",
+        apply(F, uas),
+        als,
+        "uls",
+        "als",
+        np.linalg.inv(F),
+        True,
+    )
     strip = uas[np.abs(uas[:, 0] - uas[:, 0].mean()) < 2.5]
     F = random_frame(rng, strip.mean(axis=0))
     yield "UAS strip 5 m wide -> ALS", apply(F, strip), als, "uls", "als", np.linalg.inv(F), True
@@ -122,17 +142,29 @@ def right(T: np.ndarray, truth_local: np.ndarray | None, centre: np.ndarray) -> 
     return deg < RIGHT_DEG and m < RIGHT_M
 
 
-def run_case(name, xs, xt, ks, kt, T_true, related, cfg: AlignConfig, rows: list, outcomes: list) -> None:
+def run_case(
+    name, xs, xt, ks, kt, T_true, related, cfg: AlignConfig, rows: list, outcomes: list
+) -> None:
     t0 = time.perf_counter()
-    ps, pt = prepare_pair(PointCloud(xs), PointCloud(xt), ks, kt, 3 if ks in ("tls", "mls") else 2,
-                          3 if kt in ("tls", "mls") else 2, cfg, 0)
+    ps, pt = prepare_pair(
+        PointCloud(xs),
+        PointCloud(xt),
+        ks,
+        kt,
+        3 if ks in ("tls", "mls") else 2,
+        3 if kt in ("tls", "mls") else 2,
+        cfg,
+        0,
+    )
     truth_local = None if T_true is None else to_local_transform(T_true, ps.frame, pt.frame)
     centre = ps.points.mean(axis=0)
     jc = cfg.judge
     cres = global_search(ps, pt, cfg, 0)
     # every hypothesis and the start, refined the way a rival is, then profiled
     poses = []
-    order = sorted(cres.hypotheses, key=lambda h: (not h.get("refined", False), -float(h.get("score") or 0.0)))
+    order = sorted(
+        cres.hypotheses, key=lambda h: (not h.get("refined", False), -float(h.get("score") or 0.0))
+    )
     for h in order[:MAX_POSES]:
         A = judge.refine(ps, pt, np.asarray(h["transform"], float), jc)
         poses.append((A, judge.profile(ps, pt, A, jc)["score"], h.get("generator", "coarse")))
@@ -140,20 +172,40 @@ def run_case(name, xs, xt, ks, kt, T_true, related, cfg: AlignConfig, rows: list
     A = judge.refine(ps, pt, start, jc)
     poses.append((A, judge.profile(ps, pt, A, jc)["score"], "start"))
     for i, (A, score, gen) in enumerate(poses):
-        rivals = [s for j, (B, s, _) in enumerate(poses) if j != i and judge.distinct(A, B, centre, jc)]
+        rivals = [
+            s for j, (B, s, _) in enumerate(poses) if j != i and judge.distinct(A, B, centre, jc)
+        ]
         best = max(rivals, default=0.0)
         margin = 1.0 - best / score if score > 0 else -1.0
         deg, m = (None, None) if truth_local is None else judge.separation(A, truth_local, centre)
         # right: in the truth's basin (the final ICP polishes it); wrong: a distinct pose; in between: neither
-        label = "wrong" if deg is None or deg > 3.0 or m > 1.0 else ("right" if deg < 2.0 and m < 0.3 else "near")
-        rows.append({"case": name, "generator": gen, "right": label == "right", "label": label, "deg": deg, "m": m,
-                     "score": score,
-                     "margin": margin, "confidence": float(np.clip(margin / jc.full_margin, 0, 1))})
+        label = (
+            "wrong"
+            if deg is None or deg > 3.0 or m > 1.0
+            else ("right" if deg < 2.0 and m < 0.3 else "near")
+        )
+        rows.append(
+            {
+                "case": name,
+                "generator": gen,
+                "right": label == "right",
+                "label": label,
+                "deg": deg,
+                "m": m,
+                "score": score,
+                "margin": margin,
+                "confidence": float(np.clip(margin / jc.full_margin, 0, 1)),
+            }
+        )
     # the pipeline on its three paths and the true-pose control
     local = cfg.model_copy(deep=True)
     local.coarse.enabled = False
-    for path, c, init in (("default", cfg, None), ("--no-coarse", local, None),
-                          ("true pose, --no-coarse", local, T_true), ("true pose, --init", cfg, T_true)):
+    for path, c, init in (
+        ("default", cfg, None),
+        ("--no-coarse", local, None),
+        ("true pose, --no-coarse", local, T_true),
+        ("true pose, --init", cfg, T_true),
+    ):
         if init is None and path.startswith("true"):
             continue
         if path.startswith("true") and T_true is None:
@@ -164,16 +216,44 @@ def run_case(name, xs, xt, ks, kt, T_true, related, cfg: AlignConfig, rows: list
         except RegistrationFailed as exc:
             r, accepted = exc.result, False
         if r is None:
-            outcomes.append({"case": name, "path": path, "accepted": False, "right": False, "deg": None, "m": None,
-                             "confidence": None, "score": None, "rival": None})
+            outcomes.append(
+                {
+                    "case": name,
+                    "path": path,
+                    "accepted": False,
+                    "right": False,
+                    "deg": None,
+                    "m": None,
+                    "confidence": None,
+                    "score": None,
+                    "rival": None,
+                }
+            )
             continue
         T_local = to_local_transform(r.transform, ps.frame, pt.frame)
-        deg, m = (None, None) if truth_local is None else judge.separation(T_local, truth_local, centre)
+        deg, m = (
+            (None, None) if truth_local is None else judge.separation(T_local, truth_local, centre)
+        )
         j = r.judge or {}
-        outcomes.append({"case": name, "path": path, "accepted": accepted, "right": right(T_local, truth_local, centre),
-                         "deg": deg, "m": m, "confidence": r.confidence, "score": j.get("score"),
-                         "rival": j.get("rival_score"), "judge_s": r.timings.get("judge")})
-    print(f"  {name}: {len(poses)} poses, {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+        outcomes.append(
+            {
+                "case": name,
+                "path": path,
+                "accepted": accepted,
+                "right": right(T_local, truth_local, centre),
+                "deg": deg,
+                "m": m,
+                "confidence": r.confidence,
+                "score": j.get("score"),
+                "rival": j.get("rival_score"),
+                "judge_s": r.timings.get("judge"),
+            }
+        )
+    print(
+        f"  {name}: {len(poses)} poses, {time.perf_counter() - t0:.0f} s",
+        file=sys.stderr,
+        flush=True,
+    )
 
 
 def histogram(values, edges) -> list[int]:
@@ -185,17 +265,25 @@ def report(rows: list, outcomes: list, cfg: AlignConfig) -> str:
     lines = []
     r = [x for x in rows if x["label"] == "right"]
     w = [x for x in rows if x["label"] == "wrong"]
-    lines.append(f"refined poses: {len(r)} right (within 2 deg / 0.3 m of the truth after the rival refinement),"
-                 f" {len(w)} wrong (> 3 deg or > 1 m), {len(rows) - len(r) - len(w)} in between (left out),"
-                 f" over {len({x['case'] for x in rows})} cases\n")
+    lines.append(
+        f"refined poses: {len(r)} right (within 2 deg / 0.3 m of the truth after the rival refinement),"
+        f" {len(w)} wrong (> 3 deg or > 1 m), {len(rows) - len(r) - len(w)} in between (left out),"
+        f" over {len({x['case'] for x in rows})} cases\n"
+    )
     edges = [-1e9, 0.0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0]
     lines.append("| confidence bin | right poses | wrong poses | share right |")
     lines.append("|---|---|---|---|")
-    cr, cw = histogram([x["confidence"] for x in r], edges[1:]), histogram([x["confidence"] for x in w], edges[1:])
+    cr, cw = (
+        histogram([x["confidence"] for x in r], edges[1:]),
+        histogram([x["confidence"] for x in w], edges[1:]),
+    )
     for k in range(len(edges) - 2):
         n = cr[k] + cw[k]
-        lines.append(f"| {edges[k + 1]:.2f}-{edges[k + 2]:.2f} | {cr[k]} | {cw[k]} | {cr[k] / n:.2f} |" if n else
-                     f"| {edges[k + 1]:.2f}-{edges[k + 2]:.2f} | 0 | 0 | - |")
+        lines.append(
+            f"| {edges[k + 1]:.2f}-{edges[k + 2]:.2f} | {cr[k]} | {cw[k]} | {cr[k] / n:.2f} |"
+            if n
+            else f"| {edges[k + 1]:.2f}-{edges[k + 2]:.2f} | 0 | 0 | - |"
+        )
     lines.append("")
     lines.append("| case | right: score, confidence | best wrong: score, confidence |")
     lines.append("|---|---|---|")
@@ -208,10 +296,16 @@ def report(rows: list, outcomes: list, cfg: AlignConfig) -> str:
         fb = f"{b['score']:.3f}, {b['confidence']:.2f} ({b['generator']})" if b else "-"
         lines.append(f"| {case} | {fa} | {fb} |")
     worst_wrong = max((x["confidence"] for x in w if x["score"] >= jc.min_score), default=0.0)
-    lines.append(f"\nhighest confidence of a wrong pose with score >= min_score {jc.min_score}: {worst_wrong:.3f}"
-                 f" (min_confidence {cfg.min_confidence})")
-    lines.append(f"right poses passing both thresholds: {sum(x['confidence'] >= cfg.min_confidence and x['score'] >= jc.min_score for x in r)} / {len(r)}")
-    lines.append("\n| case | path | outcome | error deg / m | confidence | judge score / rival | judge s |")
+    lines.append(
+        f"\nhighest confidence of a wrong pose with score >= min_score {jc.min_score}: {worst_wrong:.3f}"
+        f" (min_confidence {cfg.min_confidence})"
+    )
+    lines.append(
+        f"right poses passing both thresholds: {sum(x['confidence'] >= cfg.min_confidence and x['score'] >= jc.min_score for x in r)} / {len(r)}"
+    )
+    lines.append(
+        "\n| case | path | outcome | error deg / m | confidence | judge score / rival | judge s |"
+    )
     lines.append("|---|---|---|---|---|---|---|")
     bad = 0
     for o in outcomes:
@@ -241,9 +335,11 @@ def refined_truth(uas: np.ndarray, als: np.ndarray, cache: Path) -> np.ndarray:
     reg = o3d.pipelines.registration
     crit = reg.ICPConvergenceCriteria(1e-10, 1e-10, 300)
     found = []
-    for fn, est in ((reg.registration_icp, reg.TransformationEstimationPointToPoint()),
-                    (reg.registration_icp, reg.TransformationEstimationPointToPlane()),
-                    (reg.registration_generalized_icp, reg.TransformationEstimationForGeneralizedICP())):
+    for fn, est in (
+        (reg.registration_icp, reg.TransformationEstimationPointToPoint()),
+        (reg.registration_icp, reg.TransformationEstimationPointToPlane()),
+        (reg.registration_generalized_icp, reg.TransformationEstimationForGeneralizedICP()),
+    ):
         T = np.eye(4)
         for d in (0.5, 0.25, 0.1):
             T = fn(A, U, d, T, est, crit).transformation
@@ -252,7 +348,10 @@ def refined_truth(uas: np.ndarray, als: np.ndarray, cache: Path) -> np.ndarray:
     for i in range(3):
         for j in range(i + 1, 3):
             deg, m = judge.separation(found[i], found[j], c)
-            print(f"  refined truth: methods {i} and {j} differ by {deg:.3f} deg / {100 * m:.2f} cm", file=sys.stderr)
+            print(
+                f"  refined truth: methods {i} and {j} differ by {deg:.3f} deg / {100 * m:.2f} cm",
+                file=sys.stderr,
+            )
     T = np.eye(4)
     T[:3, :3] = Rotation.from_matrix([F[:3, :3] for F in found]).mean().as_matrix()
     T[:3, 3] = np.mean([F[:3, 3] for F in found], axis=0)
@@ -269,21 +368,31 @@ def bench_fine(work: Path, n: int) -> str:
     uas = read_cloud(DATA / "spanner" / "UAS_Clip.laz", attributes=False).xyz
     als = read_cloud(DATA / "spanner" / "ALS_Clip.laz", attributes=False).xyz
     T_true = refined_truth(uas, als, work / "uas_als_refined_truth.json")
-    lines = ["| final ICP planes | start | trials | rotation RMSE deg (x / y / z) | translation RMSE cm (x / y / z) | exit 3 |",
-             "|---|---|---|---|---|---|"]
+    lines = [
+        "| final ICP planes | start | trials | rotation RMSE deg (x / y / z) | translation RMSE cm (x / y / z) | exit 3 |",
+        "|---|---|---|---|---|---|",
+    ]
     centre = uas.mean(axis=0)
-    for label, ratio in (("denser cloud (UAS), default", None), ("target (sparse ALS), before", 1e9)):
+    for label, ratio in (
+        ("denser cloud (UAS), default", None),
+        ("target (sparse ALS), before", 1e9),
+    ):
         cfg = AlignConfig() if ratio is None else AlignConfig(final_reverse_ratio=ratio)
         ps, pt = prepare_pair(PointCloud(uas), PointCloud(als), "uls", "als", 2, 2, cfg, 0)
         local = cfg.model_copy(deep=True)
         local.coarse.enabled = False
         rng = np.random.default_rng(4)
-        for start, c, count in (("refined truth, --no-coarse", local, 1), ("+-10 deg / +-2 m, --init", cfg, n)):
+        for start, c, count in (
+            ("refined truth, --no-coarse", local, 1),
+            ("+-10 deg / +-2 m, --init", cfg, n),
+        ):
             errs, refused = [], 0
             for _ in range(count):
                 P = np.eye(4)
                 if count > 1:
-                    P[:3, :3] = Rotation.from_euler("xyz", rng.uniform(-10, 10, 3), degrees=True).as_matrix()
+                    P[:3, :3] = Rotation.from_euler(
+                        "xyz", rng.uniform(-10, 10, 3), degrees=True
+                    ).as_matrix()
                     P[:3, 3] = centre - P[:3, :3] @ centre + rng.uniform(-2, 2, 3)
                 try:
                     r = register_prepared(ps, pt, c, T_true @ P, 0)
@@ -291,11 +400,17 @@ def bench_fine(work: Path, n: int) -> str:
                     refused += 1
                     r = exc.result
                 D = np.linalg.inv(T_true) @ r.transform
-                errs.append(np.r_[Rotation.from_matrix(D[:3, :3]).as_euler("xyz", degrees=True),
-                                  D[:3, :3] @ centre + D[:3, 3] - centre])
+                errs.append(
+                    np.r_[
+                        Rotation.from_matrix(D[:3, :3]).as_euler("xyz", degrees=True),
+                        D[:3, :3] @ centre + D[:3, 3] - centre,
+                    ]
+                )
             e = np.sqrt(np.mean(np.square(errs), axis=0))
-            lines.append(f"| {label} | {start} | {count} | {' / '.join(f'{v:.3f}' for v in e[:3])} | "
-                         f"{' / '.join(f'{100 * v:.2f}' for v in e[3:])} | {refused} |")
+            lines.append(
+                f"| {label} | {start} | {count} | {' / '.join(f'{v:.3f}' for v in e[:3])} | "
+                f"{' / '.join(f'{100 * v:.2f}' for v in e[3:])} | {refused} |"
+            )
             print(lines[-1], file=sys.stderr, flush=True)
     return "\n".join(lines)
 
@@ -304,9 +419,16 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="simulated pairs only")
     ap.add_argument("--json", type=Path, help="write the raw rows here")
-    ap.add_argument("--fine", type=int, default=0, metavar="N",
-                    help="instead: fine-stage accuracy on UAS -> ALS against a refined truth, N perturbed starts")
-    ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "plotmosaic-bench-judge")
+    ap.add_argument(
+        "--fine",
+        type=int,
+        default=0,
+        metavar="N",
+        help="instead: fine-stage accuracy on UAS -> ALS against a refined truth, N perturbed starts",
+    )
+    ap.add_argument(
+        "--work", type=Path, default=Path(tempfile.gettempdir()) / "plotmosaic-bench-judge"
+    )
     args = ap.parse_args()
     cfg = AlignConfig()
     rows, outcomes = [], []
@@ -318,7 +440,9 @@ def main() -> None:
         run_case(*case, cfg, rows, outcomes)
     print(report(rows, outcomes, cfg))
     if args.json:
-        args.json.write_text(json.dumps({"rows": rows, "outcomes": outcomes}, indent=1, default=float))
+        args.json.write_text(
+            json.dumps({"rows": rows, "outcomes": outcomes}, indent=1, default=float)
+        )
 
 
 if __name__ == "__main__":

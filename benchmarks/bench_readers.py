@@ -22,7 +22,13 @@ import sys
 import tempfile
 from pathlib import Path
 
-DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "e57" / "pumpAVisualReferenceImage.e57"
+DEFAULT = (
+    Path(__file__).resolve().parents[2]
+    / "shared"
+    / "data"
+    / "e57"
+    / "pumpAVisualReferenceImage.e57"
+)
 
 CASES = {
     "python + numpy only (baseline)": "import numpy; t0 = time.perf_counter(); n = 0",
@@ -79,7 +85,10 @@ def write_big(folder: Path, n: int) -> Path:
 def run_case(code: str, path: Path) -> tuple[float, float, float, int]:
     script = f"import time\nF = {str(path)!r}\n{code}\nprint('READ', time.perf_counter() - t0, n)"
     proc = subprocess.run(
-        ["/usr/bin/time", "-v", sys.executable, "-c", script], capture_output=True, text=True, check=True
+        ["/usr/bin/time", "-v", sys.executable, "-c", script],
+        capture_output=True,
+        text=True,
+        check=True,
     )
     read_s, n = proc.stdout.split("READ")[1].split()
     wall = re.search(r"Elapsed \(wall clock\) time.*: (?:(\d+):)?(\d+):([\d.]+)", proc.stderr)
@@ -96,7 +105,9 @@ def main() -> None:
     ap.add_argument("--big", type=int, default=0, help="write and read an N-point scan instead")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        path, cases = (write_big(Path(tmp), args.big), BIG_CASES) if args.big else (args.file, CASES)
+        path, cases = (
+            (write_big(Path(tmp), args.big), BIG_CASES) if args.big else (args.file, CASES)
+        )
         table(path, cases, args.repeat)
 
 

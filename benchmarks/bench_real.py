@@ -20,7 +20,14 @@ from pathlib import Path
 
 from plotmosaic.bench.methods import METHODS
 from plotmosaic.bench.real_cases import CASES
-from plotmosaic.bench.real_suite import SUITE_PROTOCOLS, markdown, outcome, run_suite, summarise, write_outputs
+from plotmosaic.bench.real_suite import (
+    SUITE_PROTOCOLS,
+    markdown,
+    outcome,
+    run_suite,
+    summarise,
+    write_outputs,
+)
 
 
 def _names(text: str, allowed, option: str) -> list[str]:
@@ -33,18 +40,48 @@ def _names(text: str, allowed, option: str) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", default=",".join(CASES), help=f"comma-separated, from {', '.join(CASES)}")
+    ap.add_argument(
+        "--cases", default=",".join(CASES), help=f"comma-separated, from {', '.join(CASES)}"
+    )
     ap.add_argument("--n", type=int, default=5, help="trials per case for paper and beyond")
-    ap.add_argument("--n-true", type=int, default=2, help="trials per case for the true-pose control")
-    ap.add_argument("--protocol", default="paper,beyond,true", help="comma-separated: paper, beyond, true")
-    ap.add_argument("--methods", default="forestalign,icp,fpfh-ransac,cpd", help=f"comma-separated, from {', '.join(METHODS)}")
+    ap.add_argument(
+        "--n-true", type=int, default=2, help="trials per case for the true-pose control"
+    )
+    ap.add_argument(
+        "--protocol", default="paper,beyond,true", help="comma-separated: paper, beyond, true"
+    )
+    ap.add_argument(
+        "--methods",
+        default="forestalign,icp,fpfh-ransac,cpd",
+        help=f"comma-separated, from {', '.join(METHODS)}",
+    )
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--data", type=Path, default=None, help="folder holding spanner/ and treels/ (default ../shared/data)")
-    ap.add_argument("--out", type=Path, default=Path("bench_real"), help="folder for trials.csv, table.md, summary.json")
-    ap.add_argument("--figure", type=Path, default=None, help="reliability PNG (default OUT/reliability.png)")
-    ap.add_argument("--merge", type=Path, nargs="+", default=None, help="only combine earlier runs' OUT folders into --out")
+    ap.add_argument(
+        "--data",
+        type=Path,
+        default=None,
+        help="folder holding spanner/ and treels/ (default ../shared/data)",
+    )
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=Path("bench_real"),
+        help="folder for trials.csv, table.md, summary.json",
+    )
+    ap.add_argument(
+        "--figure", type=Path, default=None, help="reliability PNG (default OUT/reliability.png)"
+    )
+    ap.add_argument(
+        "--merge",
+        type=Path,
+        nargs="+",
+        default=None,
+        help="only combine earlier runs' OUT folders into --out",
+    )
     args = ap.parse_args(argv)
-    command = "nice -n 10 .venv/bin/python benchmarks/bench_real.py " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
+    command = "nice -n 10 .venv/bin/python benchmarks/bench_real.py " + " ".join(
+        shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:])
+    )
     if args.merge:
         return merge(args.merge, args.out, command, args.figure)
     cases = _names(args.cases, CASES, "--cases")
@@ -58,14 +95,24 @@ def main(argv: list[str] | None = None) -> int:
     def save(rows, info):  # after every case: an interrupted run keeps what it measured
         write_outputs(rows, info, args.out, command, args.figure)
 
-    rows, info = run_suite(cases, counts, methods, args.seed, args.data, log=lambda m: print(m, file=sys.stderr, flush=True), on_case=save)
+    rows, info = run_suite(
+        cases,
+        counts,
+        methods,
+        args.seed,
+        args.data,
+        log=lambda m: print(m, file=sys.stderr, flush=True),
+        on_case=save,
+    )
     paths = write_outputs(rows, info, args.out, command, args.figure)
     print(markdown(summarise(rows)))
     for m, why in info["skipped"].items():
         print(f"{m}: not run ({why})")
     wrong = sum(r["outcome"] == "wrong" for r in rows if r["method"] == "forestalign")
-    print(f"forestalign wrong poses with exit 0: {wrong} of {sum(r['method'] == 'forestalign' for r in rows)} trials; "
-          f"{time.perf_counter() - t0:.0f} s in all; wrote {', '.join(str(p) for p in paths.values())}")
+    print(
+        f"forestalign wrong poses with exit 0: {wrong} of {sum(r['method'] == 'forestalign' for r in rows)} trials; "
+        f"{time.perf_counter() - t0:.0f} s in all; wrote {', '.join(str(p) for p in paths.values())}"
+    )
     return 0
 
 
@@ -79,7 +126,9 @@ def merge(folders: list[Path], out: Path, command: str, figure: Path | None) -> 
     for folder in folders:
         for r in read_trials_csv(folder / "trials.csv"):
             r["failed"] = bool(r["failed"])
-            r["outcome"] = outcome(r)  # recomputed: older runs counted a refused right estimate as found
+            r["outcome"] = outcome(
+                r
+            )  # recomputed: older runs counted a refused right estimate as found
             rows.append(r)
         data = json.loads((folder / "summary.json").read_text())
         info["cases"].update(data["info"]["cases"])

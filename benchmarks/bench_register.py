@@ -51,7 +51,9 @@ def show(title: str, rows: list[tuple], bound_cm: float, bound_deg: float) -> bo
             continue
         within = rot <= bound_deg and trans * 100 <= bound_cm
         ok &= within
-        print(f"{plot:6} {sid:10} {rot:10.4f} {trans * 100:11.2f}{'' if within else '  OUT OF BOUND'}")
+        print(
+            f"{plot:6} {sid:10} {rot:10.4f} {trans * 100:11.2f}{'' if within else '  OUT OF BOUND'}"
+        )
     print("all within bound" if ok else "NOT all within bound")
     return ok
 
@@ -65,12 +67,22 @@ def inject_wrong_edge(reg_dir: Path, truth, plots) -> None:
         e["dropped"] = False
         e.pop("drop_reason", None)
     u, v, e = sorted(sub.edges(data=True), key=lambda t: -t[2]["weight"])[0]  # the strongest edge
-    e["transform"] = e["transform"] @ gtsam.Pose3(gtsam.Rot3.Rz(np.radians(10)), np.array([2.0, 0.0, 0.0])).matrix()
+    e["transform"] = (
+        e["transform"]
+        @ gtsam.Pose3(gtsam.Rot3.Rz(np.radians(10)), np.array([2.0, 0.0, 0.0])).matrix()
+    )
     sol = optimise(sub, p.reference)
     wrong = (e["source"], e["target"])
     print(f"\ninjected a 2 m / 10 deg error into edge {wrong[0]} -> {wrong[1]} of plot {p.plot}")
-    print("dropped:", ", ".join(f"{d['source']} -> {d['target']} ({d['reason']})" for d in sol.dropped) or "nothing")
-    print("wrong edge flagged and dropped:", any((d["source"], d["target"]) == wrong for d in sol.dropped))
+    print(
+        "dropped:",
+        ", ".join(f"{d['source']} -> {d['target']} ({d['reason']})" for d in sol.dropped)
+        or "nothing",
+    )
+    print(
+        "wrong edge flagged and dropped:",
+        any((d["source"], d["target"]) == wrong for d in sol.dropped),
+    )
     rows = []
     for sid in p.scans:
         if sid not in sol.poses:
@@ -82,13 +94,17 @@ def inject_wrong_edge(reg_dir: Path, truth, plots) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--preset", default="paper")
     ap.add_argument("--workdir", type=Path, default=Path("/tmp/bench_register"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--jobs", type=int, default=None)
     ap.add_argument("--no-tie", action="store_true", help="skip tie-to-als")
-    ap.add_argument("--points-per-scan", type=int, default=None, help="simulate with this many points a scan")
+    ap.add_argument(
+        "--points-per-scan", type=int, default=None, help="simulate with this many points a scan"
+    )
     args = ap.parse_args()
 
     root = args.workdir / args.preset
@@ -106,10 +122,15 @@ def main() -> None:
     t = time.perf_counter()
     reg = register_plot(sim_manifest, root / "reg", jobs=args.jobs, seed=args.seed)
     timings["register-plot"] = time.perf_counter() - t
-    print(f"\nregister-plot: {reg.pairs} pairs ({reg.computed} registered now), {len(reg.failed)} failed, "
-          f"dropped: {[d for p in reg.plots for d in p.solution.dropped]}, unplaced: {reg.unplaced}")
-    pair_seconds = [r["seconds"] for r in map(lambda f: json.loads(f.read_text()), (root / "reg" / "pairs").glob("*.json"))
-                    if "seconds" in r]
+    print(
+        f"\nregister-plot: {reg.pairs} pairs ({reg.computed} registered now), {len(reg.failed)} failed, "
+        f"dropped: {[d for p in reg.plots for d in p.solution.dropped]}, unplaced: {reg.unplaced}"
+    )
+    pair_seconds = [
+        r["seconds"]
+        for r in map(lambda f: json.loads(f.read_text()), (root / "reg" / "pairs").glob("*.json"))
+        if "seconds" in r
+    ]
     pairs_of = {}
     for u, v in reg.graph.edges():
         pairs_of[u] = pairs_of.get(u, 0) + 1
@@ -118,32 +139,56 @@ def main() -> None:
         pairs_of[f["source"]] = pairs_of.get(f["source"], 0) + 1
         pairs_of[f["target"]] = pairs_of.get(f["target"], 0) + 1
     n_scans = reg.graph.number_of_nodes()
-    print(f"pairs per scan: {reg.pairs / max(1, n_scans):.2f} (at most {max(pairs_of.values(), default=0)} for one scan), "
-          f"{n_scans} scans; all pairs would be {n_scans * (n_scans - 1) // 2}")
+    print(
+        f"pairs per scan: {reg.pairs / max(1, n_scans):.2f} (at most {max(pairs_of.values(), default=0)} for one scan), "
+        f"{n_scans} scans; all pairs would be {n_scans * (n_scans - 1) // 2}"
+    )
     placement = reg.poses.extra.get("placement")
     if placement:
-        print(f"placed on the ALS first: {sum(v == 'ok' for v in placement.values())} of {len(placement)} scans")
+        print(
+            f"placed on the ALS first: {sum(v == 'ok' for v in placement.values())} of {len(placement)} scans"
+        )
     if pair_seconds:
-        print(f"pair time: median {np.median(pair_seconds):.1f} s, total {np.sum(pair_seconds):.0f} s (CPU-side, as run)")
-    show("register-plot poses vs ground truth (plot frame)", errors_in_plot_frame(reg.poses, truth, reg.plots), 2.0, 0.1)
+        print(
+            f"pair time: median {np.median(pair_seconds):.1f} s, total {np.sum(pair_seconds):.0f} s (CPU-side, as run)"
+        )
+    show(
+        "register-plot poses vs ground truth (plot frame)",
+        errors_in_plot_frame(reg.poses, truth, reg.plots),
+        2.0,
+        0.1,
+    )
     inject_wrong_edge(root / "reg", truth, reg.plots)
 
     if not args.no_tie:
         t = time.perf_counter()
-        tie = tie_to_als(sim_manifest, root / "reg" / "poses.json", root / "geo", seed=args.seed, jobs=args.jobs)
+        tie = tie_to_als(
+            sim_manifest, root / "reg" / "poses.json", root / "geo", seed=args.seed, jobs=args.jobs
+        )
         timings["tie-to-als"] = time.perf_counter() - t
         for a in tie.anchors:
             r = a.residual
             res = "-" if not r else f"{r['translation'] * 100:.2f} cm / {r['rotation_deg']:.3f} deg"
-            print(f"anchor {a.plot}: {a.status} fitness {a.fitness} inlier RMSE {a.inlier_rmse} residual {res} ({a.crop})")
+            print(
+                f"anchor {a.plot}: {a.status} fitness {a.fitness} inlier RMSE {a.inlier_rmse} residual {res} ({a.crop})"
+            )
         rows = []
         for sid in truth.scans:
             pose = tie.poses.scans.get(sid)
-            rows.append((truth.scans[sid].plot, sid, *(pose_error(pose.transform, truth.transform(sid)) if pose else (None, None))))
+            rows.append(
+                (
+                    truth.scans[sid].plot,
+                    sid,
+                    *(pose_error(pose.transform, truth.transform(sid)) if pose else (None, None)),
+                )
+            )
         show("tie-to-als poses vs ground truth (ALS CRS)", rows, 5.0, 0.2)
 
-    print("\ntimings (wall): " + ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
-          + f", total {sum(timings.values()) - timings['simulate']:.1f} s without simulation")
+    print(
+        "\ntimings (wall): "
+        + ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
+        + f", total {sum(timings.values()) - timings['simulate']:.1f} s without simulation"
+    )
 
 
 if __name__ == "__main__":

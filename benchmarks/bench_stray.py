@@ -35,7 +35,9 @@ def write_source(src: Path, dst: Path, distance_m: float | None) -> Path:
     xyz = np.column_stack([las.x, las.y, las.z])
     if distance_m is not None:
         xyz = np.vstack([xyz, xyz[:1] + [distance_m, 0.0, 0.0]])
-    header = laspy.LasHeader(point_format=las.header.point_format.id, version=str(las.header.version))
+    header = laspy.LasHeader(
+        point_format=las.header.point_format.id, version=str(las.header.version)
+    )
     header.scales = np.array([SCALE] * 3)
     header.offsets = np.round(np.asarray(las.header.offsets) / 1000.0) * 1000.0
     out = laspy.LasData(header)
@@ -46,24 +48,49 @@ def write_source(src: Path, dst: Path, distance_m: float | None) -> Path:
 
 
 def timed_align(src: Path, tgt: Path, out: Path) -> dict:
-    cmd = ["/usr/bin/time", "-v", sys.executable, "-m", "plotmosaic", "align", str(src), str(tgt), "--out", str(out)]
+    cmd = [
+        "/usr/bin/time",
+        "-v",
+        sys.executable,
+        "-m",
+        "plotmosaic",
+        "align",
+        str(src),
+        str(tgt),
+        "--out",
+        str(out),
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     rss = re.search(r"Maximum resident set size \(kbytes\): (\d+)", proc.stderr)
     wall = re.search(r"Elapsed \(wall clock\) time \(h:mm:ss or m:ss\): ([\d:.]+)", proc.stderr)
-    seconds = sum(float(p) * 60**i for i, p in enumerate(reversed(wall.group(1).split(":")))) if wall else float("nan")
+    seconds = (
+        sum(float(p) * 60**i for i, p in enumerate(reversed(wall.group(1).split(":"))))
+        if wall
+        else float("nan")
+    )
     errors = [line for line in proc.stderr.splitlines() if line.startswith("error")]
-    return {"code": proc.returncode, "peak_gb": int(rss.group(1)) / 1e6 if rss else float("nan"), "seconds": seconds,
-            "error": errors[0] if errors else ""}
+    return {
+        "code": proc.returncode,
+        "peak_gb": int(rss.group(1)) / 1e6 if rss else float("nan"),
+        "seconds": seconds,
+        "error": errors[0] if errors else "",
+    }
 
 
 def pose_error(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     D = np.linalg.inv(T_true) @ T
-    return float(np.linalg.norm(D[:3, 3])), float(np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))))
+    return float(np.linalg.norm(D[:3, 3])), float(
+        np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1)))
+    )
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sim", type=Path, help="an existing `plotmosaic simulate` folder (else one is made)")
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument(
+        "--sim", type=Path, help="an existing `plotmosaic simulate` folder (else one is made)"
+    )
     ap.add_argument("--preset", default="small")
     ap.add_argument("--points-per-scan", type=int)
     ap.add_argument("--seed", type=int, default=1)
@@ -77,7 +104,17 @@ def main() -> None:
     if sim is None:
         sim = args.workdir / "sim"
         if not (sim / "manifest.toml").is_file():
-            cmd = [sys.executable, "-m", "plotmosaic", "simulate", str(sim), "--preset", args.preset, "--seed", str(args.seed)]
+            cmd = [
+                sys.executable,
+                "-m",
+                "plotmosaic",
+                "simulate",
+                str(sim),
+                "--preset",
+                args.preset,
+                "--seed",
+                str(args.seed),
+            ]
             if args.points_per_scan:
                 cmd += ["--points-per-scan", str(args.points_per_scan)]
             subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
@@ -91,8 +128,10 @@ def main() -> None:
     n_src, n_tgt = len(read_cloud(stray, attributes=False)), len(read_cloud(tgt, attributes=False))
     read_s = time.perf_counter() - t0
 
-    print(f"pair {args.source} -> {args.target} of {sim} ({n_src:,} / {n_tgt:,} points); reading both: {read_s:.1f} s")
-    print(f"| source | exit | wall (s) | peak memory (GB) | error vs truth (cm / deg) | message |")
+    print(
+        f"pair {args.source} -> {args.target} of {sim} ({n_src:,} / {n_tgt:,} points); reading both: {read_s:.1f} s"
+    )
+    print("| source | exit | wall (s) | peak memory (GB) | error vs truth (cm / deg) | message |")
     print("|---|---|---|---|---|---|")
     for name, src in (("as is", clean), (f"+1 point {args.distance_km:g} km away", stray)):
         out = args.workdir / f"{src.stem}.json"
@@ -102,7 +141,9 @@ def main() -> None:
         if r["code"] == 0:
             dt, dr = pose_error(np.asarray(json.loads(out.read_text())["transform"]), T_true)
             err = f"{dt * 100:.2f} / {dr:.3f}"
-        print(f"| {name} | {r['code']} | {r['seconds']:.1f} | {r['peak_gb']:.2f} | {err} | {r['error']} |")
+        print(
+            f"| {name} | {r['code']} | {r['seconds']:.1f} | {r['peak_gb']:.2f} | {err} | {r['error']} |"
+        )
 
 
 if __name__ == "__main__":

@@ -37,21 +37,39 @@ def render(page: Path, out: Path, window: tuple[int, int], width: int, colours: 
     chromium = find_chromium()
     with tempfile.TemporaryDirectory() as tmp:
         shot = Path(tmp) / "shot.png"
-        cmd = [chromium, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", f"--user-data-dir={tmp}/profile",
-               f"--window-size={window[0]},{window[1]}", f"--screenshot={shot}", page.resolve().as_uri()]
+        cmd = [
+            chromium,
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--hide-scrollbars",
+            f"--user-data-dir={tmp}/profile",
+            f"--window-size={window[0]},{window[1]}",
+            f"--screenshot={shot}",
+            page.resolve().as_uri(),
+        ]
         t0 = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
         seconds = time.perf_counter() - t0
         if not shot.is_file():
-            sys.exit(f"error: chromium wrote no screenshot (exit {proc.returncode}): {proc.stderr.strip()[-500:]}")
+            sys.exit(
+                f"error: chromium wrote no screenshot (exit {proc.returncode}): {proc.stderr.strip()[-500:]}"
+            )
         img = Image.open(shot).convert("RGB")
         full = img.size
         if img.width > width:
             img = img.resize((width, round(img.height * width / img.width)), Image.LANCZOS)
         out.parent.mkdir(parents=True, exist_ok=True)
-        img.quantize(colors=colours, method=Image.Quantize.FASTOCTREE).save(out, optimize=True)  # octree keeps the scan colours
-    return {"page_bytes": page.stat().st_size, "render_s": seconds, "screenshot": full, "png": img.size,
-            "png_bytes": out.stat().st_size}
+        img.quantize(colors=colours, method=Image.Quantize.FASTOCTREE).save(
+            out, optimize=True
+        )  # octree keeps the scan colours
+    return {
+        "page_bytes": page.stat().st_size,
+        "render_s": seconds,
+        "screenshot": full,
+        "png": img.size,
+        "png_bytes": out.stat().st_size,
+    }
 
 
 def slices(sim: Path, out: Path, moved: str, width: int) -> None:
@@ -79,11 +97,20 @@ def slices(sim: Path, out: Path, moved: str, width: int) -> None:
         t0 = time.perf_counter()
         v = collect("P1", ids, paths, P, raw.__getitem__, cfg, 0)
         seconds = time.perf_counter() - t0
-        print(f"{name}: {len(v.stems)} stems, median ring spread {ring_spread(v.stems) * 100:.2f} cm, "
-              f"of the stems {moved} sees {ring_spread(v.stems, moved) * 100:.2f} cm ({seconds:.1f} s)")
+        print(
+            f"{name}: {len(v.stems)} stems, median ring spread {ring_spread(v.stems) * 100:.2f} cm, "
+            f"of the stems {moved} sees {ring_spread(v.stems, moved) * 100:.2f} cm ({seconds:.1f} s)"
+        )
         png = out.with_name(out.stem + f"_{len(pngs)}.png")
-        plot_breast_slice(png, v.slices, v.stems, f"breast-height slice, {name}", origin_of(v.thinned),
-                          4, scan_colours(ids))
+        plot_breast_slice(
+            png,
+            v.slices,
+            v.stems,
+            f"breast-height slice, {name}",
+            origin_of(v.thinned),
+            4,
+            scan_colours(ids),
+        )
         pngs.append(png)
     ims = [Image.open(p).convert("RGB") for p in pngs]
     w = min(width, min(i.width for i in ims))
@@ -102,11 +129,23 @@ def slices(sim: Path, out: Path, moved: str, width: int) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("page", type=Path, nargs="?", help="a report.html")
-    ap.add_argument("--slices", type=Path, help="a `plotmosaic simulate` folder: single vs doubled breast-height slices")
-    ap.add_argument("--moved", default="P1-S2", help="with --slices: the scan moved by 5 cm / 0.2 deg")
+    ap.add_argument(
+        "--slices",
+        type=Path,
+        help="a `plotmosaic simulate` folder: single vs doubled breast-height slices",
+    )
+    ap.add_argument(
+        "--moved", default="P1-S2", help="with --slices: the scan moved by 5 cm / 0.2 deg"
+    )
     ap.add_argument("--out", type=Path, default=Path("docs/report_page.png"))
-    ap.add_argument("--window", type=int, nargs=2, default=(1300, 4200), metavar=("W", "H"),
-                    help="browser window in CSS pixels; the height is how much of the page is captured")
+    ap.add_argument(
+        "--window",
+        type=int,
+        nargs=2,
+        default=(1300, 4200),
+        metavar=("W", "H"),
+        help="browser window in CSS pixels; the height is how much of the page is captured",
+    )
     ap.add_argument("--width", type=int, default=1000, help="width of the saved PNG (pixels)")
     ap.add_argument("--colours", type=int, default=256, help="palette size of the saved PNG")
     args = ap.parse_args()
@@ -116,8 +155,10 @@ def main() -> None:
     if args.page is None or not args.page.is_file():
         sys.exit(f"error: {args.page}: no such file")
     r = render(args.page, args.out, tuple(args.window), args.width, args.colours)
-    print(f"page {args.page}: {r['page_bytes'] / 1e6:.2f} MB; chromium render + screenshot {r['render_s']:.1f} s "
-          f"({r['screenshot'][0]}x{r['screenshot'][1]}); wrote {args.out}: {r['png'][0]}x{r['png'][1]}, {r['png_bytes'] / 1e3:.0f} kB")
+    print(
+        f"page {args.page}: {r['page_bytes'] / 1e6:.2f} MB; chromium render + screenshot {r['render_s']:.1f} s "
+        f"({r['screenshot'][0]}x{r['screenshot'][1]}); wrote {args.out}: {r['png'][0]}x{r['png'][1]}, {r['png_bytes'] / 1e3:.0f} kB"
+    )
 
 
 if __name__ == "__main__":

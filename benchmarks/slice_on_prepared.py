@@ -24,7 +24,12 @@ from plotmosaic.report.slice import ring_spread
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sim", type=Path)
-    ap.add_argument("--voxel", type=float, default=0.05, help="voxel centroids of this size (m); 0: the points as read")
+    ap.add_argument(
+        "--voxel",
+        type=float,
+        default=0.05,
+        help="voxel centroids of this size (m); 0: the points as read",
+    )
     ap.add_argument("--moved", default="P1-S2")
     args = ap.parse_args()
     truth = load_poses(args.sim / "ground_truth.json")
@@ -38,9 +43,11 @@ def main() -> None:
     off[args.moved] = poses[args.moved] @ params_to_matrix([0, 0, 0.2, 0.03, 0.04, 0])
     for name, P in (("true poses", poses), (f"{args.moved} moved 5 cm / 0.2 deg", off)):
         v = collect("P1", sorted(P), paths, P, raw.__getitem__, ReportConfig(), 0)
-        print(f"voxel {args.voxel:g} m, {name}: {len(v.stems)} stems, median ring spread {ring_spread(v.stems) * 100:.2f} cm, "
-              f"stems {args.moved} sees {ring_spread(v.stems, args.moved) * 100:.2f} cm; "
-              f"slice points per scan {', '.join(str(len(x)) for x in v.slices.values())}")
+        print(
+            f"voxel {args.voxel:g} m, {name}: {len(v.stems)} stems, median ring spread {ring_spread(v.stems) * 100:.2f} cm, "
+            f"stems {args.moved} sees {ring_spread(v.stems, args.moved) * 100:.2f} cm; "
+            f"slice points per scan {', '.join(str(len(x)) for x in v.slices.values())}"
+        )
 
 
 if __name__ == "__main__":

@@ -11,8 +11,17 @@ import sys
 import typer
 
 from plotmosaic import __version__
-from plotmosaic.commands import align, bench, demo, info, merge, register, report, simulate
-from plotmosaic.commands import manifest_from
+from plotmosaic.commands import (
+    align,
+    bench,
+    demo,
+    info,
+    manifest_from,
+    merge,
+    register,
+    report,
+    simulate,
+)
 
 HELP = """Targetless, GNSS-free registration of forest LiDAR scans into one georeferenced cloud.
 
@@ -39,7 +48,9 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def _root(
-    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Show the version and exit."),
+    version: bool = typer.Option(
+        False, "--version", callback=_version, is_eager=True, help="Show the version and exit."
+    ),
 ) -> None:
     pass
 
@@ -70,5 +81,8 @@ def main() -> None:
             sys.exit(INTERRUPTED)
         if os.environ.get("PLOTMOSAIC_DEBUG"):
             raise
-        typer.echo(f"internal error: {type(exc).__name__}: {exc} (set PLOTMOSAIC_DEBUG=1 for a traceback)", err=True)
+        typer.echo(
+            f"internal error: {type(exc).__name__}: {exc} (set PLOTMOSAIC_DEBUG=1 for a traceback)",
+            err=True,
+        )
         sys.exit(1)

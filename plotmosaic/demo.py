@@ -36,7 +36,14 @@ class DemoResult:
 def plot_frame_errors(estimated: Poses, truth: Poses) -> dict[str, tuple[float, float]]:
     """Errors of register-plot poses: both sides expressed relative to each plot's reference scan."""
     errors = {}
-    refs = {p: next(s for s, sp in estimated.scans.items() if sp.plot == p and np.allclose(sp.transform, np.eye(4))) for p in {sp.plot for sp in estimated.scans.values()}}
+    refs = {
+        p: next(
+            s
+            for s, sp in estimated.scans.items()
+            if sp.plot == p and np.allclose(sp.transform, np.eye(4))
+        )
+        for p in {sp.plot for sp in estimated.scans.values()}
+    }
     for sid, sp in estimated.scans.items():
         ref = refs[sp.plot]
         true_rel = inverse(truth.transform(ref)) @ truth.transform(sid)
@@ -45,10 +52,19 @@ def plot_frame_errors(estimated: Poses, truth: Poses) -> dict[str, tuple[float, 
 
 
 def georeferenced_errors(estimated: Poses, truth: Poses) -> dict[str, tuple[float, float]]:
-    return {sid: pose_error(sp.transform, truth.transform(sid)) for sid, sp in estimated.scans.items()}
+    return {
+        sid: pose_error(sp.transform, truth.transform(sid)) for sid, sp in estimated.scans.items()
+    }
 
 
-def run_demo(outdir: str | Path, seed: int = 0, points_per_scan: int = DEMO_POINTS_PER_SCAN, jobs: int | None = None, force: bool = False, echo=print) -> DemoResult:
+def run_demo(
+    outdir: str | Path,
+    seed: int = 0,
+    points_per_scan: int = DEMO_POINTS_PER_SCAN,
+    jobs: int | None = None,
+    force: bool = False,
+    echo=print,
+) -> DemoResult:
     outdir = Path(outdir)
     if outdir.exists() and any(outdir.iterdir()) and not force:
         raise InputError(f"{outdir}: folder is not empty (use --force to reuse it)")
@@ -60,7 +76,9 @@ def run_demo(outdir: str | Path, seed: int = 0, points_per_scan: int = DEMO_POIN
 
     echo(f"1/4 simulating a '{DEMO_PRESET}' forest plot ({points_per_scan:,} points a scan) ...")
     t = time.perf_counter()
-    sim = simulate(outdir / "sim", DEMO_PRESET, seed=seed, figures=False, points_per_scan=points_per_scan)
+    sim = simulate(
+        outdir / "sim", DEMO_PRESET, seed=seed, figures=False, points_per_scan=points_per_scan
+    )
     stage("simulate", t)
     manifest = load_manifest(sim.manifest_path)
     truth = load_poses(sim.ground_truth_path)
@@ -72,20 +90,36 @@ def run_demo(outdir: str | Path, seed: int = 0, points_per_scan: int = DEMO_POIN
 
     echo("3/4 tie-to-als: plot -> ALS anchors, joint optimisation in the ALS CRS ...")
     t = time.perf_counter()
-    tie = tie_to_als(manifest, outdir / "register" / "poses.json", outdir / "georeferenced", seed=seed, jobs=jobs)
+    tie = tie_to_als(
+        manifest, outdir / "register" / "poses.json", outdir / "georeferenced", seed=seed, jobs=jobs
+    )
     stage("tie-to-als", t)
 
     echo("4/4 merge: one georeferenced LAZ ...")
     t = time.perf_counter()
     merged = outdir / "merged.laz"
-    merge_scans(manifest, tie.poses, merged, MergeConfig(voxel=0.02, force=True), poses_path=outdir / "georeferenced" / "poses.json")
+    merge_scans(
+        manifest,
+        tie.poses,
+        merged,
+        MergeConfig(voxel=0.02, force=True),
+        poses_path=outdir / "georeferenced" / "poses.json",
+    )
     stage("merge", t)
 
     page = outdir / "georeferenced" / "report.html"
-    if page.is_file():  # the demo's own stage times, known only now, join the final report's time table
+    if (
+        page.is_file()
+    ):  # the demo's own stage times, known only now, join the final report's time table
         from plotmosaic.report.build import Stage, add_stages
 
-        add_stages(page, [Stage(f"demo: {name}", s, "wall time, report included") for name, s in seconds.items()])
+        add_stages(
+            page,
+            [
+                Stage(f"demo: {name}", s, "wall time, report included")
+                for name, s in seconds.items()
+            ],
+        )
 
     return DemoResult(
         outdir=outdir,

@@ -50,4 +50,6 @@ def bind_to_parent(ignore_sigint: bool = True) -> None:
         os._exit(1)
     if ignore_sigint:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
-    threading.Thread(target=_watch, args=(parent,), name="plotmosaic-parent-watch", daemon=True).start()
+    threading.Thread(
+        target=_watch, args=(parent,), name="plotmosaic-parent-watch", daemon=True
+    ).start()

@@ -89,7 +89,11 @@ class Scan(_Strict):
     @property
     def file(self) -> Path:
         """The file itself (without an E57 reference's `#INDEX`)."""
-        return split_scan_ref(self.path)[0] if self.path.suffix.lower().startswith(".e57#") else self.path
+        return (
+            split_scan_ref(self.path)[0]
+            if self.path.suffix.lower().startswith(".e57#")
+            else self.path
+        )
 
 
 class AlsTile(_Strict):
@@ -122,7 +126,7 @@ class Plot(_Strict):
         return value
 
     @model_validator(mode="after")
-    def _one_reference(self) -> "Plot":
+    def _one_reference(self) -> Plot:
         refs = [s.id for s in self.scans if s.reference]
         if len(refs) > 1:
             raise ValueError(f"more than one reference scan: {', '.join(refs)}")
@@ -179,7 +183,11 @@ class Manifest(_Strict):
         offer one. A prior only: the pairwise path verifies it like any hypothesis. For many pairs,
         call `stored_poses` once (each call reads every scan's header)."""
         poses = self.stored_poses()
-        if source_id not in poses or target_id not in poses or self.plot_of(source_id) != self.plot_of(target_id):
+        if (
+            source_id not in poses
+            or target_id not in poses
+            or self.plot_of(source_id) != self.plot_of(target_id)
+        ):
             return None
         return np.linalg.inv(poses[target_id]) @ poses[source_id]
 
@@ -216,7 +224,9 @@ def _normalise(data: dict) -> dict:
     """Turn the one-plot form into the region form."""
     if "scans" in data:
         if "plots" in data:
-            raise ValueError("give either top-level [[scans]] (one plot) or [[plots]] (a region), not both")
+            raise ValueError(
+                "give either top-level [[scans]] (one plot) or [[plots]] (a region), not both"
+            )
         data = dict(data)
         plot = {"id": data.pop("plot_id", "plot"), "scans": data.pop("scans")}
         if "crs" in data:
@@ -264,7 +274,9 @@ def _resolve_e57(manifest: Manifest, path: Path, check_files: bool) -> Manifest:
             if scan.path.suffix.lower() != ".e57":
                 if scan.scan is not None or scan.use_pose:
                     field = "scan" if scan.scan is not None else "use_pose"
-                    raise InputError(f"{where}, field '{field}': only for E57 files, {scan.path} is not one")
+                    raise InputError(
+                        f"{where}, field '{field}': only for E57 files, {scan.path} is not one"
+                    )
                 scans.append(scan)
                 continue
             if isinstance(scan.scan, int) and not check_files:
@@ -290,7 +302,9 @@ def _check_unique(manifest: Manifest, path: Path) -> None:
     for plot in manifest.plots:
         for scan in plot.scans:
             if scan.id in seen:
-                raise InputError(f"{path}: plot {plot.id!r}: duplicate scan id {scan.id!r} (also in plot {seen[scan.id]!r})")
+                raise InputError(
+                    f"{path}: plot {plot.id!r}: duplicate scan id {scan.id!r} (also in plot {seen[scan.id]!r})"
+                )
             seen[scan.id] = plot.id
     plot_ids = [p.id for p in manifest.plots]
     dupes = sorted({p for p in plot_ids if plot_ids.count(p) > 1})
@@ -302,7 +316,9 @@ def _check_paths(manifest: Manifest, path: Path) -> None:
     for plot in manifest.plots:
         for scan in plot.scans:
             if not manifest.resolve(scan.file).is_file():
-                raise InputError(f"{path}: plot {plot.id!r}, scan {scan.id!r}, field 'path': file not found: {scan.path}")
+                raise InputError(
+                    f"{path}: plot {plot.id!r}, scan {scan.id!r}, field 'path': file not found: {scan.path}"
+                )
     for tile in manifest.als:
         if not manifest.resolve(tile.path).is_file():
             raise InputError(f"{path}: als tile, field 'path': file not found: {tile.path}")
@@ -322,15 +338,26 @@ def dump_manifest(manifest: Manifest) -> str:
         if plot.crs:
             lines.append(f"crs = {_toml(plot.crs)}")
         for scan in plot.scans:
-            lines += ["", "[[plots.scans]]", f"id = {_toml(scan.id)}", f"path = {_toml(scan.file.as_posix())}",
-                      f'kind = "{scan.kind.value}"']
+            lines += [
+                "",
+                "[[plots.scans]]",
+                f"id = {_toml(scan.id)}",
+                f"path = {_toml(scan.file.as_posix())}",
+                f'kind = "{scan.kind.value}"',
+            ]
             if scan.scan is not None or scan.file != scan.path:
-                selector = scan.scan if scan.scan is not None else int(str(scan.path).rsplit("#", 1)[1])
+                selector = (
+                    scan.scan if scan.scan is not None else int(str(scan.path).rsplit("#", 1)[1])
+                )
                 lines.append(f"scan = {_toml(selector) if isinstance(selector, str) else selector}")
             if scan.use_pose:
                 lines.append("use_pose = true")
             if scan.approx_position is not None:
-                lines.append("approx_position = [" + ", ".join(f"{v:.3f}" for v in scan.approx_position) + "]")
+                lines.append(
+                    "approx_position = ["
+                    + ", ".join(f"{v:.3f}" for v in scan.approx_position)
+                    + "]"
+                )
                 lines.append(f'approx_position_frame = "{scan.approx_position_frame}"')
             if scan.levels:
                 lines.append(f"levels = {scan.levels}")

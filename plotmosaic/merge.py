@@ -36,8 +36,16 @@ from threadpoolctl import threadpool_limits
 from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import atomic_output, check_writable
 from plotmosaic.io.frame import apply_transform, translation
-from plotmosaic.io.las import CHUNK_SIZE, STANDARD_ATTRIBUTES, HeaderInfo, las_offsets, make_header, read_header_info
-from plotmosaic.io.las import open_las, short_error
+from plotmosaic.io.las import (
+    CHUNK_SIZE,
+    STANDARD_ATTRIBUTES,
+    HeaderInfo,
+    las_offsets,
+    make_header,
+    open_las,
+    read_header_info,
+    short_error,
+)
 from plotmosaic.manifest import Manifest
 from plotmosaic.parallel import in_two_threads, threads
 from plotmosaic.poses import Poses
@@ -54,18 +62,31 @@ class MergeConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    voxel: float | None = Field(default=None, gt=0, description="voxel size (m) for thinning, rounded to whole mm")
+    voxel: float | None = Field(
+        default=None, gt=0, description="voxel size (m) for thinning, rounded to whole mm"
+    )
     include_als: bool = False
-    bbox: tuple[float, ...] | None = None  # xmin, ymin, xmax, ymax[, zmin, zmax] in output coordinates
+    bbox: tuple[float, ...] | None = (
+        None  # xmin, ymin, xmax, ymax[, zmin, zmax] in output coordinates
+    )
     force: bool = False
     skip_missing: bool = False
     chunk_size: int = Field(default=CHUNK_SIZE, ge=1)
     tile_memory_mb: int = Field(
-        default=512, ge=1, le=1 << 20, description="memory (MB) for the tiles thinned at once: tiles are cut to fit it, whatever the output size"
+        default=512,
+        ge=1,
+        le=1 << 20,
+        description="memory (MB) for the tiles thinned at once: tiles are cut to fit it, whatever the output size",
     )
-    tiles: bool = Field(default=False, description="write one LAZ per square tile into the folder --out, plus index.json")
+    tiles: bool = Field(
+        default=False,
+        description="write one LAZ per square tile into the folder --out, plus index.json",
+    )
     tile_size: float = Field(
-        default=100.0, gt=0, le=100_000, description="tile edge (m) with --tiles, whole mm; tiles are anchored at the output offset (a multiple of 1 km)"
+        default=100.0,
+        gt=0,
+        le=100_000,
+        description="tile edge (m) with --tiles, whole mm; tiles are anchored at the output offset (a multiple of 1 km)",
     )
 
     @field_validator("voxel")
@@ -83,10 +104,12 @@ class MergeConfig(BaseModel):
         return value
 
     @model_validator(mode="after")
-    def _tiles_on_voxel_faces(self) -> "MergeConfig":
+    def _tiles_on_voxel_faces(self) -> MergeConfig:
         # a voxel cut by a tile edge would be thinned twice: tiles must be whole voxels
         if self.tiles and self.voxel and round(self.tile_size / SCALE) % round(self.voxel / SCALE):
-            raise ValueError(f"--tile-size {self.tile_size:g} must be a whole multiple of --voxel {self.voxel:g}")
+            raise ValueError(
+                f"--tile-size {self.tile_size:g} must be a whole multiple of --voxel {self.voxel:g}"
+            )
         return self
 
     @field_validator("bbox")
@@ -109,7 +132,9 @@ def parse_bbox(text: str) -> tuple[float, ...]:
     try:
         values = tuple(float(v) for v in text.split(","))
     except ValueError:
-        raise InputError(f"--bbox {text!r}: expected numbers xmin,ymin,xmax,ymax[,zmin,zmax]") from None
+        raise InputError(
+            f"--bbox {text!r}: expected numbers xmin,ymin,xmax,ymax[,zmin,zmax]"
+        ) from None
     try:
         MergeConfig(bbox=values)
     except ValueError as exc:  # pydantic's ValidationError is a ValueError
@@ -165,9 +190,13 @@ class MergeSummary:
     voxel: float | None
     bbox: tuple[float, ...] | None
     seconds: float
-    skipped: list[str] = field(default_factory=list)  # manifest scans without a pose (--skip-missing)
+    skipped: list[str] = field(
+        default_factory=list
+    )  # manifest scans without a pose (--skip-missing)
     ignored: list[str] = field(default_factory=list)  # posed scans not in the manifest
-    tiles: list[dict] | None = None  # with --tiles: one entry per written tile (file, origin, points, bounds)
+    tiles: list[dict] | None = (
+        None  # with --tiles: one entry per written tile (file, origin, points, bounds)
+    )
 
     @property
     def points_in(self) -> int:
@@ -187,7 +216,10 @@ class MergeSummary:
             "points_in": self.points_in,
             "points_out": self.points_out,
             "sources": [vars(s) for s in self.sources],
-            "bounds": {"min": [round(float(v), 3) for v in self.mins], "max": [round(float(v), 3) for v in self.maxs]},
+            "bounds": {
+                "min": [round(float(v), 3) for v in self.mins],
+                "max": [round(float(v), 3) for v in self.maxs],
+            },
             "crs": self.crs,
             "crs_name": self.crs_name,
             "crs_source": self.crs_source,
@@ -203,7 +235,9 @@ class MergeSummary:
 # ---------------------------------------------------------------- planning
 
 
-def plan_sources(manifest: Manifest, poses: Poses, config: MergeConfig) -> tuple[list[Source], list[str], list[str]]:
+def plan_sources(
+    manifest: Manifest, poses: Poses, config: MergeConfig
+) -> tuple[list[Source], list[str], list[str]]:
     """Sources to merge in output order, scans left out (no pose), and poses not in the manifest."""
     if poses.frame not in ("crs", "plot"):
         raise InputError(f"poses: unknown frame {poses.frame!r} (expected 'crs' or 'plot')")
@@ -212,26 +246,52 @@ def plan_sources(manifest: Manifest, poses: Poses, config: MergeConfig) -> tuple
     for index, scan in enumerate(manifest.scans):
         if scan.id not in poses.scans:
             if not config.skip_missing:
-                raise InputError(f"no pose for scan {scan.id!r} in the poses file (use --skip-missing to leave it out)")
+                raise InputError(
+                    f"no pose for scan {scan.id!r} in the poses file (use --skip-missing to leave it out)"
+                )
             skipped.append(scan.id)
             continue
         path = manifest.resolve(scan.path)
-        sources.append(Source(scan.id, scan.kind.value, path, index, poses.transform(scan.id), read_header_info(path)))
+        sources.append(
+            Source(
+                scan.id,
+                scan.kind.value,
+                path,
+                index,
+                poses.transform(scan.id),
+                read_header_info(path),
+            )
+        )
     if not sources:
         raise InputError("no scan of the manifest has a pose: nothing to merge")
     plots = {manifest.plot_of(s.id).id for s in sources}
     if poses.frame == "plot" and len(plots) > 1:
-        raise InputError(f"poses are in per-plot frames but the scans come from {len(plots)} plots ({', '.join(sorted(plots))}); tie them to the ALS first")
+        raise InputError(
+            f"poses are in per-plot frames but the scans come from {len(plots)} plots ({', '.join(sorted(plots))}); tie them to the ALS first"
+        )
     if config.include_als:
         if not manifest.als:
             raise InputError("--include-als: the manifest has no [[als]] tiles")
         if poses.frame != "crs":
-            raise InputError("--include-als needs poses in the CRS frame (from tie-to-als), these are in the 'plot' frame")
+            raise InputError(
+                "--include-als needs poses in the CRS frame (from tie-to-als), these are in the 'plot' frame"
+            )
         for j, tile in enumerate(manifest.als):
             path = manifest.resolve(tile.path)
-            sources.append(Source(f"als:{tile.path.as_posix()}", "als", path, len(manifest.scans) + j, np.eye(4), read_header_info(path)))
+            sources.append(
+                Source(
+                    f"als:{tile.path.as_posix()}",
+                    "als",
+                    path,
+                    len(manifest.scans) + j,
+                    np.eye(4),
+                    read_header_info(path),
+                )
+            )
     if sources[-1].source_id > MAX_SOURCE_ID:
-        raise InputError(f"{sources[-1].source_id + 1} sources do not fit point_source_id (at most {MAX_SOURCE_ID + 1})")
+        raise InputError(
+            f"{sources[-1].source_id + 1} sources do not fit point_source_id (at most {MAX_SOURCE_ID + 1})"
+        )
     known = {s.id for s in manifest.scans}
     ignored = sorted(sid for sid in poses.scans if sid not in known)
     return sources, skipped, ignored
@@ -245,10 +305,14 @@ def output_crs(manifest: Manifest, poses: Poses, sources: list[Source]) -> tuple
         except CRSError:
             raise InputError("poses: 'crs' is not a CRS pyproj understands") from None
     scan_ids = {s.id for s in manifest.scans}
-    plots = {manifest.plot_of(s.id).id: manifest.plot_of(s.id).crs for s in sources if s.id in scan_ids}
+    plots = {
+        manifest.plot_of(s.id).id: manifest.plot_of(s.id).crs for s in sources if s.id in scan_ids
+    }
     crss = {crs for crs in plots.values() if crs}
     if len(crss) > 1:
-        raise InputError(f"plots {', '.join(sorted(plots))} have different CRSs and the poses give none")
+        raise InputError(
+            f"plots {', '.join(sorted(plots))} have different CRSs and the poses give none"
+        )
     if crss:
         named = ", ".join(pid for pid, crs in plots.items() if crs)
         return CRS.from_user_input(crss.pop()), f"manifest (plot {named})"
@@ -262,7 +326,14 @@ def output_bounds(sources: list[Source]) -> tuple[np.ndarray, np.ndarray]:
         if s.info.point_count == 0:
             continue
         lo, hi = s.info.mins, s.info.maxs
-        box = np.array([[(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+        box = np.array(
+            [
+                [(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]]
+                for i in (0, 1)
+                for j in (0, 1)
+                for k in (0, 1)
+            ]
+        )
         corners.append(apply_transform(s.transform, box))
     if not corners:
         raise InputError("every input file is empty: nothing to merge")
@@ -282,7 +353,9 @@ def _adjusted_gps_time(sources: list[Source]) -> bool:
     for s in sources:
         if "gps_time" in s.info.dimensions:
             with open_las(s.path) as reader:
-                flags.append(reader.header.global_encoding.gps_time_type == laspy.header.GpsTimeType.STANDARD)
+                flags.append(
+                    reader.header.global_encoding.gps_time_type == laspy.header.GpsTimeType.STANDARD
+                )
     return bool(flags) and all(flags)
 
 
@@ -295,21 +368,37 @@ def output_extra_dims(sources: list[Source]) -> dict[str, np.dtype]:
             for dim in reader.header.point_format.extra_dimensions:
                 ok = not dim.is_scaled and dim.num_elements == 1
                 found.setdefault(dim.name, set()).add(np.dtype(dim.dtype) if ok else None)
-    return {name: dtypes.pop() for name, dtypes in found.items() if len(dtypes) == 1 and None not in dtypes}
+    return {
+        name: dtypes.pop()
+        for name, dtypes in found.items()
+        if len(dtypes) == 1 and None not in dtypes
+    }
 
 
 def source_table(sources: list[Source]) -> list[dict]:
-    return [{"source_id": s.source_id, "id": s.id, "kind": s.kind, "file": s.path.name} for s in sources]
+    return [
+        {"source_id": s.source_id, "id": s.id, "kind": s.kind, "file": s.path.name} for s in sources
+    ]
 
 
 def build_header(sources: list[Source], crs: CRS | None, mins: np.ndarray) -> laspy.LasHeader:
-    header = make_header(output_attributes(sources), output_extra_dims(sources), crs=crs, offsets=las_offsets(mins), scale=SCALE)
+    header = make_header(
+        output_attributes(sources),
+        output_extra_dims(sources),
+        crs=crs,
+        offsets=las_offsets(mins),
+        scale=SCALE,
+    )
     if _adjusted_gps_time(sources):
         header.global_encoding.gps_time_type = laspy.header.GpsTimeType.STANDARD
-    payload = json.dumps({"version": 1, "sources": source_table(sources)}, separators=(",", ":")).encode()
+    payload = json.dumps(
+        {"version": 1, "sources": source_table(sources)}, separators=(",", ":")
+    ).encode()
     if len(payload) > 65535:
         raise InputError(f"the source table of {len(sources)} sources does not fit a LAS VLR")
-    header.vlrs.append(laspy.VLR(VLR_USER_ID, VLR_RECORD_ID, "point_source_id table (JSON)", payload))
+    header.vlrs.append(
+        laspy.VLR(VLR_USER_ID, VLR_RECORD_ID, "point_source_id table (JSON)", payload)
+    )
     return header
 
 
@@ -333,7 +422,9 @@ def read_source_table(path: str | Path) -> list[dict]:
 
 _SPLIT_SAMPLE = 65_536  # records sampled to choose where an over-budget tile is cut
 _SPILL_READ = 1_000_000  # records read at once when an over-budget tile is re-bucketed
-_PRETHIN_WORTH = 0.8  # in-chunk thinning goes on for a source while it drops at least 20 % of the points
+_PRETHIN_WORTH = (
+    0.8  # in-chunk thinning goes on for a source while it drops at least 20 % of the points
+)
 _BYTES_OVERHEAD = 96  # per point while thinning a tile, beside two copies of its record: voxel indices, key, sort order
 
 
@@ -347,7 +438,9 @@ def voxel_ijk(raw: np.ndarray, step: int) -> np.ndarray:
 
 def column_bounds(ijk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-column min and max of an (N, 3) array (column by column: ~6x faster than axis=0)."""
-    return np.array([ijk[:, k].min() for k in range(3)]), np.array([ijk[:, k].max() for k in range(3)])
+    return np.array([ijk[:, k].min() for k in range(3)]), np.array(
+        [ijk[:, k].max() for k in range(3)]
+    )
 
 
 def take_records(raw: np.ndarray, index: np.ndarray) -> np.ndarray:
@@ -416,7 +509,11 @@ def _scatter(raw: np.ndarray, ijk: np.ndarray, labels: np.ndarray, bucket_of) ->
         bucket_of(lo).append(raw, ijk)
         return
     span_bits = int(hi - lo).bit_length()
-    order = stable_order((labels - lo).astype(np.int64), span_bits) if span_bits <= 62 else np.argsort(labels, kind="stable")
+    order = (
+        stable_order((labels - lo).astype(np.int64), span_bits)
+        if span_bits <= 62
+        else np.argsort(labels, kind="stable")
+    )
     ordered = labels[order]
     starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
     for a, b in zip(starts, [*starts[1:], len(order)]):
@@ -446,7 +543,10 @@ class TileSpill:
 
     def tiles(self) -> list[tuple[tuple[int, int], Bucket]]:
         """(tile index (i, j), bucket) in label order (x, then y)."""
-        return [(((k >> 32) - (1 << 31), (k & 0xFFFFFFFF) - (1 << 31)), self.buckets[k]) for k in sorted(self.buckets)]
+        return [
+            (((k >> 32) - (1 << 31), (k & 0xFFFFFFFF) - (1 << 31)), self.buckets[k])
+            for k in sorted(self.buckets)
+        ]
 
 
 def _split(bucket: Bucket, dtype: np.dtype, step: int) -> list[Bucket]:
@@ -460,7 +560,9 @@ def _split(bucket: Bucket, dtype: np.dtype, step: int) -> list[Bucket]:
     if score.max() <= 0:  # the sample is one voxel wide: fall back on the bounds
         score = np.where(extent > 0, extent, -1)
     axis = int(np.argmax(score))
-    cut = int(np.clip(np.median(sample[:, axis]), bucket.lo[axis] + 1, bucket.hi[axis]))  # both halves non-empty
+    cut = int(
+        np.clip(np.median(sample[:, axis]), bucket.lo[axis] + 1, bucket.hi[axis])
+    )  # both halves non-empty
     halves = [Bucket(bucket.path.with_suffix(f".{k}.bin")) for k in (0, 1)]
     with open(bucket.path, "rb") as f:
         while len(raw := np.fromfile(f, dtype=dtype, count=_SPILL_READ)):
@@ -470,7 +572,9 @@ def _split(bucket: Bucket, dtype: np.dtype, step: int) -> list[Bucket]:
     return halves
 
 
-def thinned_blocks(bucket: Bucket, dtype: np.dtype, step: int | None, max_points: int) -> Iterator[np.ndarray]:
+def thinned_blocks(
+    bucket: Bucket, dtype: np.dtype, step: int | None, max_points: int
+) -> Iterator[np.ndarray]:
     """A tile's records, voxel-thinned when `step` is set, in blocks of at most `max_points`, in a
     fixed order (sub-tile by sub-tile, stream order within each); the spill files are removed as read."""
     stack = [bucket]
@@ -497,7 +601,9 @@ def tile_points(config: MergeConfig, dtype: np.dtype, parallel: int) -> int:
     return max(1, config.tile_memory_mb * 2**20 // (per_point * parallel))
 
 
-def auto_tile_edge(mins: np.ndarray, maxs: np.ndarray, total: int, max_points: int, step: int) -> int:
+def auto_tile_edge(
+    mins: np.ndarray, maxs: np.ndarray, total: int, max_points: int, step: int
+) -> int:
     """Tile edge (voxels) for a single output: about a quarter of the budget a tile at mean density."""
     if total <= max_points:
         return 1 << 40  # one tile
@@ -518,12 +624,25 @@ def _progress(enabled: bool, total: int):
     if not enabled:
         return contextlib.nullcontext(None)
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeRemainingColumn,
+    )
 
     console = Console(stderr=True)
     if not console.is_terminal:
         return contextlib.nullcontext(None)
-    bar = Progress(TextColumn("merge {task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(), console=console, transient=True)
+    bar = Progress(
+        TextColumn("merge {task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeRemainingColumn(),
+        console=console,
+        transient=True,
+    )
     return _ProgressTask(bar, total)
 
 
@@ -558,14 +677,24 @@ def merge_scans(
         return _merge_scans(manifest, poses, Path(out), config, progress, poses_path)
 
 
-def _merge_scans(manifest: Manifest, poses: Poses, out: Path, config: MergeConfig, progress: bool, poses_path) -> MergeSummary:
+def _merge_scans(
+    manifest: Manifest, poses: Poses, out: Path, config: MergeConfig, progress: bool, poses_path
+) -> MergeSummary:
     sidecar = _check_output(out, config)
     start = time.perf_counter()
     sources, skipped, ignored = plan_sources(manifest, poses, config)
     crs, crs_source = output_crs(manifest, poses, sources)
     for s in sources:  # ALS tiles are taken as they are: they must be in the output CRS
-        if s.kind == "als" and s.id.startswith("als:") and s.info.crs is not None and crs is not None and not s.info.crs.equals(crs, ignore_axis_order=True):
-            raise InputError(f"{s.path}: ALS tile is in {s.info.crs.name}, the merged cloud in {crs.name}")
+        if (
+            s.kind == "als"
+            and s.id.startswith("als:")
+            and s.info.crs is not None
+            and crs is not None
+            and not s.info.crs.equals(crs, ignore_axis_order=True)
+        ):
+            raise InputError(
+                f"{s.path}: ALS tile is in {s.info.crs.name}, the merged cloud in {crs.name}"
+            )
     mins, maxs = output_bounds(sources)
     if config.bbox is not None:
         lo, hi = _bbox_limits(config.bbox)
@@ -579,12 +708,28 @@ def _merge_scans(manifest: Manifest, poses: Poses, out: Path, config: MergeConfi
 
     def summary_of(lo, hi, tiles=None) -> MergeSummary:
         return MergeSummary(
-            out, sidecar, counts, np.asarray(lo), np.asarray(hi), crs.to_wkt() if crs else None, crs.name if crs else None,
-            crs_source, config.voxel, config.bbox, time.perf_counter() - start, skipped, ignored, tiles,
+            out,
+            sidecar,
+            counts,
+            np.asarray(lo),
+            np.asarray(hi),
+            crs.to_wkt() if crs else None,
+            crs.name if crs else None,
+            crs_source,
+            config.voxel,
+            config.bbox,
+            time.perf_counter() - start,
+            skipped,
+            ignored,
+            tiles,
         )
 
     def write_sidecar(summary: MergeSummary) -> None:
-        data = {"poses": str(poses_path) if poses_path else None, "frame": poses.frame, **summary.to_dict()}
+        data = {
+            "poses": str(poses_path) if poses_path else None,
+            "frame": poses.frame,
+            **summary.to_dict(),
+        }
         with atomic_output(sidecar, force=True) as tmp_json:
             tmp_json.write_text(json.dumps(data, indent=1))
 
@@ -594,7 +739,9 @@ def _merge_scans(manifest: Manifest, poses: Poses, out: Path, config: MergeConfi
         with threadpool_limits(1, user_api="blas"), _progress(progress, total) as bar:
             if config.voxel is None and not config.tiles:
                 with atomic_output(out, force=True) as tmp:
-                    with laspy.open(tmp, mode="w", header=header, do_compress=out.suffix.lower() == ".laz") as writer:
+                    with laspy.open(
+                        tmp, mode="w", header=header, do_compress=out.suffix.lower() == ".laz"
+                    ) as writer:
                         _stream(writer, sources, counts, header, config, bar)
                     if writer.header.point_count == 0:
                         raise InputError("no point left to write (check --bbox)")
@@ -616,17 +763,40 @@ def _merge_scans(manifest: Manifest, poses: Poses, out: Path, config: MergeConfi
                         raise InputError("no point left to write (check --bbox)")
                     if config.tiles:
                         with atomic_folder(out, config.force) as tmp_dir:
-                            tiles = _write_tiles(tmp_dir, spill, header, counts, step, max_points, parallel)
-                            summary = summary_of(np.min([t["min"] for t in tiles], axis=0), np.max([t["max"] for t in tiles], axis=0), tiles)
-                            data = {"poses": str(poses_path) if poses_path else None, "frame": poses.frame, **summary.to_dict()}
+                            tiles = _write_tiles(
+                                tmp_dir, spill, header, counts, step, max_points, parallel
+                            )
+                            summary = summary_of(
+                                np.min([t["min"] for t in tiles], axis=0),
+                                np.max([t["max"] for t in tiles], axis=0),
+                                tiles,
+                            )
+                            data = {
+                                "poses": str(poses_path) if poses_path else None,
+                                "frame": poses.frame,
+                                **summary.to_dict(),
+                            }
                             (tmp_dir / TILE_INDEX).write_text(json.dumps(data, indent=1))
                     else:
                         with atomic_output(out, force=True) as tmp:
-                            with laspy.open(tmp, mode="w", header=header, do_compress=out.suffix.lower() == ".laz") as writer:
+                            with laspy.open(
+                                tmp,
+                                mode="w",
+                                header=header,
+                                do_compress=out.suffix.lower() == ".laz",
+                            ) as writer:
                                 for _, bucket in spill.tiles():
                                     for block in thinned_blocks(bucket, dtype, step, max_points):
                                         _count_out(counts, block)
-                                        write_chunk(writer, laspy.ScaleAwarePointRecord(block, header.point_format, header.scales, header.offsets))
+                                        write_chunk(
+                                            writer,
+                                            laspy.ScaleAwarePointRecord(
+                                                block,
+                                                header.point_format,
+                                                header.scales,
+                                                header.offsets,
+                                            ),
+                                        )
                             summary = summary_of(writer.header.mins, writer.header.maxs)
                             write_sidecar(summary)
     except OSError as exc:  # disk full, folder vanished...: a user problem, not a bug
@@ -641,7 +811,9 @@ def _check_output(out: Path, config: MergeConfig) -> Path:
         if out.exists() and not config.force:
             raise InputError(f"{out}: already exists (use --force to overwrite)")
         if out.exists() and not (out / TILE_INDEX).is_file():
-            raise InputError(f"{out}: exists and is not a tile folder written by plotmosaic merge --tiles; not replacing it")
+            raise InputError(
+                f"{out}: exists and is not a tile folder written by plotmosaic merge --tiles; not replacing it"
+            )
         check_writable(temp_path(out), force=True)
         return out / TILE_INDEX
     if out.suffix.lower() not in (".las", ".laz"):
@@ -657,7 +829,14 @@ def _check_output(out: Path, config: MergeConfig) -> Path:
     return sidecar
 
 
-def _stream(writer: laspy.LasWriter, sources: list[Source], counts: list[SourceCount], header, config: MergeConfig, bar) -> None:
+def _stream(
+    writer: laspy.LasWriter,
+    sources: list[Source],
+    counts: list[SourceCount],
+    header,
+    config: MergeConfig,
+    bar,
+) -> None:
     """Plain merge: every chunk posed and written straight away, in stream order."""
     for source, count in zip(sources, counts):
         for chunk in read_records(source.path, config.chunk_size):
@@ -669,7 +848,15 @@ def _stream(writer: laspy.LasWriter, sources: list[Source], counts: list[SourceC
                 bar.advance(len(chunk), source.id)
 
 
-def _bucket(spill: TileSpill, sources: list[Source], counts: list[SourceCount], header, config: MergeConfig, step: int | None, bar) -> None:
+def _bucket(
+    spill: TileSpill,
+    sources: list[Source],
+    counts: list[SourceCount],
+    header,
+    config: MergeConfig,
+    step: int | None,
+    bar,
+) -> None:
     """First pass: every chunk posed, cropped, thinned within itself (a point that is not the first of its
     voxel in its chunk cannot be the first in the cloud) and bucketed by tile."""
     for source, count in zip(sources, counts):
@@ -694,7 +881,9 @@ def _tile_name(origin: np.ndarray) -> str:
     return "tile_" + "_".join(f"{v:.3f}".rstrip("0").rstrip(".") for v in origin) + ".laz"
 
 
-def _write_tiles(folder: Path, spill: TileSpill, header, counts, step: int | None, max_points: int, parallel: int) -> list[dict]:
+def _write_tiles(
+    folder: Path, spill: TileSpill, header, counts, step: int | None, max_points: int, parallel: int
+) -> list[dict]:
     """One LAZ per tile, `parallel` tiles at a time (each with a single-threaded codec then)."""
     edge_m = spill.edge * spill.step * SCALE
     backend = laspy.LazBackend.Lazrs if parallel > 1 else laspy.LazBackend.LazrsParallel
@@ -705,20 +894,35 @@ def _write_tiles(folder: Path, spill: TileSpill, header, counts, step: int | Non
         origin = header.offsets[:2] + np.array([i, j]) * edge_m
         tile_counts = [SourceCount(c.source_id, c.id, c.kind, c.path) for c in counts]
         path = folder / _tile_name(origin)
-        with laspy.open(path, mode="w", header=header, do_compress=True, laz_backend=backend) as writer:
+        with laspy.open(
+            path, mode="w", header=header, do_compress=True, laz_backend=backend
+        ) as writer:
             for block in thinned_blocks(bucket, dtype, step, max_points):
                 _count_out(tile_counts, block)
-                write_chunk(writer, laspy.ScaleAwarePointRecord(block, header.point_format, header.scales, header.offsets))
+                write_chunk(
+                    writer,
+                    laspy.ScaleAwarePointRecord(
+                        block, header.point_format, header.scales, header.offsets
+                    ),
+                )
         h = writer.header
         return {
-            "file": path.name, "origin": [round(float(v), 3) for v in origin], "size": round(edge_m, 3), "points": int(h.point_count),
-            "min": [round(float(v), 3) for v in h.mins], "max": [round(float(v), 3) for v in h.maxs],
+            "file": path.name,
+            "origin": [round(float(v), 3) for v in origin],
+            "size": round(edge_m, 3),
+            "points": int(h.point_count),
+            "min": [round(float(v), 3) for v in h.mins],
+            "max": [round(float(v), 3) for v in h.maxs],
             "_counts": [c.points_out for c in tile_counts],
         }
 
     items, tiles = spill.tiles(), []
-    for k in range(0, len(items), parallel):  # by pairs, not one pool over all: Ctrl-C waits for two tiles at most
-        tiles += in_two_threads(write, items[k : k + parallel]) if parallel > 1 else [write(items[k])]
+    for k in range(
+        0, len(items), parallel
+    ):  # by pairs, not one pool over all: Ctrl-C waits for two tiles at most
+        tiles += (
+            in_two_threads(write, items[k : k + parallel]) if parallel > 1 else [write(items[k])]
+        )
     for tile in tiles:
         for count, n in zip(counts, tile.pop("_counts")):
             count.points_out += n
@@ -819,10 +1023,14 @@ def read_records(path: Path, chunk_size: int) -> Iterator[laspy.ScaleAwarePointR
         try:
             yield from reader.chunk_iterator(chunk_size)
         except Exception as exc:
-            raise InputError(f"{path}: corrupt or truncated LAS/LAZ data ({short_error(exc)})") from None
+            raise InputError(
+                f"{path}: corrupt or truncated LAS/LAZ data ({short_error(exc)})"
+            ) from None
 
 
-def integer_transform(pose: np.ndarray, in_scales, in_offsets, out_scales, out_offsets) -> np.ndarray:
+def integer_transform(
+    pose: np.ndarray, in_scales, in_offsets, out_scales, out_offsets
+) -> np.ndarray:
     """The pose as a map from a file's stored integers to the output's (float64, then rounded):
     unscale the input, apply the pose, rescale for the output, in one 4x4."""
     return (
@@ -835,7 +1043,11 @@ def integer_transform(pose: np.ndarray, in_scales, in_offsets, out_scales, out_o
 
 
 def posed_record(
-    source: Source, chunk: laspy.ScaleAwarePointRecord, header: laspy.LasHeader, bbox: tuple[float, ...] | None, thin: int | None = None
+    source: Source,
+    chunk: laspy.ScaleAwarePointRecord,
+    header: laspy.LasHeader,
+    bbox: tuple[float, ...] | None,
+    thin: int | None = None,
 ) -> laspy.ScaleAwarePointRecord:
     """A chunk posed into the output, cropped, with its source id; with `thin` (a voxel edge in output
     integer units), only the first point of each voxel within the chunk.
@@ -844,11 +1056,15 @@ def posed_record(
     other fields are copied as they are (the whole record at once when the point formats
     agree, field by field otherwise) instead of being unpacked and packed again.
     """
-    M = integer_transform(source.transform, chunk.scales, chunk.offsets, header.scales, header.offsets)
+    M = integer_transform(
+        source.transform, chunk.scales, chunk.offsets, header.scales, header.offsets
+    )
     raw = chunk.array
     q = np.rint(apply_transform(M, np.column_stack([raw["X"], raw["Y"], raw["Z"]])))
     if len(q) and (q.min() < -(2**31) or q.max() > 2**31 - 1):
-        raise InputError(f"{source.path}: posed points fall outside the output's coordinate range (is the pose right?)")
+        raise InputError(
+            f"{source.path}: posed points fall outside the output's coordinate range (is the pose right?)"
+        )
     q = q.astype(np.int64)
     index = None
     if bbox is not None:
@@ -861,7 +1077,9 @@ def posed_record(
     if index is not None:
         raw, q = take_records(raw, index), q[index]
     if raw.dtype == header.point_format.dtype():
-        record = laspy.ScaleAwarePointRecord(raw, header.point_format, header.scales, header.offsets)
+        record = laspy.ScaleAwarePointRecord(
+            raw, header.point_format, header.scales, header.offsets
+        )
     else:  # another point format (LAS 1.2 PF 3, no RGB, other extra bytes): copy the fields by name
         record = laspy.ScaleAwarePointRecord.zeros(len(raw), header=header)
         record.copy_fields_from(laspy.PackedPointRecord(raw, chunk.point_format))

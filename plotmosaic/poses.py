@@ -90,8 +90,13 @@ def rigid_problem(T: np.ndarray) -> str | None:
     det = float(np.linalg.det(R))
     if det < 0:
         return f"is a reflection (determinant {det:+.4f}), not a rotation"
-    if not np.allclose(R @ R.T, np.eye(3), atol=RIGID_TOLERANCE) or abs(det - 1.0) > RIGID_TOLERANCE:
-        return f"rotation part is not orthonormal within {RIGID_TOLERANCE:g} (determinant {det:.6f})"
+    if (
+        not np.allclose(R @ R.T, np.eye(3), atol=RIGID_TOLERANCE)
+        or abs(det - 1.0) > RIGID_TOLERANCE
+    ):
+        return (
+            f"rotation part is not orthonormal within {RIGID_TOLERANCE:g} (determinant {det:.6f})"
+        )
     return None
 
 
@@ -130,6 +135,11 @@ def load_poses(path: str | Path) -> Poses:
         if not isinstance(entry, dict) or "transform" not in entry:
             raise InputError(f"{where}: missing field 'transform'")
         extra = {k: v for k, v in entry.items() if k not in ("transform", "plot", "sigma")}
-        scans[sid] = ScanPose(rigid_matrix(entry["transform"], where), entry.get("plot"), _sigma(entry.get("sigma"), where), extra)
+        scans[sid] = ScanPose(
+            rigid_matrix(entry["transform"], where),
+            entry.get("plot"),
+            _sigma(entry.get("sigma"), where),
+            extra,
+        )
     extra = {k: v for k, v in data.items() if k not in ("frame", "crs", "scans")}
     return Poses(scans, data.get("frame", "plot"), data.get("crs"), extra)

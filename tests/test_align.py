@@ -30,7 +30,9 @@ def config(**kw) -> AlignConfig:
 def perturbation(rng, centre, max_deg=10.0, max_m=2.0) -> np.ndarray:
     """Uniform +-max_deg on each angle and +-max_m on each axis, rotating about `centre`."""
     P = np.eye(4)
-    P[:3, :3] = Rotation.from_euler("xyz", rng.uniform(-max_deg, max_deg, 3), degrees=True).as_matrix()
+    P[:3, :3] = Rotation.from_euler(
+        "xyz", rng.uniform(-max_deg, max_deg, 3), degrees=True
+    ).as_matrix()
     P[:3, 3] = centre - P[:3, :3] @ centre + rng.uniform(-max_m, max_m, 3)
     return P
 
@@ -39,7 +41,9 @@ def pose_error(T, T_true, centre) -> tuple[np.ndarray, np.ndarray]:
     """|angles| (deg) of the residual rotation and |displacement| (m) of the source point `centre`
     (measured at the data, not at the file origin, which is thousands of km away in UTM)."""
     D = np.linalg.inv(T_true) @ T
-    return np.abs(Rotation.from_matrix(D[:3, :3]).as_euler("xyz", degrees=True)), np.abs(apply_transform(D, np.asarray(centre)[None])[0] - centre)
+    return np.abs(Rotation.from_matrix(D[:3, :3]).as_euler("xyz", degrees=True)), np.abs(
+        apply_transform(D, np.asarray(centre)[None])[0] - centre
+    )
 
 
 # ------------------------------------------------------------------ mixture and matching
@@ -49,7 +53,9 @@ def test_vmf_em_recovers_axial_components():
     rng = np.random.default_rng(1)
     mus = [np.array([0.0, 0.0, 1.0]), np.array([1.0, 1.0, 0.0]) / np.sqrt(2)]
     kappas = [60.0, 8.0]
-    x = np.vstack([sample_vmf(mus[0], kappas[0], 6000, rng), sample_vmf(mus[1], kappas[1], 4000, rng)])
+    x = np.vstack(
+        [sample_vmf(mus[0], kappas[0], 6000, rng), sample_vmf(mus[1], kappas[1], 4000, rng)]
+    )
     x *= rng.choice([-1.0, 1.0], size=(len(x), 1))  # normals come with an arbitrary sign
     mix = fit_vmf_mixture(x, 2, seed=0)
     order = np.argsort(-mix.kappa)
@@ -79,7 +85,11 @@ def test_information_matrix_matches_finite_differences():
     p = rng.uniform(-15, 15, (200, 3)) + offset
     n = rng.normal(size=(200, 3))
     n /= np.linalg.norm(n, axis=1, keepdims=True)
-    T = translation(offset + [0.3, -0.2, 0.1]) @ _exp_se3(np.array([0.02, -0.01, 0.2, 0, 0, 0])) @ translation(-offset)
+    T = (
+        translation(offset + [0.3, -0.2, 0.1])
+        @ _exp_se3(np.array([0.02, -0.01, 0.2, 0, 0, 0]))
+        @ translation(-offset)
+    )
     q = apply_transform(T, p) + 0.01 * rng.normal(size=(200, 1)) * n
 
     def residuals(Tm):
@@ -137,7 +147,9 @@ def test_sim_tls_pair_from_perturbations(sim_prepared):
     rng = np.random.default_rng(7)
     centre = ps.frame.to_global(ps.points.mean(axis=0))
     for _ in range(3):
-        result = register_prepared(ps, pt, cfg, init=T_true @ perturbation(rng, centre, 5.0, 1.0), seed=0)
+        result = register_prepared(
+            ps, pt, cfg, init=T_true @ perturbation(rng, centre, 5.0, 1.0), seed=0
+        )
         deg, m = pose_error(result.transform, T_true, centre)
         assert deg.max() < 0.1, deg
         assert m.max() < 0.02, m
@@ -209,12 +221,21 @@ def test_level_stage_never_ends_worse_than_its_start(sim_pair):
 def test_utm_coordinates_keep_precision(sim_pair):
     """The same pair shifted into UTM-sized coordinates gives the same transform, to the millimetre."""
     src, tgt, T_true = sim_pair
-    o_s, o_t = np.array([470_123.0, 3_810_456.0, 2_100.0]), np.array([470_150.0, 3_810_401.0, 2_095.0])
+    o_s, o_t = (
+        np.array([470_123.0, 3_810_456.0, 2_100.0]),
+        np.array([470_150.0, 3_810_401.0, 2_095.0]),
+    )
     cfg = config()
     init = T_true @ perturbation(np.random.default_rng(11), src.xyz.mean(axis=0), 5.0, 1.0)
     base = align_clouds(src, tgt, "tls", "tls", cfg, init=init)
-    shifted = align_clouds(PointCloud(src.xyz + o_s), PointCloud(tgt.xyz + o_t), "tls", "tls", cfg,
-                           init=translation(o_t) @ init @ translation(-o_s))
+    shifted = align_clouds(
+        PointCloud(src.xyz + o_s),
+        PointCloud(tgt.xyz + o_t),
+        "tls",
+        "tls",
+        cfg,
+        init=translation(o_t) @ init @ translation(-o_s),
+    )
     expected = translation(o_t) @ base.transform @ translation(-o_s)
     deg, m = pose_error(shifted.transform, expected, src.xyz.mean(axis=0) + o_s)
     assert deg.max() < 0.005 and m.max() < 0.002
@@ -238,7 +259,9 @@ def test_real_uas_to_als_recovers_known_perturbation(spanner_dir):
     """UAS -> ALS (same georeference to a few cm): a 5 deg / 1 m perturbation comes back."""
     uas = read_cloud(spanner_dir / "UAS_Clip.laz", attributes=False)
     als = read_cloud(spanner_dir / "ALS_Clip.laz", attributes=False)
-    uas = uas.select(np.arange(0, len(uas), 3))  # a third of the points: same geometry, a faster test
+    uas = uas.select(
+        np.arange(0, len(uas), 3)
+    )  # a third of the points: same geometry, a faster test
     centre = uas.xyz.mean(axis=0)
     P = np.eye(4)
     P[:3, :3] = Rotation.from_euler("xyz", [3.0, -2.5, 3.0], degrees=True).as_matrix()  # ~5 deg
@@ -258,4 +281,9 @@ def test_same_inputs_and_seed_same_result(sim_pair):
     a = align_clouds(src, tgt, "tls", "tls", AlignConfig(), seed=3)
     b = align_clouds(src, tgt, "tls", "tls", AlignConfig(), seed=3)
     np.testing.assert_allclose(a.transform, b.transform, rtol=0, atol=1e-9)
-    assert (a.fitness, a.inlier_rmse, a.overlap, a.confidence) == (b.fitness, b.inlier_rmse, b.overlap, b.confidence)
+    assert (a.fitness, a.inlier_rmse, a.overlap, a.confidence) == (
+        b.fitness,
+        b.inlier_rmse,
+        b.overlap,
+        b.confidence,
+    )

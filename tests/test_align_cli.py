@@ -45,11 +45,23 @@ def pair(small_sim, tmp_path_factory):
 def test_align_writes_result_and_levels(pair, tmp_path):
     src, tgt, T_true, init = pair
     out = tmp_path / "result.json"
-    res = invoke(src, tgt, "--init", init, "--no-coarse", "--out", out, "--save-levels", tmp_path / "levels")
+    res = invoke(
+        src, tgt, "--init", init, "--no-coarse", "--out", out, "--save-levels", tmp_path / "levels"
+    )
     assert res.exit_code == 0, res.output
     assert "fitness" in res.output and "rotation" in res.output
     data = json.loads(out.read_text())
-    for key in ("transform", "fitness", "inlier_rmse", "overlap", "information", "levels", "seconds", "method", "version"):
+    for key in (
+        "transform",
+        "fitness",
+        "inlier_rmse",
+        "overlap",
+        "information",
+        "levels",
+        "seconds",
+        "method",
+        "version",
+    ):
         assert key in data
     T = np.asarray(data["transform"])
     D = np.linalg.inv(T_true) @ T

@@ -10,7 +10,15 @@ import pytest
 from typer.testing import CliRunner
 
 from plotmosaic.bench.overlap import crop_to_overlap, overlap_fraction
-from plotmosaic.bench.protocol import PARAMS, PROTOCOLS, get_protocol, is_success, params_to_matrix, pose_error, sample_params
+from plotmosaic.bench.protocol import (
+    PARAMS,
+    PROTOCOLS,
+    get_protocol,
+    is_success,
+    params_to_matrix,
+    pose_error,
+    sample_params,
+)
 from plotmosaic.bench.run import read_trials_csv
 from plotmosaic.cli import app
 from plotmosaic.io.las import PointCloud, write_cloud
@@ -65,13 +73,22 @@ def test_perturbations_lie_in_the_protocol_ranges_and_are_seeded(name):
 def test_protocol_ranges_match_the_issue():
     assert PROTOCOLS["paper"].ranges.tolist() == [45, 45, 45, 15, 15, 15]
     assert PROTOCOLS["beyond"].ranges.tolist() == [10, 10, 180, 25, 25, 25]
-    assert get_protocol("custom", rotation=5, translation_m=0.5).ranges.tolist() == [5, 5, 5, 0.5, 0.5, 0.5]
+    assert get_protocol("custom", rotation=5, translation_m=0.5).ranges.tolist() == [
+        5,
+        5,
+        5,
+        0.5,
+        0.5,
+        0.5,
+    ]
 
 
 def test_pose_error_recovers_known_roll_pitch_yaw_and_translation():
     rng = np.random.default_rng(3)
     centre = UTM + rng.normal(0, 10, 3)
-    T_true = params_to_matrix([1.0, -2.0, 130.0, 5.0, -7.0, 0.3], UTM)  # any truth, far from the origin
+    T_true = params_to_matrix(
+        [1.0, -2.0, 130.0, 5.0, -7.0, 0.3], UTM
+    )  # any truth, far from the origin
     for p in sample_params(PROTOCOLS["paper"], 50, seed=1):
         T_est = params_to_matrix(p, centre) @ T_true
         np.testing.assert_allclose(pose_error(T_est, T_true, centre), p, atol=1e-6)
@@ -125,7 +142,16 @@ def _bench_inputs(request, tmp_path):
     except pytest.FixtureLookupError:
         sim = None
     if sim is not None:
-        return ["--manifest", str(sim.manifest_path), "--gt", str(sim.ground_truth_path), "--pairs", "tls-tls", "--max-pairs", "1"]
+        return [
+            "--manifest",
+            str(sim.manifest_path),
+            "--gt",
+            str(sim.ground_truth_path),
+            "--pairs",
+            "tls-tls",
+            "--max-pairs",
+            "1",
+        ]
     src, tgt = split_pair(synthetic_plot())
     write_cloud(tmp_path / "src.laz", src)
     write_cloud(tmp_path / "tgt.laz", tgt)
@@ -143,7 +169,24 @@ def _table_rows(text: str) -> dict[str, list[str]]:
 
 def test_bench_two_trials_table_matches_the_trials(request, tmp_path):
     out = tmp_path / "out"
-    args = ["bench", *_bench_inputs(request, tmp_path), "--trials", "2", "--protocol", "custom", "--max-rotation", "3", "--max-translation", "0.5", "--methods", "icp", "--out", str(out), "--seed", "5"]
+    args = [
+        "bench",
+        *_bench_inputs(request, tmp_path),
+        "--trials",
+        "2",
+        "--protocol",
+        "custom",
+        "--max-rotation",
+        "3",
+        "--max-translation",
+        "0.5",
+        "--methods",
+        "icp",
+        "--out",
+        str(out),
+        "--seed",
+        "5",
+    ]
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     rows = read_trials_csv(out / "trials.csv")
@@ -165,7 +208,12 @@ def test_bench_two_trials_table_matches_the_trials(request, tmp_path):
         assert int(cells[9]) == sum(r["failed"] for r in sub)
     # the initial row is the RMSE of the perturbations, identical for every method
     init = np.array([[r[f"init_{p}"] for p in PARAMS] for r in rows if r["method"] == "icp"])
-    np.testing.assert_allclose([float(c) for c in table["initial"][2:8]], np.sqrt(np.mean(init**2, axis=0)), rtol=0.01, atol=6e-4)
+    np.testing.assert_allclose(
+        [float(c) for c in table["initial"][2:8]],
+        np.sqrt(np.mean(init**2, axis=0)),
+        rtol=0.01,
+        atol=6e-4,
+    )
     assert np.all(np.abs(init[:, :3]) <= 3) and np.all(np.abs(init[:, 3:]) <= 0.5)
     # ICP from a small perturbation registers every trial
     icp = [r for r in rows if r["method"] == "icp"]
@@ -181,8 +229,18 @@ def test_bench_is_deterministic_for_a_seed():
     from plotmosaic.bench.run import BenchConfig, BenchPair, run_bench
 
     src, tgt = split_pair(synthetic_plot(trees=10))
-    config = BenchConfig(trials=1, seed=3, methods=["fpfh-ransac"], methods_config=MethodsConfig(fpfh=FpfhConfig(voxel=0.5, max_points=3000, ransac_iterations=5000)))
-    runs = [run_bench([BenchPair("p", src, tgt, np.eye(4))], config, progress=False).rows for _ in range(2)]
+    config = BenchConfig(
+        trials=1,
+        seed=3,
+        methods=["fpfh-ransac"],
+        methods_config=MethodsConfig(
+            fpfh=FpfhConfig(voxel=0.5, max_points=3000, ransac_iterations=5000)
+        ),
+    )
+    runs = [
+        run_bench([BenchPair("p", src, tgt, np.eye(4))], config, progress=False).rows
+        for _ in range(2)
+    ]
     for a, b in zip(*runs):
         assert [a[p] for p in PARAMS] == [b[p] for p in PARAMS]
         assert [a[f"init_{p}"] for p in PARAMS] == [b[f"init_{p}"] for p in PARAMS]
@@ -196,10 +254,31 @@ def test_bench_rejects_bad_options_with_one_line(tmp_path):
         (["--protocol", "wild"], "unknown protocol"),
         (["--overlap", "28,abc"], "--overlap"),
     ):
-        result = CliRunner().invoke(app, ["bench", str(tmp_path / "s.laz"), str(tmp_path / "s.laz"), "--gt", "identity", *extra, "--out", str(tmp_path / "o")])
+        result = CliRunner().invoke(
+            app,
+            [
+                "bench",
+                str(tmp_path / "s.laz"),
+                str(tmp_path / "s.laz"),
+                "--gt",
+                "identity",
+                *extra,
+                "--out",
+                str(tmp_path / "o"),
+            ],
+        )
         assert result.exit_code == 2, result.output
         assert needle in result.output and "Traceback" not in result.output
-    result = CliRunner().invoke(app, ["bench", str(tmp_path / "s.laz"), str(tmp_path / "s.laz"), "--gt", str(tmp_path / "missing.json")])
+    result = CliRunner().invoke(
+        app,
+        [
+            "bench",
+            str(tmp_path / "s.laz"),
+            str(tmp_path / "s.laz"),
+            "--gt",
+            str(tmp_path / "missing.json"),
+        ],
+    )
     assert result.exit_code == 2 and "missing.json" in result.output
 
 
@@ -210,10 +289,21 @@ def test_ground_truth_from_poses_transform_json_or_identity(tmp_path):
 
     Ta, Tb = params_to_matrix([1, 2, 30, *UTM]), params_to_matrix([-1, 0, -60, *(UTM + 15)])
     Poses({"S1": ScanPose(Ta), "S0": ScanPose(Tb)}, frame="crs").save(tmp_path / "gt.json")
-    gt, a, b, als = str(tmp_path / "gt.json"), tmp_path / "S1.laz", tmp_path / "S0.laz", tmp_path / "als.laz"
-    np.testing.assert_allclose(load_truth(gt, a, b), np.linalg.inv(Tb) @ Ta)  # ids from the file stems
-    np.testing.assert_allclose(load_truth(gt, tmp_path / "x.laz", b, source_id="S1"), np.linalg.inv(Tb) @ Ta)
-    np.testing.assert_allclose(load_truth(gt, a, als), Ta)  # no pose for the ALS tile: it is the CRS frame
+    gt, a, b, als = (
+        str(tmp_path / "gt.json"),
+        tmp_path / "S1.laz",
+        tmp_path / "S0.laz",
+        tmp_path / "als.laz",
+    )
+    np.testing.assert_allclose(
+        load_truth(gt, a, b), np.linalg.inv(Tb) @ Ta
+    )  # ids from the file stems
+    np.testing.assert_allclose(
+        load_truth(gt, tmp_path / "x.laz", b, source_id="S1"), np.linalg.inv(Tb) @ Ta
+    )
+    np.testing.assert_allclose(
+        load_truth(gt, a, als), Ta
+    )  # no pose for the ALS tile: it is the CRS frame
     (tmp_path / "t.json").write_text(json.dumps({"transform": Ta.tolist()}))
     np.testing.assert_allclose(load_truth(str(tmp_path / "t.json"), a, b), Ta)
     np.testing.assert_array_equal(load_truth("identity", a, b), np.eye(4))
@@ -226,9 +316,13 @@ def test_bench_draws_forestalign_failures(tmp_path):
     from plotmosaic.bench.run import BenchConfig, BenchPair, run_bench
 
     src, tgt = split_pair(synthetic_plot(trees=6))
-    far = PointCloud(tgt.xyz + [400.0, 0.0, 0.0], crs=tgt.crs)  # the truth says they overlap; they cannot
+    far = PointCloud(
+        tgt.xyz + [400.0, 0.0, 0.0], crs=tgt.crs
+    )  # the truth says they overlap; they cannot
     config = BenchConfig(trials=1, methods=["forestalign", "icp"])
-    rows = run_bench([BenchPair("far", src, far, np.eye(4))], config, progress=False, failures=tmp_path / "f").rows
+    rows = run_bench(
+        [BenchPair("far", src, far, np.eye(4))], config, progress=False, failures=tmp_path / "f"
+    ).rows
     fa = next(r for r in rows if r["method"] == "forestalign")
     icp = next(r for r in rows if r["method"] == "icp")
     assert not fa["success"] and fa["picture"] and not icp["picture"]
@@ -242,29 +336,48 @@ def _row(case, proto, method, err, failed=False, confidence=None):
     from plotmosaic.bench.real_suite import outcome
 
     e = np.asarray(err, dtype=float)
-    r = {"case": case, "protocol": proto, "method": method, **dict(zip(PARAMS, e)), "success": bool(is_success(e)[0]),
-         "failed": failed, "seconds": 1.0, "confidence": confidence}
+    r = {
+        "case": case,
+        "protocol": proto,
+        "method": method,
+        **dict(zip(PARAMS, e)),
+        "success": bool(is_success(e)[0]),
+        "failed": failed,
+        "seconds": 1.0,
+        "confidence": confidence,
+    }
     return {**r, "outcome": outcome(r)}
 
 
 def test_real_suite_counts_found_refused_and_wrong_with_exit_0(tmp_path):
     from plotmosaic.bench.real_suite import markdown, reliability, summarise, write_outputs
 
-    rows = [_row("c", "paper", "forestalign", [0.1, 0, 0, 0.01, 0, 0], confidence=0.9),
-            _row("c", "paper", "forestalign", [0.3, 0, 0, 0.0, 0.02, 0], confidence=0.95),
-            _row("c", "paper", "forestalign", [20, 0, 0, 3, 0, 0], failed=True, confidence=0.2),
-            _row("c", "paper", "forestalign", [5, 0, 0, 1, 0, 0], confidence=0.6),
-            _row("c", "paper", "icp", [40, 0, 0, 10, 0, 0])]
+    rows = [
+        _row("c", "paper", "forestalign", [0.1, 0, 0, 0.01, 0, 0], confidence=0.9),
+        _row("c", "paper", "forestalign", [0.3, 0, 0, 0.0, 0.02, 0], confidence=0.95),
+        _row("c", "paper", "forestalign", [20, 0, 0, 3, 0, 0], failed=True, confidence=0.2),
+        _row("c", "paper", "forestalign", [5, 0, 0, 1, 0, 0], confidence=0.6),
+        _row("c", "paper", "icp", [40, 0, 0, 10, 0, 0]),
+    ]
     s = {x["method"]: x for x in summarise(rows)}
     fa = s["forestalign"]
     assert (fa["n"], fa["found"], fa["refused"], fa["wrong"]) == (4, 2, 1, 1)
-    assert fa["rmse_roll"] == pytest.approx(np.sqrt((0.1**2 + 0.3**2) / 2)) and fa["t_rmse_m"] == pytest.approx(np.sqrt((0.01**2 + 0.02**2) / 2))
+    assert fa["rmse_roll"] == pytest.approx(np.sqrt((0.1**2 + 0.3**2) / 2)) and fa[
+        "t_rmse_m"
+    ] == pytest.approx(np.sqrt((0.01**2 + 0.02**2) / 2))
     assert fa["wrong_errors"] == [pytest.approx((5.0, 1.0), rel=1e-3)]
     assert (s["icp"]["found"], s["icp"]["wrong"], s["icp"]["rmse_roll"]) == (0, 1, None)
     assert "| c | paper | forestalign | 4 | 2 | 1 | **1** |" in markdown(summarise(rows))
     bins = reliability(rows)
-    assert sum(b["n"] for b in bins) == 4 and bins[9]["found"] == 2 and bins[6]["wrong_returned"] == 1 and bins[2]["returned"] == 0
-    paths = write_outputs(rows, {"cases": {"c": {"note": "a case"}}, "skipped": {}}, tmp_path, "cmd")
+    assert (
+        sum(b["n"] for b in bins) == 4
+        and bins[9]["found"] == 2
+        and bins[6]["wrong_returned"] == 1
+        and bins[2]["returned"] == 0
+    )
+    paths = write_outputs(
+        rows, {"cases": {"c": {"note": "a case"}}, "skipped": {}}, tmp_path, "cmd"
+    )
     assert paths["figure"].stat().st_size > 10_000 and "a case" in paths["table"].read_text()
 
 
@@ -282,7 +395,10 @@ def test_refine_truth_recovers_a_small_offset_of_a_real_like_cloud():
     rot, trans = float(rotation_angle(err)[0]), float(np.linalg.norm(err[3:]))
     assert rot < 0.1 and trans < 0.03 and meta["spread_deg"] < 0.1 and len(meta["methods"]) == 3
     G = random_frame(cloud.xyz, np.random.default_rng(0))
-    assert np.allclose(G[:3, :3] @ G[:3, :3].T, np.eye(3)) and np.abs(apply_transform(G, cloud.xyz)).max() < 60
+    assert (
+        np.allclose(G[:3, :3] @ G[:3, :3].T, np.eye(3))
+        and np.abs(apply_transform(G, cloud.xyz)).max() < 60
+    )
 
 
 def test_real_cases_treels_pair_has_exact_truth_in_own_frames():
@@ -295,7 +411,9 @@ def test_real_cases_treels_pair_has_exact_truth_in_own_frames():
         pytest.skip("shared/data/treels not present")
     case = build_case("treels-2views", seed=1)
     assert case.meta["distance_m"] >= 6.0 and (case.source_kind, case.target_kind) == ("tls", "tls")
-    assert np.abs(case.source.xyz).max() < 40 and np.abs(case.target.xyz).max() < 40  # scanner frames
+    assert (
+        np.abs(case.source.xyz).max() < 40 and np.abs(case.target.xyz).max() < 40
+    )  # scanner frames
     from scipy.spatial import cKDTree
 
     d, _ = cKDTree(case.target.xyz).query(apply_transform(case.truth, case.source.xyz))

@@ -18,7 +18,9 @@ def run_info(*args):
 @pytest.fixture
 def good_laz(tmp_path):
     rng = np.random.default_rng(0)
-    return write_cloud(tmp_path / "good.laz", PointCloud(rng.uniform(0, 10, (40_000, 3)) + [470000, 3810000, 2000]))
+    return write_cloud(
+        tmp_path / "good.laz", PointCloud(rng.uniform(0, 10, (40_000, 3)) + [470000, 3810000, 2000])
+    )
 
 
 def test_missing_file(tmp_path):
@@ -69,7 +71,9 @@ def test_duplicate_scan_ids(tmp_path, good_laz):
 
 
 def test_wrong_type_field(tmp_path, good_laz):
-    m = manifest(tmp_path, good_laz, '[[scans]]\nid = "s1"\npath = "GOOD"\nreference = "yes please"\n')
+    m = manifest(
+        tmp_path, good_laz, '[[scans]]\nid = "s1"\npath = "GOOD"\nreference = "yes please"\n'
+    )
     assert_one_line_error(run_info(m), "scan 's1'", "field 'reference'")
 
 
@@ -81,5 +85,10 @@ def test_valid_inputs_describe_themselves(tmp_path, good_laz):
 
 
 def test_console_script_entry_point_reports_version():
-    out = subprocess.run([sys.executable, "-m", "plotmosaic", "--version"], capture_output=True, text=True, check=True)
+    out = subprocess.run(
+        [sys.executable, "-m", "plotmosaic", "--version"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     assert out.stdout.startswith("plotmosaic ")

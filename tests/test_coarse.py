@@ -14,13 +14,17 @@ from plotmosaic.io.frame import to_local_transform
 
 
 def angle_deg(a, b):
-    return np.degrees(np.arccos(np.clip(np.dot(a, b) / np.linalg.norm(a) / np.linalg.norm(b), -1, 1)))
+    return np.degrees(
+        np.arccos(np.clip(np.dot(a, b) / np.linalg.norm(a) / np.linalg.norm(b), -1, 1))
+    )
 
 
 def test_levelling_finds_vertical_on_a_slope_from_stems():
     rng = np.random.default_rng(0)
     true_up = Rotation.from_euler("xy", [30, -20], degrees=True).apply([0, 0, 1])
-    slope = Rotation.from_euler("xy", [30 + 15, -20], degrees=True).apply([0, 0, 1])  # 15 deg terrain slope
+    slope = Rotation.from_euler("xy", [30 + 15, -20], degrees=True).apply(
+        [0, 0, 1]
+    )  # 15 deg terrain slope
     ground = slope + rng.normal(0, 0.05, (6000, 3))
     az = rng.uniform(0, 2 * np.pi, 2500)  # stem normals: horizontal in the true frame
     R = rotation_between(np.array([0, 0, 1.0]), true_up)
@@ -39,7 +43,9 @@ def test_masked_ncc_recovers_a_shift_with_partial_overlap():
     from scipy import ndimage
 
     world = ndimage.gaussian_filter(rng.random((200, 200)), 2)
-    tgt = Raster(np.array([0.0, 0.0]), 1.0, {"c": world[20:120, 30:130]}, {"c": np.ones((100, 100))})
+    tgt = Raster(
+        np.array([0.0, 0.0]), 1.0, {"c": world[20:120, 30:130]}, {"c": np.ones((100, 100))}
+    )
     src_img = world[60:140, 70:150]  # overlaps the target by 60 x 60 cells only
     src = Raster(np.array([500.0, 500.0]), 1.0, {"c": src_img}, {"c": np.ones((80, 80))})
     ncc = MaskedNCC(tgt, src_img.shape, min_overlap=400)
@@ -61,14 +67,18 @@ class Prepared:
 
 def prepare(xyz, kind):
     frame = Frame.around(xyz)
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(frame.to_local(xyz))).voxel_down_sample(0.1)
+    pcd = o3d.geometry.PointCloud(
+        o3d.utility.Vector3dVector(frame.to_local(xyz))
+    ).voxel_down_sample(0.1)
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.25, max_nn=30))
     return Prepared(np.asarray(pcd.points), np.asarray(pcd.normals), kind, frame)
 
 
 def pose_error(T, G):
     D = np.linalg.inv(G) @ T
-    return np.linalg.norm(D[:3, 3]), np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1)))
+    return np.linalg.norm(D[:3, 3]), np.degrees(
+        np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))
+    )
 
 
 def test_coarse_finds_drone_clip_inside_als_from_far_away(spanner_dir):

@@ -38,7 +38,9 @@ def test_bad_files_one_line_exit_2(e57_dir, name, needles):
     assert_one_line_error(invoke("info", "--full", e57_dir / name), *needles)
 
 
-@pytest.mark.parametrize("name, count", [("pumpAVisualReferenceImage.e57", 155_201), ("bunnyDouble.e57", 30_571)])
+@pytest.mark.parametrize(
+    "name, count", [("pumpAVisualReferenceImage.e57", 155_201), ("bunnyDouble.e57", 30_571)]
+)
 def test_real_samples_exact_counts(e57_dir, name, count):
     result = invoke("info", "--full", e57_dir / name)
     assert result.exit_code == 0, result.output
@@ -53,7 +55,9 @@ def test_attributes_and_chunks(e57_dir):
     cloud = read_cloud(pump)
     assert set(cloud.attrs) == {"intensity", "red", "green", "blue"}
     assert all(v.dtype == np.uint16 for v in cloud.attrs.values())
-    assert cloud.attrs["intensity"].max() > 1000 and cloud.attrs["red"].max() > 1000  # mapped to the LAS range
+    assert (
+        cloud.attrs["intensity"].max() > 1000 and cloud.attrs["red"].max() > 1000
+    )  # mapped to the LAS range
     chunks = list(iter_chunks(pump, chunk_size=40_000))
     assert [len(c) for c in chunks] == [40_000] * 3 + [35_201]
     np.testing.assert_array_equal(np.vstack([c.xyz for c in chunks]), cloud.xyz)
@@ -61,7 +65,9 @@ def test_attributes_and_chunks(e57_dir):
         records = list(reader.chunk_iterator(100_000))
     xyz = np.vstack([np.column_stack([r.x, r.y, r.z]) for r in records])
     assert np.abs(xyz - cloud.xyz).max() < 6e-5
-    np.testing.assert_array_equal(np.concatenate([np.asarray(r.intensity) for r in records]), cloud.attrs["intensity"])
+    np.testing.assert_array_equal(
+        np.concatenate([np.asarray(r.intensity) for r in records]), cloud.attrs["intensity"]
+    )
 
 
 def test_stored_pose_and_normals(e57_dir):
@@ -88,8 +94,15 @@ def write_e57(path: Path, scans: list[tuple[str, np.ndarray, np.ndarray, dict]])
 
     with pye57.E57(str(path), mode="w") as e57:
         for name, xyz, pose, extra in scans:
-            data = {"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2], **extra}
-            e57.write_scan_raw(data, name=name, rotation=_quaternion(pose[:3, :3]), translation=pose[:3, 3])
+            data = {
+                "cartesianX": xyz[:, 0],
+                "cartesianY": xyz[:, 1],
+                "cartesianZ": xyz[:, 2],
+                **extra,
+            }
+            e57.write_scan_raw(
+                data, name=name, rotation=_quaternion(pose[:3, :3]), translation=pose[:3, 3]
+            )
     return path
 
 
@@ -148,8 +161,12 @@ def test_manifest_scan_selection(project, tmp_path):
         f'[[scans]]\nid = "b"\npath = "{path}"\nscan = "{ids[0]}"\nuse_pose = true\n'
     )
     m = load_manifest(toml)
-    np.testing.assert_array_equal(read_cloud(m.resolve(m.scan("a").path)).xyz, points[ids[2]].astype(np.float32))
-    np.testing.assert_array_equal(read_cloud(m.resolve(m.scan("b").path)).xyz, points[ids[0]].astype(np.float32))
+    np.testing.assert_array_equal(
+        read_cloud(m.resolve(m.scan("a").path)).xyz, points[ids[2]].astype(np.float32)
+    )
+    np.testing.assert_array_equal(
+        read_cloud(m.resolve(m.scan("b").path)).xyz, points[ids[0]].astype(np.float32)
+    )
     assert m.stored_pose("a") is None  # use_pose not set
     np.testing.assert_allclose(m.stored_pose("b"), poses[ids[0]], atol=1e-9)
 
@@ -169,7 +186,9 @@ def test_manifest_from_writes_a_valid_manifest(project, tmp_path):
     out = path.parent / "sub" / "plot.toml"
     result = invoke("manifest-from", path, "--out", out, "--plot-id", "P1")
     assert result.exit_code == 0, result.output
-    assert "../plot.e57" not in out.read_text()  # outside the manifest's folder: absolute, no ../ chain
+    assert (
+        "../plot.e57" not in out.read_text()
+    )  # outside the manifest's folder: absolute, no ../ chain
     for toml in (tmp_path / "stdout.toml", out):
         m = load_manifest(toml)
         assert [s.id for s in m.scans] == ids and m.plots[0].reference.id == ids[0]
@@ -181,17 +200,27 @@ def test_manifest_from_writes_a_valid_manifest(project, tmp_path):
     rel = m.pair_prior(ids[1], ids[0])  # scan frame of ids[1] -> scan frame of ids[0]
     np.testing.assert_allclose(rel, np.linalg.inv(poses[ids[0]]) @ poses[ids[1]], atol=1e-9)
     assert load_manifest(out).pair_prior(ids[1], ids[0]) is None  # written without --use-pose
-    assert_one_line_error(invoke("manifest-from", path, "--out", out), "plot.toml", "already exists")
-    assert_one_line_error(invoke("manifest-from", path, "--plot-id", "../x"), "--plot-id", "not allowed")
+    assert_one_line_error(
+        invoke("manifest-from", path, "--out", out), "plot.toml", "already exists"
+    )
+    assert_one_line_error(
+        invoke("manifest-from", path, "--plot-id", "../x"), "--plot-id", "not allowed"
+    )
 
 
 def test_manifest_from_bad_files(e57_dir):
     assert_one_line_error(invoke("manifest-from", e57_dir / "empty.e57"), "empty.e57", "no scans")
-    assert_one_line_error(invoke("manifest-from", e57_dir / "ZeroPoints.e57"), "ZeroPoints.e57", "scan 0", "no points")
-    assert_one_line_error(invoke("manifest-from", e57_dir / "bad-crc.e57"), "bad-crc.e57", "checksum")
+    assert_one_line_error(
+        invoke("manifest-from", e57_dir / "ZeroPoints.e57"), "ZeroPoints.e57", "scan 0", "no points"
+    )
+    assert_one_line_error(
+        invoke("manifest-from", e57_dir / "bad-crc.e57"), "bad-crc.e57", "checksum"
+    )
 
 
-def write_spherical_e57(path: Path, rae: np.ndarray, state: np.ndarray, intensity: np.ndarray) -> Path:
+def write_spherical_e57(
+    path: Path, rae: np.ndarray, state: np.ndarray, intensity: np.ndarray
+) -> Path:
     """A one-scan E57 in spherical coordinates (double range, scaled-integer angles), with libE57 itself."""
     import pye57
     from pye57 import libe57
@@ -232,7 +261,9 @@ def write_spherical_e57(path: Path, rae: np.ndarray, state: np.ndarray, intensit
 def test_spherical_scaled_integer_and_invalid_points(tmp_path):
     rng = np.random.default_rng(5)
     n = 3000
-    rae = np.column_stack([rng.uniform(1, 50, n), rng.uniform(-3.1, 3.1, n), rng.uniform(-1.2, 1.2, n)])
+    rae = np.column_stack(
+        [rng.uniform(1, 50, n), rng.uniform(-3.1, 3.1, n), rng.uniform(-1.2, 1.2, n)]
+    )
     rae[:, 1:] = np.round(rae[:, 1:] * 1e6) / 1e6  # what the scaled integers hold
     state = np.where(np.arange(n) % 10 == 0, 2, 0)  # every tenth point missing
     intensity = rng.integers(1, 4096, n)
@@ -241,16 +272,22 @@ def test_spherical_scaled_integer_and_invalid_points(tmp_path):
     assert len(chunks) == 3
     cloud = read_cloud(path)
     r, az, el = rae[state == 0].T
-    expected = np.column_stack([r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)])
+    expected = np.column_stack(
+        [r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)]
+    )
     np.testing.assert_allclose(cloud.xyz, expected, atol=1e-9)
     assert len(cloud) == n - n // 10 and cloud.attrs["intensity"].dtype == np.uint16
     keep = state == 0
-    no_value = (np.arange(n) % 7 == 0)[keep]  # isIntensityInvalid: written as 0, the others scaled from 0..4095
+    no_value = (np.arange(n) % 7 == 0)[
+        keep
+    ]  # isIntensityInvalid: written as 0, the others scaled from 0..4095
     np.testing.assert_array_equal(cloud.attrs["intensity"][no_value], 0)
     expected_i = np.rint(intensity[keep][~no_value] * 65535 / 4095).astype(np.uint16)
     np.testing.assert_array_equal(cloud.attrs["intensity"][~no_value], expected_i)
     result = invoke("info", "--full", path)
-    assert result.exit_code == 0 and f"{n:,} points ({n // 10:,} flagged invalid)" in result.output, result.output
+    assert (
+        result.exit_code == 0 and f"{n:,} points ({n // 10:,} flagged invalid)" in result.output
+    ), result.output
 
 
 def _cache_takes_scan_refs(path: Path) -> bool:
@@ -270,7 +307,10 @@ def test_register_plot_from_e57(project, tmp_path):
         pytest.skip("graph/cache.file_hash does not take E57 scan references (FILE.e57#INDEX) yet")
     toml = tmp_path / "m.toml"
     toml.write_text(
-        'plot_id = "P1"\n' + "".join(f'[[scans]]\nid = "{s}"\npath = "{path}"\nscan = {i}\n' for i, s in enumerate(ids))
+        'plot_id = "P1"\n'
+        + "".join(
+            f'[[scans]]\nid = "{s}"\npath = "{path}"\nscan = {i}\n' for i, s in enumerate(ids)
+        )
     )
     result = invoke("register-plot", toml, "--out", tmp_path / "out", "-j", "1")
     assert result.exit_code == 0, result.output
@@ -299,7 +339,9 @@ def test_merge_carries_intensity_and_colour(e57_dir, tmp_path):
     from plotmosaic.poses import Poses, ScanPose
 
     if not _merge_reads_e57(e57_dir / "pumpAVisualReferenceImage.e57"):
-        pytest.skip("merge.py opens inputs with laspy.open, not io.las.open_las, so it cannot read E57 yet")
+        pytest.skip(
+            "merge.py opens inputs with laspy.open, not io.las.open_las, so it cannot read E57 yet"
+        )
     pump, cube = e57_dir / "pumpAVisualReferenceImage.e57", e57_dir / "ColouredCubeFloat.e57"
     toml = tmp_path / "m.toml"
     toml.write_text(
@@ -307,20 +349,28 @@ def test_merge_carries_intensity_and_colour(e57_dir, tmp_path):
     )
     shift = np.eye(4)
     shift[:3, 3] = [10, 0, 0]
-    Poses({"pump": ScanPose(np.eye(4), "P", None), "cube": ScanPose(shift, "P", None)}, frame="plot", crs=None).save(
-        tmp_path / "poses.json"
+    Poses(
+        {"pump": ScanPose(np.eye(4), "P", None), "cube": ScanPose(shift, "P", None)},
+        frame="plot",
+        crs=None,
+    ).save(tmp_path / "poses.json")
+    result = invoke(
+        "merge", toml, "--poses", tmp_path / "poses.json", "--out", tmp_path / "merged.laz"
     )
-    result = invoke("merge", toml, "--poses", tmp_path / "poses.json", "--out", tmp_path / "merged.laz")
     assert result.exit_code == 0, result.output
     las = laspy.read(tmp_path / "merged.laz")
     assert np.bincount(las.point_source_id).tolist() == [155_201, 7_680]
     src = read_cloud(pump)
     mine = las.point_source_id == 0  # merge keeps each file's point order
-    np.testing.assert_allclose(np.column_stack([las.x, las.y, las.z])[mine], src.xyz, atol=6e-4)  # 1 mm output grid
+    np.testing.assert_allclose(
+        np.column_stack([las.x, las.y, las.z])[mine], src.xyz, atol=6e-4
+    )  # 1 mm output grid
     for name in ("intensity", "red", "green", "blue"):
         np.testing.assert_array_equal(np.asarray(las[name])[mine], src.attrs[name])
     cube = read_cloud(cube)
-    np.testing.assert_allclose(np.column_stack([las.x, las.y, las.z])[~mine], cube.xyz + [10, 0, 0], atol=6e-4)
+    np.testing.assert_allclose(
+        np.column_stack([las.x, las.y, las.z])[~mine], cube.xyz + [10, 0, 0], atol=6e-4
+    )
     np.testing.assert_array_equal(np.asarray(las.blue)[~mine], cube.attrs["blue"])
 
 
@@ -332,7 +382,9 @@ def test_bad_stored_pose_only_matters_where_used(tmp_path):
     path = tmp_path / "q.e57"
     with pye57.E57(str(path), mode="w") as e57:
         data = {"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2]}
-        e57.write_scan_raw(data, name="q", rotation=np.array([2.0, 0, 0, 0]), translation=np.array([1.0, 2, 3]))
+        e57.write_scan_raw(
+            data, name="q", rotation=np.array([2.0, 0, 0, 0]), translation=np.array([1.0, 2, 3])
+        )
     assert len(read_cloud(path)) == 200
     assert "unusable stored pose" in invoke("info", path).output
     toml = tmp_path / "m.toml"

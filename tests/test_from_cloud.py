@@ -86,9 +86,14 @@ def test_truth_maps_each_view_back_exactly_even_in_utm(scene):
     views = cut_views(world, [tuple(UTM[:2] + [0.0, 0.0]), tuple(UTM[:2] + [3.0, -4.0])], seed=3)
     for view in views:
         T = view.truth
-        assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12) and np.linalg.det(T[:3, :3]) > 0
+        assert (
+            np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12)
+            and np.linalg.det(T[:3, :3]) > 0
+        )
         assert np.abs(apply_transform(T, view.points) - world[view.index]).max() < 1e-6
-        assert np.linalg.norm(view.points, axis=1).min() >= 0.5  # scanner at the origin of its own frame
+        assert (
+            np.linalg.norm(view.points, axis=1).min() >= 0.5
+        )  # scanner at the origin of its own frame
         assert np.abs(view.points).max() < 100  # a local frame, not UTM
     rel = inverse(views[1].truth) @ views[0].truth  # the two frames are distinct, random headings
     assert np.degrees(np.arccos(np.clip((np.trace(rel[:3, :3]) - 1) / 2, -1, 1))) > 1.0
@@ -99,7 +104,11 @@ def test_same_seed_same_views_other_seed_other_frame(scene):
     a = cut_views(xyz, [(0.0, 0.0)], seed=5)[0]
     b = cut_views(xyz, [(0.0, 0.0)], seed=5)[0]
     c = cut_views(xyz, [(0.0, 0.0)], seed=6)[0]
-    assert np.array_equal(a.index, b.index) and np.array_equal(a.truth, b.truth) and np.array_equal(a.points, b.points)
+    assert (
+        np.array_equal(a.index, b.index)
+        and np.array_equal(a.truth, b.truth)
+        and np.array_equal(a.points, b.points)
+    )
     assert not np.array_equal(a.truth, c.truth)
 
 
@@ -109,7 +118,11 @@ def test_range_noise_moves_points_along_their_rays(scene):
     true_local = apply_transform(inverse(view.truth), xyz[view.index])
     dr = np.linalg.norm(view.points, axis=1) - np.linalg.norm(true_local, axis=1)
     assert 0.002 < dr.std() < 0.004
-    cos = np.einsum("ij,ij->i", view.points, true_local) / np.linalg.norm(view.points, axis=1) / np.linalg.norm(true_local, axis=1)
+    cos = (
+        np.einsum("ij,ij->i", view.points, true_local)
+        / np.linalg.norm(view.points, axis=1)
+        / np.linalg.norm(true_local, axis=1)
+    )
     assert cos.min() > 1 - 1e-9
 
 
@@ -132,11 +145,24 @@ def test_scanner_standing_in_a_trunk_is_moved_out(scene):
 
 def test_cli_round_trip_writes_a_manifest_info_accepts(scene, tmp_path):
     xyz, labels = scene
-    src = write_cloud(tmp_path / "real.laz", PointCloud(xyz + UTM, {"classification": labels.astype(np.uint8)}))
+    src = write_cloud(
+        tmp_path / "real.laz", PointCloud(xyz + UTM, {"classification": labels.astype(np.uint8)})
+    )
     out = tmp_path / "views"
     runner = CliRunner()
-    res = runner.invoke(app, ["simulate", str(out), "--from-cloud", str(src), "--positions",
-                              f"{UTM[0]},{UTM[1]};{UTM[0] + 2},{UTM[1] + 3}", "--seed", "4"])
+    res = runner.invoke(
+        app,
+        [
+            "simulate",
+            str(out),
+            "--from-cloud",
+            str(src),
+            "--positions",
+            f"{UTM[0]},{UTM[1]};{UTM[0] + 2},{UTM[1] + 3}",
+            "--seed",
+            "4",
+        ],
+    )
     assert res.exit_code == 0, res.output
     m = load_manifest(out / "manifest.toml")
     assert [s.id for s in m.scans] == ["P1-S0", "P1-S1"] and m.plots[0].reference.id == "P1-S0"
@@ -151,11 +177,23 @@ def test_cli_round_trip_writes_a_manifest_info_accepts(scene, tmp_path):
         dist, _ = tree.query(back)
         assert dist.max() < 0.002  # the LAS millimetre grid
     # bad input: one line, exit 2
-    for args, culprit in ((["--positions", "1,x"], "--positions"), (["--preset", "paper", "--views", "2", "--spacing", "5"], "--preset"),
-                          (["--positions", "0,0", "--views", "2"], "not both"), ([], "--positions")):
-        res = runner.invoke(app, ["simulate", str(tmp_path / "bad"), "--from-cloud", str(src), *args])
-        assert res.exit_code == 2 and culprit in res.output and len(res.output.strip().splitlines()) == 1, res.output
-    res = runner.invoke(app, ["simulate", str(tmp_path / "far"), "--from-cloud", str(src), "--positions", "0,0"])
+    for args, culprit in (
+        (["--positions", "1,x"], "--positions"),
+        (["--preset", "paper", "--views", "2", "--spacing", "5"], "--preset"),
+        (["--positions", "0,0", "--views", "2"], "not both"),
+        ([], "--positions"),
+    ):
+        res = runner.invoke(
+            app, ["simulate", str(tmp_path / "bad"), "--from-cloud", str(src), *args]
+        )
+        assert (
+            res.exit_code == 2
+            and culprit in res.output
+            and len(res.output.strip().splitlines()) == 1
+        ), res.output
+    res = runner.invoke(
+        app, ["simulate", str(tmp_path / "far"), "--from-cloud", str(src), "--positions", "0,0"]
+    )
     assert res.exit_code == 2 and "from the nearest point" in res.output
 
 

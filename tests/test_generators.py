@@ -57,11 +57,23 @@ def test_vertical_hypotheses_include_the_truth_on_a_tilted_cloud(views):
     moved = move(T, pts)
     verticals, info = vertical_hypotheses(moved, normals_of(moved), CoarseConfig())
     true_up = T[:3, :3] @ Z
-    assert min(angle_deg(v.up, true_up) for v in verticals) < 3.0, info  # its stems lean ~2 deg on a 4 deg slope
-    assert all(angle_deg(a.up, b.up) > 2.0 for i, a in enumerate(verticals) for b in verticals[i + 1 :])
+    assert min(angle_deg(v.up, true_up) for v in verticals) < 3.0, (
+        info
+    )  # its stems lean ~2 deg on a 4 deg slope
+    assert all(
+        angle_deg(a.up, b.up) > 2.0 for i, a in enumerate(verticals) for b in verticals[i + 1 :]
+    )
     # airborne (georeferenced) clouds put z-up first; a cloud already near upright has z-up among its candidates
-    assert vertical_hypotheses(pts, normals_of(pts), CoarseConfig(), airborne=True)[0][0].name == "z-up"
-    assert min(angle_deg(v.up, Z) for v in vertical_hypotheses(pts, normals_of(pts), CoarseConfig())[0]) < 3.0
+    assert (
+        vertical_hypotheses(pts, normals_of(pts), CoarseConfig(), airborne=True)[0][0].name
+        == "z-up"
+    )
+    assert (
+        min(
+            angle_deg(v.up, Z) for v in vertical_hypotheses(pts, normals_of(pts), CoarseConfig())[0]
+        )
+        < 3.0
+    )
 
 
 def test_fpfh_generator_recovers_a_pose_with_and_without_a_vertical(views):
@@ -90,7 +102,10 @@ def test_stem_map_generator_recovers_heading_and_shift(views):
     Rz = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
     moved = src.copy()
     moved[:, :2] = src[:, :2] @ Rz.T + t
-    maps = [stemmap.stem_map(p, normals_of(p, 0.3), height_above_ground(p, 1.0, c), c) for p in (moved, tgt)]
+    maps = [
+        stemmap.stem_map(p, normals_of(p, 0.3), height_above_ground(p, 1.0, c), c)
+        for p in (moved, tgt)
+    ]
     assert len(maps[0].xy) >= 5 and len(maps[1].xy) >= 5
     found = stemmap.match_stem_maps(maps[0], maps[1], c, np.random.default_rng(0))
     y, shift, n = found[0]
@@ -116,14 +131,32 @@ def test_coarse_recovers_a_45_degree_tilted_source_and_is_deterministic(tilted_p
     assert deg < 1.0 and m < 0.2, (deg, m, result.hypotheses[:3])
     gens = {h["generator"] for h in result.hypotheses}
     assert {"raster", "fpfh", "stems"} <= gens
-    assert {"transform", "score", "refined", "screen_score", "raster_score", "yaw_deg", "overlap", "prior", "generator",
-            "vertical"} <= set(result.hypotheses[0])
+    assert {
+        "transform",
+        "score",
+        "refined",
+        "screen_score",
+        "raster_score",
+        "yaw_deg",
+        "overlap",
+        "prior",
+        "generator",
+        "vertical",
+    } <= set(result.hypotheses[0])
     # FPFH and the stem map each put the truth among their own starts (a duplicate of another's start is noted
     # in "agree"); the raster search on this 10 m scene does not at 20k points (it does at 40k), and is
     # checked alone on a 25/-30 deg tilted drone clip in test_coarse.py
     for gen in ("fpfh", "stems"):
-        near = [h for h in result.hypotheses if (h["generator"] == gen or any(a.startswith(gen) for a in h.get("agree", [])))
-                and max(pose_error(np.asarray(h["transform"]), truth)[0] / 2, pose_error(np.asarray(h["transform"]), truth)[1] / 0.5) < 1]
+        near = [
+            h
+            for h in result.hypotheses
+            if (h["generator"] == gen or any(a.startswith(gen) for a in h.get("agree", [])))
+            and max(
+                pose_error(np.asarray(h["transform"]), truth)[0] / 2,
+                pose_error(np.asarray(h["transform"]), truth)[1] / 0.5,
+            )
+            < 1
+        ]
         assert near, gen
     again = coarse_align(Cloud(src.points.copy()), Cloud(tgt.points.copy()), c, seed=3)
     assert [h["generator"] for h in again.hypotheses] == [h["generator"] for h in result.hypotheses]

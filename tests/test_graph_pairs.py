@@ -19,7 +19,14 @@ def _plot(positions):
 def test_pairs_all_without_positions_and_by_distance_with_them():
     plot = _plot([None, None, None, None])
     pairs = [(s.id, t.id) for s, t in candidate_pairs(plot, 10.0)]
-    assert pairs == [("s1", "s0"), ("s2", "s0"), ("s3", "s0"), ("s2", "s1"), ("s3", "s1"), ("s3", "s2")]
+    assert pairs == [
+        ("s1", "s0"),
+        ("s2", "s0"),
+        ("s3", "s0"),
+        ("s2", "s1"),
+        ("s3", "s1"),
+        ("s3", "s2"),
+    ]
     plot = _plot([(0, 0, 0), (8, 0, 0), (30, 0, 0), (36, 0, 5)])
     assert [(s.id, t.id) for s, t in candidate_pairs(plot, 10.0)] == [("s1", "s0"), ("s3", "s2")]
     assert len(candidate_pairs(plot, None)) == 6
@@ -37,12 +44,28 @@ def test_cache_key_follows_content_and_settings(tmp_path):
     assert key != pair_key(a, b, "tls", "als", 3, 2, '{"voxel": 0.05}', 0)
     before = file_hash(b)
     b.write_bytes(b"z" * 11)  # new content (and size): new hash, new key
-    assert file_hash(b) != before and pair_key(a, b, "tls", "tls", 3, 3, '{"voxel": 0.05}', 0) != key
+    assert (
+        file_hash(b) != before and pair_key(a, b, "tls", "tls", 3, 3, '{"voxel": 0.05}', 0) != key
+    )
     cache = PairCache(tmp_path / "pairs")
     assert cache.get(key) is None
-    cache.put(key, {"key": key, "source": "s1", "target": "s0", "status": "ok", "transform": np.eye(4).tolist(),
-                    "information": np.eye(6).tolist(), "fitness": 0.5, "inlier_rmse": 0.01, "overlap": 0.5})
-    (tmp_path / "pairs" / "broken.json").write_text('{"status": "o')  # e.g. a file cut short by hand
+    cache.put(
+        key,
+        {
+            "key": key,
+            "source": "s1",
+            "target": "s0",
+            "status": "ok",
+            "transform": np.eye(4).tolist(),
+            "information": np.eye(6).tolist(),
+            "fitness": 0.5,
+            "inlier_rmse": 0.01,
+            "overlap": 0.5,
+        },
+    )
+    (tmp_path / "pairs" / "broken.json").write_text(
+        '{"status": "o'
+    )  # e.g. a file cut short by hand
     assert cache.get(key)["status"] == "ok" and cache.get("broken") is None and cache.writes == 1
 
 
@@ -51,21 +74,30 @@ def test_unreadable_pair_becomes_failed_record_not_crash(tmp_path):
     bad.write_bytes(b"not a laz file")
     job = PairJob("k", "s1", "s0", str(bad), str(bad), "tls", "tls", 3, 3, "{}", 0)
     (record,) = run_pairs([job], n_jobs=1, progress=False)
-    assert record["status"] == "failed" and "bad.laz" in record["error"] and record["cacheable"] is False
+    assert (
+        record["status"] == "failed"
+        and "bad.laz" in record["error"]
+        and record["cacheable"] is False
+    )
 
 
 runner = CliRunner()
 
 
-@pytest.mark.parametrize("args, needle", [
-    (["--executor", "spark"], "--executor"),
-    (["--jobs", "0"], "--jobs"),
-    (["--scheduler", "tcp://x:1"], "--scheduler"),
-])
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["--executor", "spark"], "--executor"),
+        (["--jobs", "0"], "--jobs"),
+        (["--scheduler", "tcp://x:1"], "--scheduler"),
+    ],
+)
 def test_register_plot_bad_options_one_line(tmp_path, args, needle):
     manifest = tmp_path / "m.toml"
     manifest.write_text('[[scans]]\nid = "a"\npath = "a.laz"\n')
-    result = runner.invoke(app, ["register-plot", str(manifest), "--out", str(tmp_path / "o"), *args])
+    result = runner.invoke(
+        app, ["register-plot", str(manifest), "--out", str(tmp_path / "o"), *args]
+    )
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert result.exit_code == 2 and len(lines) == 1 and needle in lines[0], result.output
 
@@ -85,13 +117,31 @@ def test_tie_to_als_needs_als_tile(tmp_path):
     manifest = tmp_path / "m.toml"
     manifest.write_text('[[scans]]\nid = "a"\npath = "a.laz"\n')
     Poses({"a": ScanPose(np.eye(4), "plot")}).save(tmp_path / "poses.json")
-    result = runner.invoke(app, ["tie-to-als", str(manifest), "--poses", str(tmp_path / "poses.json"), "--out", str(tmp_path / "g")])
-    assert result.exit_code == 2 and "als" in result.output.lower() and "Traceback" not in result.output
+    result = runner.invoke(
+        app,
+        [
+            "tie-to-als",
+            str(manifest),
+            "--poses",
+            str(tmp_path / "poses.json"),
+            "--out",
+            str(tmp_path / "g"),
+        ],
+    )
+    assert (
+        result.exit_code == 2
+        and "als" in result.output.lower()
+        and "Traceback" not in result.output
+    )
 
 
 def _grid_plot(side, spacing=15.0, seed=0):
     rng = np.random.default_rng(seed)
-    pos = [(i * spacing + rng.normal(0, 1), j * spacing + rng.normal(0, 1), 0.0) for i in range(side) for j in range(side)]
+    pos = [
+        (i * spacing + rng.normal(0, 1), j * spacing + rng.normal(0, 1), 0.0)
+        for i in range(side)
+        for j in range(side)
+    ]
     return _plot(pos)
 
 
@@ -107,20 +157,33 @@ def test_big_plot_pairs_grow_linearly_connected_with_loops():
         counts[n] = len(pairs)
         assert set(G.nodes) == {s.id for s in plot.scans} and nx.is_connected(G)
         assert max(d for _, d in G.degree()) <= 8  # at most 8 pairs a scan
-        assert min(nx.triangles(G).values()) >= 1  # every scan closes a loop: its edges can be checked
-        assert all(plot.scans.index(s) > plot.scans.index(t) for s, t in pairs)  # later scan is the source
+        assert (
+            min(nx.triangles(G).values()) >= 1
+        )  # every scan closes a loop: its edges can be checked
+        assert all(
+            plot.scans.index(s) > plot.scans.index(t) for s, t in pairs
+        )  # later scan is the source
     assert counts[9] <= 36 and counts[49] <= 4 * 49 and counts[49] / 49 <= 1.2 * counts[25] / 25
     assert counts[49] < 49 * 48 / 2 / 5  # all pairs would be 1176
 
 
 def test_small_plot_keeps_every_pair_and_far_groups_stay_apart():
-    assert len(candidate_pairs(_grid_plot(2), 60.0)) == 6  # <= 8 scans: all pairs, as for the paper's five
+    assert (
+        len(candidate_pairs(_grid_plot(2), 60.0)) == 6
+    )  # <= 8 scans: all pairs, as for the paper's five
     from plotmosaic.graph.pairs import neighbour_pairs
 
-    xy = np.array([(x, y) for x in range(0, 60, 15) for y in range(0, 45, 15)] + [(x + 1000, 0) for x in range(0, 45, 15)])
+    xy = np.array(
+        [(x, y) for x in range(0, 60, 15) for y in range(0, 45, 15)]
+        + [(x + 1000, 0) for x in range(0, 45, 15)]
+    )
     pairs = neighbour_pairs(xy, 6, 8, 60.0)
-    assert not any(i < 12 <= j for i, j in pairs)  # 1 km away: not linked, reported unplaced instead
-    assert len(neighbour_pairs(xy, 6, 8, None)) > len(pairs)  # without a distance cap the groups are joined
+    assert not any(
+        i < 12 <= j for i, j in pairs
+    )  # 1 km away: not linked, reported unplaced instead
+    assert len(neighbour_pairs(xy, 6, 8, None)) > len(
+        pairs
+    )  # without a distance cap the groups are joined
 
 
 def test_positions_from_the_als_step_select_pairs_and_give_priors():
@@ -138,7 +201,9 @@ def test_positions_from_the_als_step_select_pairs_and_give_priors():
     pairs = candidate_pairs(plot, 60.0, {sid: T[:3, 3] for sid, T in poses.items()})
     ids = {(s.id, t.id) for s, t in pairs}
     lost = plot.scans[-1].id
-    partners = [t for s, t in ids if s == lost]  # unplaced: its neighbours in the manifest, nearest first, capped
+    partners = [
+        t for s, t in ids if s == lost
+    ]  # unplaced: its neighbours in the manifest, nearest first, capped
     assert "s10" in partners and 2 <= len(partners) <= 8
     import networkx as nx
 

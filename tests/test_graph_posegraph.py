@@ -45,13 +45,27 @@ def synthetic_plot(n_scans=5, seed=0, rot_noise_deg=0.002, trans_noise=0.0005, o
         for b in range(a + 1, n_scans):
             i, j = f"s{b}", f"s{a}"  # source, target
             T = inverse(truth[j]) @ truth[i]
-            xi = np.concatenate([np.radians(rng.normal(0, rot_noise_deg, 3)), rng.normal(0, trans_noise, 3)])
+            xi = np.concatenate(
+                [np.radians(rng.normal(0, rot_noise_deg, 3)), rng.normal(0, trans_noise, 3)]
+            )
             T = T @ gtsam.Pose3.Expmap(xi).matrix()
-            edges.append({"source": i, "target": j, "transform": T, "fitness": 0.8, "inlier_rmse": 0.01,
-                          "overlap": 0.6, "information": _icp_information(rng, T)})
+            edges.append(
+                {
+                    "source": i,
+                    "target": j,
+                    "transform": T,
+                    "fitness": 0.8,
+                    "inlier_rmse": 0.01,
+                    "overlap": 0.6,
+                    "information": _icp_information(rng, T),
+                }
+            )
     if outlier is not None:
         e = next(e for e in edges if (e["source"], e["target"]) == outlier)
-        e["transform"] = e["transform"] @ gtsam.Pose3(gtsam.Rot3.Rz(np.radians(10)), np.array([2.0, 0.5, 0.0])).matrix()
+        e["transform"] = (
+            e["transform"]
+            @ gtsam.Pose3(gtsam.Rot3.Rz(np.radians(10)), np.array([2.0, 0.5, 0.0])).matrix()
+        )
     nodes = {name: {"kind": "tls", "plot": "P1"} for name in truth}
     return truth, nodes, edges
 
@@ -85,9 +99,13 @@ def test_wrong_edge_is_dropped(outlier):
 def test_wrong_edge_found_by_residual_when_cycle_check_is_off():
     truth, nodes, edges = synthetic_plot(outlier=("s4", "s2"), seed=2)
     G = build_graph(nodes, edges)
-    config = PoseGraphConfig(cycle_translation=1e9, cycle_rotation_deg=1e9)  # only the residual test
+    config = PoseGraphConfig(
+        cycle_translation=1e9, cycle_rotation_deg=1e9
+    )  # only the residual test
     sol = optimise(G, "s0", config)
-    assert [(d["source"], d["target"], d["reason"]) for d in sol.dropped] == [("s4", "s2", "residual")]
+    assert [(d["source"], d["target"], d["reason"]) for d in sol.dropped] == [
+        ("s4", "s2", "residual")
+    ]
     for name, T in truth.items():
         r, t = pose_error(sol.poses[name], T)
         assert r < 0.01 and t < 0.002, (name, r, t)
@@ -111,7 +129,10 @@ def test_all_edges_of_a_scan_dropped_makes_it_unplaced():
     truth, nodes, edges = synthetic_plot(n_scans=4, seed=4)
     T = inverse(truth["s0"]) @ _random_pose(np.random.default_rng(9))
     nodes["s4"] = {"kind": "tls", "plot": "P1"}
-    G = build_graph(nodes, edges + [{"source": "s4", "target": "s0", "transform": T, "fitness": 0.1, "overlap": 0.1}])
+    G = build_graph(
+        nodes,
+        edges + [{"source": "s4", "target": "s0", "transform": T, "fitness": 0.1, "overlap": 0.1}],
+    )
     G.edges["s4", "s0"]["dropped"] = True
     sol = optimise(G, "s0")
     assert sol.unplaced == ["s4"] and set(sol.poses) == {"s0", "s1", "s2", "s3"}
@@ -121,7 +142,9 @@ def test_information_conditioning_floors_sigmas():
     config = PoseGraphConfig()
     info = condition_information(np.diag([1e12] * 3 + [1e10] * 3), 0.01, config)
     sig = np.sqrt(np.diag(np.linalg.inv(info)))
-    assert np.allclose(sig[:3], np.radians(config.min_sigma_rotation_deg)) and np.allclose(sig[3:], config.min_sigma_translation)
+    assert np.allclose(sig[:3], np.radians(config.min_sigma_rotation_deg)) and np.allclose(
+        sig[3:], config.min_sigma_translation
+    )
     degenerate = np.diag([1e6, 1e6, 1e6, 1e6, 1e6, 0.0])  # e.g. no constraint along z
     sig = np.sqrt(np.diag(np.linalg.inv(condition_information(degenerate, 0.01, config))))
     assert np.isfinite(sig).all() and sig[5] > 10 * sig[3]
@@ -139,8 +162,13 @@ def test_graph_json_round_trip():
     assert set(H.nodes) == set(G.nodes) and H.number_of_edges() == 3
     for u, v in G.edges:
         assert np.allclose(H.edges[u, v]["transform"], G.edges[u, v]["transform"])
-        assert (H.edges[u, v]["source"], H.edges[u, v]["target"]) == (G.edges[u, v]["source"], G.edges[u, v]["target"])
-        assert H.edges[u, v]["residual_after"]["chi2"] == pytest.approx(G.edges[u, v]["residual_after"]["chi2"])
+        assert (H.edges[u, v]["source"], H.edges[u, v]["target"]) == (
+            G.edges[u, v]["source"],
+            G.edges[u, v]["target"],
+        )
+        assert H.edges[u, v]["residual_after"]["chi2"] == pytest.approx(
+            G.edges[u, v]["residual_after"]["chi2"]
+        )
 
 
 def test_unconfirmed_low_confidence_bridge_is_dropped():
@@ -148,12 +176,23 @@ def test_unconfirmed_low_confidence_bridge_is_dropped():
     truth, nodes, edges = synthetic_plot(n_scans=4, seed=5)
     nodes["s4"] = {"kind": "tls", "plot": "P1"}
     wrong = inverse(truth["s0"]) @ _random_pose(np.random.default_rng(7))
-    edges.append({"source": "s4", "target": "s0", "transform": wrong, "fitness": 0.4, "overlap": 0.3, "confidence": 0.05})
+    edges.append(
+        {
+            "source": "s4",
+            "target": "s0",
+            "transform": wrong,
+            "fitness": 0.4,
+            "overlap": 0.3,
+            "confidence": 0.05,
+        }
+    )
     for e in edges[:-1]:
         e["confidence"] = 0.05  # low too, but every one of them closes consistent triangles
     G = build_graph(nodes, edges)
     sol = optimise(G, "s0")
-    assert [(d["source"], d["target"], d["reason"]) for d in sol.dropped] == [("s4", "s0", "unverified")]
+    assert [(d["source"], d["target"], d["reason"]) for d in sol.dropped] == [
+        ("s4", "s0", "unverified")
+    ]
     assert sol.unplaced == ["s4"]
     for name, T in truth.items():
         r, t = pose_error(sol.poses[name], T)

@@ -50,8 +50,12 @@ def with_stray(src: Path, dst: Path, how: str) -> Path:
     else:
         extra.X = extra.X + np.int32(round(1000.0 / las.header.scales[0]))
     out = laspy.LasData(las.header)
-    out.points = laspy.ScaleAwarePointRecord(np.concatenate([las.points.array, extra.array]), las.points.point_format,
-                                             las.header.scales, las.header.offsets)
+    out.points = laspy.ScaleAwarePointRecord(
+        np.concatenate([las.points.array, extra.array]),
+        las.points.point_format,
+        las.header.scales,
+        las.header.offsets,
+    )
     out.write(dst)
     return dst
 
@@ -63,16 +67,23 @@ def truth_pair(sim, source: str, target: str) -> np.ndarray:
 
 def pose_error(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     D = np.linalg.inv(T_true) @ T
-    return float(np.linalg.norm(D[:3, 3])), float(np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))))
+    return float(np.linalg.norm(D[:3, 3])), float(
+        np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1)))
+    )
 
 
 def write_manifest(path: Path, sim, scans: list[str], als: bool = True) -> Path:
-    lines = ['version = 1']
+    lines = ["version = 1"]
     if als:
         lines += ["[[als]]", f'path = "{sim.manifest_path.parent / "als" / "als.laz"}"']
     lines += ["[[plots]]", 'id = "P1"', 'crs = "EPSG:26912"']
     for sid in scans:
-        lines += ["[[plots.scans]]", f'id = "{sid}"', f'path = "{sim.scan_paths[sid]}"', 'kind = "tls"']
+        lines += [
+            "[[plots.scans]]",
+            f'id = "{sid}"',
+            f'path = "{sim.scan_paths[sid]}"',
+            'kind = "tls"',
+        ]
     path.write_text("\n".join(lines) + "\n")
     return path
 
@@ -96,8 +107,14 @@ def test_stray_mask_drops_only_detached_points():
 def test_stray_point_leaves_the_prepared_cloud_unchanged(small_sim, tmp_path, how):
     src = small_sim.scan_paths["P1-S1"]
     clean = prepare_cloud(read_cloud(src, attributes=False), "tls", 3, AlignConfig(), 0, "source")
-    stray = prepare_cloud(read_cloud(with_stray(src, tmp_path / "s.laz", how), attributes=False), "tls", 3,
-                          AlignConfig(), 0, "source")
+    stray = prepare_cloud(
+        read_cloud(with_stray(src, tmp_path / "s.laz", how), attributes=False),
+        "tls",
+        3,
+        AlignConfig(),
+        0,
+        "source",
+    )
     assert stray.stray_points == 1 and clean.stray_points == 0
     np.testing.assert_array_equal(stray.frame.offset, clean.frame.offset)
     np.testing.assert_array_equal(stray.points, clean.points)
@@ -109,7 +126,10 @@ def test_align_with_a_nan_written_stray_point_registers(small_sim, tmp_path):
     out = tmp_path / "out" / "r.json"
     res = invoke("align", src, small_sim.scan_paths["P1-S0"], "--out", out)
     assert res.exit_code == 0, res.output
-    dt, dr = pose_error(np.asarray(json.loads(out.read_text())["transform"]), truth_pair(small_sim, "P1-S1", "P1-S0"))
+    dt, dr = pose_error(
+        np.asarray(json.loads(out.read_text())["transform"]),
+        truth_pair(small_sim, "P1-S1", "P1-S0"),
+    )
     assert dt < 0.05 and dr < 0.2, (dt, dr)
 
 
@@ -128,7 +148,9 @@ def test_merge_refuses_a_reflected_pose(small_sim, tmp_path):
     poses = tmp_path / "poses.json"
     poses.write_text(json.dumps(data))
     before = tree(tmp_path)
-    res = invoke("merge", small_sim.manifest_path, "--poses", poses, "--out", tmp_path / "m" / "merged.laz")
+    res = invoke(
+        "merge", small_sim.manifest_path, "--poses", poses, "--out", tmp_path / "m" / "merged.laz"
+    )
     assert_one_line_error(res, "poses.json", "P1-S2", "reflection")
     assert_nothing_left(tmp_path, before)
 
@@ -137,18 +159,28 @@ def test_align_refuses_a_reflected_init_before_work(small_sim, tmp_path):
     init = tmp_path / "init.json"
     init.write_text(json.dumps({"transform": reflected(np.eye(4))}))
     before = tree(tmp_path)
-    res = invoke("align", small_sim.scan_paths["P1-S1"], small_sim.scan_paths["P1-S0"], "--init", init,
-                 "--out", tmp_path / "RESULT.json")
+    res = invoke(
+        "align",
+        small_sim.scan_paths["P1-S1"],
+        small_sim.scan_paths["P1-S0"],
+        "--init",
+        init,
+        "--out",
+        tmp_path / "RESULT.json",
+    )
     assert_one_line_error(res, "init.json", "reflection")
     assert_nothing_left(tmp_path, before)
 
 
-@pytest.mark.parametrize("T, why", [(np.diag([1.0, 1.0, 1.001, 1.0]), "orthonormal"),
-                                    (np.full((4, 4), np.nan), "NaN")])
+@pytest.mark.parametrize(
+    "T, why", [(np.diag([1.0, 1.0, 1.001, 1.0]), "orthonormal"), (np.full((4, 4), np.nan), "NaN")]
+)
 def test_align_refuses_a_non_rigid_init(small_sim, tmp_path, T, why):
     init = tmp_path / "init.json"
     init.write_text(json.dumps({"transform": T.tolist()}))
-    res = invoke("align", small_sim.scan_paths["P1-S1"], small_sim.scan_paths["P1-S0"], "--init", init)
+    res = invoke(
+        "align", small_sim.scan_paths["P1-S1"], small_sim.scan_paths["P1-S0"], "--init", init
+    )
     assert_one_line_error(res, "init.json", why)
 
 
@@ -157,16 +189,29 @@ def test_align_refuses_a_non_rigid_init(small_sim, tmp_path, T, why):
 
 def test_damaged_cache_entries_are_discarded_with_one_warning(tmp_path, capsys):
     cache = PairCache(tmp_path / "pairs")
-    good = {"source": "a", "target": "b", "key": "k1", "status": "ok", "transform": np.eye(4).tolist(),
-            "information": np.eye(6).tolist(), "fitness": 0.5, "inlier_rmse": 0.02, "overlap": 0.4}
+    good = {
+        "source": "a",
+        "target": "b",
+        "key": "k1",
+        "status": "ok",
+        "transform": np.eye(4).tolist(),
+        "information": np.eye(6).tolist(),
+        "fitness": 0.5,
+        "inlier_rmse": 0.02,
+        "overlap": 0.4,
+    }
     cache.put("k1", good)
     assert cache.get("k1")["transform"] == good["transform"]
-    assert "graph.json" in json.loads(cache.path("k1").read_text())["scope"]  # the graph's verdict is not here
+    assert (
+        "graph.json" in json.loads(cache.path("k1").read_text())["scope"]
+    )  # the graph's verdict is not here
     nan = {**good, "key": "k3", "transform": [[float("nan")] * 4] * 4}
-    damaged = {"k2": json.dumps({k: v for k, v in {**good, "key": "k2"}.items() if k != "transform"}),
-               "k3": json.dumps(nan),  # json writes NaN
-               "k4": "{ not json",
-               "k5": json.dumps({**good, "key": "k5", "transform": reflected(np.eye(4))})}
+    damaged = {
+        "k2": json.dumps({k: v for k, v in {**good, "key": "k2"}.items() if k != "transform"}),
+        "k3": json.dumps(nan),  # json writes NaN
+        "k4": "{ not json",
+        "k5": json.dumps({**good, "key": "k5", "transform": reflected(np.eye(4))}),
+    }
     for key, text in damaged.items():
         cache.path(key).write_text(text)
     capsys.readouterr()
@@ -187,16 +232,29 @@ def test_unwritable_outputs_are_refused_before_work(small_sim, tmp_path, monkeyp
     def started(*args, **kwargs):
         raise AssertionError("the work started before the output location was checked")
 
-    for where in ("plotmosaic.align.pipeline.align_files", "plotmosaic.graph.pipeline.register_plot",
-                  "plotmosaic.commands.merge.merge_scans"):
+    for where in (
+        "plotmosaic.align.pipeline.align_files",
+        "plotmosaic.graph.pipeline.register_plot",
+        "plotmosaic.commands.merge.merge_scans",
+    ):
         monkeypatch.setattr(where, started)
     before = tree(tmp_path)
-    assert_one_line_error(invoke("align", src, tgt, "--out", blocker / "r.json"), "a_file", "is a file")
-    assert_one_line_error(invoke("register-plot", small_sim.manifest_path, "--out", blocker / "reg"), "a_file")
-    assert_one_line_error(invoke("register-plot", small_sim.manifest_path, "--out", "/proc/plotmosaic-reg"), "/proc")
+    assert_one_line_error(
+        invoke("align", src, tgt, "--out", blocker / "r.json"), "a_file", "is a file"
+    )
+    assert_one_line_error(
+        invoke("register-plot", small_sim.manifest_path, "--out", blocker / "reg"), "a_file"
+    )
+    assert_one_line_error(
+        invoke("register-plot", small_sim.manifest_path, "--out", "/proc/plotmosaic-reg"), "/proc"
+    )
     long = tmp_path / ("x" * 300 + ".laz")
-    assert_one_line_error(invoke("merge", small_sim.manifest_path, "--poses", small_sim.ground_truth_path,
-                                 "--out", long), "255")
+    assert_one_line_error(
+        invoke(
+            "merge", small_sim.manifest_path, "--poses", small_sim.ground_truth_path, "--out", long
+        ),
+        "255",
+    )
     assert_one_line_error(invoke("info", long), "too long")
     assert_nothing_left(tmp_path, before)
     assert not Path("/proc/plotmosaic-reg").exists()
@@ -216,12 +274,16 @@ def test_stale_temporaries_are_removed_by_the_next_run(small_sim, tmp_path):
     out.parent.mkdir()
     stale = out.parent / f".merged.laz.tmp-{dead_pid()}"
     stale.write_bytes(b"\0" * 1000)
-    stale_dir = out.parent / f".merged.laz.spill.tmp-{dead_pid()}"  # a killed run's temporary folder
+    stale_dir = (
+        out.parent / f".merged.laz.spill.tmp-{dead_pid()}"
+    )  # a killed run's temporary folder
     (stale_dir / "tile").mkdir(parents=True)
     (stale_dir / "tile" / "0.bin").write_bytes(b"\0")
     live = out.parent / f".other.laz.tmp-{os.getpid()}"  # a live run's temporary is not touched
     live.write_bytes(b"\0")
-    res = invoke("merge", small_sim.manifest_path, "--poses", small_sim.ground_truth_path, "--out", out)
+    res = invoke(
+        "merge", small_sim.manifest_path, "--poses", small_sim.ground_truth_path, "--out", out
+    )
     assert res.exit_code == 0, res.output
     assert out.is_file() and not stale.exists() and not stale_dir.exists() and live.exists()
     assert remove_stale_temporaries(out.parent) == []  # once per folder and process
@@ -239,7 +301,9 @@ def test_an_interrupt_wrapped_by_a_library_exits_130():
             os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C landing inside a codec callback ...
             time.sleep(1)
         except KeyboardInterrupt:
-            raise RuntimeError("Failed to call write") from None  # ... which reports it as its own error
+            raise RuntimeError(
+                "Failed to call write"
+            ) from None  # ... which reports it as its own error
 
     app = typer.Typer()
     app.command()(command)
@@ -277,12 +341,18 @@ def test_failed_tie_to_als_leaves_no_empty_folder(small_sim, tmp_path):
 def test_a_three_point_file_is_named(small_sim, tmp_path):
     from plotmosaic.io.las import PointCloud, write_cloud
 
-    tiny = write_cloud(tmp_path / "tiny.laz", PointCloud(np.random.default_rng(0).uniform(0, 5, (3, 3))))
+    tiny = write_cloud(
+        tmp_path / "tiny.laz", PointCloud(np.random.default_rng(0).uniform(0, 5, (3, 3)))
+    )
     res = invoke("align", tiny, small_sim.scan_paths["P1-S0"])
     assert_one_line_error(res, str(tiny), "only 3 points")
     manifest = tmp_path / "m.toml"
-    manifest.write_text(f'[[scans]]\nid = "a"\npath = "{tiny}"\n[[scans]]\nid = "b"\npath = "{small_sim.scan_paths["P1-S0"]}"\n')
-    assert_one_line_error(invoke("register-plot", manifest, "--out", tmp_path / "reg"), str(tiny), "only 3 points")
+    manifest.write_text(
+        f'[[scans]]\nid = "a"\npath = "{tiny}"\n[[scans]]\nid = "b"\npath = "{small_sim.scan_paths["P1-S0"]}"\n'
+    )
+    assert_one_line_error(
+        invoke("register-plot", manifest, "--out", tmp_path / "reg"), str(tiny), "only 3 points"
+    )
     assert not (tmp_path / "reg").exists()
 
 
@@ -295,7 +365,10 @@ def thinned_manifest(tmp_path: Path, sim, scans: list[str], step: int = 4) -> Pa
 
     lines = ["version = 1", "[[plots]]", 'id = "P1"']
     for sid in scans:
-        path = write_cloud(tmp_path / "thin" / f"{sid}.laz", PointCloud(read_cloud(sim.scan_paths[sid]).xyz[::step]))
+        path = write_cloud(
+            tmp_path / "thin" / f"{sid}.laz",
+            PointCloud(read_cloud(sim.scan_paths[sid]).xyz[::step]),
+        )
         lines += ["[[plots.scans]]", f'id = "{sid}"', f'path = "{path}"', 'kind = "tls"']
     manifest = tmp_path / "thin" / "m.toml"
     manifest.write_text("\n".join(lines) + "\n")
@@ -340,8 +413,12 @@ def _workers_bound() -> bool:
 def test_sigkill_register_plot_leaves_no_orphans_and_resumes(small_sim, tmp_path):
     manifest = thinned_manifest(tmp_path, small_sim, ["P1-S0", "P1-S1", "P1-S2"])
     out = tmp_path / "reg"
-    proc = subprocess.Popen([*PLOTMOSAIC, "register-plot", str(manifest), "--out", str(out), "-j", "2"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    proc = subprocess.Popen(
+        [*PLOTMOSAIC, "register-plot", str(manifest), "--out", str(out), "-j", "2"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     workers: set[int] = set()
     deadline = time.monotonic() + 240
     while time.monotonic() < deadline and proc.poll() is None:
@@ -355,7 +432,9 @@ def test_sigkill_register_plot_leaves_no_orphans_and_resumes(small_sim, tmp_path
     proc.wait()
     assert workers, "no worker process was seen"
     time.sleep(0.2)
-    end = time.monotonic() + 3.0  # a worker notices its parent is gone within POLL_SECONDS (or at once: PDEATHSIG)
+    end = (
+        time.monotonic() + 3.0
+    )  # a worker notices its parent is gone within POLL_SECONDS (or at once: PDEATHSIG)
     while time.monotonic() < end and any(alive(w) for w in workers):
         time.sleep(0.05)
     orphans = [w for w in workers if alive(w)]
@@ -405,11 +484,15 @@ if __name__ == "__main__":
 def test_pool_workers_die_with_their_parent(tmp_path):
     script = tmp_path / "pool.py"
     script.write_text(POOL_SCRIPT)
-    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True, start_new_session=True)
+    proc = subprocess.Popen(
+        [sys.executable, str(script)], stdout=subprocess.PIPE, text=True, start_new_session=True
+    )
     assert proc.stdout.readline().strip() == "ready"
     deadline = time.monotonic() + 60
     workers: set[int] = set()
-    while len(workers) < 2 and time.monotonic() < deadline:  # spawn workers (and the resource tracker)
+    while (
+        len(workers) < 2 and time.monotonic() < deadline
+    ):  # spawn workers (and the resource tracker)
         workers = {c for c in children(proc.pid) if alive(c)}
         time.sleep(0.05)
     time.sleep(1.0)  # the initializers have run (the jobs are sleeping inside them)

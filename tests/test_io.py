@@ -94,4 +94,6 @@ def test_unknown_suffix_names_the_formats(tmp_path):
     from helpers import assert_one_line_error, invoke
 
     (tmp_path / "cloud.xyz").write_text("1 2 3\n")
-    assert_one_line_error(invoke("info", tmp_path / "cloud.xyz"), "cloud.xyz", ".las, .laz, .e57 or .ply")
+    assert_one_line_error(
+        invoke("info", tmp_path / "cloud.xyz"), "cloud.xyz", ".las, .laz, .e57 or .ply"
+    )

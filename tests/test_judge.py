@@ -60,7 +60,9 @@ def test_profile_separates_truth_from_a_distinct_pose(pair):
     off = T.copy()
     off[:3, 3] += [2.0, -1.0, 0.0]
     right, wrong = judge.profile(ps, pt, T, cfg.judge), judge.profile(ps, pt, off, cfg.judge)
-    assert len(right["scales"]) == len(cfg.judge.scales) and right["scales"] == sorted(right["scales"])
+    assert len(right["scales"]) == len(cfg.judge.scales) and right["scales"] == sorted(
+        right["scales"]
+    )
     assert right["score"] > 1.5 * wrong["score"], (right, wrong)
     assert right["structure_st"][0] > 2 * wrong["structure_st"][0]
     # a sparse cloud is judged at its own resolution: scales grow, never shrink
@@ -92,7 +94,9 @@ def test_local_start_far_off_is_refused_never_wrong(pair):
         try:
             result = register_prepared(ps, pt, cfg, init, seed=0)
         except RegistrationFailed as exc:
-            assert "distinct pose fits" in str(exc) and "rerun without --no-coarse" in str(exc), str(exc)
+            assert "distinct pose fits" in str(exc) and "rerun without --no-coarse" in str(exc), (
+                str(exc)
+            )
             assert exc.result.judge["rival_score"] >= exc.result.judge["score"]
             continue
         deg, m = error(result.transform, T_true, centre)
@@ -117,18 +121,34 @@ def test_unrelated_forests_refused_on_every_path(small_sim, pair):
     mirrored = prepare_cloud(PointCloud(t.xyz * [-1.0, 1.0, 1.0]), "tls", 3, cfg, 1, "target")
     for c, init in ((cfg, None), (local(cfg), None), (cfg, np.eye(4))):
         result, accepted = outcome(ps, mirrored, c, init)
-        assert not accepted, (c.coarse.enabled, init is None, result.judge["score"], result.judge["rival_score"])
+        assert not accepted, (
+            c.coarse.enabled,
+            init is None,
+            result.judge["score"],
+            result.judge["rival_score"],
+        )
 
 
 def test_cli_no_coarse_exits_3_or_right(small_sim, tmp_path):
     """The issue's reproduction (`align P1-S1 P1-S0 --no-coarse`): never a wrong pose with exit 0."""
     out = tmp_path / "r.json"
-    res = runner.invoke(app, ["align", str(small_sim.scan_paths["P1-S1"]), str(small_sim.scan_paths["P1-S0"]),
-                              "--no-coarse", "--out", str(out)])
+    res = runner.invoke(
+        app,
+        [
+            "align",
+            str(small_sim.scan_paths["P1-S1"]),
+            str(small_sim.scan_paths["P1-S0"]),
+            "--no-coarse",
+            "--out",
+            str(out),
+        ],
+    )
     assert res.exception is None or isinstance(res.exception, SystemExit), res.exception
     if res.exit_code == 3:
         lines = [line for line in res.output.splitlines() if line.strip()]
-        assert len(lines) == 1 and "distinct pose fits" in lines[0] and "--no-coarse" in lines[0], res.output
+        assert len(lines) == 1 and "distinct pose fits" in lines[0] and "--no-coarse" in lines[0], (
+            res.output
+        )
         assert not out.exists()
         return
     assert res.exit_code == 0, res.output

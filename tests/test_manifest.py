@@ -77,14 +77,23 @@ def test_region_form_and_dump_round_trip(scans):
     "text, expected",
     [
         (ONE_PLOT.replace('kind = "tls"', 'kind = "sonar"'), "scan 'c', field 'kind'"),
-        (ONE_PLOT.replace('approx_position = [1.0, 2.0, 0.0]', 'approx_position = "here"'), "scan 'a', field 'approx_position'"),
+        (
+            ONE_PLOT.replace("approx_position = [1.0, 2.0, 0.0]", 'approx_position = "here"'),
+            "scan 'a', field 'approx_position'",
+        ),
         (REGION.replace("levels = 2", 'levels = "two"'), "plot 'P2', scan 'P2-B', field 'levels'"),
         (REGION.replace('id = "P2-B"', 'id = "P1-A"'), "duplicate scan id 'P1-A'"),
-        (ONE_PLOT.replace('path = "c.laz"', 'path = "missing.laz"'), "scan 'c', field 'path': file not found"),
+        (
+            ONE_PLOT.replace('path = "c.laz"', 'path = "missing.laz"'),
+            "scan 'c', field 'path': file not found",
+        ),
         (ONE_PLOT + "colour = 3\n", "field 'colour': Extra inputs are not permitted"),
         (ONE_PLOT.replace('crs = "EPSG:26912"', 'crs = "EPSG:99999999"'), "plot 'P1', field 'crs'"),
         ("[[scans]\n", "not valid TOML"),
-        (ONE_PLOT.replace('id = "c"\n', 'id = "c"\nreference = true\n'), "more than one reference scan"),
+        (
+            ONE_PLOT.replace('id = "c"\n', 'id = "c"\nreference = true\n'),
+            "more than one reference scan",
+        ),
     ],
 )
 def test_invalid_manifests_name_the_field(scans, text, expected):
@@ -98,7 +107,13 @@ def test_invalid_manifests_name_the_field(scans, text, expected):
 
 @pytest.mark.parametrize(
     "field, value",
-    [("plot_id", "../../escaped"), ("plot_id", "a/b"), ("plot_id", ".."), ("id", "../s"), ("id", "x\\\\y")],
+    [
+        ("plot_id", "../../escaped"),
+        ("plot_id", "a/b"),
+        ("plot_id", ".."),
+        ("id", "../s"),
+        ("id", "x\\\\y"),
+    ],
 )
 def test_ids_that_would_escape_the_output_folder(scans, field, value):
     from helpers import assert_one_line_error, invoke
@@ -110,7 +125,9 @@ def test_ids_that_would_escape_the_output_folder(scans, field, value):
 
 
 def test_safe_ids_and_bom(scans):
-    m = load_manifest(write(scans, '\ufeffplot_id = "P1.v2_a-b"\n[[scans]]\nid = "S.0_x-1"\npath = "a.laz"\n'))
+    m = load_manifest(
+        write(scans, '\ufeffplot_id = "P1.v2_a-b"\n[[scans]]\nid = "S.0_x-1"\npath = "a.laz"\n')
+    )
     assert m.plots[0].id == "P1.v2_a-b" and m.scans[0].id == "S.0_x-1"
     raw = scans / "bom.toml"
     raw.write_bytes(b"\xef\xbb\xbf" + REGION.encode())
@@ -118,7 +135,8 @@ def test_safe_ids_and_bom(scans):
 
 
 @pytest.mark.parametrize(
-    "extra, field", [("scan = 1\n", "scan"), ("use_pose = true\n", "use_pose"), ("scan = -1\n", "scan")]
+    "extra, field",
+    [("scan = 1\n", "scan"), ("use_pose = true\n", "use_pose"), ("scan = -1\n", "scan")],
 )
 def test_e57_fields_on_other_files_name_the_field(scans, extra, field):
     path = write(scans, 'plot_id = "P1"\n[[scans]]\nid = "a"\npath = "a.laz"\n' + extra)
@@ -130,14 +148,23 @@ def test_e57_fields_on_other_files_name_the_field(scans, extra, field):
 def test_e57_scan_dump_round_trip(tmp_path):
     """scan (index or name) and use_pose survive dump_manifest; the loaded path names the scan."""
     import pye57
+
     rng = np.random.default_rng(1)
     with pye57.E57(str(tmp_path / "p.e57"), mode="w") as e57:
         for name in ("north", "south"):
             xyz = rng.uniform(-5, 5, (100, 3))
-            e57.write_scan_raw({"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2]}, name=name)
-    m = load_manifest(write(tmp_path, 'plot_id = "P"\n'
-                                      '[[scans]]\nid = "n"\npath = "p.e57"\nscan = "north"\nuse_pose = true\n'
-                                      '[[scans]]\nid = "s"\npath = "p.e57"\nscan = 1\n'))
+            e57.write_scan_raw(
+                {"cartesianX": xyz[:, 0], "cartesianY": xyz[:, 1], "cartesianZ": xyz[:, 2]},
+                name=name,
+            )
+    m = load_manifest(
+        write(
+            tmp_path,
+            'plot_id = "P"\n'
+            '[[scans]]\nid = "n"\npath = "p.e57"\nscan = "north"\nuse_pose = true\n'
+            '[[scans]]\nid = "s"\npath = "p.e57"\nscan = 1\n',
+        )
+    )
     assert [s.path.name for s in m.scans] == ["p.e57#0", "p.e57#1"] and m.scan("n").use_pose
     again = load_manifest(write(tmp_path, dump_manifest(m), "again.toml"))
     assert again.model_dump(exclude={"source"}) == m.model_dump(exclude={"source"})

@@ -33,18 +33,36 @@ from plotmosaic.poses import Poses, ScanPose, load_poses
 
 N = 20_000
 UTM = "EPSG:32612"
-ATTRS = ("intensity", "return_number", "number_of_returns", "classification", "gps_time", "red", "green", "blue", "label")
+ATTRS = (
+    "intensity",
+    "return_number",
+    "number_of_returns",
+    "classification",
+    "gps_time",
+    "red",
+    "green",
+    "blue",
+    "label",
+)
 
 
 def _pose(rng, k: int) -> np.ndarray:
     yaw, tilt = rng.uniform(-np.pi, np.pi), rng.normal(0, 0.02, 2)
     cz, sz = np.cos(yaw), np.sin(yaw)
     Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-    Rx = np.array([[1, 0, 0], [0, np.cos(tilt[0]), -np.sin(tilt[0])], [0, np.sin(tilt[0]), np.cos(tilt[0])]])
-    Ry = np.array([[np.cos(tilt[1]), 0, np.sin(tilt[1])], [0, 1, 0], [-np.sin(tilt[1]), 0, np.cos(tilt[1])]])
+    Rx = np.array(
+        [[1, 0, 0], [0, np.cos(tilt[0]), -np.sin(tilt[0])], [0, np.sin(tilt[0]), np.cos(tilt[0])]]
+    )
+    Ry = np.array(
+        [[np.cos(tilt[1]), 0, np.sin(tilt[1])], [0, 1, 0], [-np.sin(tilt[1]), 0, np.cos(tilt[1])]]
+    )
     T = np.eye(4)
     T[:3, :3] = Rz @ Ry @ Rx
-    T[:3, 3] = [470_000.0 + 15 * k + rng.uniform(0, 1), 3_810_000.0 + 10 * k + rng.uniform(0, 1), 2_100.0 + rng.uniform(0, 1)]
+    T[:3, 3] = [
+        470_000.0 + 15 * k + rng.uniform(0, 1),
+        3_810_000.0 + 10 * k + rng.uniform(0, 1),
+        2_100.0 + rng.uniform(0, 1),
+    ]
     return T
 
 
@@ -61,8 +79,12 @@ def _scan_cloud(rng, n: int, rgb: bool) -> PointCloud:
         "gps_time": np.sort(rng.uniform(1e5, 1e5 + 600, n)),
     }
     if rgb:
-        attrs.update({c: rng.integers(0, 65535, n).astype(np.uint16) for c in ("red", "green", "blue")})
-        attrs["label"] = rng.integers(0, 4, n).astype(np.uint8)  # an extra dimension, like the simulator's
+        attrs.update(
+            {c: rng.integers(0, 65535, n).astype(np.uint16) for c in ("red", "green", "blue")}
+        )
+        attrs["label"] = rng.integers(0, 4, n).astype(
+            np.uint8
+        )  # an extra dimension, like the simulator's
     return PointCloud(xyz, attrs)
 
 
@@ -83,7 +105,9 @@ def make_site(root: Path) -> Path:
     als.intensity = rng.integers(0, 4000, 5_000).astype(np.uint16)
     als.write(root / "als.laz")
     manifest = Manifest(
-        plots=[Plot(id="P1", crs=UTM, scans=[Scan(id=sid, path=Path(f"{sid}.laz")) for sid in ids])],
+        plots=[
+            Plot(id="P1", crs=UTM, scans=[Scan(id=sid, path=Path(f"{sid}.laz")) for sid in ids])
+        ],
         als=[AlsTile(path=Path("als.laz"))],
     )
     (root / "manifest.toml").write_text(dump_manifest(manifest))
@@ -137,8 +161,12 @@ def test_merge_equals_posed_inputs(site, tmp_path):
     table = read_source_table(out)
     assert [(t["source_id"], t["id"]) for t in table] == [(0, "a"), (1, "b"), (2, "c")]
     side = json.loads((tmp_path / "merged.laz.json").read_text())
-    assert [(s["id"], s["points_in"], s["points_out"]) for s in side["sources"]] == [(sid, N, N) for sid in "abc"]
-    assert side["poses"].endswith("poses.json") and CRS.from_wkt(side["crs"]) == CRS.from_user_input(UTM)
+    assert [(s["id"], s["points_in"], s["points_out"]) for s in side["sources"]] == [
+        (sid, N, N) for sid in "abc"
+    ]
+    assert side["poses"].endswith("poses.json") and CRS.from_wkt(
+        side["crs"]
+    ) == CRS.from_user_input(UTM)
     assert np.allclose(side["bounds"]["min"], xyz.min(axis=0), atol=0.001)
 
 
@@ -155,7 +183,10 @@ def _read(path):
 def test_voxel_thinning_is_deterministic_and_one_point_per_voxel(site, tmp_path):
     full, full_ids, header = _read(_merge(site, tmp_path / "full.laz").out)
     step = 2000  # 2 m in mm units
-    runs = [_read(_merge(site, tmp_path / f"v{c}.laz", voxel=2.0, chunk_size=c).out) for c in (3_000, 7_777, 1_000_000)]
+    runs = [
+        _read(_merge(site, tmp_path / f"v{c}.laz", voxel=2.0, chunk_size=c).out)
+        for c in (3_000, 7_777, 1_000_000)
+    ]
     ints, ids, h = runs[0]
     for other_ints, other_ids, _ in runs[1:]:  # independent of the chunk size
         assert np.array_equal(ints, other_ints) and np.array_equal(ids, other_ids)
@@ -166,7 +197,9 @@ def test_voxel_thinning_is_deterministic_and_one_point_per_voxel(site, tmp_path)
     assert len(ints) < 0.8 * len(full)
     # each kept point is the first point of its voxel in scan order
     _, first = np.unique(full // step, axis=0, return_index=True)
-    assert np.array_equal(ints, full[np.sort(first)]) and np.array_equal(ids, full_ids[np.sort(first)])
+    assert np.array_equal(ints, full[np.sort(first)]) and np.array_equal(
+        ids, full_ids[np.sort(first)]
+    )
 
 
 def test_bbox_crop_and_als(site, tmp_path):
@@ -175,7 +208,9 @@ def test_bbox_crop_and_als(site, tmp_path):
     bbox = (470_000.0, 3_810_000.0, 470_025.0, 3_810_030.0, 2_095.0, 2_110.0)
     lo, hi = np.array([bbox[0], bbox[1], bbox[4]]), np.array([bbox[2], bbox[3], bbox[5]])
     summary = _merge(site, tmp_path / "crop.laz", bbox=bbox)
-    inside = np.all((fullxyz >= lo) & (fullxyz <= hi), axis=1)  # the crop applies to the written coordinates
+    inside = np.all(
+        (fullxyz >= lo) & (fullxyz <= hi), axis=1
+    )  # the crop applies to the written coordinates
     las = laspy.read(summary.out)
     assert len(las.points) == inside.sum() == summary.points_out and 0 < inside.sum() < len(inside)
     assert np.array_equal(np.column_stack([las.x, las.y, las.z]), fullxyz[inside])
@@ -208,7 +243,9 @@ def test_failure_mid_write_leaves_earlier_output(site, tmp_path, monkeypatch, er
     with pytest.raises(error):
         _merge(site, out, chunk_size=5_000)
     assert len(calls) == 2
-    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before  # no temp file, same bytes
+    assert {
+        p.name: p.read_bytes() for p in tmp_path.iterdir()
+    } == before  # no temp file, same bytes
 
     fresh = tmp_path / "fresh" / "new.laz"
     calls.clear()
@@ -246,12 +283,26 @@ def test_plot_frame_without_crs(site, tmp_path):
     Poses(poses.scans, frame="plot").save(tmp_path / "poses.json")
     manifest = load_manifest(site / "manifest.toml")
     # the plot's CRS from the manifest is used when the poses carry none
-    summary = merge_scans(manifest, load_poses(tmp_path / "poses.json"), tmp_path / "m.laz", progress=False)
-    assert summary.crs_source.startswith("manifest") and CRS.from_wkt(summary.crs) == CRS.from_user_input(UTM)
+    summary = merge_scans(
+        manifest, load_poses(tmp_path / "poses.json"), tmp_path / "m.laz", progress=False
+    )
+    assert summary.crs_source.startswith("manifest") and CRS.from_wkt(
+        summary.crs
+    ) == CRS.from_user_input(UTM)
     with pytest.raises(InputError, match="--include-als"):
-        merge_scans(manifest, load_poses(tmp_path / "poses.json"), tmp_path / "x.laz", MergeConfig(include_als=True), progress=False)
-    bare = manifest.model_copy(update={"plots": [manifest.plots[0].model_copy(update={"crs": None})]})
-    summary = merge_scans(bare, load_poses(tmp_path / "poses.json"), tmp_path / "n.laz", progress=False)
+        merge_scans(
+            manifest,
+            load_poses(tmp_path / "poses.json"),
+            tmp_path / "x.laz",
+            MergeConfig(include_als=True),
+            progress=False,
+        )
+    bare = manifest.model_copy(
+        update={"plots": [manifest.plots[0].model_copy(update={"crs": None})]}
+    )
+    summary = merge_scans(
+        bare, load_poses(tmp_path / "poses.json"), tmp_path / "n.laz", progress=False
+    )
     assert summary.crs is None and laspy.read(tmp_path / "n.laz").header.parse_crs() is None
 
 
@@ -260,12 +311,16 @@ def test_bad_options_are_one_line_errors(site, tmp_path):
     _one_line_error(_run(*base, "--out", tmp_path / "m.laz", "--bbox", "1,2,3"), "--bbox")
     _one_line_error(_run(*base, "--out", tmp_path / "m.laz", "--bbox", "5,2,3,4"), "--bbox")
     _one_line_error(_run(*base, "--out", tmp_path / "m.laz", "--bbox", "a,b,c,d"), "--bbox")
-    _one_line_error(_run(*base, "--out", tmp_path / "m.laz", "--bbox", "0,0,1,1"), "--bbox", "does not overlap")
+    _one_line_error(
+        _run(*base, "--out", tmp_path / "m.laz", "--bbox", "0,0,1,1"), "--bbox", "does not overlap"
+    )
     _one_line_error(_run(*base, "--out", tmp_path / "m.laz", "--voxel", "0"), "--voxel")
     _one_line_error(_run(*base, "--out", tmp_path / "m.txt"), "m.txt", ".laz")
     (tmp_path / "afile").write_text("not a folder")
     _one_line_error(_run(*base, "--out", tmp_path / "afile" / "m.laz"), "afile")
-    _one_line_error(_run(*base[:2], tmp_path / "nope.json", "--out", tmp_path / "m.laz"), "nope.json")
+    _one_line_error(
+        _run(*base[:2], tmp_path / "nope.json", "--out", tmp_path / "m.laz"), "nope.json"
+    )
     assert not (tmp_path / "m.laz").exists()
 
 
@@ -274,7 +329,17 @@ def test_truncated_scan_is_named_and_leaves_nothing(site, tmp_path):
         (tmp_path / name).write_bytes((site / name).read_bytes())
     data = (site / "b.laz").read_bytes()
     (tmp_path / "b.laz").write_bytes(data[: len(data) // 2])
-    _one_line_error(_run(tmp_path / "manifest.toml", "--poses", tmp_path / "poses.json", "--out", tmp_path / "out" / "m.laz"), "b.laz", "truncated")
+    _one_line_error(
+        _run(
+            tmp_path / "manifest.toml",
+            "--poses",
+            tmp_path / "poses.json",
+            "--out",
+            tmp_path / "out" / "m.laz",
+        ),
+        "b.laz",
+        "truncated",
+    )
     assert list((tmp_path / "out").iterdir()) == []
 
 
@@ -284,7 +349,9 @@ def test_als_tile_in_another_crs_is_refused(site, tmp_path):
     write_cloud(tmp_path / "als.laz", read_cloud(site / "als.laz"), crs=CRS.from_epsg(32613))
     manifest, poses = load_manifest(tmp_path / "manifest.toml"), load_poses(tmp_path / "poses.json")
     with pytest.raises(InputError, match="als.laz: ALS tile is in WGS 84 / UTM zone 13N"):
-        merge_scans(manifest, poses, tmp_path / "m.laz", MergeConfig(include_als=True), progress=False)
+        merge_scans(
+            manifest, poses, tmp_path / "m.laz", MergeConfig(include_als=True), progress=False
+        )
     assert not (tmp_path / "m.laz").exists()
 
 
@@ -299,7 +366,9 @@ def _first_per_voxel(ints: np.ndarray, step: int) -> np.ndarray:
 
 def _rows(las) -> np.ndarray:
     """Every point as one sortable row (coordinates, source, time): compares clouds as sets."""
-    rows = np.column_stack([las.X, las.Y, las.Z, las.point_source_id, np.asarray(las.gps_time).view(np.int64)])
+    rows = np.column_stack(
+        [las.X, las.Y, las.Z, las.point_source_id, np.asarray(las.gps_time).view(np.int64)]
+    )
     return rows[np.lexsort(rows.T[::-1])]
 
 
@@ -309,8 +378,12 @@ def test_first_in_voxel_packed_and_wide_paths_agree():
     want = np.sort(np.unique(ijk, axis=0, return_index=True)[1])
     assert np.array_equal(merge_module.first_in_voxel(ijk), want)
     wide = ijk.copy()
-    wide[wide[:, 0] == 7, 2] += 1 << 62  # span too wide to pack: the lexsort path must give the same choice
-    assert np.array_equal(merge_module.first_in_voxel(wide), np.sort(np.unique(wide, axis=0, return_index=True)[1]))
+    wide[wide[:, 0] == 7, 2] += (
+        1 << 62
+    )  # span too wide to pack: the lexsort path must give the same choice
+    assert np.array_equal(
+        merge_module.first_in_voxel(wide), np.sort(np.unique(wide, axis=0, return_index=True)[1])
+    )
 
 
 def test_tiled_thinning_equals_whole_cloud_thinning(site, tmp_path, monkeypatch):
@@ -318,28 +391,52 @@ def test_tiled_thinning_equals_whole_cloud_thinning(site, tmp_path, monkeypatch)
     ints = np.column_stack([full.X, full.Y, full.Z])
     step = 300  # 0.3 m
     want = _first_per_voxel(ints, step)
-    one_tile = laspy.read(_merge(site, tmp_path / "one.laz", voxel=0.3).out)  # fits the default budget
-    assert np.array_equal(np.column_stack([one_tile.X, one_tile.Y, one_tile.Z]), ints[want])  # stream order
+    one_tile = laspy.read(
+        _merge(site, tmp_path / "one.laz", voxel=0.3).out
+    )  # fits the default budget
+    assert np.array_equal(
+        np.column_stack([one_tile.X, one_tile.Y, one_tile.Z]), ints[want]
+    )  # stream order
     assert np.array_equal(one_tile.point_source_id, full.point_source_id[want])
 
-    sub = laspy.ScaleAwarePointRecord(full.points.array[want], full.header.point_format, full.header.scales, full.header.offsets)
+    sub = laspy.ScaleAwarePointRecord(
+        full.points.array[want], full.header.point_format, full.header.scales, full.header.offsets
+    )
     real_split, splits = merge_module._split, []
     monkeypatch.setattr(merge_module, "_split", lambda *a: splits.append(1) or real_split(*a))
-    for name in ("grid", "cut"):  # many tiles from the start; one tile cut again and again to fit the budget
+    for name in (
+        "grid",
+        "cut",
+    ):  # many tiles from the start; one tile cut again and again to fit the budget
         if name == "cut":
             monkeypatch.setattr(merge_module, "auto_tile_edge", lambda *a: 1 << 40)
-        summary = _merge(site, tmp_path / f"{name}.laz", voxel=0.3, tile_memory_mb=1, chunk_size=7_777)  # ~7k points a tile
+        summary = _merge(
+            site, tmp_path / f"{name}.laz", voxel=0.3, tile_memory_mb=1, chunk_size=7_777
+        )  # ~7k points a tile
         tiled = laspy.read(summary.out)
-        assert np.array_equal(_rows(tiled), _rows(laspy.LasData(full.header, sub)))  # the same winners, tile by tile
+        assert np.array_equal(
+            _rows(tiled), _rows(laspy.LasData(full.header, sub))
+        )  # the same winners, tile by tile
         assert summary.points_out == len(want) == len(tiled.points)
-        assert [s.points_out for s in summary.sources] == list(np.bincount(full.point_source_id[want], minlength=3)[:3])
+        assert [s.points_out for s in summary.sources] == list(
+            np.bincount(full.point_source_id[want], minlength=3)[:3]
+        )
     assert len(splits) > 3  # the budget forced the single tile to be cut
     assert not [p for p in tmp_path.iterdir() if ".tmp-" in p.name]  # spill folder removed
 
 
 def test_tiled_output_covers_every_point_once(site, tmp_path):
     full = laspy.read(_merge(site, tmp_path / "full.laz").out)
-    result = _run(site / "manifest.toml", "--poses", site / "poses.json", "--out", tmp_path / "tiles", "--tiles", "--tile-size", "10")
+    result = _run(
+        site / "manifest.toml",
+        "--poses",
+        site / "poses.json",
+        "--out",
+        tmp_path / "tiles",
+        "--tiles",
+        "--tile-size",
+        "10",
+    )
     assert result.exit_code == 0, result.output
     index = json.loads((tmp_path / "tiles" / "index.json").read_text())
     files = sorted(p.name for p in (tmp_path / "tiles").glob("*.laz"))
@@ -347,18 +444,40 @@ def test_tiled_output_covers_every_point_once(site, tmp_path):
     parts = []
     for tile in index["tiles"]:
         las = laspy.read(tmp_path / "tiles" / tile["file"])
-        assert tile["file"] == f"tile_{tile['origin'][0]:.0f}_{tile['origin'][1]:.0f}.laz" and tile["points"] == len(las.points)
-        assert np.all((las.x >= tile["origin"][0]) & (las.x < tile["origin"][0] + 10))  # each point in its own tile
+        assert tile["file"] == f"tile_{tile['origin'][0]:.0f}_{tile['origin'][1]:.0f}.laz" and tile[
+            "points"
+        ] == len(las.points)
+        assert np.all(
+            (las.x >= tile["origin"][0]) & (las.x < tile["origin"][0] + 10)
+        )  # each point in its own tile
         assert np.all((las.y >= tile["origin"][1]) & (las.y < tile["origin"][1] + 10))
-        assert las.header.parse_crs() is not None and read_source_table(tmp_path / "tiles" / tile["file"])[0]["id"] == "a"
+        assert (
+            las.header.parse_crs() is not None
+            and read_source_table(tmp_path / "tiles" / tile["file"])[0]["id"] == "a"
+        )
         parts.append(np.asarray(las.points.array))
-    merged = laspy.ScaleAwarePointRecord(np.concatenate(parts), full.header.point_format, full.header.scales, full.header.offsets)
-    assert np.array_equal(_rows(laspy.LasData(full.header, merged)), _rows(full))  # every point exactly once
+    merged = laspy.ScaleAwarePointRecord(
+        np.concatenate(parts), full.header.point_format, full.header.scales, full.header.offsets
+    )
+    assert np.array_equal(
+        _rows(laspy.LasData(full.header, merged)), _rows(full)
+    )  # every point exactly once
     assert index["points_out"] == 3 * N and [s["points_out"] for s in index["sources"]] == [N, N, N]
 
     # with thinning, the tiles together are the whole-cloud thinning; --force replaces the folder
-    result = _run(site / "manifest.toml", "--poses", site / "poses.json", "--out", tmp_path / "tiles", "--tiles",
-                  "--tile-size", "10", "--voxel", "0.5", "--force")
+    result = _run(
+        site / "manifest.toml",
+        "--poses",
+        site / "poses.json",
+        "--out",
+        tmp_path / "tiles",
+        "--tiles",
+        "--tile-size",
+        "10",
+        "--voxel",
+        "0.5",
+        "--force",
+    )
     assert result.exit_code == 0, result.output
     kept = sum(len(laspy.read(p).points) for p in (tmp_path / "tiles").glob("*.laz"))
     assert kept == len(_first_per_voxel(np.column_stack([full.X, full.Y, full.Z]), 500))
@@ -367,7 +486,11 @@ def test_tiled_output_covers_every_point_once(site, tmp_path):
 
 def test_tile_options_are_checked(site, tmp_path):
     base = [site / "manifest.toml", "--poses", site / "poses.json", "--tiles"]
-    _one_line_error(_run(*base, "--out", tmp_path / "t", "--tile-size", "10", "--voxel", "0.3"), "--tile-size 10", "--voxel 0.3")
+    _one_line_error(
+        _run(*base, "--out", tmp_path / "t", "--tile-size", "10", "--voxel", "0.3"),
+        "--tile-size 10",
+        "--voxel 0.3",
+    )
     _one_line_error(_run(*base, "--out", tmp_path / "t", "--tile-size", "0"), "--tile-size")
     _one_line_error(_run(*base, "--out", tmp_path / "t", "--memory-mb", "0"), "--memory-mb")
     (tmp_path / "mine").mkdir()
@@ -398,7 +521,9 @@ def _write_laz(target) -> None:
 
 
 def test_interrupt_inside_the_laz_codec_is_an_interrupt():
-    with pytest.raises(Exception, match="Failed to call write"):  # what lazrs makes of a Ctrl-C on its own
+    with pytest.raises(
+        Exception, match="Failed to call write"
+    ):  # what lazrs makes of a Ctrl-C on its own
         _write_laz(_RingingFile())
     with pytest.raises(KeyboardInterrupt), merge_module.interrupts_win():
         _write_laz(_RingingFile())
@@ -412,21 +537,44 @@ def big_site(tmp_path_factory):
     for k, sid in enumerate("ab"):
         write_cloud(root / f"{sid}.laz", _scan_cloud(rng, 400_000, rgb=True))
         poses[sid] = ScanPose(_pose(rng, k), plot="P1")
-    manifest = Manifest(plots=[Plot(id="P1", crs=UTM, scans=[Scan(id=sid, path=Path(f"{sid}.laz")) for sid in "ab"])])
+    manifest = Manifest(
+        plots=[
+            Plot(id="P1", crs=UTM, scans=[Scan(id=sid, path=Path(f"{sid}.laz")) for sid in "ab"])
+        ]
+    )
     (root / "manifest.toml").write_text(dump_manifest(manifest))
     Poses(poses, frame="crs", crs=CRS.from_user_input(UTM).to_wkt()).save(root / "poses.json")
     return root
 
 
-@pytest.mark.parametrize("options, temporary", [([], ".m.laz.tmp-"), (["--voxel", "0.01"], ".m.laz.spill.tmp-")])
+@pytest.mark.parametrize(
+    "options, temporary", [([], ".m.laz.tmp-"), (["--voxel", "0.01"], ".m.laz.spill.tmp-")]
+)
 def test_sigint_mid_merge_exits_130_and_leaves_nothing(big_site, tmp_path, options, temporary):
     out = tmp_path / "out"
     out.mkdir()
-    cmd = [sys.executable, "-m", "plotmosaic", "merge", big_site / "manifest.toml", "--poses", big_site / "poses.json", "--out", out / "m.laz"]
-    proc = subprocess.Popen([str(c) for c in [*cmd, *options]], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    cmd = [
+        sys.executable,
+        "-m",
+        "plotmosaic",
+        "merge",
+        big_site / "manifest.toml",
+        "--poses",
+        big_site / "poses.json",
+        "--out",
+        out / "m.laz",
+    ]
+    proc = subprocess.Popen(
+        [str(c) for c in [*cmd, *options]],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     deadline = time.monotonic() + 60
     while not any(temporary in p.name for p in out.iterdir()):  # wait until it is writing
-        assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read() if proc.poll() is not None else "timeout"
+        assert proc.poll() is None and time.monotonic() < deadline, (
+            proc.stderr.read() if proc.poll() is not None else "timeout"
+        )
         time.sleep(0.005)
     time.sleep(0.2)
     proc.send_signal(signal.SIGINT)
@@ -440,4 +588,6 @@ def test_stable_order_packed_and_fallback_agree():
     keys = np.random.default_rng(1).integers(0, 50, 10_000)
     want = np.argsort(keys, kind="stable")
     assert np.array_equal(merge_module.stable_order(keys, 6), want)
-    assert np.array_equal(merge_module.stable_order(keys, 60), want)  # too wide to pack with the index
+    assert np.array_equal(
+        merge_module.stable_order(keys, 60), want
+    )  # too wide to pack with the index

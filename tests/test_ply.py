@@ -17,7 +17,9 @@ def write_ply(path, n=1000, text=False, intensity="f8", colour="u1", extra=True)
     v = np.zeros(n, dtype=fields)
     rng = np.random.default_rng(3)
     for c in "xyz":  # UTM-sized values: float32 would lose the millimetres
-        v[c] = rng.uniform(-20, 20, n) + {"x": 447_123.456789, "y": 3_897_654.321098, "z": 2_301.5}[c]
+        v[c] = (
+            rng.uniform(-20, 20, n) + {"x": 447_123.456789, "y": 3_897_654.321098, "z": 2_301.5}[c]
+        )
     if intensity:
         v["intensity"] = rng.uniform(0, 3000, n) if intensity == "f8" else rng.integers(0, 65535, n)
     if colour:
@@ -37,11 +39,14 @@ def test_round_trip_keeps_float64_and_attributes(tmp_path, text):
     cloud = read_cloud(path)
     assert cloud.xyz.dtype == np.float64
     np.testing.assert_array_equal(cloud.xyz, np.column_stack([v["x"], v["y"], v["z"]]))
-    np.testing.assert_array_equal(cloud.attrs["intensity_raw"], v["intensity"])  # float64 kept as it is
+    np.testing.assert_array_equal(
+        cloud.attrs["intensity_raw"], v["intensity"]
+    )  # float64 kept as it is
     assert cloud.attrs["intensity_raw"].dtype == np.float64
     lo, hi = v["intensity"].min(), v["intensity"].max()
     np.testing.assert_array_equal(
-        cloud.attrs["intensity"], np.rint((v["intensity"] - lo) * 65535 / (hi - lo)).astype(np.uint16)
+        cloud.attrs["intensity"],
+        np.rint((v["intensity"] - lo) * 65535 / (hi - lo)).astype(np.uint16),
     )
     for c in ("red", "green", "blue"):  # LAS colour is 16-bit: 8-bit values stretched by 257
         np.testing.assert_array_equal(cloud.attrs[c], v[c].astype(np.uint16) * 257)
@@ -61,7 +66,12 @@ def test_integer_intensity_exact_chunks_and_merge_view(tmp_path):
     np.testing.assert_array_equal(cloud.attrs["intensity"], v["intensity"])
     np.testing.assert_array_equal(cloud.attrs["red"], v["red"])
     info = read_header_info(path)
-    assert info.point_count == 2500 and set(info.dimensions) >= {"intensity", "red", "green", "blue"}
+    assert info.point_count == 2500 and set(info.dimensions) >= {
+        "intensity",
+        "red",
+        "green",
+        "blue",
+    }
     np.testing.assert_allclose(info.mins, cloud.xyz.min(axis=0))
     with open_las(path) as reader:  # what merge reads: LAS records at 0.1 mm
         xyz = np.vstack([np.column_stack([r.x, r.y, r.z]) for r in reader.chunk_iterator(1000)])

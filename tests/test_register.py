@@ -25,7 +25,11 @@ def subset_manifest(sim, scan_ids, folder):
     """The simulator's manifest with only some scans, paths made absolute."""
     m = load_manifest(sim.manifest_path)
     plot = m.plots[0]
-    scans = [s.model_copy(update={"path": m.resolve(s.path).resolve()}) for s in plot.scans if s.id in scan_ids]
+    scans = [
+        s.model_copy(update={"path": m.resolve(s.path).resolve()})
+        for s in plot.scans
+        if s.id in scan_ids
+    ]
     als = [t.model_copy(update={"path": m.resolve(t.path).resolve()}) for t in m.als]
     sub = m.model_copy(update={"plots": [plot.model_copy(update={"scans": scans})], "als": als})
     folder.mkdir(parents=True, exist_ok=True)
@@ -57,15 +61,26 @@ def runs(small_sim, tmp_path_factory):
     resumed = register_plot(manifest, out, jobs=1, progress=False)
     mtimes = {p.name: p.stat().st_mtime_ns for p in (out / "pairs").glob("*.json")}
     again = register_plot(manifest, out, jobs=1, progress=False)
-    return {"manifest": manifest, "out": out, "after_crash": after_crash, "resumed": resumed, "again": again,
-            "mtimes": mtimes, "sim": small_sim}
+    return {
+        "manifest": manifest,
+        "out": out,
+        "after_crash": after_crash,
+        "resumed": resumed,
+        "again": again,
+        "mtimes": mtimes,
+        "sim": small_sim,
+    }
 
 
 def test_interrupted_run_resumes_without_redoing_pairs(runs):
-    assert len(runs["after_crash"]) == 1  # the pair finished before Ctrl-C was kept, nothing half-written
+    assert (
+        len(runs["after_crash"]) == 1
+    )  # the pair finished before Ctrl-C was kept, nothing half-written
     assert runs["resumed"].pairs == 3 and runs["resumed"].computed == 2
     assert runs["again"].computed == 0  # a full re-run registers nothing
-    assert {p.name: p.stat().st_mtime_ns for p in (runs["out"] / "pairs").glob("*.json")} == runs["mtimes"]
+    assert {p.name: p.stat().st_mtime_ns for p in (runs["out"] / "pairs").glob("*.json")} == runs[
+        "mtimes"
+    ]
     a, b = runs["resumed"].poses, runs["again"].poses
     for sid in a.scans:
         assert np.array_equal(a.transform(sid), b.transform(sid))
@@ -91,8 +106,17 @@ def test_outputs_written(runs):
     assert {n["id"] for n in graph["nodes"]} == set(SUBSET)
     assert len(graph["edges"]) + len(graph["graph"]["failed"]) == 3
     for e in graph["edges"]:
-        assert np.asarray(e["transform"]).shape == (4, 4) and np.asarray(e["information"]).shape == (6, 6)
-        assert {"fitness", "inlier_rmse", "overlap", "confidence", "residual_before", "residual_after"} <= set(e)
+        assert np.asarray(e["transform"]).shape == (4, 4) and np.asarray(
+            e["information"]
+        ).shape == (6, 6)
+        assert {
+            "fitness",
+            "inlier_rmse",
+            "overlap",
+            "confidence",
+            "residual_before",
+            "residual_after",
+        } <= set(e)
     report = (out / "report.md").read_text()
     assert "| source | target |" in report and "P1-S3" in report
     for png in ("P1_scans.png", "P1_graph.png"):
@@ -103,12 +127,21 @@ def test_dask_executor_gives_the_same_edge(runs, tmp_path):
     from dask.distributed import LocalCluster
 
     manifest = subset_manifest(runs["sim"], ["P1-S0", "P1-S3"], tmp_path)
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
-        result = register_plot(manifest, tmp_path / "out", executor="dask", scheduler=cluster.scheduler_address,
-                               progress=False)
+    with LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None
+    ) as cluster:
+        result = register_plot(
+            manifest,
+            tmp_path / "out",
+            executor="dask",
+            scheduler=cluster.scheduler_address,
+            progress=False,
+        )
     assert result.computed == 1
     (job,) = plan_jobs(load_manifest(manifest), RegisterConfig(), 0)
-    local = PairCache(runs["out"] / "pairs").get(job.key)  # same files, settings and seed as the local run
+    local = PairCache(runs["out"] / "pairs").get(
+        job.key
+    )  # same files, settings and seed as the local run
     remote = PairCache(tmp_path / "out" / "pairs").get(job.key)
     assert local is not None and remote is not None and local["status"] == remote["status"]
     if local["status"] == "ok":
@@ -125,7 +158,9 @@ def test_dask_executor_gives_the_same_edge(runs, tmp_path):
 def test_tie_to_als_georeferences_every_scan(runs, tmp_path):
     from plotmosaic.graph.anchors import tie_to_als
 
-    result = tie_to_als(runs["manifest"], runs["out"] / "poses.json", tmp_path / "geo", progress=False)
+    result = tie_to_als(
+        runs["manifest"], runs["out"] / "poses.json", tmp_path / "geo", progress=False
+    )
     truth = load_poses(runs["sim"].ground_truth_path)
     poses = load_poses(tmp_path / "geo" / "poses.json")
     assert poses.frame == "crs" and CRS.from_user_input(poses.crs).to_epsg() == 26912
@@ -143,7 +178,12 @@ def test_cli_rerun_uses_the_cache(runs):
 
     from plotmosaic.cli import app
 
-    result = CliRunner().invoke(app, ["register-plot", str(runs["manifest"]), "--out", str(runs["out"]), "--jobs", "1"])
+    result = CliRunner().invoke(
+        app, ["register-plot", str(runs["manifest"]), "--out", str(runs["out"]), "--jobs", "1"]
+    )
     assert result.exit_code == 0, result.output
-    assert "3 pairs" in result.output.replace("pairs: 3", "3 pairs") and "0 registered now" in result.output
+    assert (
+        "3 pairs" in result.output.replace("pairs: 3", "3 pairs")
+        and "0 registered now" in result.output
+    )
     assert "P1-S3" in result.output  # the per-scan table

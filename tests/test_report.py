@@ -7,6 +7,7 @@ import re
 
 import matplotlib.image as mpimg
 import numpy as np
+from test_bench import UTM, split_pair, synthetic_plot
 from typer.testing import CliRunner
 
 from plotmosaic.bench.protocol import params_to_matrix
@@ -14,7 +15,6 @@ from plotmosaic.cli import app
 from plotmosaic.io.frame import apply_transform
 from plotmosaic.io.las import PointCloud, write_cloud
 from plotmosaic.poses import Poses, ScanPose
-from test_bench import UTM, split_pair, synthetic_plot
 
 
 def _linked_pngs(index) -> list[str]:
@@ -34,13 +34,44 @@ def test_report_for_a_pair(tmp_path):
     moved = PointCloud(apply_transform(np.linalg.inv(T), src.xyz))  # the source as a misplaced scan
     write_cloud(tmp_path / "s.laz", moved)
     write_cloud(tmp_path / "t.laz", tgt)
-    (tmp_path / "pair.json").write_text(json.dumps({"transform": T.tolist(), "fitness": 0.91, "inlier_rmse": 0.012, "overlap": 0.8, "source_kind": "tls", "target_kind": "tls"}))
+    (tmp_path / "pair.json").write_text(
+        json.dumps(
+            {
+                "transform": T.tolist(),
+                "fitness": 0.91,
+                "inlier_rmse": 0.012,
+                "overlap": 0.8,
+                "source_kind": "tls",
+                "target_kind": "tls",
+            }
+        )
+    )
     out = tmp_path / "rep"
-    result = CliRunner().invoke(app, ["report", "--pair", str(tmp_path / "pair.json"), str(tmp_path / "s.laz"), str(tmp_path / "t.laz"), "--out", str(out), "--points", "5000"])
+    result = CliRunner().invoke(
+        app,
+        [
+            "report",
+            "--pair",
+            str(tmp_path / "pair.json"),
+            str(tmp_path / "s.laz"),
+            str(tmp_path / "t.laz"),
+            "--out",
+            str(out),
+            "--points",
+            "5000",
+        ],
+    )
     assert result.exit_code == 0, result.output
     index = out / "index.md"
     linked = _linked_pngs(index)
-    assert {"before.png", "after.png", "after_slice.png", "levels.png", "pair_breast_slice.png", "pair_distances.png"} <= set(linked)
+    assert {
+        "before.png",
+        "after.png",
+        "after_slice.png",
+        "levels.png",
+        "pair_breast_slice.png",
+        "pair_distances.png",
+    } <= set(linked)
     assert (out / "report.html").is_file() and "report.html" in result.output
     _check_pngs(out, linked)
     text = index.read_text()
@@ -52,8 +83,18 @@ def test_report_on_a_result_that_names_its_clouds(tmp_path):
     src, tgt = split_pair(synthetic_plot(trees=4))
     write_cloud(tmp_path / "s.laz", src)
     write_cloud(tmp_path / "t.laz", tgt)
-    (tmp_path / "r.json").write_text(json.dumps({"transform": np.eye(4).tolist(), "source_path": "s.laz", "target_path": str(tmp_path / "t.laz")}))
-    result = CliRunner().invoke(app, ["report", str(tmp_path / "r.json"), "--points", "3000", "--no-levels"])
+    (tmp_path / "r.json").write_text(
+        json.dumps(
+            {
+                "transform": np.eye(4).tolist(),
+                "source_path": "s.laz",
+                "target_path": str(tmp_path / "t.laz"),
+            }
+        )
+    )
+    result = CliRunner().invoke(
+        app, ["report", str(tmp_path / "r.json"), "--points", "3000", "--no-levels"]
+    )
     assert result.exit_code == 0, result.output
     assert (tmp_path / "report-r" / "report.html").is_file()
     (tmp_path / "q.json").write_text(json.dumps({"transform": np.eye(4).tolist()}))
@@ -65,9 +106,22 @@ def test_report_rejects_a_result_without_transform(tmp_path):
     src, _ = split_pair(synthetic_plot(trees=2))
     write_cloud(tmp_path / "s.laz", src)
     (tmp_path / "bad.json").write_text(json.dumps({"fitness": 1.0}))
-    result = CliRunner().invoke(app, ["report", "--pair", str(tmp_path / "bad.json"), str(tmp_path / "s.laz"), str(tmp_path / "s.laz")])
+    result = CliRunner().invoke(
+        app,
+        [
+            "report",
+            "--pair",
+            str(tmp_path / "bad.json"),
+            str(tmp_path / "s.laz"),
+            str(tmp_path / "s.laz"),
+        ],
+    )
     assert result.exit_code == 2
-    assert "bad.json" in result.output and "transform" in result.output and "Traceback" not in result.output
+    assert (
+        "bad.json" in result.output
+        and "transform" in result.output
+        and "Traceback" not in result.output
+    )
 
 
 def test_report_for_a_register_plot_folder(tmp_path):
@@ -78,16 +132,32 @@ def test_report_for_a_register_plot_folder(tmp_path):
     rng = np.random.default_rng(0)
     world = {}  # scan -> scanner-to-world pose
     nodes = {}
-    for k, p in enumerate(([0, 0, 0, 0, 0, 0], [0.5, -0.5, 70, 8, 3, 0.2], [-0.5, 0.3, -40, -7, 4, -0.1])):
+    for k, p in enumerate(
+        ([0, 0, 0, 0, 0, 0], [0.5, -0.5, 70, 8, 3, 0.2], [-0.5, 0.3, -40, -7, 4, -0.1])
+    ):
         world[f"S{k}"] = params_to_matrix(p)  # scanner frame -> plot frame
         idx = rng.choice(len(scene), len(scene) // 3, replace=False)
         path = tmp_path / "scans" / f"S{k}.laz"
-        write_cloud(path, PointCloud(apply_transform(np.linalg.inv(world[f"S{k}"]), scene.xyz[idx] - UTM)))
+        write_cloud(
+            path, PointCloud(apply_transform(np.linalg.inv(world[f"S{k}"]), scene.xyz[idx] - UTM))
+        )
         nodes[f"S{k}"] = {"plot": "P1", "kind": "tls", "path": str(path)}
     edges = []
     for a, b in (("S1", "S0"), ("S2", "S0"), ("S2", "S1")):
-        T = np.linalg.inv(world[b]) @ world[a] @ params_to_matrix([0, 0, 0.05, 0.01, 0, 0])  # a little noise
-        edges.append({"source": a, "target": b, "transform": T, "fitness": 0.8, "inlier_rmse": 0.02, "overlap": 0.5, "information": np.eye(6) * 1e4})
+        T = (
+            np.linalg.inv(world[b]) @ world[a] @ params_to_matrix([0, 0, 0.05, 0.01, 0, 0])
+        )  # a little noise
+        edges.append(
+            {
+                "source": a,
+                "target": b,
+                "transform": T,
+                "fitness": 0.8,
+                "inlier_rmse": 0.02,
+                "overlap": 0.5,
+                "information": np.eye(6) * 1e4,
+            }
+        )
     G = build_graph(nodes, edges)
     sol = optimise(G, "S0")
     reg = tmp_path / "reg"
@@ -98,7 +168,10 @@ def test_report_for_a_register_plot_folder(tmp_path):
     assert result.exit_code == 0, result.output
     out = reg / "report"
     linked = _linked_pngs(out / "index.md")
-    assert {f"P1_{n}.png" for n in ("before", "after", "slice", "graph", "levels", "breast_slice", "map", "distances")} <= set(linked)
+    assert {
+        f"P1_{n}.png"
+        for n in ("before", "after", "slice", "graph", "levels", "breast_slice", "map", "distances")
+    } <= set(linked)
     assert (out / "report.html").is_file()
     _check_pngs(out, linked)
     assert "| S1 | S0 |" in (out / "index.md").read_text()

@@ -32,13 +32,17 @@ def test_breast_slice_rings_double_when_one_scan_is_off(dense_sim):
     from plotmosaic.report.slice import ring_spread
 
     truth = _truth(dense_sim)
-    raw = {p: read_cloud(p, attributes=False).xyz for p in dense_sim.scan_paths.values()}  # read once
+    raw = {
+        p: read_cloud(p, attributes=False).xyz for p in dense_sim.scan_paths.values()
+    }  # read once
     ids = sorted(truth)
     cfg = ReportConfig()
     good = collect("P1", ids, dense_sim.scan_paths, truth, raw.__getitem__, cfg, 0)
     moved_id = "P1-S2"
     off = dict(truth)
-    off[moved_id] = truth[moved_id] @ params_to_matrix([0, 0, 0.2, 0.03, 0.04, 0])  # 5 cm and 0.2 deg, scanner frame
+    off[moved_id] = truth[moved_id] @ params_to_matrix(
+        [0, 0, 0.2, 0.03, 0.04, 0]
+    )  # 5 cm and 0.2 deg, scanner frame
     bad = collect("P1", ids, dense_sim.scan_paths, off, raw.__getitem__, cfg, 0)
 
     seen = [s for s in good.stems if moved_id in s.arcs]
@@ -90,16 +94,39 @@ def _registered_folder(sim, out: Path):
     rng = np.random.default_rng(0)
     edges = []
     for i, a in enumerate(ids):
-        for b in ids[i + 1:]:
-            T = np.linalg.inv(truth[b]) @ truth[a] @ params_to_matrix(rng.normal(0, [0.002, 0.002, 0.002, 0.002, 0.002, 0.001]))
+        for b in ids[i + 1 :]:
+            T = (
+                np.linalg.inv(truth[b])
+                @ truth[a]
+                @ params_to_matrix(rng.normal(0, [0.002, 0.002, 0.002, 0.002, 0.002, 0.001]))
+            )
             if (a, b) == ("P1-S1", "P1-S3"):
-                T = T @ params_to_matrix([0, 0, 2.0, 0.4, 0.0, 0.0])  # a wrong pair: the loops catch it
-            edges.append({"source": a, "target": b, "transform": T, "fitness": 0.8, "inlier_rmse": 0.01, "overlap": 0.5,
-                          "information": np.eye(6) * 1e4, "confidence": 0.9, "status": "ok", "seconds": 1.5})
+                T = T @ params_to_matrix(
+                    [0, 0, 2.0, 0.4, 0.0, 0.0]
+                )  # a wrong pair: the loops catch it
+            edges.append(
+                {
+                    "source": a,
+                    "target": b,
+                    "transform": T,
+                    "fitness": 0.8,
+                    "inlier_rmse": 0.01,
+                    "overlap": 0.5,
+                    "information": np.eye(6) * 1e4,
+                    "confidence": 0.9,
+                    "status": "ok",
+                    "seconds": 1.5,
+                }
+            )
     G = build_graph(nodes, edges)
     sol = optimise(G, ids[0])
-    poses = Poses({n: ScanPose(np.linalg.inv(ref) @ ref @ T, "P1") for n, T in sol.poses.items()}, frame="plot")
-    result = RegisterResult(out, poses, G, [PlotResult("P1", ids[0], sol, ids)], len(edges), len(edges), [], 12.0)
+    poses = Poses(
+        {n: ScanPose(np.linalg.inv(ref) @ ref @ T, "P1") for n, T in sol.poses.items()},
+        frame="plot",
+    )
+    result = RegisterResult(
+        out, poses, G, [PlotResult("P1", ids[0], sol, ids)], len(edges), len(edges), [], 12.0
+    )
     return result, load_manifest(sim.manifest_path), RegisterConfig()
 
 
@@ -114,8 +141,13 @@ def test_report_html_is_self_contained(small_sim, tmp_path):
     page.feed(page_path.read_text())
     text = " ".join(page.text)
 
-    expected = ["breast-height slice", "map of scans and edges", "cloud-to-cloud distances per kept edge",
-                "median distance to its neighbours", "placed scans from above"]
+    expected = [
+        "breast-height slice",
+        "map of scans and edges",
+        "cloud-to-cloud distances per kept edge",
+        "median distance to its neighbours",
+        "placed scans from above",
+    ]
     for what in expected:
         assert any(what in c for c in page.captions), (what, page.captions)
     assert len(page.images) == len(page.captions) >= len(expected)
@@ -125,8 +157,14 @@ def test_report_html_is_self_contained(small_sim, tmp_path):
         assert base64.b64decode(src.split(",", 1)[1])[:8] == b"\x89PNG\r\n\x1a\n"
     # tables: time, stems, distances, per scan, poses, edges
     assert page.tables >= 6
-    for title in ("How long each stage took", "stems in the breast-height slice", "cloud-to-cloud distances of the kept edges",
-                  "per scan after the joint solve", "Plot P1: poses", "Plot P1: edges"):
+    for title in (
+        "How long each stage took",
+        "stems in the breast-height slice",
+        "cloud-to-cloud distances of the kept edges",
+        "per scan after the joint solve",
+        "Plot P1: poses",
+        "Plot P1: edges",
+    ):
         assert title in text, title
     # summary first, in plain words, with the dropped pair named
     assert text.index("Summary") < text.index("How long each stage took")
@@ -144,7 +182,9 @@ def test_report_html_is_self_contained(small_sim, tmp_path):
 
 def _arc(centre, r, a0, a1, n, rng, noise=0.002):
     t = np.linspace(a0, a1, n)
-    return np.column_stack([centre[0] + r * np.cos(t), centre[1] + r * np.sin(t)]) + rng.normal(0, noise, (n, 2))
+    return np.column_stack([centre[0] + r * np.cos(t), centre[1] + r * np.sin(t)]) + rng.normal(
+        0, noise, (n, 2)
+    )
 
 
 def test_ring_spread_reads_the_offset_between_two_half_rings():
@@ -154,8 +194,12 @@ def test_ring_spread_reads_the_offset_between_two_half_rings():
 
     rng = np.random.default_rng(1)
     for shift in (0.0, 0.03):
-        slices = {"A": np.column_stack([_arc((5.0, 5.0), 0.2, 0.2, np.pi - 0.2, 80, rng), np.zeros(80)]),
-                  "B": np.column_stack([_arc((5.0 + shift, 5.0), 0.2, np.pi + 0.2, 2 * np.pi - 0.2, 60, rng), np.zeros(60)])}
+        slices = {
+            "A": np.column_stack([_arc((5.0, 5.0), 0.2, 0.2, np.pi - 0.2, 80, rng), np.zeros(80)]),
+            "B": np.column_stack(
+                [_arc((5.0 + shift, 5.0), 0.2, np.pi + 0.2, 2 * np.pi - 0.2, 60, rng), np.zeros(60)]
+            ),
+        }
         (stem,) = find_stems(slices, SliceConfig())
         assert stem.scans == ["A", "B"]
         assert abs(stem.spread - shift) < 0.004, (shift, stem.spread)
@@ -173,13 +217,38 @@ def test_warnings_in_plain_words():
     G.add_edge("S2", "S3", source="S2", target="S3")
     G.add_edge("S3", "S1", source="S3", target="S1")
     G.add_edge("S4", "S1", source="S4", target="S1")
-    G.add_edge("S2", "S5", source="S2", target="S5", dropped=True, drop_reason="cycle",
-               residual_after={"translation": 0.4, "rotation_deg": 0.3})
-    G.add_edge("S4", "S3", source="S4", target="S3", confidence=0.1, dropped=True, drop_reason="unverified",
-               residual_after={"translation": 12.0, "rotation_deg": 90.0})
-    w = warnings_for(G, [], ["S5"], [{"source": "S5", "target": "S3", "error": "too few points"}], ReportConfig(), set())
+    G.add_edge(
+        "S2",
+        "S5",
+        source="S2",
+        target="S5",
+        dropped=True,
+        drop_reason="cycle",
+        residual_after={"translation": 0.4, "rotation_deg": 0.3},
+    )
+    G.add_edge(
+        "S4",
+        "S3",
+        source="S4",
+        target="S3",
+        confidence=0.1,
+        dropped=True,
+        drop_reason="unverified",
+        residual_after={"translation": 12.0, "rotation_deg": 90.0},
+    )
+    w = warnings_for(
+        G,
+        [],
+        ["S5"],
+        [{"source": "S5", "target": "S3", "error": "too few points"}],
+        ReportConfig(),
+        set(),
+    )
     assert "scan S5 is not placed: no kept pair links it to the reference" in w
     assert any(x.startswith("scan S4 is held by one edge only (S1)") for x in w)
-    assert "edge S2-S5 dropped: its loops with the other edges do not close; it is 40 cm / 0.30 deg off the solution" in w
+    assert (
+        "edge S2-S5 dropped: its loops with the other edges do not close; it is 40 cm / 0.30 deg off the solution"
+        in w
+    )
     assert any("edge S4-S3 dropped" in x and "12.0 m" in x for x in w)
     assert "pair S5-S3 could not be registered: too few points" in w

@@ -51,7 +51,11 @@ def _pair_jobs(sim, folder, ids=("P1-S0", "P1-S2", "P1-S3")):
 
     m = load_manifest(sim.manifest_path)
     plot = m.plots[0]
-    sub = m.model_copy(update={"plots": [plot.model_copy(update={"scans": [s for s in plot.scans if s.id in ids]})]})
+    sub = m.model_copy(
+        update={
+            "plots": [plot.model_copy(update={"scans": [s for s in plot.scans if s.id in ids]})]
+        }
+    )
     sub = sub.model_copy(update={"source": m.source})
     return plan_jobs(sub, RegisterConfig(), 0, folder)
 
@@ -85,7 +89,9 @@ def test_prepared_cloud_round_trip_and_damaged_entry(small_sim, tmp_path, capsys
     loaded = store.load_prepared(path)
     for name in ("points", "level_points", "normals", "features", "levels", "fine_points"):
         assert np.array_equal(getattr(direct, name), getattr(loaded, name)), name
-    assert loaded.level_stats == direct.level_stats or str(loaded.level_stats) == str(direct.level_stats)
+    assert loaded.level_stats == direct.level_stats or str(loaded.level_stats) == str(
+        direct.level_stats
+    )
     assert np.array_equal(direct.frame.offset, loaded.frame.offset) and loaded.k == direct.k
     q = direct.points[::97]
     assert np.array_equal(direct.tree.query(q, k=3)[1], loaded.tree.query(q, k=3)[1])

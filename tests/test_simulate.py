@@ -52,10 +52,14 @@ def test_outputs_follow_the_contract(small_sim):
         assert np.degrees(np.arccos(up[2])) <= 2.0 + 1e-6  # tilt up to 2 deg
         cloud = read_cloud(small_sim.scan_paths[sid])
         assert 20_000 < len(cloud) <= 60_000
-        assert {"label", "intensity", "return_number", "number_of_returns", "gps_time"} <= set(cloud.attrs)
+        assert {"label", "intensity", "return_number", "number_of_returns", "gps_time"} <= set(
+            cloud.attrs
+        )
         assert set(np.unique(cloud.attrs["label"])) == {GROUND, WOODY, FOLIAGE, UNDERSTORY}
         assert np.linalg.norm(cloud.xyz, axis=1).max() <= small_sim.config.tls.max_range_m + 0.1
-    headings = [np.degrees(np.arctan2(p.transform[1, 0], p.transform[0, 0])) for p in truth.scans.values()]
+    headings = [
+        np.degrees(np.arctan2(p.transform[1, 0], p.transform[0, 0])) for p in truth.scans.values()
+    ]
     assert np.ptp(headings) > 30  # random headings, not all aligned
 
 
@@ -85,7 +89,9 @@ def test_scans_lie_on_the_scene_surfaces(small_sim, small_world):
         assert np.mean(d <= 4 * sigma + 0.0015) > 0.999, sid
         assert np.median(d) < 0.005
         # The labels come from the surface they lie on.
-        closest = scene.raycaster.compute_closest_points(__import__("open3d").core.Tensor((world - small_world.origin).astype(np.float32)))
+        closest = scene.raycaster.compute_closest_points(
+            __import__("open3d").core.Tensor((world - small_world.origin).astype(np.float32))
+        )
         lab = small_world.mesh.labels[closest["primitive_ids"].numpy()]
         assert np.mean(lab == cloud.attrs["label"]) > 0.97
     # The check can fail: a pose off by 1 degree / 10 cm puts the points off the surfaces.
@@ -132,7 +138,9 @@ def test_als_tile(small_sim, small_world):
     whole = density(local[:, :2], ext)
     cx, cy = (ext[0] + ext[2]) / 2, (ext[1] + ext[3]) / 2
     centre = density(local[:, :2], (cx - 15, cy - 15, cx + 15, cy + 15))
-    print(f"ALS density requested {requested}, whole tile {whole:.2f}, central 30 x 30 m {centre:.2f} pts/m2")
+    print(
+        f"ALS density requested {requested}, whole tile {whole:.2f}, central 30 x 30 m {centre:.2f} pts/m2"
+    )
     assert abs(whole / requested - 1) < 0.2 and abs(centre / requested - 1) < 0.2
     nr, rn = als.attrs["number_of_returns"], als.attrs["return_number"]
     assert nr.max() >= 3 and (rn <= nr).all() and (rn >= 1).all()
@@ -150,8 +158,14 @@ def test_scans_overlap_only_partly(small_sim):
     fractions = {}
     for sid in ["P1-S1", "P1-S2", "P1-S3", "P1-S4"]:
         _, corner = _world_xyz(small_sim, sid)
-        fractions[sid] = (overlap_fraction(centre, corner, 0.05), overlap_fraction(centre, corner, 0.25))
-    print("overlap of P1-S0 with corner scans (5 cm, 25 cm):", {k: tuple(round(v, 3) for v in f) for k, f in fractions.items()})
+        fractions[sid] = (
+            overlap_fraction(centre, corner, 0.05),
+            overlap_fraction(centre, corner, 0.25),
+        )
+    print(
+        "overlap of P1-S0 with corner scans (5 cm, 25 cm):",
+        {k: tuple(round(v, 3) for v in f) for k, f in fractions.items()},
+    )
     assert overlap_fraction(centre, centre, 0.05) == 1.0
     for f5, f25 in fractions.values():
         assert 0.01 < f5 < f25 < 0.9  # they share a lot, but occlusion hides much from each other
@@ -160,8 +174,12 @@ def test_scans_overlap_only_partly(small_sim):
 def test_sample_manifests_match_the_simulator(small_sim):
     plot = load_manifest(SAMPLES / "plot.toml", check_files=False)
     written = load_manifest(small_sim.manifest_path)
-    assert [(s.id, s.path, s.reference) for s in plot.scans] == [(s.id, s.path, s.reference) for s in written.scans]
-    assert [p.id for p in plot.plots] == [p.id for p in written.plots] and plot.plots[0].crs == "EPSG:26912"
+    assert [(s.id, s.path, s.reference) for s in plot.scans] == [
+        (s.id, s.path, s.reference) for s in written.scans
+    ]
+    assert [p.id for p in plot.plots] == [p.id for p in written.plots] and plot.plots[
+        0
+    ].crs == "EPSG:26912"
     assert [t.path for t in plot.als] == [t.path for t in written.als]
     region = load_manifest(SAMPLES / "region.toml", check_files=False)
     expected = expected_scans(make_config("region"))
@@ -169,18 +187,31 @@ def test_sample_manifests_match_the_simulator(small_sim):
     assert all(p.crs == "EPSG:26912" and p.reference.id.endswith("-S0") for p in region.plots)
     assert [t.path for t in region.als] == [t.path for t in written.als]
     # and the simulator's own naming agrees for the small preset it ran
-    assert [(p.id, s.id, s.path) for p in written.plots for s in p.scans] == expected_scans(small_sim.config)
+    assert [(p.id, s.id, s.path) for p in written.plots for s in p.scans] == expected_scans(
+        small_sim.config
+    )
 
 
 def test_presets_are_valid():
-    assert set(PRESETS) == {"small", "paper", "region", "region10", "large", "understorey", "grassland", "prepost"}
+    assert set(PRESETS) == {
+        "small",
+        "paper",
+        "region",
+        "region10",
+        "large",
+        "understorey",
+        "grassland",
+        "prepost",
+    }
     assert PRESETS["small"].tls.points_per_scan <= 60_000
     assert PRESETS["grassland"].forest.trees_per_ha == 0
     assert len(PRESETS["region"].plot_centres) >= 3 and PRESETS["prepost"].prepost
 
 
 def test_prepost_thins_only_the_understory():
-    cfg = make_config("prepost", tree_density=60, grass_density=0.4, shrub_density=400, **{"scene_margin_m": 10.0})
+    cfg = make_config(
+        "prepost", tree_density=60, grass_density=0.4, shrub_density=400, **{"scene_margin_m": 10.0}
+    )
     world = build_world(cfg, 3)
     pre, post = world.mesh, world.post_mesh
     for label in (GROUND, WOODY, FOLIAGE):
@@ -195,7 +226,20 @@ def test_prepost_thins_only_the_understory():
 def test_cli(tmp_path):
     runner = CliRunner()
     out = tmp_path / "sim"
-    result = runner.invoke(app, ["simulate", str(out), "--preset", "small", "--seed", "2", "--approx-positions", "--points-per-scan", "20000"])
+    result = runner.invoke(
+        app,
+        [
+            "simulate",
+            str(out),
+            "--preset",
+            "small",
+            "--seed",
+            "2",
+            "--approx-positions",
+            "--points-per-scan",
+            "20000",
+        ],
+    )
     assert result.exit_code == 0, result.output
     assert "5 TLS scans" in result.output and "manifest.toml" in result.output
     m = load_manifest(out / "manifest.toml")
@@ -214,15 +258,24 @@ def test_scale_presets_validate():
     from plotmosaic.simulate.config import grid_layout
 
     large = PRESETS["large"]
-    assert len(large.scan_layout) >= 36 and not large.approx_positions and len(large.plot_centres) == 1
+    assert (
+        len(large.scan_layout) >= 36 and not large.approx_positions and len(large.plot_centres) == 1
+    )
     xy = np.array(large.scan_layout)
     gaps = np.sort(np.linalg.norm(xy[:, None] - xy[None], axis=2), axis=1)[:, 1]
     assert 15.0 <= gaps.min() and gaps.max() <= 20.0
-    assert 0.7e4 <= np.ptp(xy[:, 0]) * np.ptp(xy[:, 1]) and (np.ptp(xy[:, 0]) + 30) * (np.ptp(xy[:, 1]) + 30) <= 1.5e4  # ~1 ha
+    assert (
+        0.7e4 <= np.ptp(xy[:, 0]) * np.ptp(xy[:, 1])
+        and (np.ptp(xy[:, 0]) + 30) * (np.ptp(xy[:, 1]) + 30) <= 1.5e4
+    )  # ~1 ha
     assert large.tls.points_per_scan == 1_000_000
     region = PRESETS["region10"]
     centres = np.array(region.plot_centres)
-    assert len(centres) >= 10 and np.sort(np.linalg.norm(centres[:, None] - centres[None], axis=2), axis=1)[:, 1].min() >= 60
+    assert (
+        len(centres) >= 10
+        and np.sort(np.linalg.norm(centres[:, None] - centres[None], axis=2), axis=1)[:, 1].min()
+        >= 60
+    )
     under = PRESETS["understorey"]
     assert under.forest.shrubs_per_ha >= 5000 and len(under.scan_layout) >= 2
     assert grid_layout(3, 10.0) == [(x, y) for y in (-10.0, 0.0, 10.0) for x in (-10.0, 0.0, 10.0)]
@@ -232,26 +285,62 @@ def test_scale_presets_validate():
 def test_tiny_large_and_understorey_simulate(tmp_path):
     from plotmosaic.simulate.config import grid_layout
 
-    tiny = dict(points_per_scan=4000, tree_density=80, shrub_density=200, grass_density=0.2, scene_margin_m=6.0,
-                scan_layout=grid_layout(2, 16.0), **{"terrain.cell": 1.0})
+    tiny = dict(
+        points_per_scan=4000,
+        tree_density=80,
+        shrub_density=200,
+        grass_density=0.2,
+        scene_margin_m=6.0,
+        scan_layout=grid_layout(2, 16.0),
+        **{"terrain.cell": 1.0},
+    )
     large = simulate(tmp_path / "large", "large", seed=0, **tiny)
     m = load_manifest(large.manifest_path)
     assert len(m.scans) == 4 and all(s.approx_position is None for s in m.scans)
-    under = simulate(tmp_path / "under", "understorey", seed=0, points_per_scan=8000, scene_margin_m=6.0)
-    near = [np.mean(np.linalg.norm(read_cloud(p, attributes=False).xyz, axis=1) <= 5.0) for p in under.scan_paths.values()]
+    under = simulate(
+        tmp_path / "under", "understorey", seed=0, points_per_scan=8000, scene_margin_m=6.0
+    )
+    near = [
+        np.mean(np.linalg.norm(read_cloud(p, attributes=False).xyz, axis=1) <= 5.0)
+        for p in under.scan_paths.values()
+    ]
     assert len(near) == 3 and min(near) > 0.5  # most returns from within 5 m of the scanner
 
 
 def test_cli_scan_grid_and_one_line_errors(tmp_path):
     runner = CliRunner()
     bad = runner.invoke(app, ["simulate", str(tmp_path / "x"), "--preset", "huge"])
-    assert bad.exit_code == 2 and bad.output.startswith("error: unknown preset") and len(bad.output.splitlines()) == 1
+    assert (
+        bad.exit_code == 2
+        and bad.output.startswith("error: unknown preset")
+        and len(bad.output.splitlines()) == 1
+    )
     assert not (tmp_path / "x").exists()
-    res = runner.invoke(app, ["simulate", str(tmp_path / "g"), "--preset", "small", "--scan-grid", "2", "--scan-spacing", "15",
-                              "--points-per-scan", "3000", "--tree-density", "60", "--grass-density", "0.2"])
+    res = runner.invoke(
+        app,
+        [
+            "simulate",
+            str(tmp_path / "g"),
+            "--preset",
+            "small",
+            "--scan-grid",
+            "2",
+            "--scan-spacing",
+            "15",
+            "--points-per-scan",
+            "3000",
+            "--tree-density",
+            "60",
+            "--grass-density",
+            "0.2",
+        ],
+    )
     assert res.exit_code == 0, res.output
     truth = load_poses(tmp_path / "g" / "ground_truth.json")
     xy = np.array([p.transform[:2, 3] for p in truth.scans.values()])
-    assert len(xy) == 4 and 14.0 < np.sort(np.linalg.norm(xy[:, None] - xy[None], axis=2), axis=1)[:, 1].min()
+    assert (
+        len(xy) == 4
+        and 14.0 < np.sort(np.linalg.norm(xy[:, None] - xy[None], axis=2), axis=1)[:, 1].min()
+    )
     mixed = runner.invoke(app, ["simulate", str(tmp_path / "y"), "--views", "2"])
     assert mixed.exit_code == 2 and "--from-cloud" in mixed.output

@@ -17,7 +17,9 @@ def test_voxel_centroids_match_a_plain_group_by_and_come_in_cube_order():
     for p in pts:
         cells.setdefault(tuple(np.floor(p / 0.5 - FACE_PHASE).astype(np.int64)), []).append(p)
     assert len(got) == len(cells)
-    want = np.array([np.mean(cells[k], axis=0) for k in sorted(cells)])  # lexicographic = cube order
+    want = np.array(
+        [np.mean(cells[k], axis=0) for k in sorted(cells)]
+    )  # lexicographic = cube order
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-7)
     keys = cube_keys(got, 0.5)
     assert np.all(np.diff(keys) > 0)  # one point per cube, sorted
@@ -59,7 +61,11 @@ def test_local_shape_on_a_plane_a_line_and_a_scatter():
     v = np.cross(n, u)
     ab = rng.uniform(-2, 2, (8000, 2))
     plane = ab[:, :1] * u + ab[:, 1:] * v + rng.normal(0, 0.002, (8000, 1)) * n
-    line = np.column_stack([rng.normal(0, 0.003, (2000, 2)), rng.uniform(0, 4, 2000)]) + [10.0, 0, 0]  # a thin stem
+    line = np.column_stack([rng.normal(0, 0.003, (2000, 2)), rng.uniform(0, 4, 2000)]) + [
+        10.0,
+        0,
+        0,
+    ]  # a thin stem
     blob = rng.normal(0, 0.3, (3000, 3)) + [20.0, 0, 0]
     pts = np.vstack([plane, line, blob])
     tree = cKDTree(pts)
@@ -84,11 +90,17 @@ def test_level_shape_sees_a_stem_as_a_vertical_line_and_the_ground_as_a_level_pl
     rng = np.random.default_rng(5)
     ground = np.column_stack([rng.uniform(-3, 3, (60_000, 2)), rng.normal(0, 0.003, 60_000)])
     a = rng.uniform(0, 2 * np.pi, 20_000)
-    stem = np.column_stack([0.15 * np.cos(a) + 10, 0.15 * np.sin(a), rng.uniform(0.5, 3.5, 20_000)])  # 30 cm stem
+    stem = np.column_stack(
+        [0.15 * np.cos(a) + 10, 0.15 * np.sin(a), rng.uniform(0.5, 3.5, 20_000)]
+    )  # 30 cm stem
     pts = np.vstack([ground, stem])
     support = pts[thin(pts, 0.1)]
-    normals, feats, counts = level_shape(support, cKDTree(support), np.array([[0.0, 0.0, 0.0], [10.15, 0.0, 2.0]]), 0.25, 32)
-    assert abs(normals[0, 2]) > 0.99 and feats[0, 1] > 0.6 and feats[0, 2] < 0.05 and feats[0, 3] < 0.2  # level plane
+    normals, feats, counts = level_shape(
+        support, cKDTree(support), np.array([[0.0, 0.0, 0.0], [10.15, 0.0, 2.0]]), 0.25, 32
+    )
+    assert (
+        abs(normals[0, 2]) > 0.99 and feats[0, 1] > 0.6 and feats[0, 2] < 0.05 and feats[0, 3] < 0.2
+    )  # level plane
     assert abs(normals[1, 2]) < 0.2 and feats[1, 3] > 0.9  # vertical surface, vertical main axis
     assert counts.min() >= 3
 
@@ -98,8 +110,13 @@ def test_closed_form_eigen_matches_lapack_on_planes_lines_and_scatter():
 
     rng = np.random.default_rng(6)
     R = np.linalg.qr(rng.normal(size=(300, 3, 3)))[0]
-    spectra = np.concatenate([np.tile([1e-2, 1e-2, 1e-8], (100, 1)), np.tile([1e-1, 1e-4, 1e-5], (100, 1)),
-                              rng.uniform(1e-4, 1e-2, (100, 3))])  # planes, lines, scatter
+    spectra = np.concatenate(
+        [
+            np.tile([1e-2, 1e-2, 1e-8], (100, 1)),
+            np.tile([1e-1, 1e-4, 1e-5], (100, 1)),
+            rng.uniform(1e-4, 1e-2, (100, 3)),
+        ]
+    )  # planes, lines, scatter
     A = np.einsum("nij,nj,nkj->nik", R, spectra, R)
     c = {(a, b): A[:, a, b] for a in range(3) for b in range(a, 3)}
     l1, l2, l3 = eigenvalues_sym3(c)

@@ -27,8 +27,15 @@ from plotmosaic.align import features3d, stemmap
 from plotmosaic.align.coarse_config import CoarseConfig
 from plotmosaic.align.levelling import Vertical, rotate, vertical_hypotheses
 from plotmosaic.align.normals import local_shape
-from plotmosaic.align.rasters import (CHANNELS, MaskedNCC, PointFeatures, column_bins, height_above_ground,
-                                      point_features, rasterise)
+from plotmosaic.align.rasters import (
+    CHANNELS,
+    MaskedNCC,
+    PointFeatures,
+    column_bins,
+    height_above_ground,
+    point_features,
+    rasterise,
+)
 from plotmosaic.align.sampling import sample
 from plotmosaic.align.voxel import thin, voxel_centroids
 from plotmosaic.io.frame import pose_error
@@ -82,7 +89,9 @@ class _Levelled:
     _stems: stemmap.StemMap | None = None
 
 
-def _base(cloud, config: CoarseConfig, rng: np.random.Generator, airborne: bool, upright: bool, limit: int) -> _Base:
+def _base(
+    cloud, config: CoarseConfig, rng: np.random.Generator, airborne: bool, upright: bool, limit: int
+) -> _Base:
     """`upright`: take the file's z as the only vertical (georeferenced airborne targets)."""
     # own normals over a wider neighbourhood than ForestAlign's 0.25 m: the coarse stage must also
     # work on sparse clouds (far TLS ranges, ALS), where 0.25 m holds too few points for a plane
@@ -91,7 +100,9 @@ def _base(cloud, config: CoarseConfig, rng: np.random.Generator, airborne: bool,
     tree = cKDTree(pts, balanced_tree=False, compact_nodes=False)
     nrm = local_shape(pts, tree, pts, config.normal_radius, config.normal_neighbours)[0]
     few = sample(len(nrm), config.levelling_normals, rng)
-    verticals, info = vertical_hypotheses(pts[few], nrm[few], config, airborne=airborne, limit=limit)
+    verticals, info = vertical_hypotheses(
+        pts[few], nrm[few], config, airborne=airborne, limit=limit
+    )
     if upright:  # z-up first, and one estimate: on a slope a ground-levelled source pairs with a ground-levelled target
         info = {**info, "estimated_tilt_deg": info["tilt_deg"], "tilt_deg": 0.0, "upright": True}
     return _Base(pts, nrm, verticals, info | {"points": len(pts)})
@@ -103,7 +114,11 @@ def _level(base: _Base, v: Vertical, config: CoarseConfig) -> _Levelled:
         pts_l, nrm_l = rotate(base.points, R), rotate(base.normals, R)
         hag = height_above_ground(pts_l, config.feature_cell, config)
         feats = point_features(pts_l, nrm_l, config.feature_cell, config, hag=hag)
-        info = {"stems": int(feats.stem.sum()), "canopy": int(feats.canopy.sum()), "ground": int(feats.ground.sum())}
+        info = {
+            "stems": int(feats.stem.sum()),
+            "canopy": int(feats.canopy.sum()),
+            "ground": int(feats.ground.sum()),
+        }
         base.levelled[v.name] = _Levelled(pts_l, nrm_l, R, feats, hag, v.name, info)
     return base.levelled[v.name]
 
@@ -114,7 +129,9 @@ def _stems(lv: _Levelled, config: CoarseConfig) -> stemmap.StemMap:
     return lv._stems
 
 
-def _prepared(cloud, config: CoarseConfig, seed: int, airborne: bool, upright: bool, limit: int) -> _Base:
+def _prepared(
+    cloud, config: CoarseConfig, seed: int, airborne: bool, upright: bool, limit: int
+) -> _Base:
     """`_base`, remembered on the cloud object: in a plot each scan takes part in several pairs."""
     key = (config.model_dump_json(), seed, airborne, upright, limit)
     memo = cloud.__dict__.setdefault("_coarse_levelled", {})
@@ -135,8 +152,13 @@ def _rot_z(yaw: float) -> np.ndarray:
     return np.array([[c, -s], [s, c]])
 
 
-def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: CoarseConfig,
-            prior: np.ndarray | None = None) -> list[dict]:
+def _search(
+    src: _Levelled,
+    tgt: _Levelled,
+    weights: dict[str, float],
+    config: CoarseConfig,
+    prior: np.ndarray | None = None,
+) -> list[dict]:
     """Exhaustive heading search; masked-NCC shift per heading; the best distinct peaks.
 
     `prior` (levelled source -> levelled target): search only headings within `prior_yaw_deg` of
@@ -157,7 +179,9 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
     src_bins, tgt_bins = column_bins(src.feats, cell / 4), column_bins(tgt.feats, cell / 4)
     target = rasterise(tgt_bins.xy, tgt_bins, cell, t_min, t_shape, config.blur_cells)
     area_t = target.masks["canopy"].sum()
-    ncc = MaskedNCC(target, s_shape, min_overlap=1, workers=1)  # headings run in two threads instead
+    ncc = MaskedNCC(
+        target, s_shape, min_overlap=1, workers=1
+    )  # headings run in two threads instead
     area_s = rasterise(src_bins.xy, src_bins, cell, s_origin, s_shape, 0).masks["canopy"].sum()
     min_cells = config.min_overlap * min(area_s, area_t)
 
@@ -168,8 +192,13 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
         prior_yaw = float(np.arctan2(prior[1, 0], prior[0, 0]))
         prior_t = (prior[:3, :3] @ c3 + prior[:3, 3])[:2] - centre
         rows, cols = np.meshgrid(np.arange(ncc.shape[0]), np.arange(ncc.shape[1]), indexing="ij")
-        shift = np.stack([np.where(rows < ncc.shape[0] // 2, rows, rows - ncc.shape[0]),
-                          np.where(cols < ncc.shape[1] // 2, cols, cols - ncc.shape[1])], axis=-1)
+        shift = np.stack(
+            [
+                np.where(rows < ncc.shape[0] // 2, rows, rows - ncc.shape[0]),
+                np.where(cols < ncc.shape[1] // 2, cols, cols - ncc.shape[1]),
+            ],
+            axis=-1,
+        )
         t_xy = target.origin - s_origin + shift * cell
         allowed = np.linalg.norm(t_xy - prior_t, axis=-1) <= config.prior_shift_m
 
@@ -181,15 +210,23 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
         source = rasterise(xy, src_bins, cell, s_origin, s_shape, config.blur_cells)
         total = 0.0
         overlap = None
-        for name, (score, ov) in ncc.scores(source, [n for n in CHANNELS if weights[n] != 0]).items():
+        for name, (score, ov) in ncc.scores(
+            source, [n for n in CHANNELS if weights[n] != 0]
+        ).items():
             if name == "canopy":
                 overlap = ov
             if name == "terrain":  # a handful of shared ground cells proves nothing
-                score = np.where(ov >= max(min_cells * config.terrain_min_share, config.terrain_min_cells), score, 0.0)
+                score = np.where(
+                    ov >= max(min_cells * config.terrain_min_share, config.terrain_min_cells),
+                    score,
+                    0.0,
+                )
             total = total + weights[name] * score
         total = total / sum(weights.values())
         frac = overlap / max(min(area_s, area_t), 1.0)
-        total = np.where(overlap >= min_cells, total * np.clip(frac, 0, 1) ** config.overlap_exponent, -1.0)
+        total = np.where(
+            overlap >= min_cells, total * np.clip(frac, 0, 1) ** config.overlap_exponent, -1.0
+        )
         if allowed is not None:
             total = np.where(allowed, total, -1.0)
         found = []
@@ -198,7 +235,14 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
             if total[k] <= 0:
                 break
             t_xy = ncc.shift_to_translation(k, source)
-            found.append({"score": float(total[k]), "yaw": float(yaw), "t_xy": t_xy, "overlap": float(min(frac[k], 1.0))})
+            found.append(
+                {
+                    "score": float(total[k]),
+                    "yaw": float(yaw),
+                    "t_xy": t_xy,
+                    "overlap": float(min(frac[k], 1.0)),
+                }
+            )
             r = max(1, int(round(config.peak_suppression_m / cell)))
             rows = np.arange(k[0] - r, k[0] + r + 1) % total.shape[0]
             cols = np.arange(k[1] - r, k[1] + r + 1) % total.shape[1]
@@ -210,7 +254,9 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
     step = np.radians(config.yaw_step_deg)
     yaws = np.arange(0.0, 2 * np.pi, step)
     if prior is not None:
-        yaws = [y for y in yaws if _angle_diff(y, prior_yaw) <= np.radians(config.prior_yaw_deg)] + [prior_yaw % (2 * np.pi)]
+        yaws = [
+            y for y in yaws if _angle_diff(y, prior_yaw) <= np.radians(config.prior_yaw_deg)
+        ] + [prior_yaw % (2 * np.pi)]
     # rasterising and FFTs release the GIL: headings two at a time
     candidates = [c for found in in_two_threads(peaks, [float(y) for y in yaws]) for c in found]
     best_yaws: list[float] = []
@@ -219,13 +265,18 @@ def _search(src: _Levelled, tgt: _Levelled, weights: dict[str, float], config: C
             best_yaws.append(c["yaw"])
         if len(best_yaws) >= config.refine_headings:
             break
-    refine = [float((yaw + d) % (2 * np.pi)) for yaw in best_yaws for d in (-0.5 * step, 0.5 * step)]
+    refine = [
+        float((yaw + d) % (2 * np.pi)) for yaw in best_yaws for d in (-0.5 * step, 0.5 * step)
+    ]
     candidates += [c for found in in_two_threads(peaks, refine) for c in found]
     candidates.sort(key=lambda c: -c["score"])
     chosen: list[dict] = []
     for c in candidates:
-        if all(_angle_diff(c["yaw"], o["yaw"]) > np.radians(config.distinct_yaw_deg)
-               or np.linalg.norm(c["t_xy"] - o["t_xy"]) > config.distinct_shift_m for o in chosen):
+        if all(
+            _angle_diff(c["yaw"], o["yaw"]) > np.radians(config.distinct_yaw_deg)
+            or np.linalg.norm(c["t_xy"] - o["t_xy"]) > config.distinct_shift_m
+            for o in chosen
+        ):
             chosen.append({**c, "centre": centre, "cell": cell})
         if len(chosen) >= config.hypotheses:
             break
@@ -236,8 +287,9 @@ def _angle_diff(a: float, b: float) -> float:
     return abs((a - b + np.pi) % (2 * np.pi) - np.pi)
 
 
-def _hypothesis_transform(h: dict, src: _Levelled, tgt: _Levelled, ground_tree: cKDTree | None,
-                          config: CoarseConfig) -> np.ndarray:
+def _hypothesis_transform(
+    h: dict, src: _Levelled, tgt: _Levelled, ground_tree: cKDTree | None, config: CoarseConfig
+) -> np.ndarray:
     """Full 4x4 (levelled source -> levelled target) of a heading/shift hypothesis, tz from the ground."""
     Rz = np.eye(3)
     Rz[:2, :2] = _rot_z(h["yaw"])
@@ -248,8 +300,9 @@ def _hypothesis_transform(h: dict, src: _Levelled, tgt: _Levelled, ground_tree: 
     return _with_height(A, src, tgt, ground_tree, config)
 
 
-def _with_height(A: np.ndarray, src: _Levelled, tgt: _Levelled, ground_tree: cKDTree | None,
-                 config: CoarseConfig) -> np.ndarray:
+def _with_height(
+    A: np.ndarray, src: _Levelled, tgt: _Levelled, ground_tree: cKDTree | None, config: CoarseConfig
+) -> np.ndarray:
     """`A` with its vertical offset taken from the shared ground (the median of target - source heights)."""
     A = A.copy()
     g = src.feats.ground
@@ -265,15 +318,26 @@ def _with_height(A: np.ndarray, src: _Levelled, tgt: _Levelled, ground_tree: cKD
     return A
 
 
-def _refine(src_pts: np.ndarray, tgt: tuple, T0: np.ndarray, distances: tuple[float, ...], iterations: int) -> np.ndarray:
+def _refine(
+    src_pts: np.ndarray, tgt: tuple, T0: np.ndarray, distances: tuple[float, ...], iterations: int
+) -> np.ndarray:
     """Quick robust point-to-plane ICP over shrinking correspondence distances (Tukey width = distance)."""
     from plotmosaic.align.config import IcpStage  # here: align.config imports this module
     from plotmosaic.align.icp import point_to_plane_icp
 
     points, normals, tree = tgt
     stages = [IcpStage(max_distance=d, iterations=iterations) for d in distances]
-    return point_to_plane_icp(src_pts, points, normals, T0, stages, tree=tree, kernel_floor=0.0, kernel_ratio=1.0,
-                              tol=1e-4).T
+    return point_to_plane_icp(
+        src_pts,
+        points,
+        normals,
+        T0,
+        stages,
+        tree=tree,
+        kernel_floor=0.0,
+        kernel_ratio=1.0,
+        tol=1e-4,
+    ).T
 
 
 def _score(structure: np.ndarray, tgt: tuple, T: np.ndarray, distance: float) -> float:
@@ -294,7 +358,9 @@ def _homogeneous(R: np.ndarray) -> np.ndarray:
     return T
 
 
-def _vertical_pairs(src: _Base, tgt: _Base, config: CoarseConfig) -> list[tuple[Vertical, Vertical]]:
+def _vertical_pairs(
+    src: _Base, tgt: _Base, config: CoarseConfig
+) -> list[tuple[Vertical, Vertical]]:
     """Vertical pairs searched: the first of each first, then every source vertical against the target's
     first, then the rest (two estimates biased alike by the same sloped terrain still level the pair alike)."""
     pairs = [(v, tgt.verticals[0]) for v in src.verticals]
@@ -302,9 +368,14 @@ def _vertical_pairs(src: _Base, tgt: _Base, config: CoarseConfig) -> list[tuple[
     return pairs[: config.max_vertical_pairs]
 
 
-def _fpfh_starts(src: _Base, tgt: _Base, pairs, config: CoarseConfig, rng: np.random.Generator) -> list[tuple]:
+def _fpfh_starts(
+    src: _Base, tgt: _Base, pairs, config: CoarseConfig, rng: np.random.Generator
+) -> list[tuple]:
     """(local 4x4, hypothesis dict) from FPFH matches: 4-DoF per vertical pair, and one 6-DoF search."""
-    fs, ft = features3d.fpfh_features(src.points, config), features3d.fpfh_features(tgt.points, config)
+    fs, ft = (
+        features3d.fpfh_features(src.points, config),
+        features3d.fpfh_features(tgt.points, config),
+    )
     i, j = features3d.mutual_matches(fs, ft)
     p, q = fs.points[i], ft.points[j]
     out = []
@@ -319,7 +390,9 @@ def _fpfh_starts(src: _Base, tgt: _Base, pairs, config: CoarseConfig, rng: np.ra
     return out
 
 
-def _stem_starts(src: _Base, tgt: _Base, pairs, config: CoarseConfig, rng: np.random.Generator) -> list[tuple]:
+def _stem_starts(
+    src: _Base, tgt: _Base, pairs, config: CoarseConfig, rng: np.random.Generator
+) -> list[tuple]:
     """(local 4x4, hypothesis dict) from stem-map matches per vertical pair."""
     out = []
     for vs, vt in pairs:
@@ -334,32 +407,69 @@ def _stem_starts(src: _Base, tgt: _Base, pairs, config: CoarseConfig, rng: np.ra
             h = {"yaw": yaw, "t_xy": t_xy, "centre": np.zeros(2)}
             A = _hypothesis_transform(h, ls, lt, ground_tree, config)
             T = _homogeneous(lt.R.T) @ A @ _homogeneous(ls.R)
-            out.append((T, {"generator": "stems", "vertical": f"{vs.name}/{vt.name}", "votes": n, "yaw": yaw,
-                            "stems": [len(ms.xy), len(mt.xy)]}))
+            out.append(
+                (
+                    T,
+                    {
+                        "generator": "stems",
+                        "vertical": f"{vs.name}/{vt.name}",
+                        "votes": n,
+                        "yaw": yaw,
+                        "stems": [len(ms.xy), len(mt.xy)],
+                    },
+                )
+            )
     return out
 
 
-def _raster_starts(src: _Base, tgt: _Base, pairs, weights, config: CoarseConfig, prior: np.ndarray | None
-                   ) -> tuple[list[tuple], float | None]:
+def _raster_starts(
+    src: _Base, tgt: _Base, pairs, weights, config: CoarseConfig, prior: np.ndarray | None
+) -> tuple[list[tuple], float | None]:
     """(local 4x4, hypothesis dict) of the raster search per vertical pair, and the raster cell used."""
     out, cell = [], None
     for k, (vs, vt) in enumerate(pairs):
         ls, lt = _level(src, vs, config), _level(tgt, vt, config)
         prior_l = None if prior is None else _homogeneous(lt.R) @ prior @ _homogeneous(ls.R.T)
-        hyps = _search(ls, lt, weights, config, prior_l)[: config.hypotheses if k == 0 else config.secondary_hypotheses]
+        hyps = _search(ls, lt, weights, config, prior_l)[
+            : config.hypotheses if k == 0 else config.secondary_hypotheses
+        ]
         ground_xy = lt.feats.xy[lt.feats.ground]
         ground_tree = cKDTree(ground_xy) if len(ground_xy) >= config.tz_min_ground else None
         # a narrow scene (a 12 m understorey view is 12 cells at 1 m) also gets a finer-cell search
         # beside, never instead of, the usual one: finer cells alone found a wrong pose with full confidence
         side = float(np.ptp(ls.feats.xy, axis=0).min())
-        if k == 0 and side < config.small_scene_cells * config.cell and config.cell > config.min_cell:
-            fine = config.model_copy(update={"cell": max(config.min_cell, side / config.small_scene_cells)})
-            hyps = hyps + [h | {"fine": True} for h in _search(ls, lt, weights, fine, prior_l)[: config.secondary_hypotheses]]
+        if (
+            k == 0
+            and side < config.small_scene_cells * config.cell
+            and config.cell > config.min_cell
+        ):
+            fine = config.model_copy(
+                update={"cell": max(config.min_cell, side / config.small_scene_cells)}
+            )
+            hyps = hyps + [
+                h | {"fine": True}
+                for h in _search(ls, lt, weights, fine, prior_l)[: config.secondary_hypotheses]
+            ]
         for h in hyps:
             cell = h["cell"] if cell is None else cell
-            T = _homogeneous(lt.R.T) @ _hypothesis_transform(h, ls, lt, ground_tree, config) @ _homogeneous(ls.R)
-            out.append((T, {"generator": "raster", "vertical": f"{vs.name}/{vt.name}" + (" fine" if h.get("fine") else ""),
-                            "score": h["score"], "yaw": h["yaw"], "overlap": h["overlap"], "cell": h["cell"]}))
+            T = (
+                _homogeneous(lt.R.T)
+                @ _hypothesis_transform(h, ls, lt, ground_tree, config)
+                @ _homogeneous(ls.R)
+            )
+            out.append(
+                (
+                    T,
+                    {
+                        "generator": "raster",
+                        "vertical": f"{vs.name}/{vt.name}" + (" fine" if h.get("fine") else ""),
+                        "score": h["score"],
+                        "yaw": h["yaw"],
+                        "overlap": h["overlap"],
+                        "cell": h["cell"],
+                    },
+                )
+            )
     return out, cell
 
 
@@ -369,7 +479,11 @@ def _unique_starts(starts: list[tuple], config: CoarseConfig) -> list[tuple]:
     for T, h in starts:
         for T2, h2 in out:
             deg, m = pose_error(T, T2)
-            if m < config.start_duplicate_m and deg < config.start_duplicate_deg and not h.get("prior"):
+            if (
+                m < config.start_duplicate_m
+                and deg < config.start_duplicate_deg
+                and not h.get("prior")
+            ):
                 h2.setdefault("agree", []).append(f"{h['generator']}:{h['vertical']}")
                 break
         else:
@@ -381,8 +495,13 @@ def _yaw_deg(T: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(T[1, 0], T[0, 0])))
 
 
-def coarse_align(source, target, config: CoarseConfig | None = None, seed: int = 0,
-                 prior: np.ndarray | None = None) -> CoarseResult:
+def coarse_align(
+    source,
+    target,
+    config: CoarseConfig | None = None,
+    seed: int = 0,
+    prior: np.ndarray | None = None,
+) -> CoarseResult:
     """Global alignment of two prepared clouds (anything with local `points` and a `kind`).
 
     Hypotheses come from three generators (forest rasters, FPFH matches, stem maps) under every
@@ -398,15 +517,27 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
     # by its normals tilted it against a TLS source levelled by its stems, and 10 % of TLS -> ALS
     # starts then took a heading 180 deg off. The source may come in any orientation: several
     # vertical hypotheses (z-up first when it is airborne), each searched.
-    src, tgt = both(lambda job: _prepared(*job), (source, config, seed, source.kind in AIRBORNE, False, config.max_verticals),
-                    (target, config, seed + 1, target.kind in AIRBORNE, target.kind in AIRBORNE, config.max_target_verticals))
+    src, tgt = both(
+        lambda job: _prepared(*job),
+        (source, config, seed, source.kind in AIRBORNE, False, config.max_verticals),
+        (
+            target,
+            config,
+            seed + 1,
+            target.kind in AIRBORNE,
+            target.kind in AIRBORNE,
+            config.max_target_verticals,
+        ),
+    )
     pairs = _vertical_pairs(src, tgt, config)
     timing = {"levelling": time.perf_counter() - start}
     weights = _weights(source.kind, target.kind, config)
     prior = None if prior is None else np.asarray(prior, dtype=float)
     starts, cell = _raster_starts(src, tgt, pairs, weights, config, prior)
     timing["search"] = time.perf_counter() - start - timing["levelling"]
-    gen_rng = np.random.default_rng([seed, 1])  # generators draw from their own stream: adding one changes no other
+    gen_rng = np.random.default_rng(
+        [seed, 1]
+    )  # generators draw from their own stream: adding one changes no other
     if config.fpfh:
         t = time.perf_counter()
         starts += _fpfh_starts(src, tgt, pairs, config, gen_rng)
@@ -416,7 +547,9 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
         starts += _stem_starts(src, tgt, pairs, config, gen_rng)
         timing["stems"] = time.perf_counter() - t
     if prior is not None:
-        starts.append((prior, {"generator": "prior", "vertical": "prior", "prior": True}))  # never merged away
+        starts.append(
+            (prior, {"generator": "prior", "vertical": "prior", "prior": True})
+        )  # never merged away
     starts = _unique_starts(starts, config)
     t_gen = time.perf_counter()
 
@@ -426,7 +559,11 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
     # verification in the clouds' local frames (each hypothesis carries its own verticals); one kept
     # point (and its own normal: averaged axial normals cancel) per verify cube
     keep = thin(tgt.points, config.verify_voxel)
-    tgt_v = (tgt.points[keep], tgt.normals[keep], cKDTree(tgt.points[keep], balanced_tree=False, compact_nodes=False))
+    tgt_v = (
+        tgt.points[keep],
+        tgt.normals[keep],
+        cKDTree(tgt.points[keep], balanced_tree=False, compact_nodes=False),
+    )
     keep = thin(src.points, config.verify_voxel)
     keep = keep[sample(len(keep), config.verify_points, rng)]
     src_v = src.points[keep]
@@ -442,7 +579,9 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
         return _score(structure_few, tgt_v, A, config.screen_score_factor * d), A, start[1]
 
     def refine(A):
-        A = _refine(src_v, tgt_v, A, tuple(f * d for f in config.refine_distance_factors), iterations)
+        A = _refine(
+            src_v, tgt_v, A, tuple(f * d for f in config.refine_distance_factors), iterations
+        )
         return A, _score(structure, tgt_v, A, d)
 
     # independent ICPs, two at a time (KD-tree queries release the GIL); refined: the best screened
@@ -453,30 +592,65 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
     for i, (_, A, _) in enumerate(screened):
         if all(_distinct(A, screened[j][1], config) for j in distinct):
             distinct.append(i)
-    chosen = [k for k in (next((i for i in distinct if screened[i][2]["generator"] == gen), None)
-                          for gen in ("raster", "fpfh", "stems", "prior")) if k is not None and screened[k][0] > 0]
-    chosen = sorted(chosen + [i for i in distinct if i not in chosen][: max(0, config.refine_top - len(chosen))])
+    chosen = [
+        k
+        for k in (
+            next((i for i in distinct if screened[i][2]["generator"] == gen), None)
+            for gen in ("raster", "fpfh", "stems", "prior")
+        )
+        if k is not None and screened[k][0] > 0
+    ]
+    chosen = sorted(
+        chosen + [i for i in distinct if i not in chosen][: max(0, config.refine_top - len(chosen))]
+    )
     top = dict(zip(chosen, in_two_threads(refine, [screened[i][1] for i in chosen])))
     results = []
     for rank, (pre, A, h) in enumerate(screened):
         refined = rank in top
         A, score = top[rank] if refined else (A, None)
-        results.append({"T": A, "refined": refined, "score": score, "screen_score": pre,
-                        "raster_score": h.get("score"),  # None for other generators (strict JSON: no NaN)
-                        "yaw_deg": float(np.degrees(h["yaw"])) if "yaw" in h else _yaw_deg(A),
-                        "overlap": h.get("overlap"), "prior": bool(h.get("prior", False)),
-                        "generator": h["generator"], "vertical": h["vertical"]}
-                       | {k: h[k] for k in ("votes", "agree") if k in h})
+        results.append(
+            {
+                "T": A,
+                "refined": refined,
+                "score": score,
+                "screen_score": pre,
+                "raster_score": h.get("score"),  # None for other generators (strict JSON: no NaN)
+                "yaw_deg": float(np.degrees(h["yaw"])) if "yaw" in h else _yaw_deg(A),
+                "overlap": h.get("overlap"),
+                "prior": bool(h.get("prior", False)),
+                "generator": h["generator"],
+                "vertical": h["vertical"],
+            }
+            | {k: h[k] for k in ("votes", "agree") if k in h}
+        )
     if not results:
-        results.append({"T": np.eye(4), "refined": True, "score": 0.0, "screen_score": 0.0, "raster_score": 0.0,
-                        "yaw_deg": 0.0, "overlap": 0.0, "prior": False, "generator": "none", "vertical": "none"})
-    results.sort(key=lambda r: (not r["refined"], -(r["score"] if r["refined"] else r["screen_score"])))
+        results.append(
+            {
+                "T": np.eye(4),
+                "refined": True,
+                "score": 0.0,
+                "screen_score": 0.0,
+                "raster_score": 0.0,
+                "yaw_deg": 0.0,
+                "overlap": 0.0,
+                "prior": False,
+                "generator": "none",
+                "vertical": "none",
+            }
+        )
+    results.sort(
+        key=lambda r: (not r["refined"], -(r["score"] if r["refined"] else r["screen_score"]))
+    )
     best = results[0]
     # only refined hypotheses compete: an unrefined one may be the best pose not yet converged
-    runner_up = next((r for r in results[1:] if r["refined"] and _distinct(best["T"], r["T"], config)), None)
+    runner_up = next(
+        (r for r in results[1:] if r["refined"] and _distinct(best["T"], r["T"], config)), None
+    )
     second = runner_up["score"] if runner_up else 0.0
     confidence = float(1.0 - second / best["score"]) if best["score"] > 0 else 0.0
-    counts = {g: sum(r["generator"] == g for r in results) for g in ("raster", "fpfh", "stems", "prior")}
+    counts = {
+        g: sum(r["generator"] == g for r in results) for g in ("raster", "fpfh", "stems", "prior")
+    }
     return CoarseResult(
         transform=best["T"],
         confidence=confidence,
@@ -485,7 +659,12 @@ def coarse_align(source, target, config: CoarseConfig | None = None, seed: int =
             for r in results
         ],
         seconds=time.perf_counter() - start,
-        levelling={"source": src.info, "target": tgt.info, "raster_cell": cell,
-                   "vertical_pairs": [f"{a.name}/{b.name}" for a, b in pairs], "hypotheses_by_generator": counts},
+        levelling={
+            "source": src.info,
+            "target": tgt.info,
+            "raster_cell": cell,
+            "vertical_pairs": [f"{a.name}/{b.name}" for a, b in pairs],
+            "hypotheses_by_generator": counts,
+        },
         timing=timing | {"verify": time.perf_counter() - t_gen},
     )

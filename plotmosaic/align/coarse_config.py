@@ -13,111 +13,355 @@ class CoarseConfig(BaseModel):
 
     enabled: bool = Field(True, description="run the global coarse stage before ForestAlign")
     # --- clouds used by the coarse stage
-    feature_voxel: float = Field(0.1, gt=0, le=2.0, description="voxel (m) of the cloud used for levelling and rasters")
-    max_points: int = Field(150_000, gt=1000, le=5_000_000, description="cap on points used for the rasters")
-    normal_radius: float = Field(0.75, gt=0, le=5.0, description="largest neighbourhood (m) of the coarse stage's own normals")
-    normal_neighbours: int = Field(16, ge=5, le=200, description="nearest neighbours per normal: the neighbourhood adapts to density")
+    feature_voxel: float = Field(
+        0.1, gt=0, le=2.0, description="voxel (m) of the cloud used for levelling and rasters"
+    )
+    max_points: int = Field(
+        150_000, gt=1000, le=5_000_000, description="cap on points used for the rasters"
+    )
+    normal_radius: float = Field(
+        0.75,
+        gt=0,
+        le=5.0,
+        description="largest neighbourhood (m) of the coarse stage's own normals",
+    )
+    normal_neighbours: int = Field(
+        16,
+        ge=5,
+        le=200,
+        description="nearest neighbours per normal: the neighbourhood adapts to density",
+    )
     # --- levelling (levelling.py)
-    levelling_normals: int = Field(10_000, ge=500, le=1_000_000, description="seeded sample of normals the vertical is estimated from")
-    max_tilt_deg: float = Field(75.0, gt=0, le=90, description="largest roll/pitch the levelling searches")
-    up_candidates: int = Field(1000, ge=100, le=100_000, description="directions over the hemisphere tried as the vertical")
-    flat_deg: float = Field(15.0, gt=0, le=45, description="a normal within this of a candidate counts as ground-like")
-    upright_deg: float = Field(8.0, gt=0, le=45, description="a normal within this of the horizontal plane counts as stem-like")
-    upright_weight: float = Field(0.5, ge=0, le=10, description="weight of stem-like normals beside ground-like ones in the first vote")
-    refine_bands_deg: tuple[float, ...] = Field((20.0, 12.0, 8.0), description="shrinking bands (deg) of the vertical's refinement")
-    min_stem_share: float = Field(0.04, ge=0, le=1, description="least share of stem-like normals to refine the vertical on stems")
-    min_stem_normals: int = Field(200, ge=10, description="least stem-like normals to refine the vertical on stems")
-    min_ground_normals: int = Field(50, ge=10, description="least ground-like normals to refine the vertical on the ground")
+    levelling_normals: int = Field(
+        10_000,
+        ge=500,
+        le=1_000_000,
+        description="seeded sample of normals the vertical is estimated from",
+    )
+    max_tilt_deg: float = Field(
+        75.0, gt=0, le=90, description="largest roll/pitch the levelling searches"
+    )
+    up_candidates: int = Field(
+        1000, ge=100, le=100_000, description="directions over the hemisphere tried as the vertical"
+    )
+    flat_deg: float = Field(
+        15.0, gt=0, le=45, description="a normal within this of a candidate counts as ground-like"
+    )
+    upright_deg: float = Field(
+        8.0,
+        gt=0,
+        le=45,
+        description="a normal within this of the horizontal plane counts as stem-like",
+    )
+    upright_weight: float = Field(
+        0.5,
+        ge=0,
+        le=10,
+        description="weight of stem-like normals beside ground-like ones in the first vote",
+    )
+    refine_bands_deg: tuple[float, ...] = Field(
+        (20.0, 12.0, 8.0), description="shrinking bands (deg) of the vertical's refinement"
+    )
+    min_stem_share: float = Field(
+        0.04,
+        ge=0,
+        le=1,
+        description="least share of stem-like normals to refine the vertical on stems",
+    )
+    min_stem_normals: int = Field(
+        200, ge=10, description="least stem-like normals to refine the vertical on stems"
+    )
+    min_ground_normals: int = Field(
+        50, ge=10, description="least ground-like normals to refine the vertical on the ground"
+    )
     # --- vertical hypotheses (several, verification decides)
-    vertical_duplicate_deg: float = Field(2.0, gt=0, le=20, description="vertical hypotheses closer than this are one")
-    max_verticals: int = Field(3, ge=1, le=6, description="vertical hypotheses per cloud carried into the search")
-    max_target_verticals: int = Field(2, ge=1, le=6, description="of those, for the target (its own frame: rarely far off)")
-    max_vertical_pairs: int = Field(3, ge=1, le=36, description="(source, target) vertical pairs searched")
-    z_up_max_deg: float = Field(8.0, ge=0, le=45, description="z-up is a candidate when an estimate lies within this of it")
-    ground_fit_cell: float = Field(2.0, gt=0, le=20, description="cell (m) of the lowest-point-per-cell ground fit")
-    ground_fit_min_cells: int = Field(12, ge=3, description="least cells for the robust ground-plane fit")
-    ground_fit_max_deg: float = Field(30.0, gt=0, le=90, description="a ground fit tilted more than this from the rough level is rejected")
-    ground_fit_inlier_m: float = Field(0.5, gt=0, le=5, description="residual (m) of a lowest point still on the fitted ground plane")
+    vertical_duplicate_deg: float = Field(
+        2.0, gt=0, le=20, description="vertical hypotheses closer than this are one"
+    )
+    max_verticals: int = Field(
+        3, ge=1, le=6, description="vertical hypotheses per cloud carried into the search"
+    )
+    max_target_verticals: int = Field(
+        2, ge=1, le=6, description="of those, for the target (its own frame: rarely far off)"
+    )
+    max_vertical_pairs: int = Field(
+        3, ge=1, le=36, description="(source, target) vertical pairs searched"
+    )
+    z_up_max_deg: float = Field(
+        8.0, ge=0, le=45, description="z-up is a candidate when an estimate lies within this of it"
+    )
+    ground_fit_cell: float = Field(
+        2.0, gt=0, le=20, description="cell (m) of the lowest-point-per-cell ground fit"
+    )
+    ground_fit_min_cells: int = Field(
+        12, ge=3, description="least cells for the robust ground-plane fit"
+    )
+    ground_fit_max_deg: float = Field(
+        30.0,
+        gt=0,
+        le=90,
+        description="a ground fit tilted more than this from the rough level is rejected",
+    )
+    ground_fit_inlier_m: float = Field(
+        0.5,
+        gt=0,
+        le=5,
+        description="residual (m) of a lowest point still on the fitted ground plane",
+    )
     # --- forest rasters (rasters.py)
     cell: float = Field(1.0, gt=0, le=20, description="raster cell (m); grown for large extents")
-    feature_cell: float = Field(1.0, gt=0, le=10, description="cell (m) of the rough DTM that gives each point its height above ground")
-    dtm_percentile: float = Field(25.0, ge=0, le=100, description="low quantile of a DTM cell's neighbourhood it is compared with")
+    feature_cell: float = Field(
+        1.0,
+        gt=0,
+        le=10,
+        description="cell (m) of the rough DTM that gives each point its height above ground",
+    )
+    dtm_percentile: float = Field(
+        25.0,
+        ge=0,
+        le=100,
+        description="low quantile of a DTM cell's neighbourhood it is compared with",
+    )
     dtm_window: int = Field(5, ge=3, le=25, description="neighbourhood (cells) of that comparison")
-    dtm_max_step: float = Field(1.0, gt=0, le=10, description="a lowest return this far (m) above its neighbourhood is not ground")
-    vertical_normal_z: float = Field(0.35, gt=0, lt=1, description="|normal z| below this: a vertical surface (stem, trunk)")
-    stem_min_hag: float = Field(0.5, ge=0, le=10, description="lowest height above ground (m) of the stem channel")
-    stem_max_hag: float = Field(4.0, gt=0, le=30, description="highest height above ground (m) of the stem channel")
-    canopy_min_hag: float = Field(3.0, ge=0, le=50, description="vegetation above this height (m) is canopy")
-    ground_max_hag: float = Field(0.25, gt=0, le=5, description="points within this (m) of the DTM may be ground")
-    ground_normal_z: float = Field(0.7, gt=0, lt=1, description="|normal z| above this: a ground-like surface")
+    dtm_max_step: float = Field(
+        1.0,
+        gt=0,
+        le=10,
+        description="a lowest return this far (m) above its neighbourhood is not ground",
+    )
+    vertical_normal_z: float = Field(
+        0.35, gt=0, lt=1, description="|normal z| below this: a vertical surface (stem, trunk)"
+    )
+    stem_min_hag: float = Field(
+        0.5, ge=0, le=10, description="lowest height above ground (m) of the stem channel"
+    )
+    stem_max_hag: float = Field(
+        4.0, gt=0, le=30, description="highest height above ground (m) of the stem channel"
+    )
+    canopy_min_hag: float = Field(
+        3.0, ge=0, le=50, description="vegetation above this height (m) is canopy"
+    )
+    ground_max_hag: float = Field(
+        0.25, gt=0, le=5, description="points within this (m) of the DTM may be ground"
+    )
+    ground_normal_z: float = Field(
+        0.7, gt=0, lt=1, description="|normal z| above this: a ground-like surface"
+    )
     # --- raster search
-    small_scene_cells: int = Field(20, ge=4, le=1000, description="a source narrower than this many cells also gets a finer-cell search")
-    min_cell: float = Field(0.25, gt=0, le=20, description="finest raster cell (m) of that extra search")
-    max_fft: int = Field(512, ge=64, le=8192, description="largest padded FFT side; the cell grows to respect it")
-    cell_growth: float = Field(1.5, gt=1, le=4, description="factor the cell grows by until the FFT fits")
-    yaw_step_deg: float = Field(4.0, gt=0, le=10, description="heading step of the full-circle search")
-    refine_headings: int = Field(8, ge=0, le=64, description="best headings searched again at half a step either side")
-    blur_cells: float = Field(1.0, ge=0, le=10, description="Gaussian blur (cells) of the occupancy rasters")
-    min_overlap: float = Field(0.08, ge=0, le=1, description="least overlap, as a fraction of the smaller footprint")
-    terrain_min_share: float = Field(0.25, ge=0, le=1, description="terrain NCC counts only over this share of the least overlap")
-    terrain_min_cells: int = Field(4, ge=1, description="terrain NCC counts only over at least this many shared ground cells")
-    overlap_exponent: float = Field(0.25, ge=0, le=2, description="raster score x overlap share ** this: small overlaps score lower")
-    peak_suppression_m: float = Field(3.0, gt=0, le=50, description="radius (m) cleared around a peak before the next one")
-    hypotheses: int = Field(6, ge=1, le=64, description="raster hypotheses verified under the first vertical pair")
-    secondary_hypotheses: int = Field(3, ge=1, le=64, description="raster hypotheses verified under each other vertical pair")
+    small_scene_cells: int = Field(
+        20,
+        ge=4,
+        le=1000,
+        description="a source narrower than this many cells also gets a finer-cell search",
+    )
+    min_cell: float = Field(
+        0.25, gt=0, le=20, description="finest raster cell (m) of that extra search"
+    )
+    max_fft: int = Field(
+        512, ge=64, le=8192, description="largest padded FFT side; the cell grows to respect it"
+    )
+    cell_growth: float = Field(
+        1.5, gt=1, le=4, description="factor the cell grows by until the FFT fits"
+    )
+    yaw_step_deg: float = Field(
+        4.0, gt=0, le=10, description="heading step of the full-circle search"
+    )
+    refine_headings: int = Field(
+        8, ge=0, le=64, description="best headings searched again at half a step either side"
+    )
+    blur_cells: float = Field(
+        1.0, ge=0, le=10, description="Gaussian blur (cells) of the occupancy rasters"
+    )
+    min_overlap: float = Field(
+        0.08, ge=0, le=1, description="least overlap, as a fraction of the smaller footprint"
+    )
+    terrain_min_share: float = Field(
+        0.25, ge=0, le=1, description="terrain NCC counts only over this share of the least overlap"
+    )
+    terrain_min_cells: int = Field(
+        4, ge=1, description="terrain NCC counts only over at least this many shared ground cells"
+    )
+    overlap_exponent: float = Field(
+        0.25,
+        ge=0,
+        le=2,
+        description="raster score x overlap share ** this: small overlaps score lower",
+    )
+    peak_suppression_m: float = Field(
+        3.0, gt=0, le=50, description="radius (m) cleared around a peak before the next one"
+    )
+    hypotheses: int = Field(
+        6, ge=1, le=64, description="raster hypotheses verified under the first vertical pair"
+    )
+    secondary_hypotheses: int = Field(
+        3, ge=1, le=64, description="raster hypotheses verified under each other vertical pair"
+    )
     peaks_per_yaw: int = Field(2, ge=1, le=10, description="correlation peaks kept per heading")
-    distinct_yaw_deg: float = Field(6.0, gt=0, le=90, description="hypotheses closer than this in heading and ...")
-    distinct_shift_m: float = Field(3.0, gt=0, le=50, description="... closer than this in shift are one")
-    weights_ground: dict[str, float] = Field({"stems": 1.0, "canopy": 0.5, "terrain": 0.5},
-                                             description="channel weights between ground-based scans (stems seen best)")
-    weights_airborne: dict[str, float] = Field({"stems": 0.25, "canopy": 1.0, "terrain": 1.0},
-                                               description="channel weights when a cloud is airborne (canopy, terrain seen best)")
-    tz_ground_radius: float = Field(0.75, gt=0, le=10, description="xy radius (m) pairing source and target ground for the height")
-    tz_min_ground: int = Field(20, ge=3, description="least paired ground points for the height from the ground")
+    distinct_yaw_deg: float = Field(
+        6.0, gt=0, le=90, description="hypotheses closer than this in heading and ..."
+    )
+    distinct_shift_m: float = Field(
+        3.0, gt=0, le=50, description="... closer than this in shift are one"
+    )
+    weights_ground: dict[str, float] = Field(
+        {"stems": 1.0, "canopy": 0.5, "terrain": 0.5},
+        description="channel weights between ground-based scans (stems seen best)",
+    )
+    weights_airborne: dict[str, float] = Field(
+        {"stems": 0.25, "canopy": 1.0, "terrain": 1.0},
+        description="channel weights when a cloud is airborne (canopy, terrain seen best)",
+    )
+    tz_ground_radius: float = Field(
+        0.75,
+        gt=0,
+        le=10,
+        description="xy radius (m) pairing source and target ground for the height",
+    )
+    tz_min_ground: int = Field(
+        20, ge=3, description="least paired ground points for the height from the ground"
+    )
     # --- 3D features generator (features3d.py)
     fpfh: bool = Field(True, description="generate hypotheses from FPFH feature matches")
-    fpfh_voxel: float = Field(0.3, gt=0.05, le=3, description="voxel (m) of the clouds FPFH is computed on (forest scale)")
-    fpfh_max_points: int = Field(4_000, ge=500, le=200_000, description="cap on points FPFH is computed on (the voxel grows to respect it)")
+    fpfh_voxel: float = Field(
+        0.3, gt=0.05, le=3, description="voxel (m) of the clouds FPFH is computed on (forest scale)"
+    )
+    fpfh_max_points: int = Field(
+        4_000,
+        ge=500,
+        le=200_000,
+        description="cap on points FPFH is computed on (the voxel grows to respect it)",
+    )
     fpfh_normal_radius: float = Field(0.75, gt=0, le=10, description="normal radius (m) for FPFH")
     fpfh_radius: float = Field(1.5, gt=0, le=20, description="FPFH feature radius (m)")
     fpfh_max_nn: int = Field(60, ge=10, le=500, description="neighbours per FPFH descriptor")
-    fpfh_inlier_m: float = Field(0.6, gt=0, le=10, description="correspondence inlier distance (m) of the robust estimator")
-    fpfh_draws: int = Field(200_000, ge=1000, le=5_000_000, description="random match pairs drawn (x2 triples for 6-DoF), cheaply pre-filtered")
-    fpfh_iterations: int = Field(3000, ge=100, le=200_000, description="consistent samples scored (4-DoF and 6-DoF each)")
-    fpfh_min_inliers: int = Field(8, ge=3, le=10_000, description="least inlier matches of an FPFH pose (fewer: chance)")
-    fpfh_hypotheses: int = Field(3, ge=1, le=20, description="distinct FPFH poses handed to verification")
-    fpfh_vertical_pairs: int = Field(2, ge=0, le=36, description="vertical pairs the 4-DoF RANSAC runs under (the first ones)")
-    fpfh_six_dof: bool = Field(True, description="also a 6-DoF RANSAC that trusts no vertical hypothesis")
+    fpfh_inlier_m: float = Field(
+        0.6, gt=0, le=10, description="correspondence inlier distance (m) of the robust estimator"
+    )
+    fpfh_draws: int = Field(
+        200_000,
+        ge=1000,
+        le=5_000_000,
+        description="random match pairs drawn (x2 triples for 6-DoF), cheaply pre-filtered",
+    )
+    fpfh_iterations: int = Field(
+        3000, ge=100, le=200_000, description="consistent samples scored (4-DoF and 6-DoF each)"
+    )
+    fpfh_min_inliers: int = Field(
+        8, ge=3, le=10_000, description="least inlier matches of an FPFH pose (fewer: chance)"
+    )
+    fpfh_hypotheses: int = Field(
+        3, ge=1, le=20, description="distinct FPFH poses handed to verification"
+    )
+    fpfh_vertical_pairs: int = Field(
+        2, ge=0, le=36, description="vertical pairs the 4-DoF RANSAC runs under (the first ones)"
+    )
+    fpfh_six_dof: bool = Field(
+        True, description="also a 6-DoF RANSAC that trusts no vertical hypothesis"
+    )
     # --- stem map generator (stemmap.py)
     stems: bool = Field(True, description="generate hypotheses by matching stem maps")
-    stem_slab: tuple[float, float] = Field((1.0, 2.0), description="breast-height slab (m above ground) stems are cut at")
-    stem_linearity_z: float = Field(0.8, gt=0, le=1, description="|main axis z| above this: a vertical linear (trunk) point")
-    stem_cluster_m: float = Field(0.25, gt=0, le=2, description="xy link distance (m) of points of one stem")
+    stem_slab: tuple[float, float] = Field(
+        (1.0, 2.0), description="breast-height slab (m above ground) stems are cut at"
+    )
+    stem_linearity_z: float = Field(
+        0.8, gt=0, le=1, description="|main axis z| above this: a vertical linear (trunk) point"
+    )
+    stem_cluster_m: float = Field(
+        0.25, gt=0, le=2, description="xy link distance (m) of points of one stem"
+    )
     stem_min_points: int = Field(8, ge=3, description="least points of a stem cluster")
-    stem_max_diameter: float = Field(1.5, gt=0, le=5, description="largest fitted stem diameter (m)")
-    stem_max_count: int = Field(300, ge=3, le=5000, description="stems kept per cloud (the best supported)")
-    stem_inlier_m: float = Field(0.5, gt=0, le=5, description="a stem within this (m) of a moved stem matches it")
-    stem_min_matches: int = Field(3, ge=2, description="least matched stems for a stem-map hypothesis")
-    stem_pair_min_m: float = Field(2.0, gt=0, description="stem pairs shorter than this do not fix a heading")
-    stem_max_pairs: int = Field(3000, ge=10, le=1_000_000, description="cap on source stem pairs voted with")
-    stem_hypotheses: int = Field(3, ge=1, le=20, description="distinct stem-map poses handed to verification")
+    stem_max_diameter: float = Field(
+        1.5, gt=0, le=5, description="largest fitted stem diameter (m)"
+    )
+    stem_max_count: int = Field(
+        300, ge=3, le=5000, description="stems kept per cloud (the best supported)"
+    )
+    stem_inlier_m: float = Field(
+        0.5, gt=0, le=5, description="a stem within this (m) of a moved stem matches it"
+    )
+    stem_min_matches: int = Field(
+        3, ge=2, description="least matched stems for a stem-map hypothesis"
+    )
+    stem_pair_min_m: float = Field(
+        2.0, gt=0, description="stem pairs shorter than this do not fix a heading"
+    )
+    stem_max_pairs: int = Field(
+        3000, ge=10, le=1_000_000, description="cap on source stem pairs voted with"
+    )
+    stem_hypotheses: int = Field(
+        3, ge=1, le=20, description="distinct stem-map poses handed to verification"
+    )
     # --- verification
-    start_duplicate_m: float = Field(0.5, gt=0, le=10, description="starts closer than this (m) and ...")
-    start_duplicate_deg: float = Field(2.0, gt=0, le=20, description="... than this (deg) are screened once")
-    verify_voxel: float = Field(0.3, gt=0, le=5, description="voxel (m) of the clouds hypotheses are refined and scored on")
-    verify_points: int = Field(6_000, ge=100, le=1_000_000, description="source points used to refine and score the best hypotheses")
-    screen_points: int = Field(3_000, ge=100, le=1_000_000, description="of those, the points of the first short ICP that ranks every hypothesis")
-    verify_iterations: int = Field(10, ge=1, le=200, description="ICP iterations per verification stage")
-    verify_iterations_airborne: int = Field(30, ge=1, le=200, description="the same when a cloud is airborne: a leaf-on strip "
-                                            "levelled 5 deg off needs them to tilt into place (sparse targets: cheap)")
-    refine_top: int = Field(4, ge=1, le=64, description="distinct screened poses refined fully (each generator's best among them)")
-    structure_normal_z: float = Field(0.8, gt=0, le=1, description="|normal z| below this: a non-flat point that scores (flat ground matches anywhere)")
-    screen_distance_factor: float = Field(6.0, gt=0, le=50, description="screening ICP distance, in inlier distances")
-    screen_score_factor: float = Field(2.0, gt=0, le=20, description="screening score distance, in inlier distances")
-    refine_distance_factors: tuple[float, ...] = Field((3.0, 1.5), description="refine ICP distances, in inlier distances")
-    verify_distance_ground: float = Field(0.2, gt=0, le=5, description="inlier distance (m) between ground-based scans")
-    verify_distance_airborne: float = Field(0.5, gt=0, le=5, description="inlier distance (m) when one cloud is airborne (sparse)")
-    distinct_m: float = Field(1.0, gt=0, le=50, description="poses further apart than this (m) are distinct rivals ...")
-    distinct_deg: float = Field(3.0, gt=0, le=90, description="... or further apart than this (deg)")
-    prior_yaw_deg: float = Field(30.0, gt=0, le=180, description="with an initial guess: headings searched either side of it")
-    prior_shift_m: float = Field(8.0, gt=0, le=1000, description="with an initial guess: horizontal distance searched around it")
+    start_duplicate_m: float = Field(
+        0.5, gt=0, le=10, description="starts closer than this (m) and ..."
+    )
+    start_duplicate_deg: float = Field(
+        2.0, gt=0, le=20, description="... than this (deg) are screened once"
+    )
+    verify_voxel: float = Field(
+        0.3, gt=0, le=5, description="voxel (m) of the clouds hypotheses are refined and scored on"
+    )
+    verify_points: int = Field(
+        6_000,
+        ge=100,
+        le=1_000_000,
+        description="source points used to refine and score the best hypotheses",
+    )
+    screen_points: int = Field(
+        3_000,
+        ge=100,
+        le=1_000_000,
+        description="of those, the points of the first short ICP that ranks every hypothesis",
+    )
+    verify_iterations: int = Field(
+        10, ge=1, le=200, description="ICP iterations per verification stage"
+    )
+    verify_iterations_airborne: int = Field(
+        30,
+        ge=1,
+        le=200,
+        description="the same when a cloud is airborne: a leaf-on strip "
+        "levelled 5 deg off needs them to tilt into place (sparse targets: cheap)",
+    )
+    refine_top: int = Field(
+        4,
+        ge=1,
+        le=64,
+        description="distinct screened poses refined fully (each generator's best among them)",
+    )
+    structure_normal_z: float = Field(
+        0.8,
+        gt=0,
+        le=1,
+        description="|normal z| below this: a non-flat point that scores (flat ground matches anywhere)",
+    )
+    screen_distance_factor: float = Field(
+        6.0, gt=0, le=50, description="screening ICP distance, in inlier distances"
+    )
+    screen_score_factor: float = Field(
+        2.0, gt=0, le=20, description="screening score distance, in inlier distances"
+    )
+    refine_distance_factors: tuple[float, ...] = Field(
+        (3.0, 1.5), description="refine ICP distances, in inlier distances"
+    )
+    verify_distance_ground: float = Field(
+        0.2, gt=0, le=5, description="inlier distance (m) between ground-based scans"
+    )
+    verify_distance_airborne: float = Field(
+        0.5, gt=0, le=5, description="inlier distance (m) when one cloud is airborne (sparse)"
+    )
+    distinct_m: float = Field(
+        1.0, gt=0, le=50, description="poses further apart than this (m) are distinct rivals ..."
+    )
+    distinct_deg: float = Field(
+        3.0, gt=0, le=90, description="... or further apart than this (deg)"
+    )
+    prior_yaw_deg: float = Field(
+        30.0, gt=0, le=180, description="with an initial guess: headings searched either side of it"
+    )
+    prior_shift_m: float = Field(
+        8.0,
+        gt=0,
+        le=1000,
+        description="with an initial guess: horizontal distance searched around it",
+    )

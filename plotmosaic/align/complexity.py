@@ -68,20 +68,32 @@ def _kmeans_resp(z: np.ndarray, k: int, rng: np.random.Generator, iters: int = 3
     centres = [z[rng.integers(len(z))]]
     for _ in range(1, k):
         d = _sq_dist(z, np.array(centres)).min(axis=1)
-        centres.append(z[rng.choice(len(z), p=d / d.sum())] if d.sum() > 0 else z[rng.integers(len(z))])
+        centres.append(
+            z[rng.choice(len(z), p=d / d.sum())] if d.sum() > 0 else z[rng.integers(len(z))]
+        )
     c = np.array(centres)
     for _ in range(iters):
         lab = np.argmin(_sq_dist(z, c), axis=1)
         counts = np.bincount(lab, minlength=k)
-        sums = np.stack([np.bincount(lab, weights=z[:, d], minlength=k) for d in range(z.shape[1])], axis=1)
+        sums = np.stack(
+            [np.bincount(lab, weights=z[:, d], minlength=k) for d in range(z.shape[1])], axis=1
+        )
         c = np.where(counts[:, None] > 0, sums / np.maximum(counts, 1)[:, None], c)
     resp = np.full((len(z), k), 1e-3)
     resp[np.arange(len(z)), lab] = 1.0
     return resp / resp.sum(axis=1, keepdims=True)
 
 
-def fit_levels(normals: np.ndarray, features: np.ndarray, k: int, mode: str, config: VmfConfig, seed: int,
-               valid: np.ndarray | None = None, weights: np.ndarray | None = None) -> Levels:
+def fit_levels(
+    normals: np.ndarray,
+    features: np.ndarray,
+    k: int,
+    mode: str,
+    config: VmfConfig,
+    seed: int,
+    valid: np.ndarray | None = None,
+    weights: np.ndarray | None = None,
+) -> Levels:
     """Group points into k complexity levels; EM on a seeded subsample, then every point labelled.
 
     Points without a plane (`valid` False; by default scattering == 1) have no normal: they stay out
@@ -102,19 +114,32 @@ def fit_levels(normals: np.ndarray, features: np.ndarray, k: int, mode: str, con
     return Levels(labels, levels.stats)
 
 
-def _fit_valid(normals: np.ndarray, features: np.ndarray, k: int, mode: str, config: VmfConfig, seed: int,
-               weights: np.ndarray | None = None) -> Levels:
+def _fit_valid(
+    normals: np.ndarray,
+    features: np.ndarray,
+    k: int,
+    mode: str,
+    config: VmfConfig,
+    seed: int,
+    weights: np.ndarray | None = None,
+) -> Levels:
     n = len(normals)
     rng = np.random.default_rng(seed)
     p = None if weights is None or weights.sum() <= 0 else weights / weights.sum()
-    idx = np.sort(rng.choice(n, size=config.sample_size, replace=False, p=p)) if n > config.sample_size else np.arange(n)
+    idx = (
+        np.sort(rng.choice(n, size=config.sample_size, replace=False, p=p))
+        if n > config.sample_size
+        else np.arange(n)
+    )
     x, f = normals[idx], features[idx]
     if k <= 1:
         mix = vmf.fit_vmf_mixture(x, 1, seed, config.max_iter, config.tol, 1, config.kappa_max)
         labels = np.zeros(n, dtype=np.int64)
         return Levels(*_order(normals, features, labels, mix.mu, mix.kappa, mix.weights, mode))
     if mode == "vmf":
-        mix = vmf.fit_vmf_mixture(x, k, seed, config.max_iter, config.tol, config.n_init, config.kappa_max)
+        mix = vmf.fit_vmf_mixture(
+            x, k, seed, config.max_iter, config.tol, config.n_init, config.kappa_max
+        )
         mu, kappa, weights = mix.mu, mix.kappa, mix.weights
         labels = mix.predict(normals)
     elif mode == "vmf+eigen":
@@ -127,7 +152,9 @@ def _fit_valid(normals: np.ndarray, features: np.ndarray, k: int, mode: str, con
             def extra(resp):
                 return _gauss_log(f, resp)[0]
 
-            mu, kappa, weights, resp, ll, _ = vmf.em(x, resp0, extra, config.max_iter, config.tol, config.kappa_max)
+            mu, kappa, weights, resp, ll, _ = vmf.em(
+                x, resp0, extra, config.max_iter, config.tol, config.kappa_max
+            )
             if best is None or ll > best[-1]:
                 best = (mu, kappa, weights, resp, ll)
         mu, kappa, weights, resp, _ = best
@@ -135,7 +162,11 @@ def _fit_valid(normals: np.ndarray, features: np.ndarray, k: int, mode: str, con
         labels = np.empty(n, dtype=np.int64)
         for s in range(0, n, 1_000_000):
             ns, fs = normals[s : s + 1_000_000], features[s : s + 1_000_000]
-            joint = vmf.log_density(ns, mu, kappa) + np.log(weights + 1e-300)[None] + _gauss_logpdf(fs, gmean, gvar)
+            joint = (
+                vmf.log_density(ns, mu, kappa)
+                + np.log(weights + 1e-300)[None]
+                + _gauss_logpdf(fs, gmean, gvar)
+            )
             labels[s : s + 1_000_000] = np.argmax(joint, axis=1)
     else:
         raise ValueError(f"unknown complexity signal {mode!r}")
@@ -175,18 +206,22 @@ def _stats(normals, features, labels, mu, kappa, weights, mode="vmf") -> list[di
         else:
             complexity = level_entropy(normals[sel], features[sel], mu[j], kappa[j])
             match_value = complexity if np.isfinite(complexity) else float("nan")
-        out.append({
-            "size": int(sel.sum()),
-            "kappa": float(kappa[j]),
-            "mu": [float(v) for v in mu[j]],
-            "weight": float(weights[j]),
-            "sc": sc,
-            "sc_sum": sc_sum,
-            "complexity": complexity,
-            "match_value": match_value,
-            "features": {name: float(features[sel, i].mean()) if sel.any() else float("nan")
-                         for i, name in enumerate(LEVEL_FEATURE_NAMES[: features.shape[1]])},
-        })
+        out.append(
+            {
+                "size": int(sel.sum()),
+                "kappa": float(kappa[j]),
+                "mu": [float(v) for v in mu[j]],
+                "weight": float(weights[j]),
+                "sc": sc,
+                "sc_sum": sc_sum,
+                "complexity": complexity,
+                "match_value": match_value,
+                "features": {
+                    name: float(features[sel, i].mean()) if sel.any() else float("nan")
+                    for i, name in enumerate(LEVEL_FEATURE_NAMES[: features.shape[1]])
+                },
+            }
+        )
     return out
 
 
@@ -209,7 +244,9 @@ def compress_sc(sc: np.ndarray) -> np.ndarray:
     return np.sign(sc) * np.log1p(np.abs(sc))
 
 
-def match_levels(sc_source: list[float], sc_target: list[float], compress: bool = True) -> dict[int, int]:
+def match_levels(
+    sc_source: list[float], sc_target: list[float], compress: bool = True
+) -> dict[int, int]:
     """Eq. 3: one-to-one assignment minimising sum |SC_s(k) - SC_t(k')| (exact, Hungarian).
 
     `compress`: compare eq. 2 values on the log scale of `compress_sc` (False: values already are).
@@ -234,14 +271,18 @@ def level_purity(levels: np.ndarray, truth: np.ndarray, k: int) -> list[dict]:
     for j in range(k):
         sel = truth[levels == j]
         if len(sel) == 0:
-            out.append({"level": j, "size": 0, "majority": None, "purity": float("nan"), "classes": {}})
+            out.append(
+                {"level": j, "size": 0, "majority": None, "purity": float("nan"), "classes": {}}
+            )
             continue
         vals, counts = np.unique(sel, return_counts=True)
-        out.append({
-            "level": j,
-            "size": int(len(sel)),
-            "majority": int(vals[np.argmax(counts)]),
-            "purity": float(counts.max() / len(sel)),
-            "classes": {int(v): float(c / len(sel)) for v, c in zip(vals, counts)},
-        })
+        out.append(
+            {
+                "level": j,
+                "size": int(len(sel)),
+                "majority": int(vals[np.argmax(counts)]),
+                "purity": float(counts.max() / len(sel)),
+                "classes": {int(v): float(c / len(sel)) for v, c in zip(vals, counts)},
+            }
+        )
     return out

@@ -39,7 +39,9 @@ class AlignConfig(BaseModel):
     normal_max_nn: int = 20  # cap the neighbourhood size: speed on dense TLS, same planes
     # Sparse airborne clouds (~10-50 pts/m2) have almost no neighbours within 0.25 m; use a wider sphere.
     normal_radius_sparse: float = 1.0
-    sparse_min_neighbors: int = 6  # median neighbours within normal_radius below this => sparse cloud
+    sparse_min_neighbors: int = (
+        6  # median neighbours within normal_radius below this => sparse cloud
+    )
     # level normals/features come from a support cloud of one delta0 point per (ratio x radius) cube,
     # so that `level_max_nn` neighbours span the 0.25 m (normal) and 0.5 m (feature) spheres on
     # dense scans too (20 neighbours of the delta0 cloud span only ~0.13 m on a dense surface)
@@ -51,26 +53,44 @@ class AlignConfig(BaseModel):
     # Level steps run on one point per `level_cell` cube: evens out the 1/r^2 density of TLS around
     # the scanner, which otherwise pulls the scanner positions together (and is faster).
     level_cell: float = 0.2
-    level_max_points: int = 150_000  # cap on the labelled sample (seeded): TLS scans of 8M points give ~650k cubes
+    level_max_points: int = (
+        150_000  # cap on the labelled sample (seeded): TLS scans of 8M points give ~650k cubes
+    )
     # Incremental ICP: for level step j (0 = least complex), a coarse-to-fine schedule of stages.
     level_schedule: list[list[IcpStage]] = [
         [IcpStage(max_distance=3.0, iterations=30), IcpStage(max_distance=1.0, iterations=30)],
         # the second level brings the first x/y/yaw constraints: start wide again
-        [IcpStage(max_distance=3.0, iterations=30), IcpStage(max_distance=1.0, iterations=30),
-         IcpStage(max_distance=0.4, iterations=20)],
+        [
+            IcpStage(max_distance=3.0, iterations=30),
+            IcpStage(max_distance=1.0, iterations=30),
+            IcpStage(max_distance=0.4, iterations=20),
+        ],
         [IcpStage(max_distance=0.4, iterations=30), IcpStage(max_distance=0.2, iterations=30)],
     ]
     # after the coarse stage (verified to ~0.3 m) level stages wider than this are skipped
     level_max_distance_after_coarse: float = 1.0
     level_max_source_points: int = 10_000  # seeded subsample of the source per level step
     min_eig_ratio: float = 0.02  # level steps move only along directions this well constrained (see icp.point_to_plane_icp)
-    level_keep_ratio: float = 0.98  # level ICP result kept only if its fitness >= this x that of its start
-    level_tol: float = 1e-4  # a level stage ends when a step moves points < this (m); the final ICP refines
+    level_keep_ratio: float = (
+        0.98  # level ICP result kept only if its fitness >= this x that of its start
+    )
+    level_tol: float = (
+        1e-4  # a level stage ends when a step moves points < this (m); the final ICP refines
+    )
     final_tol: float = 5e-5
-    final_schedule: list[IcpStage] = [IcpStage(max_distance=0.25, iterations=30), IcpStage(max_distance=0.1, iterations=20)]
-    final_max_source_points: int = 40_000  # seeded sample of the source's delta grid for the last ICP (target kept whole)
-    robust_kernel: float = 0.1  # least Tukey width (m) of the final ICP (half the correspondence distance above it)
-    quality_max_points: int = 100_000  # query points per direction for fitness / overlap (+-0.2 % on the figures)
+    final_schedule: list[IcpStage] = [
+        IcpStage(max_distance=0.25, iterations=30),
+        IcpStage(max_distance=0.1, iterations=20),
+    ]
+    final_max_source_points: int = (
+        40_000  # seeded sample of the source's delta grid for the last ICP (target kept whole)
+    )
+    robust_kernel: float = (
+        0.1  # least Tukey width (m) of the final ICP (half the correspondence distance above it)
+    )
+    quality_max_points: int = (
+        100_000  # query points per direction for fitness / overlap (+-0.2 % on the figures)
+    )
     quality_distance: float = 0.25  # fitness / inlier RMSE / overlap distance (paper: 25 cm)
     min_fitness: float = 0.1  # below => RegistrationFailed (exit 3); sparse true pairs reach ~0.18
     min_overlap: float = 0.05
@@ -79,9 +99,15 @@ class AlignConfig(BaseModel):
     # (benchmarks/bench_judge.py, 12 real and simulated cases: right poses 0.29-1.0, wrong ones 0.00-0.10;
     # but a leaf-on UAS strip -> ALS pose 10.6 deg / 1.6 m off reached 0.21 in bench_coarse_real.py, so
     # the floor sits between that and the lowest right pose; register-plot sets 0 and lets its loops decide)
-    min_confidence: float = Field(0.25, ge=0, le=1, description="least judge confidence (margin over the best distinct rival)")
+    min_confidence: float = Field(
+        0.25, ge=0, le=1, description="least judge confidence (margin over the best distinct rival)"
+    )
     # the final ICP takes its planes from the denser cloud: planes of a sparse ALS target (1 m
     # normals) bias yaw by ~0.2 deg on UAS -> ALS; registered the other way round and inverted
-    final_reverse_ratio: float = Field(2.0, ge=1, description="target spacing / source spacing above which the final ICP runs target -> source")
+    final_reverse_ratio: float = Field(
+        2.0,
+        ge=1,
+        description="target spacing / source spacing above which the final ICP runs target -> source",
+    )
     coarse: CoarseConfig = CoarseConfig()
     judge: JudgeConfig = JudgeConfig()

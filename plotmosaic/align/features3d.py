@@ -42,9 +42,13 @@ def fpfh_features(points: np.ndarray, config: CoarseConfig) -> Features:
         pts = voxel_centroids(points, voxel)
     scale = voxel / c.fpfh_voxel  # neighbourhoods keep their size in voxels
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=c.fpfh_normal_radius * scale, max_nn=30))
+    pcd.estimate_normals(
+        o3d.geometry.KDTreeSearchParamHybrid(radius=c.fpfh_normal_radius * scale, max_nn=30)
+    )
     f = o3d.pipelines.registration.compute_fpfh_feature(
-        pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=c.fpfh_radius * scale, max_nn=c.fpfh_max_nn))
+        pcd,
+        o3d.geometry.KDTreeSearchParamHybrid(radius=c.fpfh_radius * scale, max_nn=c.fpfh_max_nn),
+    )
     desc = np.asarray(f.data).T.astype(np.float32)
     ok = desc.sum(axis=1) > 0  # a point without neighbours has no descriptor
     return Features(pts[ok], desc[ok])
@@ -93,7 +97,10 @@ def _rigid(p: np.ndarray, q: np.ndarray, four_dof: bool) -> tuple[np.ndarray, np
     cp, cq = p.mean(axis=0), q.mean(axis=0)
     P, Q = p - cp, q - cq
     if four_dof:
-        yaw = np.arctan2((P[:, 0] * Q[:, 1] - P[:, 1] * Q[:, 0]).sum(), (P[:, 0] * Q[:, 0] + P[:, 1] * Q[:, 1]).sum())
+        yaw = np.arctan2(
+            (P[:, 0] * Q[:, 1] - P[:, 1] * Q[:, 0]).sum(),
+            (P[:, 0] * Q[:, 0] + P[:, 1] * Q[:, 1]).sum(),
+        )
         R = _rz(np.array([yaw]))[0]
     else:
         U, _, Vt = np.linalg.svd(P.T @ Q)
@@ -115,7 +122,9 @@ def _sample_sets(n: int, k: int, draws: int, rng: np.random.Generator) -> np.nda
     return idx[distinct]
 
 
-def ransac_4dof(p: np.ndarray, q: np.ndarray, config: CoarseConfig, rng: np.random.Generator) -> list[tuple[np.ndarray, int]]:
+def ransac_4dof(
+    p: np.ndarray, q: np.ndarray, config: CoarseConfig, rng: np.random.Generator
+) -> list[tuple[np.ndarray, int]]:
     """Poses (4x4, levelled p -> levelled q) from 2-correspondence samples (yaw + xyz), best first, with inlier counts."""
     c = config
     if len(p) < 2:
@@ -125,7 +134,11 @@ def ransac_4dof(p: np.ndarray, q: np.ndarray, config: CoarseConfig, rng: np.rand
     # a rigid motion about z keeps horizontal lengths and height differences: of many cheap draws,
     # only consistent ones are scored (2 % right matches leave few all-right pairs among random ones)
     hp, hq = np.hypot(dp[:, 0], dp[:, 1]), np.hypot(dq[:, 0], dq[:, 1])
-    ok = (np.abs(hp - hq) < c.fpfh_inlier_m) & (np.abs(dp[:, 2] - dq[:, 2]) < c.fpfh_inlier_m) & (hp > 2 * c.fpfh_inlier_m)
+    ok = (
+        (np.abs(hp - hq) < c.fpfh_inlier_m)
+        & (np.abs(dp[:, 2] - dq[:, 2]) < c.fpfh_inlier_m)
+        & (hp > 2 * c.fpfh_inlier_m)
+    )
     keep = np.flatnonzero(ok)[: c.fpfh_iterations]
     ij, dp, dq = ij[keep], dp[keep], dq[keep]
     if not len(ij):
@@ -137,7 +150,9 @@ def ransac_4dof(p: np.ndarray, q: np.ndarray, config: CoarseConfig, rng: np.rand
     return _best(R, t, p, q, c, four_dof=True)
 
 
-def ransac_6dof(p: np.ndarray, q: np.ndarray, config: CoarseConfig, rng: np.random.Generator) -> list[tuple[np.ndarray, int]]:
+def ransac_6dof(
+    p: np.ndarray, q: np.ndarray, config: CoarseConfig, rng: np.random.Generator
+) -> list[tuple[np.ndarray, int]]:
     """Poses (4x4, p -> q) from 3-correspondence samples (Kabsch), for when no vertical is trusted."""
     c = config
     if len(p) < 3:
@@ -162,8 +177,9 @@ def ransac_6dof(p: np.ndarray, q: np.ndarray, config: CoarseConfig, rng: np.rand
     return _best(R, t, p, q, c, four_dof=False)
 
 
-def _best(R: np.ndarray, t: np.ndarray, p: np.ndarray, q: np.ndarray, c: CoarseConfig, four_dof: bool
-          ) -> list[tuple[np.ndarray, int]]:
+def _best(
+    R: np.ndarray, t: np.ndarray, p: np.ndarray, q: np.ndarray, c: CoarseConfig, four_dof: bool
+) -> list[tuple[np.ndarray, int]]:
     """The `fpfh_hypotheses` best distinct sample poses, each re-fitted on its inliers."""
     # a first count on a seeded subset of the correspondences, the full count for the best only
     sub = np.linspace(0, len(p) - 1, min(len(p), PRE_COUNT)).astype(np.int64)
@@ -176,7 +192,12 @@ def _best(R: np.ndarray, t: np.ndarray, p: np.ndarray, q: np.ndarray, c: CoarseC
         if counts[k] < c.fpfh_min_inliers or len(out) >= c.fpfh_hypotheses:
             break
         Rk, tk = R[k], t[k]
-        for f in (2.0, 1.5, 1.0, 1.0):  # re-fit on the inliers of a shrinking radius (a 3-point pose is rough)
+        for f in (
+            2.0,
+            1.5,
+            1.0,
+            1.0,
+        ):  # re-fit on the inliers of a shrinking radius (a 3-point pose is rough)
             inl = ((rotate(p, Rk) + tk - q) ** 2).sum(axis=1) < (f * c.fpfh_inlier_m) ** 2
             if inl.sum() < 3:
                 break

@@ -15,11 +15,17 @@ COLOURS = ["#8c6d31", "#2b8cbe", "#31a354", "#de2d26", "#756bb1"]  # level 0 (le
 
 def write_levels_laz(prepared: PreparedCloud, path: Path, crs=None) -> Path:
     """The labelled points (one delta0 point per level cell) in file coordinates with their level (0 = least complex)."""
-    cloud = PointCloud(prepared.frame.to_global(prepared.level_points), {"level": prepared.levels.astype(np.uint8)}, crs)
+    cloud = PointCloud(
+        prepared.frame.to_global(prepared.level_points),
+        {"level": prepared.levels.astype(np.uint8)},
+        crs,
+    )
     return write_cloud(path, cloud)
 
 
-def plot_levels(clouds: dict[str, PreparedCloud], path: Path, max_points: int = 150_000, seed: int = 0) -> Path:
+def plot_levels(
+    clouds: dict[str, PreparedCloud], path: Path, max_points: int = 150_000, seed: int = 0
+) -> Path:
     """Per cloud a side view (x-z) and a top view (x-y), points coloured by level."""
     import matplotlib
 
@@ -37,8 +43,14 @@ def plot_levels(clouds: dict[str, PreparedCloud], path: Path, max_points: int = 
             ax = axes[row, col]
             for k, st in enumerate(p.level_stats):
                 sel = lv == k
-                ax.scatter(xyz[sel, a], xyz[sel, b], s=0.15, c=COLOURS[k % len(COLOURS)], linewidths=0,
-                           label=f"level {k}: {st['size']:,} pts, kappa {st['kappa']:.1f}")
+                ax.scatter(
+                    xyz[sel, a],
+                    xyz[sel, b],
+                    s=0.15,
+                    c=COLOURS[k % len(COLOURS)],
+                    linewidths=0,
+                    label=f"level {k}: {st['size']:,} pts, kappa {st['kappa']:.1f}",
+                )
             ax.set_aspect("equal")
             ax.set_title(f"{name} ({p.kind}, K={p.k}) {label}")
             ax.legend(loc="upper right", markerscale=20, fontsize=8)
@@ -49,7 +61,9 @@ def plot_levels(clouds: dict[str, PreparedCloud], path: Path, max_points: int = 
     return path
 
 
-def save_levels(outdir: Path, source: PreparedCloud, target: PreparedCloud, crs_source=None, crs_target=None) -> list[Path]:
+def save_levels(
+    outdir: Path, source: PreparedCloud, target: PreparedCloud, crs_source=None, crs_target=None
+) -> list[Path]:
     outdir = Path(outdir)
     return [
         write_levels_laz(source, outdir / "source_levels.laz", crs_source),

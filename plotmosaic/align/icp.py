@@ -16,7 +16,9 @@ def nearest(tree: cKDTree, points: np.ndarray, distance: float) -> tuple[np.ndar
     return tree.query(points, distance_upper_bound=distance, workers=inner_workers())
 
 
-def evaluate(source: np.ndarray, tree: cKDTree, T: np.ndarray, distance: float) -> tuple[float, float, int]:
+def evaluate(
+    source: np.ndarray, tree: cKDTree, T: np.ndarray, distance: float
+) -> tuple[float, float, int]:
     """(fitness, inlier RMSE, inliers) of source points under T against the tree's points within `distance`."""
     if len(source) == 0:
         return 0.0, float("nan"), 0
@@ -32,7 +34,9 @@ def point_to_plane_jacobian(p: np.ndarray, n: np.ndarray, R: np.ndarray) -> np.n
     return np.hstack([np.cross(p, m), m])
 
 
-def information_matrix(p: np.ndarray, q: np.ndarray, n: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, float]:
+def information_matrix(
+    p: np.ndarray, q: np.ndarray, n: np.ndarray, T: np.ndarray
+) -> tuple[np.ndarray, float]:
     """J^T J / sigma^2 for the point-to-plane problem, sigma^2 = inlier residual variance.
 
     p: source points, q and n: matched target points and normals, all in the coordinates T maps
@@ -73,9 +77,18 @@ class IcpResult:
     iterations: int
 
 
-def point_to_plane_icp(source: np.ndarray, target: np.ndarray, target_normals, init: np.ndarray,
-                       stages: list[IcpStage], tree: cKDTree | None = None, min_eig_ratio: float = 0.0,
-                       kernel_floor: float = 0.05, kernel_ratio: float = 0.5, tol: float = 1e-5) -> IcpResult:
+def point_to_plane_icp(
+    source: np.ndarray,
+    target: np.ndarray,
+    target_normals,
+    init: np.ndarray,
+    stages: list[IcpStage],
+    tree: cKDTree | None = None,
+    min_eig_ratio: float = 0.0,
+    kernel_floor: float = 0.05,
+    kernel_ratio: float = 0.5,
+    tol: float = 1e-5,
+) -> IcpResult:
     """Point-to-plane ICP (Tukey-weighted Gauss-Newton) that moves only along well-constrained directions.
 
     `target_normals`: an (M, 3) array, or a callable giving the normals of target rows on demand
@@ -120,8 +133,15 @@ def point_to_plane_icp(source: np.ndarray, target: np.ndarray, target_normals, i
             Tc = np.eye(4)
             Tc[:3, 3] = c
             T = Tc @ _exp_se3(step) @ np.linalg.inv(Tc) @ T
-            result = IcpResult(T, float(len(ok) / len(source)), float(np.sqrt(np.mean(d[ok] ** 2))), int(keep.sum()),
-                               ok, j[ok], iterations)
+            result = IcpResult(
+                T,
+                float(len(ok) / len(source)),
+                float(np.sqrt(np.mean(d[ok] ** 2))),
+                int(keep.sum()),
+                ok,
+                j[ok],
+                iterations,
+            )
             if np.linalg.norm(step[:3]) * scale + np.linalg.norm(step[3:]) < tol:
                 break
     return result

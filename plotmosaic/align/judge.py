@@ -31,7 +31,9 @@ class _Samples:
 
 def _samples(cloud, config: JudgeConfig) -> _Samples:
     """Seeded samples of a prepared cloud, remembered on it (a scan takes part in several pairs)."""
-    key = config.model_dump_json(include={"profile_points", "structure_max_planarity", "rival_points"})
+    key = config.model_dump_json(
+        include={"profile_points", "structure_max_planarity", "rival_points"}
+    )
     memo = cloud.__dict__.setdefault("_judge_samples", {})
     if key not in memo:
         memo.clear()
@@ -90,7 +92,9 @@ def profile(src, tgt, T: np.ndarray, config: JudgeConfig) -> dict:
 
 def separation(A: np.ndarray, B: np.ndarray, centre: np.ndarray) -> tuple[float, float]:
     """(rotation deg, displacement m of the source point `centre`) between two poses."""
-    return rotation_deg(inverse(B) @ A), float(np.linalg.norm((A[:3, :3] - B[:3, :3]) @ centre + A[:3, 3] - B[:3, 3]))
+    return rotation_deg(inverse(B) @ A), float(
+        np.linalg.norm((A[:3, :3] - B[:3, :3]) @ centre + A[:3, 3] - B[:3, 3])
+    )
 
 
 def distinct(A: np.ndarray, B: np.ndarray, centre: np.ndarray, config: JudgeConfig) -> bool:
@@ -102,8 +106,16 @@ def refine(src, tgt, T: np.ndarray, config: JudgeConfig) -> np.ndarray:
     """A rival's short robust point-to-plane ICP, the same for every rival (distances x the scale factor)."""
     f = scale_factor(src, tgt, config)
     stages = [IcpStage(max_distance=d * f, iterations=n) for d, n in config.rival_schedule]
-    res = point_to_plane_icp(_samples(src, config).fine, tgt.points, tgt.target_normals, T, stages, tree=tgt.tree,
-                             kernel_floor=0.1 * f, tol=1e-4)
+    res = point_to_plane_icp(
+        _samples(src, config).fine,
+        tgt.points,
+        tgt.target_normals,
+        T,
+        stages,
+        tree=tgt.tree,
+        kernel_floor=0.1 * f,
+        tol=1e-4,
+    )
     return res.T
 
 
@@ -128,16 +140,26 @@ class Verdict:
 
     def to_dict(self) -> dict:
         return {
-            "score": self.score, "rival_score": self.rival_score, "margin": self.margin, "confidence": self.confidence,
-            "profile": self.profile, "rival_profile": self.rival_profile,
-            "rival_transform": None if self.rival_transform is None else np.asarray(self.rival_transform).tolist(),
-            "rival_source": self.rival_source, "candidates": self.candidates, "distinct_rivals": self.distinct_rivals,
-            "seconds": self.seconds, "rivals": self.rivals,
+            "score": self.score,
+            "rival_score": self.rival_score,
+            "margin": self.margin,
+            "confidence": self.confidence,
+            "profile": self.profile,
+            "rival_profile": self.rival_profile,
+            "rival_transform": None
+            if self.rival_transform is None
+            else np.asarray(self.rival_transform).tolist(),
+            "rival_source": self.rival_source,
+            "candidates": self.candidates,
+            "distinct_rivals": self.distinct_rivals,
+            "seconds": self.seconds,
+            "rivals": self.rivals,
         }
 
 
-def _shortlist(T: np.ndarray, candidates: list[tuple[np.ndarray, str]], centre: np.ndarray,
-               config: JudgeConfig) -> list[tuple[np.ndarray, str]]:
+def _shortlist(
+    T: np.ndarray, candidates: list[tuple[np.ndarray, str]], centre: np.ndarray, config: JudgeConfig
+) -> list[tuple[np.ndarray, str]]:
     """Candidates distinct from T and from each other, in the order given, at most `max_rivals`."""
     kept: list[tuple[np.ndarray, str]] = []
     for A, name in candidates:
@@ -151,8 +173,14 @@ def _shortlist(T: np.ndarray, candidates: list[tuple[np.ndarray, str]], centre: 
     return kept
 
 
-def judge(src, tgt, T: np.ndarray, candidates: list[tuple[np.ndarray, str]], config: JudgeConfig,
-          memo: dict | None = None) -> Verdict:
+def judge(
+    src,
+    tgt,
+    T: np.ndarray,
+    candidates: list[tuple[np.ndarray, str]],
+    config: JudgeConfig,
+    memo: dict | None = None,
+) -> Verdict:
     """Score pose T against the distinct rivals among `candidates` ((transform, where from), source local ->
     target local), each refined first; a rival that ends within the distinct radius of T is T itself.
     `memo`: refined rivals and profiles by candidate name, shared by calls on the same pair."""
@@ -180,7 +208,17 @@ def judge(src, tgt, T: np.ndarray, candidates: list[tuple[np.ndarray, str]], con
     score = mine["score"]
     margin = 1.0 - best / score if score > 0 else -1.0
     confidence = float(np.clip(margin / config.full_margin, 0.0, 1.0))
-    return Verdict(score=score, rival_score=best, margin=float(margin), confidence=confidence, profile=mine,
-                   rival_profile=best_prof, rival_transform=best_T, rival_source=best_name,
-                   candidates=len(shortlist), distinct_rivals=n_distinct, seconds=time.perf_counter() - t0,
-                   rivals=table)
+    return Verdict(
+        score=score,
+        rival_score=best,
+        margin=float(margin),
+        confidence=confidence,
+        profile=mine,
+        rival_profile=best_prof,
+        rival_transform=best_T,
+        rival_source=best_name,
+        candidates=len(shortlist),
+        distinct_rivals=n_distinct,
+        seconds=time.perf_counter() - t0,
+        rivals=table,
+    )

@@ -48,7 +48,9 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def rotate(points: np.ndarray, R: np.ndarray) -> np.ndarray:
     """points @ R.T, column by column: numpy's (N, 3) @ (3, 3) goes through BLAS and is ~50x slower."""
-    return np.column_stack([points[:, 0] * R[i, 0] + points[:, 1] * R[i, 1] + points[:, 2] * R[i, 2] for i in range(3)])
+    return np.column_stack(
+        [points[:, 0] * R[i, 0] + points[:, 1] * R[i, 1] + points[:, 2] * R[i, 2] for i in range(3)]
+    )
 
 
 def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -61,7 +63,9 @@ def _upper(v: np.ndarray) -> np.ndarray:
     return v if v[2] >= 0 else -v
 
 
-def _refine(n: np.ndarray, up: np.ndarray, c: CoarseConfig, use_stems: bool, use_ground: bool) -> tuple[np.ndarray, float]:
+def _refine(
+    n: np.ndarray, up: np.ndarray, c: CoarseConfig, use_stems: bool, use_ground: bool
+) -> tuple[np.ndarray, float]:
     """Refine `up` over shrinking bands on stem normals (perpendicular to up) and/or the ground cluster."""
     stem_share = 0.0
     for band in c.refine_bands_deg:
@@ -92,14 +96,20 @@ def _votes(n: np.ndarray, c: CoarseConfig) -> tuple[np.ndarray, np.ndarray, np.n
     return cands, flat, upright
 
 
-def estimate_up(normals: np.ndarray, max_tilt_deg: float = 75.0, n_candidates: int = 1000,
-                config: CoarseConfig | None = None) -> tuple[np.ndarray, dict]:
+def estimate_up(
+    normals: np.ndarray,
+    max_tilt_deg: float = 75.0,
+    n_candidates: int = 1000,
+    config: CoarseConfig | None = None,
+) -> tuple[np.ndarray, dict]:
     """The cloud's up direction from ground and stem normals together (z-component positive) and its figures.
 
     Up is taken on the side of the file's +z: a scan is never mounted upside down, and the
     search allows tilts up to `max_tilt_deg`.
     """
-    c = (config or CoarseConfig()).model_copy(update={"max_tilt_deg": max_tilt_deg, "up_candidates": n_candidates})
+    c = (config or CoarseConfig()).model_copy(
+        update={"max_tilt_deg": max_tilt_deg, "up_candidates": n_candidates}
+    )
     n = np.asarray(normals, dtype=np.float64)
     cands, flat, upright = _votes(n, c)
     up, stem_share = _refine(n, cands[np.argmax(flat + c.upright_weight * upright)], c, True, True)
@@ -121,7 +131,9 @@ def ground_fit_up(points: np.ndarray, c: CoarseConfig) -> np.ndarray | None:
     low = points[first]
     keep = np.ones(len(low), bool)
     normal = Z
-    for _ in range(5):  # least squares, dropping points well above the plane (crowns seen from below)
+    for _ in range(
+        5
+    ):  # least squares, dropping points well above the plane (crowns seen from below)
         if keep.sum() < c.ground_fit_min_cells:
             return None
         centre = low[keep].mean(axis=0)
@@ -142,8 +154,13 @@ class Vertical:
         return rotation_between(self.up, Z)
 
 
-def vertical_hypotheses(points: np.ndarray, normals: np.ndarray, c: CoarseConfig, airborne: bool = False,
-                        limit: int | None = None) -> tuple[list[Vertical], dict]:
+def vertical_hypotheses(
+    points: np.ndarray,
+    normals: np.ndarray,
+    c: CoarseConfig,
+    airborne: bool = False,
+    limit: int | None = None,
+) -> tuple[list[Vertical], dict]:
     """Distinct vertical hypotheses, most trusted first, and the figures behind them.
 
     `airborne` (ALS/ULS, georeferenced): z-up first. z-up is also a candidate of any cloud where an
@@ -156,7 +173,9 @@ def vertical_hypotheses(points: np.ndarray, normals: np.ndarray, c: CoarseConfig
     ground, _ = _refine(n, cands[np.argmax(flat)], c, False, True)
     # stems alone from the joint vote: the most upright-rich direction of a leafy cloud is noise
     stems, _ = _refine(n, first, c, True, False)
-    fit = ground_fit_up(rotate(points, rotation_between(both, Z)), c)  # fit in the roughly levelled frame
+    fit = ground_fit_up(
+        rotate(points, rotation_between(both, Z)), c
+    )  # fit in the roughly levelled frame
     fit = None if fit is None else _upper(rotation_between(both, Z).T @ fit)
     found = [Vertical(both, "normals"), Vertical(ground, "ground"), Vertical(stems, "stems")]
     if fit is not None:
@@ -171,9 +190,12 @@ def vertical_hypotheses(points: np.ndarray, normals: np.ndarray, c: CoarseConfig
         if all(angle_deg(v.up, o.up) > c.vertical_duplicate_deg for o in out):
             out.append(v)
     out = out[: limit or c.max_verticals]
-    info = {"tilt_deg": angle_deg(out[0].up, Z), "stem_share": float(stem_share),
-            "candidates": {v.name: round(angle_deg(v.up, Z), 2) for v in found},
-            "verticals": [{"name": v.name, "tilt_deg": round(angle_deg(v.up, Z), 3)} for v in out]}
+    info = {
+        "tilt_deg": angle_deg(out[0].up, Z),
+        "stem_share": float(stem_share),
+        "candidates": {v.name: round(angle_deg(v.up, Z), 2) for v in found},
+        "verticals": [{"name": v.name, "tilt_deg": round(angle_deg(v.up, Z), 3)} for v in out],
+    }
     return out, info
 
 

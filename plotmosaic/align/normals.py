@@ -21,8 +21,13 @@ LEVEL_FEATURE_NAMES = (*FEATURE_NAMES, "verticality")
 CHUNK = 50_000
 
 
-def _shape_chunk(points: np.ndarray, query: np.ndarray, idx: np.ndarray, ok: np.ndarray | None = None,
-                 main_axes: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+def _shape_chunk(
+    points: np.ndarray,
+    query: np.ndarray,
+    idx: np.ndarray,
+    ok: np.ndarray | None = None,
+    main_axes: bool = False,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
     """(normals, features, counts, main axes or None) of the neighbours `idx` (rows of `points`) kept by `ok`."""
     ok = idx < len(points) if ok is None else ok
     w = ok.astype(np.float64)
@@ -32,12 +37,18 @@ def _shape_chunk(points: np.ndarray, query: np.ndarray, idx: np.ndarray, ok: np.
     rel = [(points[:, i][safe] - query[:, i][:, None]) * w for i in range(3)]
     m = np.maximum(count, 1.0)
     mean = [r.sum(axis=1) / m for r in rel]
-    cov = {(a, b): np.einsum("ij,ij->i", rel[a], rel[b]) / m - mean[a] * mean[b] for a in range(3) for b in range(a, 3)}
+    cov = {
+        (a, b): np.einsum("ij,ij->i", rel[a], rel[b]) / m - mean[a] * mean[b]
+        for a in range(3)
+        for b in range(a, 3)
+    }
     l1, l2, l3 = (np.clip(v, 0.0, None) for v in eigenvalues_sym3(cov))
     has_plane = (l2 > 1e-10) & (count >= 3)  # at least 3 non-collinear neighbours
     inv = np.where(has_plane, 1.0 / np.where(has_plane, l1, 1.0), 0.0)
     # a point without a plane carries no shape: call it fully scattered (scattering = 1)
-    features = np.column_stack([(l1 - l2) * inv, (l2 - l3) * inv, np.where(has_plane, l3 * inv, 1.0)])
+    features = np.column_stack(
+        [(l1 - l2) * inv, (l2 - l3) * inv, np.where(has_plane, l3 * inv, 1.0)]
+    )
     normals = eigenvector_sym3(cov, l3)
     normals[~has_plane] = (0.0, 0.0, 1.0)
     axes = eigenvector_sym3(cov, l1) if main_axes else None
@@ -53,11 +64,16 @@ def eigenvalues_sym3(c: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """
     a00, a01, a02, a11, a12, a22 = c[0, 0], c[0, 1], c[0, 2], c[1, 1], c[1, 2], c[2, 2]
     q = (a00 + a11 + a22) / 3.0
-    p = np.sqrt(((a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * (a01**2 + a02**2 + a12**2)) / 6.0)
+    p = np.sqrt(
+        ((a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * (a01**2 + a02**2 + a12**2)) / 6.0
+    )
     s = np.where(p > 0, p, 1.0)
     b00, b11, b22 = (a00 - q) / s, (a11 - q) / s, (a22 - q) / s
-    det = b00 * (b11 * b22 - (a12 / s) ** 2) - (a01 / s) * ((a01 / s) * b22 - (a12 / s) * (a02 / s)) \
+    det = (
+        b00 * (b11 * b22 - (a12 / s) ** 2)
+        - (a01 / s) * ((a01 / s) * b22 - (a12 / s) * (a02 / s))
         + (a02 / s) * ((a01 / s) * (a12 / s) - b11 * (a02 / s))
+    )
     phi = np.arccos(np.clip(det / 2.0, -1.0, 1.0)) / 3.0
     l1 = q + 2.0 * p * np.cos(phi)
     l3 = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
@@ -67,8 +83,11 @@ def eigenvalues_sym3(c: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def eigenvector_sym3(c: dict, lam: np.ndarray) -> np.ndarray:
     """Unit eigenvectors for eigenvalues `lam` (one per matrix): the longest cross product of two rows
     of A - lam I (they span the plane orthogonal to the eigenvector). (0, 0, 1) where A - lam I is 0."""
-    rows = [np.column_stack([c[0, 0] - lam, c[0, 1], c[0, 2]]), np.column_stack([c[0, 1], c[1, 1] - lam, c[1, 2]]),
-            np.column_stack([c[0, 2], c[1, 2], c[2, 2] - lam])]
+    rows = [
+        np.column_stack([c[0, 0] - lam, c[0, 1], c[0, 2]]),
+        np.column_stack([c[0, 1], c[1, 1] - lam, c[1, 2]]),
+        np.column_stack([c[0, 2], c[1, 2], c[2, 2] - lam]),
+    ]
     crosses = [np.cross(rows[0], rows[1]), np.cross(rows[0], rows[2]), np.cross(rows[1], rows[2])]
     norms = np.column_stack([np.einsum("ij,ij->i", v, v) for v in crosses])
     best = norms.argmax(axis=1)
@@ -80,8 +99,9 @@ def eigenvector_sym3(c: dict, lam: np.ndarray) -> np.ndarray:
     return out
 
 
-def local_shape(points: np.ndarray, tree: cKDTree, query: np.ndarray, radius: float, max_nn: int
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def local_shape(
+    points: np.ndarray, tree: cKDTree, query: np.ndarray, radius: float, max_nn: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(normals (M,3), features (M,3), neighbour counts (M,)) at `query` from `points` (indexed by `tree`).
 
     Chunks run in two threads (the KD-tree query and numpy's heavy loops release the GIL).
@@ -92,14 +112,17 @@ def local_shape(points: np.ndarray, tree: cKDTree, query: np.ndarray, radius: fl
     def run(s: int) -> None:
         q = query[s : s + CHUNK]
         _, idx = tree.query(q, k=int(min(max_nn, len(points))), distance_upper_bound=radius)
-        normals[s : s + CHUNK], features[s : s + CHUNK], counts[s : s + CHUNK], _ = _shape_chunk(points, q, idx.reshape(len(q), -1))
+        normals[s : s + CHUNK], features[s : s + CHUNK], counts[s : s + CHUNK], _ = _shape_chunk(
+            points, q, idx.reshape(len(q), -1)
+        )
 
     _in_chunks(run, m)
     return normals, features, counts
 
 
-def level_shape(support: np.ndarray, tree: cKDTree, query: np.ndarray, radius: float, max_nn: int
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def level_shape(
+    support: np.ndarray, tree: cKDTree, query: np.ndarray, radius: float, max_nn: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(normals (M,3), features (M,4), counts (M,)) for the complexity levels, from one neighbour query.
 
     `support` is a thinned cloud (one point per cube a fraction of `radius`), so that `max_nn`
@@ -115,7 +138,9 @@ def level_shape(support: np.ndarray, tree: cKDTree, query: np.ndarray, radius: f
         q = query[s : s + CHUNK]
         dist, idx = tree.query(q, k=int(min(max_nn, len(support))), distance_upper_bound=2 * radius)
         dist, idx = dist.reshape(len(q), -1), idx.reshape(len(q), -1)
-        normals[s : s + CHUNK], _, counts[s : s + CHUNK], _ = _shape_chunk(support, q, idx, dist <= radius)
+        normals[s : s + CHUNK], _, counts[s : s + CHUNK], _ = _shape_chunk(
+            support, q, idx, dist <= radius
+        )
         _, wide, _, axes = _shape_chunk(support, q, idx, main_axes=True)
         features[s : s + CHUNK] = np.column_stack([wide, np.abs(axes[:, 2])])
 
@@ -139,6 +164,8 @@ class LazyNormals:
     def __call__(self, idx: np.ndarray) -> np.ndarray:
         missing = np.unique(idx[~self.known[idx]])
         if len(missing):
-            self.normals[missing] = local_shape(self.points, self.tree, self.points[missing], self.radius, self.max_nn)[0]
+            self.normals[missing] = local_shape(
+                self.points, self.tree, self.points[missing], self.radius, self.max_nn
+            )[0]
             self.known[missing] = True
         return self.normals[idx]

@@ -54,7 +54,9 @@ class PairResult:
     config: dict = field(default_factory=dict)
     method: str = METHOD
     version: str = __version__
-    source_path: str | None = None  # the two files, when registered from files (`plotmosaic report RESULT.json`)
+    source_path: str | None = (
+        None  # the two files, when registered from files (`plotmosaic report RESULT.json`)
+    )
     target_path: str | None = None
 
     def to_dict(self) -> dict:
@@ -83,7 +85,7 @@ class PairResult:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "PairResult":
+    def from_dict(cls, d: dict) -> PairResult:
         return cls(
             transform=np.asarray(d["transform"], dtype=float),
             fitness=float(d["fitness"]),
@@ -96,7 +98,9 @@ class PairResult:
             target_kind=d.get("target_kind", "tls"),
             source_offset=d.get("source_offset", [0.0, 0.0, 0.0]),
             target_offset=d.get("target_offset", [0.0, 0.0, 0.0]),
-            sigma=float(d.get("sigma", float("nan")) if d.get("sigma") is not None else float("nan")),
+            sigma=float(
+                d.get("sigma", float("nan")) if d.get("sigma") is not None else float("nan")
+            ),
             coarse=d.get("coarse"),
             confidence=d.get("confidence"),
             judge=d.get("judge"),  # absent from results cached before the judge
@@ -112,7 +116,7 @@ class PairResult:
         return write_text_atomic(path, json.dumps(self.to_dict(), indent=1))
 
     @classmethod
-    def load(cls, path: str | Path) -> "PairResult":
+    def load(cls, path: str | Path) -> PairResult:
         return cls.from_dict(json.loads(Path(path).read_text()))
 
 
@@ -157,10 +161,20 @@ def global_search(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig, s
 
 def _candidates(hypotheses: list[dict], start: np.ndarray) -> list[tuple[np.ndarray, str]]:
     """Rival poses: every hypothesis (refined ones first, by score), then the start as handed over."""
-    order = sorted(range(len(hypotheses)), key=lambda i: (not hypotheses[i].get("refined", False),
-                                                           -float(hypotheses[i].get("score") or 0.0)))
-    out = [(np.asarray(hypotheses[i]["transform"], dtype=float),
-            f"{hypotheses[i].get('generator', 'coarse')} hypothesis {i}") for i in order]
+    order = sorted(
+        range(len(hypotheses)),
+        key=lambda i: (
+            not hypotheses[i].get("refined", False),
+            -float(hypotheses[i].get("score") or 0.0),
+        ),
+    )
+    out = [
+        (
+            np.asarray(hypotheses[i]["transform"], dtype=float),
+            f"{hypotheses[i].get('generator', 'coarse')} hypothesis {i}",
+        )
+        for i in order
+    ]
     return out + [(start, "start")]
 
 
@@ -170,25 +184,57 @@ def final_icp(src: PreparedCloud, tgt: PreparedCloud, T: np.ndarray, config: Ali
     s_sp, t_sp = judge_mod.spacing(src, config.judge), judge_mod.spacing(tgt, config.judge)
     if t_sp > config.final_reverse_ratio * s_sp:
         # sparse target (ALS under a drone or ground scan): register it onto the dense source's planes
-        res = point_to_plane_icp(tgt.fine_points, src.points, src.target_normals, inverse(T), config.final_schedule,
-                                 tree=src.tree, kernel_floor=config.robust_kernel, tol=config.final_tol)
+        res = point_to_plane_icp(
+            tgt.fine_points,
+            src.points,
+            src.target_normals,
+            inverse(T),
+            config.final_schedule,
+            tree=src.tree,
+            kernel_floor=config.robust_kernel,
+            tol=config.final_tol,
+        )
         T = inverse(res.T)
         p, q = src.points[res.target_index], tgt.fine_points[res.source_index]
-        n = src.target_normals(res.target_index) @ T[:3, :3].T  # the same planes, in target coordinates
+        n = (
+            src.target_normals(res.target_index) @ T[:3, :3].T
+        )  # the same planes, in target coordinates
         return T, p, q, n, res.iterations, True
-    res = point_to_plane_icp(src.fine_points, tgt.points, tgt.target_normals, T, config.final_schedule,
-                             tree=tgt.tree, kernel_floor=config.robust_kernel, tol=config.final_tol)
-    return (res.T, src.fine_points[res.source_index], tgt.points[res.target_index],
-            tgt.target_normals(res.target_index), res.iterations, False)
+    res = point_to_plane_icp(
+        src.fine_points,
+        tgt.points,
+        tgt.target_normals,
+        T,
+        config.final_schedule,
+        tree=tgt.tree,
+        kernel_floor=config.robust_kernel,
+        tol=config.final_tol,
+    )
+    return (
+        res.T,
+        src.fine_points[res.source_index],
+        tgt.points[res.target_index],
+        tgt.target_normals(res.target_index),
+        res.iterations,
+        False,
+    )
 
 
-def register_prepared(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig, init: np.ndarray | None = None,
-                      seed: int = 0, progress: Callable[[str], None] | None = None) -> PairResult:
+def register_prepared(
+    src: PreparedCloud,
+    tgt: PreparedCloud,
+    config: AlignConfig,
+    init: np.ndarray | None = None,
+    seed: int = 0,
+    progress: Callable[[str], None] | None = None,
+) -> PairResult:
     """Registration of two prepared clouds; `init` (source file -> target file) is a prior for the coarse stage, or the start itself with the coarse stage off."""
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
     coarse = None
-    T = to_local_transform(np.eye(4) if init is None else np.asarray(init, dtype=float), src.frame, tgt.frame)
+    T = to_local_transform(
+        np.eye(4) if init is None else np.asarray(init, dtype=float), src.frame, tgt.frame
+    )
     T_start = T.copy()
     hypotheses: list[dict] = []
     if config.coarse.enabled:
@@ -202,7 +248,11 @@ def register_prepared(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfi
         T = np.asarray(cres.transform, dtype=float)
         coarse = cres.to_dict()
         hypotheses = list(cres.hypotheses)
-    if config.judge.enabled and config.judge.global_rivals and (init is not None or not config.coarse.enabled):
+    if (
+        config.judge.enabled
+        and config.judge.global_rivals
+        and (init is not None or not config.coarse.enabled)
+    ):
         # a local result (from --init or --no-coarse) has no rivals of its own: the global search gives them
         say("searching for rival poses")
         hypotheses += global_search(src, tgt, config, seed).hypotheses
@@ -210,7 +260,9 @@ def register_prepared(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfi
     t_coarse = time.perf_counter()
 
     rng = np.random.default_rng(seed)
-    T, steps, start_fit, level_fit, reverted, matching = _level_stage(src, tgt, config, T, coarse is not None, rng)
+    T, steps, start_fit, level_fit, reverted, matching = _level_stage(
+        src, tgt, config, T, coarse is not None, rng
+    )
     t_levels = time.perf_counter()
 
     say("final ICP")
@@ -228,7 +280,9 @@ def register_prepared(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfi
             # finish that one the same way and keep whichever the judge prefers
             say("final ICP from a better rival")
             T2, p2, q2, n2, it2, rev2 = final_icp(src, tgt, verdict.rival_transform, config)
-            second = judge_mod.judge(src, tgt, T2, candidates + [(T, "first pose")], config.judge, refined)
+            second = judge_mod.judge(
+                src, tgt, T2, candidates + [(T, "first pose")], config.judge, refined
+            )
             if second.score > verdict.score:
                 T, p, q, n, iterations, reverse, verdict = T2, p2, q2, n2, it2, rev2, second
     t_judge = time.perf_counter()
@@ -251,20 +305,40 @@ def register_prepared(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfi
 
     moved = T @ np.linalg.inv(T_init)
     result = PairResult(
-        transform=T_file, fitness=fitness, inlier_rmse=rmse, overlap=ov, information=info, sigma=sigma,
-        levels={"source": _level_table(src, matching, True), "target": _level_table(tgt, matching, False),
-                "matching": {str(k): v for k, v in matching.items()}, "steps": steps,
-                "fitness_before": start_fit, "fitness_after": level_fit, "reverted": reverted},
-        seconds=t_end - t0, source_kind=src.kind, target_kind=tgt.kind,
-        source_offset=[float(v) for v in src.frame.offset], target_offset=[float(v) for v in tgt.frame.offset],
-        coarse=coarse, confidence=None if verdict is None else verdict.confidence,
+        transform=T_file,
+        fitness=fitness,
+        inlier_rmse=rmse,
+        overlap=ov,
+        information=info,
+        sigma=sigma,
+        levels={
+            "source": _level_table(src, matching, True),
+            "target": _level_table(tgt, matching, False),
+            "matching": {str(k): v for k, v in matching.items()},
+            "steps": steps,
+            "fitness_before": start_fit,
+            "fitness_after": level_fit,
+            "reverted": reverted,
+        },
+        seconds=t_end - t0,
+        source_kind=src.kind,
+        target_kind=tgt.kind,
+        source_offset=[float(v) for v in src.frame.offset],
+        target_offset=[float(v) for v in tgt.frame.offset],
+        coarse=coarse,
+        confidence=None if verdict is None else verdict.confidence,
         judge=None if verdict is None else _judge_record(verdict, src, tgt),
-        timings={"coarse": t_coarse - t0, "levels_icp": t_levels - t_coarse, "final_icp": t_final - t_levels,
-                 "final_iterations": iterations, "final_planes": "source" if reverse else "target",
-                 "judge": t_judge - t_final,
-                 "quality": t_end - t_judge,
-                 "correction_deg": rotation_deg(moved),
-                 "correction_m": float(np.linalg.norm(moved[:3, 3]))},
+        timings={
+            "coarse": t_coarse - t0,
+            "levels_icp": t_levels - t_coarse,
+            "final_icp": t_final - t_levels,
+            "final_iterations": iterations,
+            "final_planes": "source" if reverse else "target",
+            "judge": t_judge - t_final,
+            "quality": t_end - t_judge,
+            "correction_deg": rotation_deg(moved),
+            "correction_m": float(np.linalg.norm(moved[:3, 3])),
+        },
         config=config.model_dump(),
     )
     check_quality(result, config, local=not config.coarse.enabled or init is not None)
@@ -275,16 +349,27 @@ def _judge_record(verdict, src: PreparedCloud, tgt: PreparedCloud) -> dict:
     """The judge's figures for PairResult, the rival's transform in file coordinates."""
     d = verdict.to_dict()
     if verdict.rival_transform is not None:
-        d["rival_transform"] = to_global_transform(verdict.rival_transform, src.frame, tgt.frame).tolist()
+        d["rival_transform"] = to_global_transform(
+            verdict.rival_transform, src.frame, tgt.frame
+        ).tolist()
     return d
 
 
-def _level_stage(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig, T: np.ndarray, after_coarse: bool,
-                 rng: np.random.Generator):
+def _level_stage(
+    src: PreparedCloud,
+    tgt: PreparedCloud,
+    config: AlignConfig,
+    T: np.ndarray,
+    after_coarse: bool,
+    rng: np.random.Generator,
+):
     """Incremental ICP over the matched levels; reverted when it ends worse than it started."""
     T_init = T.copy()
-    matching = match_levels([s["match_value"] for s in src.level_stats], [s["match_value"] for s in tgt.level_stats],
-                            compress=False)
+    matching = match_levels(
+        [s["match_value"] for s in src.level_stats],
+        [s["match_value"] for s in tgt.level_stats],
+        compress=False,
+    )
     steps = []
     for j, (ls, lt) in enumerate(incremental_steps(matching)):
         sp, _ = src.subset(ls)
@@ -293,13 +378,28 @@ def _level_stage(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig, T:
             continue
         sp = sp[sample(len(sp), config.level_max_source_points, rng)]
         schedule = config.level_schedule[min(j, len(config.level_schedule) - 1)]
-        if after_coarse:  # a verified coarse pose is within decimetres: the widest stages only cost time
-            schedule = [st for st in schedule if st.max_distance <= config.level_max_distance_after_coarse] or schedule[-1:]
-        res = point_to_plane_icp(sp, tp, tn, T, schedule, min_eig_ratio=config.min_eig_ratio, tol=config.level_tol)
+        if (
+            after_coarse
+        ):  # a verified coarse pose is within decimetres: the widest stages only cost time
+            schedule = [
+                st for st in schedule if st.max_distance <= config.level_max_distance_after_coarse
+            ] or schedule[-1:]
+        res = point_to_plane_icp(
+            sp, tp, tn, T, schedule, min_eig_ratio=config.min_eig_ratio, tol=config.level_tol
+        )
         T = res.T
-        steps.append({"source_levels": ls, "target_levels": lt, "source_points": len(sp), "target_points": len(tp),
-                      "fitness": res.fitness, "rmse": res.rmse, "constrained_dof": res.rank,
-                      "iterations": res.iterations})
+        steps.append(
+            {
+                "source_levels": ls,
+                "target_levels": lt,
+                "source_points": len(sp),
+                "target_points": len(tp),
+                "fitness": res.fitness,
+                "rmse": res.rmse,
+                "constrained_dof": res.rank,
+                "iterations": res.iterations,
+            }
+        )
     # never leave the level stage worse than it started: from a verified coarse pose, levels that
     # are not what they should be (plain vMF on dense scans mixes stems and foliage) can slide away
     probe = src.level_points[sample(len(src.level_points), config.level_max_source_points, rng)]
@@ -328,34 +428,64 @@ def check_quality(result: PairResult, config: AlignConfig, local: bool = False) 
     j = result.judge
     if j is not None:
         if j["score"] < config.judge.min_score:
-            problems.append(f"judge score {j['score']:.3f} < {config.judge.min_score} (the clouds hardly fit anywhere)")
-        if j["margin"] <= 0:  # also with min_confidence 0 (register-plot): this pose is not the best one found
+            problems.append(
+                f"judge score {j['score']:.3f} < {config.judge.min_score} (the clouds hardly fit anywhere)"
+            )
+        if (
+            j["margin"] <= 0
+        ):  # also with min_confidence 0 (register-plot): this pose is not the best one found
             hint = ": rerun without --no-coarse" if local and not config.coarse.enabled else ""
-            problems.append(f"a distinct pose fits as well or better (judge score {j['rival_score']:.3f}"
-                            f" against {j['score']:.3f}, from {j['rival_source']}){hint}")
+            problems.append(
+                f"a distinct pose fits as well or better (judge score {j['rival_score']:.3f}"
+                f" against {j['score']:.3f}, from {j['rival_source']}){hint}"
+            )
         elif result.confidence is not None and result.confidence < config.min_confidence:
-            problems.append(f"ambiguous: a distinct pose fits almost as well (confidence {result.confidence:.2f} <"
-                            f" {config.min_confidence}; judge score {j['score']:.3f}, rival {j['rival_score']:.3f})")
+            problems.append(
+                f"ambiguous: a distinct pose fits almost as well (confidence {result.confidence:.2f} <"
+                f" {config.min_confidence}; judge score {j['score']:.3f}, rival {j['rival_score']:.3f})"
+            )
     if problems:
         err = RegistrationFailed(
-            "pair cannot be registered: " + "; ".join(problems)
+            "pair cannot be registered: "
+            + "; ".join(problems)
             + f" (fitness {result.fitness:.3f}, overlap {result.overlap:.3f}, inlier RMSE {result.inlier_rmse:.3f} m"
-            f" at {config.quality_distance} m)")
+            f" at {config.quality_distance} m)"
+        )
         err.result = result
         raise err
 
 
-def prepare_pair(source: PointCloud, target: PointCloud, source_kind: str, target_kind: str, levels_source: int,
-                 levels_target: int, config: AlignConfig, seed: int = 0) -> tuple[PreparedCloud, PreparedCloud]:
+def prepare_pair(
+    source: PointCloud,
+    target: PointCloud,
+    source_kind: str,
+    target_kind: str,
+    levels_source: int,
+    levels_target: int,
+    config: AlignConfig,
+    seed: int = 0,
+) -> tuple[PreparedCloud, PreparedCloud]:
     """Both clouds prepared at once (source with `seed`, target with `seed + 1`)."""
-    return both(lambda job: prepare_cloud(*job), (source, source_kind, levels_source, config, seed, "source"),
-                 (target, target_kind, levels_target, config, seed + 1, "target"))
+    return both(
+        lambda job: prepare_cloud(*job),
+        (source, source_kind, levels_source, config, seed, "source"),
+        (target, target_kind, levels_target, config, seed + 1, "target"),
+    )
 
 
-def align_clouds(source: PointCloud, target: PointCloud, source_kind: str = "tls", target_kind: str = "tls",
-                 config: AlignConfig | None = None, init: np.ndarray | None = None, levels_source: int | None = None,
-                 levels_target: int | None = None, seed: int = 0,
-                 progress: Callable[[str], None] | None = None, save_levels: Path | None = None) -> PairResult:
+def align_clouds(
+    source: PointCloud,
+    target: PointCloud,
+    source_kind: str = "tls",
+    target_kind: str = "tls",
+    config: AlignConfig | None = None,
+    init: np.ndarray | None = None,
+    levels_source: int | None = None,
+    levels_target: int | None = None,
+    seed: int = 0,
+    progress: Callable[[str], None] | None = None,
+    save_levels: Path | None = None,
+) -> PairResult:
     """Register `source` onto `target`; the result maps source file coordinates to target file coordinates.
 
     `save_levels`: a folder for the levels as LAZ + PNG (written before ICP, so also on failure).
@@ -365,8 +495,16 @@ def align_clouds(source: PointCloud, target: PointCloud, source_kind: str = "tls
     say = progress or (lambda msg: None)
     sk, tk = _kind(source_kind, "source"), _kind(target_kind, "target")
     say("preparing source and target")
-    src, tgt = prepare_pair(source, target, sk, tk, levels_source or default_levels(sk),
-                            levels_target or default_levels(tk), config, seed)
+    src, tgt = prepare_pair(
+        source,
+        target,
+        sk,
+        tk,
+        levels_source or default_levels(sk),
+        levels_target or default_levels(tk),
+        config,
+        seed,
+    )
     if save_levels is not None:
         from plotmosaic.align.figures import save_levels as write_levels
 
@@ -374,24 +512,52 @@ def align_clouds(source: PointCloud, target: PointCloud, source_kind: str = "tls
         write_levels(save_levels, src, tgt, source.crs, target.crs)
     t1 = time.perf_counter()
     result = register_prepared(src, tgt, config, init, seed, progress)
-    result.timings = {"prepare": t1 - t0, "prepare_source": src.seconds, "prepare_target": tgt.seconds, **result.timings}
+    result.timings = {
+        "prepare": t1 - t0,
+        "prepare_source": src.seconds,
+        "prepare_target": tgt.seconds,
+        **result.timings,
+    }
     result.seconds = time.perf_counter() - t0
     return result
 
 
-def align_files(source_path, target_path, source_kind: str = "tls", target_kind: str = "tls",
-                config: AlignConfig | None = None, init: np.ndarray | None = None, levels_source: int | None = None,
-                levels_target: int | None = None, seed: int = 0,
-                progress: Callable[[str], None] | None = None, save_levels: Path | None = None) -> PairResult:
+def align_files(
+    source_path,
+    target_path,
+    source_kind: str = "tls",
+    target_kind: str = "tls",
+    config: AlignConfig | None = None,
+    init: np.ndarray | None = None,
+    levels_source: int | None = None,
+    levels_target: int | None = None,
+    seed: int = 0,
+    progress: Callable[[str], None] | None = None,
+    save_levels: Path | None = None,
+) -> PairResult:
     """`align_clouds` on two LAS/LAZ files (coordinates only)."""
     t0 = time.perf_counter()
     say = progress or (lambda msg: None)
     say("reading source and target")
     source, target = both(lambda path: read_cloud(path, attributes=False), source_path, target_path)
     t_read = time.perf_counter() - t0
-    result = align_clouds(source, target, source_kind, target_kind, config, init, levels_source, levels_target,
-                          seed, progress, save_levels)
+    result = align_clouds(
+        source,
+        target,
+        source_kind,
+        target_kind,
+        config,
+        init,
+        levels_source,
+        levels_target,
+        seed,
+        progress,
+        save_levels,
+    )
     result.timings = {"read": t_read, **result.timings}
     result.seconds = time.perf_counter() - t0
-    result.source_path, result.target_path = str(Path(source_path).resolve()), str(Path(target_path).resolve())
+    result.source_path, result.target_path = (
+        str(Path(source_path).resolve()),
+        str(Path(target_path).resolve()),
+    )
     return result

@@ -19,7 +19,9 @@ from plotmosaic.io.frame import Frame
 from plotmosaic.io.las import PointCloud
 
 MIN_POINTS = 50
-SPARSE_PROBE = 5_000  # sample points whose neighbour count decides the sparse rule (its median is stable)
+SPARSE_PROBE = (
+    5_000  # sample points whose neighbour count decides the sparse rule (its median is stable)
+)
 # Widest cloud registered (m, any axis, after stray points are dropped): a plot or a cropped ALS tile
 # is far smaller; beyond it the coarse rasters would need gigabytes, so it is refused with its extent.
 MAX_EXTENT_M = 20_000.0
@@ -31,8 +33,12 @@ class PreparedCloud:
     kind: str
     points: np.ndarray  # (N, 3) local, delta0 voxel centroids in cube order (spatially coherent)
     tree: cKDTree  # over `points`: normals, final-ICP correspondences, quality figures
-    level_points: np.ndarray  # (M, 3) the labelled sample: one delta0 point per `level_cell` cube (capped)
-    normals: np.ndarray  # (M, 3) at level_points, from the 0.25 m neighbourhood (see normals.level_shape)
+    level_points: (
+        np.ndarray
+    )  # (M, 3) the labelled sample: one delta0 point per `level_cell` cube (capped)
+    normals: (
+        np.ndarray
+    )  # (M, 3) at level_points, from the 0.25 m neighbourhood (see normals.level_shape)
     features: np.ndarray  # (M, 4) linearity, planarity, scattering, verticality at 0.5 m
     levels: np.ndarray  # (M,) 0 = least complex
     level_stats: list[dict]
@@ -53,27 +59,41 @@ class PreparedCloud:
         return self.level_points[sel], self.normals[sel]
 
 
-def prepare_cloud(cloud: PointCloud, kind: str, levels: int, config: AlignConfig, seed: int = 0,
-                  name: str = "cloud") -> PreparedCloud:
+def prepare_cloud(
+    cloud: PointCloud,
+    kind: str,
+    levels: int,
+    config: AlignConfig,
+    seed: int = 0,
+    name: str = "cloud",
+) -> PreparedCloud:
     t0 = time.perf_counter()
     if len(cloud) < MIN_POINTS:
-        raise InputError(f"{name}: only {len(cloud)} points, at least {MIN_POINTS} needed to register")
+        raise InputError(
+            f"{name}: only {len(cloud)} points, at least {MIN_POINTS} needed to register"
+        )
     if levels < 1:
         raise InputError(f"{name}: levels must be >= 1, got {levels}")
     rng = np.random.default_rng(seed)
     xyz, strays = robust_points(cloud.xyz, getattr(config, "stray", None) or StrayConfig(), name)
     frame = Frame.around(xyz)
-    grid = voxelize(xyz, config.voxel, frame.offset)  # local coordinates, no shifted copy of 8M points
+    grid = voxelize(
+        xyz, config.voxel, frame.offset
+    )  # local coordinates, no shifted copy of 8M points
     points = grid.centroids
     if len(points) < MIN_POINTS:
-        raise InputError(f"{name}: only {len(points)} points after {config.voxel} m voxels, too few to register")
+        raise InputError(
+            f"{name}: only {len(points)} points after {config.voxel} m voxels, too few to register"
+        )
     # final-ICP source: the delta grid of a seeded sample of delta0 cubes, which is a sample of the
     # whole cloud's delta grid without building that grid over all (8M) input points
     cubes = sample(len(points), config.final_max_source_points, rng)
     fine = voxel_centroids(frame.to_local(xyz[grid.members(cubes)]), config.final_voxel)
     fine_points = fine[sample(len(fine), config.final_max_source_points, rng)]
     del grid, fine
-    tree = cKDTree(points, balanced_tree=False, compact_nodes=False)  # half the build time; points are in cube order
+    tree = cKDTree(
+        points, balanced_tree=False, compact_nodes=False
+    )  # half the build time; points are in cube order
     t1 = time.perf_counter()
     # levels on a sample that evens out the 1/r^2 density of TLS around the scanner
     keep, cube_sizes = thin_with_counts(points, config.level_cell)
@@ -81,23 +101,48 @@ def prepare_cloud(cloud: PointCloud, kind: str, levels: int, config: AlignConfig
     level_points, cube_sizes = points[keep[chosen]], cube_sizes[chosen]
     radius = config.normal_radius
     probe = level_points[sample(len(level_points), SPARSE_PROBE, rng)]
-    if np.median(local_shape(points, tree, probe, radius, config.normal_max_nn)[2]) < config.sparse_min_neighbors:
-        radius = max(radius, config.normal_radius_sparse)  # airborne or far-range: too few points for a plane
+    if (
+        np.median(local_shape(points, tree, probe, radius, config.normal_max_nn)[2])
+        < config.sparse_min_neighbors
+    ):
+        radius = max(
+            radius, config.normal_radius_sparse
+        )  # airborne or far-range: too few points for a plane
     support = points[thin(points, config.level_support_ratio * radius)]
     support_tree = cKDTree(support, balanced_tree=False, compact_nodes=False)
-    normals, features, counts = level_shape(support, support_tree, level_points, radius, config.level_max_nn)
+    normals, features, counts = level_shape(
+        support, support_tree, level_points, radius, config.level_max_nn
+    )
     t2 = time.perf_counter()
     # the mixture is fitted at the delta0 cloud's density, as in the paper (each sample point weighs
     # as many delta0 points as share its cube): on the even sample, far canopy fills most cubes and
     # the components split foliage while ground (3 % of the cubes of a dense scan) gets none
-    lv = fit_levels(normals, features, levels, config.complexity, config.vmf, seed, valid=counts >= 3,
-                    weights=cube_sizes)
+    lv = fit_levels(
+        normals,
+        features,
+        levels,
+        config.complexity,
+        config.vmf,
+        seed,
+        valid=counts >= 3,
+        weights=cube_sizes,
+    )
     t3 = time.perf_counter()
     return PreparedCloud(
-        frame=frame, kind=kind, points=points, tree=tree, level_points=level_points, normals=normals,
-        features=features, levels=lv.labels, level_stats=lv.stats, fine_points=fine_points,
-        target_normals=LazyNormals(points, tree, radius, config.normal_max_nn), normal_radius=radius,
-        input_points=len(cloud), seconds={"voxel": t1 - t0, "normals": t2 - t1, "levels": t3 - t2},
+        frame=frame,
+        kind=kind,
+        points=points,
+        tree=tree,
+        level_points=level_points,
+        normals=normals,
+        features=features,
+        levels=lv.labels,
+        level_stats=lv.stats,
+        fine_points=fine_points,
+        target_normals=LazyNormals(points, tree, radius, config.normal_max_nn),
+        normal_radius=radius,
+        input_points=len(cloud),
+        seconds={"voxel": t1 - t0, "normals": t2 - t1, "levels": t3 - t2},
         stray_points=strays,
     )
 
@@ -109,9 +154,13 @@ def robust_points(xyz: np.ndarray, stray: StrayConfig, name: str) -> tuple[np.nd
     if dropped:
         xyz = xyz[keep]
     if len(xyz) < MIN_POINTS:
-        raise InputError(f"{name}: only {len(xyz)} points left after dropping {dropped} stray points")
+        raise InputError(
+            f"{name}: only {len(xyz)} points left after dropping {dropped} stray points"
+        )
     span = np.array([xyz[:, i].max() - xyz[:, i].min() for i in range(3)])
     if span.max() > MAX_EXTENT_M:
-        raise InputError(f"{name}: the cloud spans {span.round(0).tolist()} m (after dropping {dropped} stray "
-                         f"points), more than {MAX_EXTENT_M:.0f} m; crop it or remove the far points")
+        raise InputError(
+            f"{name}: the cloud spans {span.round(0).tolist()} m (after dropping {dropped} stray "
+            f"points), more than {MAX_EXTENT_M:.0f} m; crop it or remove the far points"
+        )
     return xyz, dropped

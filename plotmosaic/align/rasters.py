@@ -33,8 +33,9 @@ class PointFeatures:
     ground: np.ndarray  # bool
 
 
-def ground_model(xy: np.ndarray, z: np.ndarray, cell: float = 1.0, config: CoarseConfig | None = None
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def ground_model(
+    xy: np.ndarray, z: np.ndarray, cell: float = 1.0, config: CoarseConfig | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A rough DTM: lowest point per cell, cells standing far above their neighbours dropped.
 
     Returns (dtm, origin, filled) where `filled` marks cells with a ground estimate.
@@ -50,7 +51,9 @@ def ground_model(xy: np.ndarray, z: np.ndarray, cell: float = 1.0, config: Coars
     filled = np.isfinite(low)
     # the lowest return of a cell seen only through a crown or beside a stem is not ground:
     # compare with the neighbourhood's low quantile and drop cells well above it
-    ref = ndimage.percentile_filter(low, c.dtm_percentile, size=c.dtm_window, mode="constant", cval=np.inf)
+    ref = ndimage.percentile_filter(
+        low, c.dtm_percentile, size=c.dtm_window, mode="constant", cval=np.inf
+    )
     ok = filled & ~(low > ref + c.dtm_max_step)
     dtm = np.where(ok, low, np.nan)
     # fill holes from the nearest valid cell so every point gets a height above ground
@@ -62,7 +65,9 @@ def ground_model(xy: np.ndarray, z: np.ndarray, cell: float = 1.0, config: Coars
     return dtm, origin, ok
 
 
-def height_above_ground(points: np.ndarray, cell: float = 1.0, config: CoarseConfig | None = None) -> np.ndarray:
+def height_above_ground(
+    points: np.ndarray, cell: float = 1.0, config: CoarseConfig | None = None
+) -> np.ndarray:
     """Each point's height above the rough DTM of its (levelled) cloud."""
     xy, z = points[:, :2], points[:, 2]
     dtm, origin, _ = ground_model(xy, z, cell, config)
@@ -70,8 +75,13 @@ def height_above_ground(points: np.ndarray, cell: float = 1.0, config: CoarseCon
     return z - dtm[ij[:, 0], ij[:, 1]]
 
 
-def point_features(points: np.ndarray, normals: np.ndarray, cell: float = 1.0, config: CoarseConfig | None = None,
-                   hag: np.ndarray | None = None) -> PointFeatures:
+def point_features(
+    points: np.ndarray,
+    normals: np.ndarray,
+    cell: float = 1.0,
+    config: CoarseConfig | None = None,
+    hag: np.ndarray | None = None,
+) -> PointFeatures:
     c = config or CoarseConfig()
     hag = height_above_ground(points, cell, c) if hag is None else hag
     vertical_surface = np.abs(normals[:, 2]) < c.vertical_normal_z
@@ -99,8 +109,13 @@ def column_bins(feats: PointFeatures, size: float) -> PointFeatures:
     g_n = np.bincount(inv, feats.ground, n)
     g_z = np.bincount(inv, feats.z * feats.ground, n)
     z = np.where(g_n > 0, g_z / np.maximum(g_n, 1), np.bincount(inv, feats.z, n) / count)
-    return PointFeatures(xy=xy, z=z, stem=np.bincount(inv, feats.stem, n) > 0,
-                         canopy=np.bincount(inv, feats.canopy, n) > 0, ground=g_n > 0)
+    return PointFeatures(
+        xy=xy,
+        z=z,
+        stem=np.bincount(inv, feats.stem, n) > 0,
+        canopy=np.bincount(inv, feats.canopy, n) > 0,
+        ground=g_n > 0,
+    )
 
 
 @dataclass
@@ -111,7 +126,14 @@ class Raster:
     masks: dict[str, np.ndarray]
 
 
-def rasterise(xy: np.ndarray, feats: PointFeatures, cell: float, origin: np.ndarray, shape: tuple[int, int], blur: float) -> Raster:
+def rasterise(
+    xy: np.ndarray,
+    feats: PointFeatures,
+    cell: float,
+    origin: np.ndarray,
+    shape: tuple[int, int],
+    blur: float,
+) -> Raster:
     ij = np.floor((xy - origin) / cell).astype(np.int64)
     inside = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < shape[0]) & (ij[:, 1] < shape[1])
     flat = ij[:, 0] * shape[1] + ij[:, 1]
@@ -133,7 +155,9 @@ def rasterise(xy: np.ndarray, feats: PointFeatures, cell: float, origin: np.ndar
     has = n_g > 0
     terrain = np.zeros(shape)
     terrain[has] = s_g[has] / n_g[has]
-    if has.any():  # NCC ignores a constant; without it the heights' squares cost float32 FFTs their precision
+    if (
+        has.any()
+    ):  # NCC ignores a constant; without it the heights' squares cost float32 FFTs their precision
         terrain[has] -= terrain[has].mean()
     images["terrain"] = terrain
     masks["terrain"] = has.astype(np.float64)
@@ -147,7 +171,13 @@ class MaskedNCC:
     and each call runs its transforms as one batch (two FFT calls instead of dozens).
     """
 
-    def __init__(self, target: Raster, source_shape: tuple[int, int], min_overlap: float, workers: int | None = None):
+    def __init__(
+        self,
+        target: Raster,
+        source_shape: tuple[int, int],
+        min_overlap: float,
+        workers: int | None = None,
+    ):
         self.target, self.workers = target, workers if workers is not None else inner_workers()
         ht, wt = next(iter(target.images.values())).shape
         hs, ws = source_shape
@@ -157,7 +187,9 @@ class MaskedNCC:
 
     def _f(self, arrays: list[np.ndarray]) -> np.ndarray:
         # float32: half the time of float64, and ample for picking peaks of occupancy / centred heights
-        return fft.rfft2(np.stack(arrays).astype(np.float32), s=self.shape, axes=(-2, -1), workers=self.workers)
+        return fft.rfft2(
+            np.stack(arrays).astype(np.float32), s=self.shape, axes=(-2, -1), workers=self.workers
+        )
 
     def _spectra(self, raster: Raster, names) -> dict[str, tuple]:
         """{channel: (mask id, FFT of mask, of masked image, of its square)}, one batched transform;
@@ -166,8 +198,15 @@ class MaskedNCC:
         images = [raster.images[n] * raster.masks[n] for n in names]
         spectra = self._f(list(masks.values()) + [a for f in images for a in (f, f * f)])
         slot = {key: i for i, key in enumerate(masks)}
-        return {n: (id(raster.masks[n]), spectra[slot[id(raster.masks[n])]], spectra[len(masks) + 2 * i],
-                    spectra[len(masks) + 2 * i + 1]) for i, n in enumerate(names)}
+        return {
+            n: (
+                id(raster.masks[n]),
+                spectra[slot[id(raster.masks[n])]],
+                spectra[len(masks) + 2 * i],
+                spectra[len(masks) + 2 * i + 1],
+            )
+            for i, n in enumerate(names)
+        }
 
     def scores(self, source: Raster, names) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """{channel: (NCC, overlap in cells)} for every shift of `source` over the target."""
@@ -181,7 +220,13 @@ class MaskedNCC:
                 overlap_of[s_mask, t_mask] = len(products)
                 products.append(np.conj(fm1) * fm2)
             base[name] = len(products)
-            products += [np.conj(ff) * fm2, np.conj(fm1) * fg, np.conj(fff) * fm2, np.conj(fm1) * fgg, np.conj(ff) * fg]
+            products += [
+                np.conj(ff) * fm2,
+                np.conj(fm1) * fg,
+                np.conj(fff) * fm2,
+                np.conj(fm1) * fgg,
+                np.conj(ff) * fg,
+            ]
         corr = fft.irfft2(np.stack(products), s=self.shape, axes=(-2, -1), workers=self.workers)
         out = {}
         for name in names:
@@ -189,7 +234,10 @@ class MaskedNCC:
             s_f, s_g, s_ff, s_gg, s_fg = corr[base[name] : base[name] + 5]
             with np.errstate(divide="ignore", invalid="ignore"):
                 num = s_fg - s_f * s_g / overlap
-                den = np.sqrt(np.clip(s_ff - s_f**2 / overlap, 0, None) * np.clip(s_gg - s_g**2 / overlap, 0, None))
+                den = np.sqrt(
+                    np.clip(s_ff - s_f**2 / overlap, 0, None)
+                    * np.clip(s_gg - s_g**2 / overlap, 0, None)
+                )
                 ncc = np.where((overlap >= self.min_overlap) & (den > 1e-9), num / den, 0.0)
             out[name] = (np.clip(ncc, -1.0, 1.0), overlap)
         return out
@@ -199,7 +247,12 @@ class MaskedNCC:
 
     def shift_to_translation(self, k: tuple[int, int], source: Raster) -> np.ndarray:
         """Cell shift (wrapped index) -> xy translation taking source coordinates onto target ones."""
-        s = np.array([k[0] if k[0] < self.shape[0] // 2 else k[0] - self.shape[0], k[1] if k[1] < self.shape[1] // 2 else k[1] - self.shape[1]])
+        s = np.array(
+            [
+                k[0] if k[0] < self.shape[0] // 2 else k[0] - self.shape[0],
+                k[1] if k[1] < self.shape[1] // 2 else k[1] - self.shape[1],
+            ]
+        )
         return self.target.origin - source.origin + s * self.target.cell
 
 

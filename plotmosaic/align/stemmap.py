@@ -38,7 +38,9 @@ def _circle(xy: np.ndarray) -> tuple[np.ndarray, float, float]:
     return centre, r, res
 
 
-def stem_map(points: np.ndarray, normals: np.ndarray, hag: np.ndarray, config: CoarseConfig) -> StemMap:
+def stem_map(
+    points: np.ndarray, normals: np.ndarray, hag: np.ndarray, config: CoarseConfig
+) -> StemMap:
     """Stems of a levelled cloud: vertical-surface points of the breast-height slab, clustered in xy, circles fitted."""
     c = config
     lo, hi = c.stem_slab
@@ -67,8 +69,15 @@ def stem_map(points: np.ndarray, normals: np.ndarray, hag: np.ndarray, config: C
         if extent > c.stem_max_diameter or np.ptp(z[idx]) < 0.4 * (hi - lo):
             continue  # wider than a trunk, or not standing through the slab (a bush, a log)
         centre, r, res = _circle(pts)
-        if not (0.02 < r < c.stem_max_diameter / 2) or res > max(0.05, 0.3 * r) or np.linalg.norm(centre - pts.mean(axis=0)) > 2 * r + 0.1:
-            centre, r = pts.mean(axis=0), extent / 2  # a thin or noisy arc: its centroid is close enough
+        if (
+            not (0.02 < r < c.stem_max_diameter / 2)
+            or res > max(0.05, 0.3 * r)
+            or np.linalg.norm(centre - pts.mean(axis=0)) > 2 * r + 0.1
+        ):
+            centre, r = (
+                pts.mean(axis=0),
+                extent / 2,
+            )  # a thin or noisy arc: its centroid is close enough
         centres.append(centre)
         diam.append(2 * r)
         support.append(len(idx))
@@ -86,8 +95,9 @@ def _pairs(xy: np.ndarray, min_len: float) -> tuple[np.ndarray, np.ndarray]:
     return np.column_stack([i[ok], j[ok]]), d[ok]
 
 
-def match_stem_maps(src: StemMap, tgt: StemMap, config: CoarseConfig, rng: np.random.Generator
-                    ) -> list[tuple[float, np.ndarray, int]]:
+def match_stem_maps(
+    src: StemMap, tgt: StemMap, config: CoarseConfig, rng: np.random.Generator
+) -> list[tuple[float, np.ndarray, int]]:
     """Best distinct (yaw, t_xy, matched stems) taking source stems onto target stems, best first."""
     c = config
     if len(src.xy) < c.stem_min_matches or len(tgt.xy) < c.stem_min_matches:
@@ -120,7 +130,9 @@ def match_stem_maps(src: StemMap, tgt: StemMap, config: CoarseConfig, rng: np.ra
         cs, sn = np.cos(yaw), np.sin(yaw)
         mid_p = (src.xy[a[:, 0]] + src.xy[a[:, 1]]) / 2
         mid_q = (tgt.xy[b0] + tgt.xy[b1]) / 2
-        t = mid_q - np.column_stack([cs * mid_p[:, 0] - sn * mid_p[:, 1], sn * mid_p[:, 0] + cs * mid_p[:, 1]])
+        t = mid_q - np.column_stack(
+            [cs * mid_p[:, 0] - sn * mid_p[:, 1], sn * mid_p[:, 0] + cs * mid_p[:, 1]]
+        )
         yaws.append(np.mod(yaw, 2 * np.pi))
         ts.append(t)
     yaw, t = np.concatenate(yaws), np.vstack(ts)
@@ -139,15 +151,19 @@ def match_stem_maps(src: StemMap, tgt: StemMap, config: CoarseConfig, rng: np.ra
         y0, t0, n = _refine(src.xy, tree, tgt.xy, y0, t0, tol)
         if n < c.stem_min_matches:
             continue
-        if all(abs((y0 - o[0] + np.pi) % (2 * np.pi) - np.pi) > np.radians(c.distinct_deg)
-               or np.linalg.norm(t0 - o[1]) > c.distinct_m for o in out):
+        if all(
+            abs((y0 - o[0] + np.pi) % (2 * np.pi) - np.pi) > np.radians(c.distinct_deg)
+            or np.linalg.norm(t0 - o[1]) > c.distinct_m
+            for o in out
+        ):
             out.append((y0, t0, n))
     out.sort(key=lambda o: -o[2])
     return out[: c.stem_hypotheses]
 
 
-def _refine(p: np.ndarray, tree: cKDTree, q: np.ndarray, yaw: float, t: np.ndarray, tol: float
-            ) -> tuple[float, np.ndarray, int]:
+def _refine(
+    p: np.ndarray, tree: cKDTree, q: np.ndarray, yaw: float, t: np.ndarray, tol: float
+) -> tuple[float, np.ndarray, int]:
     """Re-fit yaw and shift on the stems the pose pairs up (twice); returns the pose and its matched stems."""
     n = 0
     for _ in range(3):

@@ -69,16 +69,14 @@ class VmfMixture:
     def component_log_density(self, x: np.ndarray) -> np.ndarray:
         return log_density(x, self.mu, self.kappa)
 
-    def log_responsibilities(self, x: np.ndarray) -> np.ndarray:
-        joint = self.component_log_density(x) + np.log(self.weights)[None, :]
-        return joint - logsumexp_rows(joint)
-
     def predict(self, x: np.ndarray, chunk: int = 1_000_000) -> np.ndarray:
         """Hard labels for every point (chunked so 10M points stay light on memory)."""
         out = np.empty(len(x), dtype=np.int64)
         for s in range(0, len(x), chunk):
             xs = x[s : s + chunk]
-            out[s : s + chunk] = np.argmax(self.component_log_density(xs) + np.log(self.weights)[None, :], axis=1)
+            out[s : s + chunk] = np.argmax(
+                self.component_log_density(xs) + np.log(self.weights)[None, :], axis=1
+            )
         return out
 
 
@@ -104,7 +102,16 @@ def _init_axes(x: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
     return np.array(mu)
 
 
-def em(x: np.ndarray, resp: np.ndarray, log_extra, max_iter: int, tol: float, kappa_max: float, mu=None, kappa=None):
+def em(
+    x: np.ndarray,
+    resp: np.ndarray,
+    log_extra,
+    max_iter: int,
+    tol: float,
+    kappa_max: float,
+    mu=None,
+    kappa=None,
+):
     """EM from initial responsibilities. `log_extra(resp) -> (N, K)` adds other per-component
     log-densities (eigen-features in the joint model) and refits them; None for plain vMF."""
     k = resp.shape[1]
@@ -118,7 +125,7 @@ def em(x: np.ndarray, resp: np.ndarray, log_extra, max_iter: int, tol: float, ka
     prev = -np.inf
     it = 0
     ll = -np.inf
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 (returned: iterations used)
         mu, kappa, weights = m_step(x, resp, mu, kappa, kappa_max)
         joint = log_density(x, mu, kappa) + np.log(weights + 1e-300)[None, :]
         if log_extra is not None:
@@ -132,8 +139,15 @@ def em(x: np.ndarray, resp: np.ndarray, log_extra, max_iter: int, tol: float, ka
     return mu, kappa, weights, resp, ll, it
 
 
-def fit_vmf_mixture(x: np.ndarray, k: int, seed: int = 0, max_iter: int = 150, tol: float = 1e-6,
-                    n_init: int = 3, kappa_max: float = 500.0) -> VmfMixture:
+def fit_vmf_mixture(
+    x: np.ndarray,
+    k: int,
+    seed: int = 0,
+    max_iter: int = 150,
+    tol: float = 1e-6,
+    n_init: int = 3,
+    kappa_max: float = 500.0,
+) -> VmfMixture:
     """Fit K symmetric vMF components to unit axes x (N, 3); best of n_init seeded restarts."""
     x = np.asarray(x, dtype=np.float64)
     rng = np.random.default_rng(seed)

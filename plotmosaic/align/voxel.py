@@ -13,7 +13,6 @@ import numpy as np
 
 from plotmosaic.errors import InputError
 
-
 # Cube faces sit this fraction of a cube off the coordinate grid: LAS coordinates are quantised (to
 # 1 mm, 0.1 mm, ...), and faces exactly on multiples of the scale would leave many points on a face,
 # where rounding in the last bit (a UTM offset added and removed) decides their cube.
@@ -29,8 +28,10 @@ def check_dense_grid(shape, cell: float, what: str = "grid") -> tuple[int, ...]:
     cells = float(np.prod([float(v) for v in shape]))
     if cells > MAX_DENSE_CELLS:
         extent = " x ".join(f"{v * cell:.0f}" for v in shape)
-        raise InputError(f"{what}: a {extent} m extent at {cell} m cells needs {cells:.3g} cells, more than "
-                         f"{MAX_DENSE_CELLS:.0e}; the cloud has far stray points or must be cropped")
+        raise InputError(
+            f"{what}: a {extent} m extent at {cell} m cells needs {cells:.3g} cells, more than "
+            f"{MAX_DENSE_CELLS:.0e}; the cloud has far stray points or must be cropped"
+        )
     return shape
 
 
@@ -47,7 +48,9 @@ def cube_keys(points: np.ndarray, size: float, offset=(0.0, 0.0, 0.0)) -> np.nda
         cols.append(c)
         dims.append(c.max() + 1.0)
     if float(np.prod(dims)) >= 2.0**53:  # beyond exact float64 integers (a continent at 1 cm)
-        raise InputError(f"cloud extent {np.ptp(points, axis=0).round(0)} m is too large for {size} m voxels")
+        raise InputError(
+            f"cloud extent {np.ptp(points, axis=0).round(0)} m is too large for {size} m voxels"
+        )
     cols[0] *= dims[1]
     cols[0] += cols[1]
     cols[0] *= dims[2]
@@ -86,7 +89,9 @@ class VoxelGrid:
         """Indices (into the input points) of every input point in the given cubes."""
         ends = np.append(self.starts[1:], len(self.order))
         first, count = self.starts[cubes], ends[cubes] - self.starts[cubes]
-        offset = np.repeat(first - np.cumsum(count) + count, count)  # per member: its run's start minus its rank
+        offset = np.repeat(
+            first - np.cumsum(count) + count, count
+        )  # per member: its run's start minus its rank
         return self.order[offset + np.arange(int(count.sum()))]
 
 

@@ -57,9 +57,13 @@ class MethodsConfig(BaseModel):
 class MethodOutput:
     transform: np.ndarray  # 4x4 source' file coords -> target file coords
     seconds: float
-    failed: bool = False  # the method reported failure (identity, or its refused estimate, is scored)
+    failed: bool = (
+        False  # the method reported failure (identity, or its refused estimate, is scored)
+    )
     note: str = ""
-    confidence: float | None = None  # forestalign's own confidence in its answer (also when it refused)
+    confidence: float | None = (
+        None  # forestalign's own confidence in its answer (also when it refused)
+    )
 
 
 @dataclass
@@ -100,15 +104,21 @@ def run_method(name: str, pair: PairInput, config: MethodsConfig, seed: int) -> 
         result = getattr(exc, "result", None)
         T = np.asarray(result.transform, dtype=np.float64) if result is not None else np.eye(4)
         confidence = getattr(result, "confidence", None)
-        return MethodOutput(T, time.perf_counter() - start, True, str(exc).splitlines()[0][:200], confidence)
+        return MethodOutput(
+            T, time.perf_counter() - start, True, str(exc).splitlines()[0][:200], confidence
+        )
     except RuntimeError as exc:  # Open3D / probreg numerical trouble counts as a failed trial
-        return MethodOutput(np.eye(4), time.perf_counter() - start, True, f"{type(exc).__name__}: {exc}"[:200])
+        return MethodOutput(
+            np.eye(4), time.perf_counter() - start, True, f"{type(exc).__name__}: {exc}"[:200]
+        )
 
 
 # ---------------------------------------------------------------- forestalign
 
 
-def _forestalign(pair: PairInput, config: MethodsConfig, seed: int) -> tuple[np.ndarray, float | None]:
+def _forestalign(
+    pair: PairInput, config: MethodsConfig, seed: int
+) -> tuple[np.ndarray, float | None]:
     from plotmosaic.align.config import AlignConfig
     from plotmosaic.align.pipeline import align_clouds
 
@@ -117,7 +127,15 @@ def _forestalign(pair: PairInput, config: MethodsConfig, seed: int) -> tuple[np.
     if config.no_coarse:
         cfg = cfg.model_copy(update={"coarse": cfg.coarse.model_copy(update={"enabled": False})})
         init = np.eye(4)
-    result = align_clouds(pair.source, pair.target, source_kind=pair.source_kind, target_kind=pair.target_kind, config=cfg, init=init, seed=seed)
+    result = align_clouds(
+        pair.source,
+        pair.target,
+        source_kind=pair.source_kind,
+        target_kind=pair.target_kind,
+        config=cfg,
+        init=init,
+        seed=seed,
+    )
     return np.asarray(result.transform, dtype=np.float64), result.confidence
 
 
@@ -147,7 +165,14 @@ def _icp_refine(src, tgt, init: np.ndarray, cfg: IcpConfig) -> np.ndarray:
     reg = o3d.pipelines.registration
     T = np.asarray(init, dtype=np.float64)
     for d in cfg.distances:
-        result = reg.registration_icp(src, tgt, d, T, reg.TransformationEstimationPointToPoint(), reg.ICPConvergenceCriteria(max_iteration=cfg.iterations))
+        result = reg.registration_icp(
+            src,
+            tgt,
+            d,
+            T,
+            reg.TransformationEstimationPointToPoint(),
+            reg.ICPConvergenceCriteria(max_iteration=cfg.iterations),
+        )
         T = np.asarray(result.transformation)
     return T
 
@@ -167,8 +192,12 @@ def _fpfh_ransac(pair: PairInput, config: MethodsConfig, seed: int) -> np.ndarra
     rng = np.random.default_rng(seed)
     keys, feats = [], []
     for pcd in (src, tgt):
-        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * v, max_nn=cfg.max_nn_normal))
-        f = reg.compute_fpfh_feature(pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * v, max_nn=cfg.max_nn_feature))
+        pcd.estimate_normals(
+            o3d.geometry.KDTreeSearchParamHybrid(radius=2 * v, max_nn=cfg.max_nn_normal)
+        )
+        f = reg.compute_fpfh_feature(
+            pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * v, max_nn=cfg.max_nn_feature)
+        )
         keep = np.arange(len(pcd.points))
         if len(keep) > cfg.max_points:  # features from the full cloud, matched on a subset
             keep = np.sort(rng.choice(len(keep), cfg.max_points, replace=False))

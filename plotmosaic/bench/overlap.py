@@ -19,7 +19,12 @@ from plotmosaic.io.las import PointCloud
 OVERLAP_DISTANCE = 0.25  # metres, the paper's definition
 
 
-def overlap_fraction(source_xyz: np.ndarray, target_xyz: np.ndarray, distance: float = OVERLAP_DISTANCE, tree: cKDTree | None = None) -> float:
+def overlap_fraction(
+    source_xyz: np.ndarray,
+    target_xyz: np.ndarray,
+    distance: float = OVERLAP_DISTANCE,
+    tree: cKDTree | None = None,
+) -> float:
     """Share of source points with a target point within `distance` (both in one frame)."""
     if len(source_xyz) == 0 or len(target_xyz) == 0:
         return 0.0
@@ -36,7 +41,9 @@ class Cropped:
     wanted: float
 
 
-def crop_to_overlap(source: PointCloud, target: PointCloud, wanted: float, cell: float = 4.0) -> Cropped:
+def crop_to_overlap(
+    source: PointCloud, target: PointCloud, wanted: float, cell: float = 4.0
+) -> Cropped:
     """Crop the source of an ALIGNED pair (source in target coordinates) to about `wanted` overlap (0..1).
 
     The source is cut into `cell`-metre columns (x, y); columns are removed in order of how much

@@ -24,11 +24,19 @@ ALS_MARGIN = 20.0  # metres of ALS kept around a ground scan (the paper crops AL
 
 def _pose(poses: Poses, scan_id: str, path: Path) -> np.ndarray:
     if scan_id not in poses.scans:
-        raise InputError(f"{path}: ground truth has no pose for {scan_id!r} (have: {', '.join(sorted(poses.scans)) or 'none'}; use --source-id/--target-id)")
+        raise InputError(
+            f"{path}: ground truth has no pose for {scan_id!r} (have: {', '.join(sorted(poses.scans)) or 'none'}; use --source-id/--target-id)"
+        )
     return poses.transform(scan_id)
 
 
-def load_truth(gt: str, source_path: Path, target_path: Path, source_id: str | None = None, target_id: str | None = None) -> np.ndarray:
+def load_truth(
+    gt: str,
+    source_path: Path,
+    target_path: Path,
+    source_id: str | None = None,
+    target_id: str | None = None,
+) -> np.ndarray:
     """4x4 source file -> target file from `--gt` (identity | transform JSON | poses JSON)."""
     if gt.strip().lower() == "identity":
         return np.eye(4)
@@ -52,7 +60,9 @@ def _crop_around(als: PointCloud, xyz: np.ndarray, margin: float) -> PointCloud:
     return als.select(keep)
 
 
-def manifest_pairs(manifest: Manifest, poses: Poses, which: str, max_pairs: int | None = None) -> list[BenchPair]:
+def manifest_pairs(
+    manifest: Manifest, poses: Poses, which: str, max_pairs: int | None = None
+) -> list[BenchPair]:
     """Pairs of a simulated (or surveyed) plot with known poses.
 
     tls-tls: every ground scan onto its plot's reference scan. tls-als: every plot's reference
@@ -65,14 +75,22 @@ def manifest_pairs(manifest: Manifest, poses: Poses, which: str, max_pairs: int 
     if which in ("tls-tls", "all"):
         for plot in manifest.plots:
             ref = plot.reference
-            specs += [(s.id, ref.id) for s in plot.scans if s.id != ref.id and s.kind.value in ("tls", "mls")]
+            specs += [
+                (s.id, ref.id)
+                for s in plot.scans
+                if s.id != ref.id and s.kind.value in ("tls", "mls")
+            ]
     if which in ("tls-als", "all"):
         if not manifest.als:
-            raise InputError(f"{manifest.source}: --pairs {which} needs [[als]] tiles in the manifest")
+            raise InputError(
+                f"{manifest.source}: --pairs {which} needs [[als]] tiles in the manifest"
+            )
         specs += [(plot.reference.id, None) for plot in manifest.plots]
     if which == "prepost":
         if len(manifest.plots) < 2:
-            raise InputError(f"{manifest.source}: --pairs prepost needs two plots (before and after)")
+            raise InputError(
+                f"{manifest.source}: --pairs prepost needs two plots (before and after)"
+            )
         pre, post = manifest.plots[0].scans, manifest.plots[1].scans
         specs += [(b.id, a.id) for a, b in zip(pre, post)]
     if max_pairs:
@@ -83,7 +101,9 @@ def manifest_pairs(manifest: Manifest, poses: Poses, which: str, max_pairs: int 
 
     def cloud(scan_id: str) -> PointCloud:
         if scan_id not in clouds:
-            clouds[scan_id] = read_cloud(manifest.resolve(manifest.scan(scan_id).path), attributes=False)
+            clouds[scan_id] = read_cloud(
+                manifest.resolve(manifest.scan(scan_id).path), attributes=False
+            )
         return clouds[scan_id]
 
     als = None
@@ -93,12 +113,32 @@ def manifest_pairs(manifest: Manifest, poses: Poses, which: str, max_pairs: int 
         T_src = _pose(poses, sid, Path(str(manifest.source)))
         if tid is None:
             if als is None:
-                tiles = [read_cloud(manifest.resolve(t.path), attributes=False) for t in manifest.als]
+                tiles = [
+                    read_cloud(manifest.resolve(t.path), attributes=False) for t in manifest.als
+                ]
                 als = PointCloud(np.vstack([t.xyz for t in tiles]), {}, tiles[0].crs)
             src = cloud(sid)
             world = src.xyz @ T_src[:3, :3].T + T_src[:3, 3]
-            pairs.append(BenchPair(f"{sid}->ALS", src, _crop_around(als, world, ALS_MARGIN), T_src, src_scan.kind.value, "als"))
+            pairs.append(
+                BenchPair(
+                    f"{sid}->ALS",
+                    src,
+                    _crop_around(als, world, ALS_MARGIN),
+                    T_src,
+                    src_scan.kind.value,
+                    "als",
+                )
+            )
         else:
             T = np.linalg.inv(_pose(poses, tid, Path(str(manifest.source)))) @ T_src
-            pairs.append(BenchPair(f"{sid}->{tid}", cloud(sid), cloud(tid), T, src_scan.kind.value, manifest.scan(tid).kind.value))
+            pairs.append(
+                BenchPair(
+                    f"{sid}->{tid}",
+                    cloud(sid),
+                    cloud(tid),
+                    T,
+                    src_scan.kind.value,
+                    manifest.scan(tid).kind.value,
+                )
+            )
     return pairs

@@ -48,7 +48,12 @@ PROTOCOLS = {
 }
 
 
-def get_protocol(name: str, rotation: float | None = None, yaw: float | None = None, translation_m: float | None = None) -> Protocol:
+def get_protocol(
+    name: str,
+    rotation: float | None = None,
+    yaw: float | None = None,
+    translation_m: float | None = None,
+) -> Protocol:
     """`paper`, `beyond`, or `custom` (+-rotation for roll/pitch, +-yaw, +-translation_m on x/y/z)."""
     if name in PROTOCOLS:
         return PROTOCOLS[name]
@@ -86,7 +91,12 @@ def pose_error(T_est: np.ndarray, T_true: np.ndarray, centre) -> np.ndarray:
     error is how far that point lands from where it belongs.
     """
     c = np.asarray(centre, dtype=np.float64)
-    E = translation(-c) @ np.asarray(T_est, dtype=np.float64) @ np.linalg.inv(T_true) @ translation(c)
+    E = (
+        translation(-c)
+        @ np.asarray(T_est, dtype=np.float64)
+        @ np.linalg.inv(T_true)
+        @ translation(c)
+    )
     yaw, pitch, roll = Rotation.from_matrix(E[:3, :3]).as_euler("ZYX", degrees=True)
     return np.array([roll, pitch, yaw, *E[:3, 3]])
 
@@ -98,7 +108,11 @@ def rotation_angle(errors: np.ndarray) -> np.ndarray:
     return np.degrees(rot.magnitude())
 
 
-def is_success(errors: np.ndarray, max_rotation_deg: float = 1.0, max_translation_m: float = 0.10) -> np.ndarray:
+def is_success(
+    errors: np.ndarray, max_rotation_deg: float = 1.0, max_translation_m: float = 0.10
+) -> np.ndarray:
     """The issue's success test: total rotation error < 1 deg and translation error < 10 cm."""
     e = np.atleast_2d(errors)
-    return (rotation_angle(e) < max_rotation_deg) & (np.linalg.norm(e[:, 3:], axis=1) < max_translation_m)
+    return (rotation_angle(e) < max_rotation_deg) & (
+        np.linalg.norm(e[:, 3:], axis=1) < max_translation_m
+    )

@@ -37,8 +37,18 @@ from plotmosaic.errors import InputError
 from plotmosaic.io.frame import apply_transform, inverse, rotation_deg, translation
 from plotmosaic.io.las import PointCloud, read_cloud
 
-DATA = Path(__file__).resolve().parents[3] / "shared" / "data"  # beside the work tree, as in tests/conftest.py
-CASES = ("treels-2views", "mls-2views", "mls-boxed6m", "uas-strip-als", "uas-als", "mls-uas", "sim-understorey")
+DATA = (
+    Path(__file__).resolve().parents[3] / "shared" / "data"
+)  # beside the work tree, as in tests/conftest.py
+CASES = (
+    "treels-2views",
+    "mls-2views",
+    "mls-boxed6m",
+    "uas-strip-als",
+    "uas-als",
+    "mls-uas",
+    "sim-understorey",
+)
 STRIP_WIDTH = 5.0  # metres: a narrow drone strip (<= 6 m)
 TREELS_SPACING = 7.0
 MLS_SPACING = 8.0
@@ -60,7 +70,9 @@ class RealCase:
     def bench_pair(self):
         from plotmosaic.bench.run import BenchPair
 
-        return BenchPair(self.name, self.source, self.target, self.truth, self.source_kind, self.target_kind)
+        return BenchPair(
+            self.name, self.source, self.target, self.truth, self.source_kind, self.target_kind
+        )
 
 
 def data_dir(path: str | Path | None = None) -> Path:
@@ -77,7 +89,9 @@ def _file(root: Path, rel: str) -> Path:
     return p
 
 
-def random_frame(xyz: np.ndarray, rng: np.random.Generator, max_tilt_deg: float = 2.0) -> np.ndarray:
+def random_frame(
+    xyz: np.ndarray, rng: np.random.Generator, max_tilt_deg: float = 2.0
+) -> np.ndarray:
     """A rigid G putting a cloud in its own frame: random heading and small tilt, centre moved near the origin."""
     from plotmosaic.simulate.config import TlsConfig
     from plotmosaic.simulate.tls import random_pose
@@ -102,8 +116,13 @@ def _pcd(xyz: np.ndarray, voxel: float):
     return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz)).voxel_down_sample(voxel)
 
 
-def refine_truth(source: np.ndarray, target: np.ndarray, init: np.ndarray | None = None, voxel: float = 0.1,
-                 distances: tuple[float, ...] = (1.0, 0.3, 0.1)) -> tuple[np.ndarray, dict]:
+def refine_truth(
+    source: np.ndarray,
+    target: np.ndarray,
+    init: np.ndarray | None = None,
+    voxel: float = 0.1,
+    distances: tuple[float, ...] = (1.0, 0.3, 0.1),
+) -> tuple[np.ndarray, dict]:
     """Mean of three independent fine registrations from `init` (source -> target) and their spread.
 
     Each runs the sparser cloud onto the denser one (a sparse target biases point-to-point ICP and is slow to
@@ -122,9 +141,15 @@ def refine_truth(source: np.ndarray, target: np.ndarray, init: np.ndarray | None
         pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=30))
     crit = reg.ICPConvergenceCriteria(max_iteration=60, relative_fitness=1e-8, relative_rmse=1e-8)
     runs = {
-        "icp-point": lambda d, T: reg.registration_icp(moving, fixed, d, T, reg.TransformationEstimationPointToPoint(), crit),
-        "icp-plane": lambda d, T: reg.registration_icp(moving, fixed, d, T, reg.TransformationEstimationPointToPlane(), crit),
-        "gicp": lambda d, T: reg.registration_generalized_icp(moving, fixed, d, T, reg.TransformationEstimationForGeneralizedICP(), crit),
+        "icp-point": lambda d, T: reg.registration_icp(
+            moving, fixed, d, T, reg.TransformationEstimationPointToPoint(), crit
+        ),
+        "icp-plane": lambda d, T: reg.registration_icp(
+            moving, fixed, d, T, reg.TransformationEstimationPointToPlane(), crit
+        ),
+        "gicp": lambda d, T: reg.registration_generalized_icp(
+            moving, fixed, d, T, reg.TransformationEstimationForGeneralizedICP(), crit
+        ),
     }
     results = {}
     for name, run in runs.items():
@@ -138,10 +163,20 @@ def refine_truth(source: np.ndarray, target: np.ndarray, init: np.ndarray | None
     mean[:3, 3] = np.mean([t[:3, 3] for t in Ts], axis=0)
     centre = target.mean(axis=0) - offset
     spread_rot = max(rotation_deg(inverse(a) @ b) for a in Ts for b in Ts)
-    spread_t = max(float(np.linalg.norm(apply_transform(a, centre) - apply_transform(b, centre))) for a in Ts for b in Ts)
+    spread_t = max(
+        float(np.linalg.norm(apply_transform(a, centre) - apply_transform(b, centre)))
+        for a in Ts
+        for b in Ts
+    )
     moved = float(np.linalg.norm(apply_transform(mean, centre) - apply_transform(T0, centre)))
-    meta = {"methods": list(results), "direction": "target onto source" if flip else "source onto target",
-            "spread_deg": spread_rot, "spread_m": spread_t, "from_init_deg": rotation_deg(inverse(T0) @ mean), "from_init_m": moved}
+    meta = {
+        "methods": list(results),
+        "direction": "target onto source" if flip else "source onto target",
+        "spread_deg": spread_rot,
+        "spread_m": spread_t,
+        "from_init_deg": rotation_deg(inverse(T0) @ mean),
+        "from_init_m": moved,
+    }
     return translation(offset) @ mean @ translation(-offset), meta
 
 
@@ -150,7 +185,10 @@ def _spanner(root: str, name: str) -> PointCloud:
     return read_cloud(_file(Path(root), f"spanner/{name}_Clip.laz"), attributes=False)
 
 
-REFINE_VOXEL = {("UAS", "ALS"): 0.1, ("MLS", "UAS"): 0.15}  # metres: two dense clips need less detail to agree
+REFINE_VOXEL = {
+    ("UAS", "ALS"): 0.1,
+    ("MLS", "UAS"): 0.15,
+}  # metres: two dense clips need less detail to agree
 
 
 def cache_dir() -> Path:
@@ -164,7 +202,9 @@ def _refined(root: str, source: str, target: str) -> tuple[np.ndarray, dict]:
     """Refined truth of two clips, cached on disk by the files' contents and the settings."""
     voxel = REFINE_VOXEL.get((source, target), 0.1)
     paths = [_file(Path(root), f"spanner/{n}_Clip.laz") for n in (source, target)]
-    key = hashlib.sha256(b"".join(p.read_bytes() for p in paths) + f"v1 {voxel}".encode()).hexdigest()[:20]
+    key = hashlib.sha256(
+        b"".join(p.read_bytes() for p in paths) + f"v1 {voxel}".encode()
+    ).hexdigest()[:20]
     path = cache_dir() / f"{source}-{target}-{key}.json"
     if path.is_file():
         try:
@@ -186,7 +226,9 @@ def _refined(root: str, source: str, target: str) -> tuple[np.ndarray, dict]:
 # ---------------------------------------------------------------- cases
 
 
-def _views_case(name: str, cloud: PointCloud, spacing: float, seed: int, note: str, boxed: float | None = None) -> RealCase:
+def _views_case(
+    name: str, cloud: PointCloud, spacing: float, seed: int, note: str, boxed: float | None = None
+) -> RealCase:
     from plotmosaic.simulate.from_cloud import cut_views, grid_positions
 
     positions = grid_positions(cloud.xyz, 2, spacing)
@@ -195,33 +237,69 @@ def _views_case(name: str, cloud: PointCloud, spacing: float, seed: int, note: s
         (source,) = cut_views(cloud.xyz, [tuple(source.position)], seed + 1, max_range=boxed)
     truth = inverse(target.truth) @ source.truth
     dist = float(np.linalg.norm(source.position[:2] - target.position[:2]))
-    meta = {"distance_m": dist, "source_points": len(source.points), "target_points": len(target.points),
-            "source_within_5m": source.stats["within_5m"], "target_within_5m": target.stats["within_5m"]}
-    return RealCase(name, PointCloud(source.points), PointCloud(target.points), truth, "tls", "tls",
-                    f"{note}; scanners {dist:.2f} m apart, exact truth (both views cut from one cloud)", meta)
+    meta = {
+        "distance_m": dist,
+        "source_points": len(source.points),
+        "target_points": len(target.points),
+        "source_within_5m": source.stats["within_5m"],
+        "target_within_5m": target.stats["within_5m"],
+    }
+    return RealCase(
+        name,
+        PointCloud(source.points),
+        PointCloud(target.points),
+        truth,
+        "tls",
+        "tls",
+        f"{note}; scanners {dist:.2f} m apart, exact truth (both views cut from one cloud)",
+        meta,
+    )
 
 
 def treels_2views(root: Path, seed: int = 0) -> RealCase:
     cloud = read_cloud(_file(root, "treels/pine_plot.laz"), attributes=False)
-    return _views_case("treels-2views", cloud, TREELS_SPACING, seed, "TreeLS pine plot, two virtual scans")
+    return _views_case(
+        "treels-2views", cloud, TREELS_SPACING, seed, "TreeLS pine plot, two virtual scans"
+    )
 
 
 def mls_2views(root: Path, seed: int = 0) -> RealCase:
-    return _views_case("mls-2views", _spanner(str(root), "MLS"), MLS_SPACING, seed, "spanner MLS clip, two ground-based virtual scans")
+    return _views_case(
+        "mls-2views",
+        _spanner(str(root), "MLS"),
+        MLS_SPACING,
+        seed,
+        "spanner MLS clip, two ground-based virtual scans",
+    )
 
 
 def mls_boxed(root: Path, seed: int = 0) -> RealCase:
-    return _views_case("mls-boxed6m", _spanner(str(root), "MLS"), MLS_SPACING, seed,
-                       f"spanner MLS clip, two ground-based virtual scans, the source cut to {BOXED_RANGE:g} m range", boxed=BOXED_RANGE)
+    return _views_case(
+        "mls-boxed6m",
+        _spanner(str(root), "MLS"),
+        MLS_SPACING,
+        seed,
+        f"spanner MLS clip, two ground-based virtual scans, the source cut to {BOXED_RANGE:g} m range",
+        boxed=BOXED_RANGE,
+    )
 
 
-def _airborne_case(name: str, root: Path, source: str, target: str, seed: int, kinds: tuple[str, str],
-                   strip: bool = False) -> RealCase:
+def _airborne_case(
+    name: str,
+    root: Path,
+    source: str,
+    target: str,
+    seed: int,
+    kinds: tuple[str, str],
+    strip: bool = False,
+) -> RealCase:
     src, tgt = _spanner(str(root), source), _spanner(str(root), target)
     T_ref, meta = _refined(str(root), source, target)
-    note = (f"{source} clip onto {target} clip; truth = their co-registration refined by {', '.join(meta['methods'])} ({meta['direction']}) "
-            f"(spread {meta['spread_deg']:.3f} deg / {100 * meta['spread_m']:.1f} cm, moved {meta['from_init_deg']:.3f} deg / "
-            f"{100 * meta['from_init_m']:.1f} cm from the files' own placement)")
+    note = (
+        f"{source} clip onto {target} clip; truth = their co-registration refined by {', '.join(meta['methods'])} ({meta['direction']}) "
+        f"(spread {meta['spread_deg']:.3f} deg / {100 * meta['spread_m']:.1f} cm, moved {meta['from_init_deg']:.3f} deg / "
+        f"{100 * meta['from_init_m']:.1f} cm from the files' own placement)"
+    )
     if strip:  # along the longer side, through the centre
         xy = src.xyz[:, :2]
         lo, hi = xy.min(axis=0), xy.max(axis=0)
@@ -247,7 +325,9 @@ def mls_uas(root: Path, seed: int = 0) -> RealCase:
     return _airborne_case("mls-uas", root, "MLS", "UAS", seed, ("mls", "uls"))
 
 
-def sim_understorey(root: Path | None = None, seed: int = 0, points_per_scan: int = UNDERSTOREY_POINTS) -> RealCase:
+def sim_understorey(
+    root: Path | None = None, seed: int = 0, points_per_scan: int = UNDERSTOREY_POINTS
+) -> RealCase:
     """The `understorey` preset simulated into a temporary folder (removed after reading), scan 1 onto scan 0."""
     from plotmosaic.poses import load_poses
     from plotmosaic.simulate import simulate
@@ -260,10 +340,17 @@ def sim_understorey(root: Path | None = None, seed: int = 0, points_per_scan: in
     truth = inverse(poses.transform("P1-S0")) @ poses.transform("P1-S1")
     within = [float(np.mean(np.linalg.norm(c.xyz, axis=1) <= 5.0)) for c in (src, tgt)]
     dist = float(np.linalg.norm(poses.transform("P1-S1")[:2, 3] - poses.transform("P1-S0")[:2, 3]))
-    meta = {"distance_m": dist, "source_points": len(src), "target_points": len(tgt), "source_within_5m": within[0],
-            "target_within_5m": within[1]}
-    note = (f"simulated dense understorey (preset understorey, seed {seed}, {points_per_scan:,} points a scan), scans "
-            f"{dist:.2f} m apart, {100 * within[0]:.0f} % / {100 * within[1]:.0f} % of points within 5 m; exact truth")
+    meta = {
+        "distance_m": dist,
+        "source_points": len(src),
+        "target_points": len(tgt),
+        "source_within_5m": within[0],
+        "target_within_5m": within[1],
+    }
+    note = (
+        f"simulated dense understorey (preset understorey, seed {seed}, {points_per_scan:,} points a scan), scans "
+        f"{dist:.2f} m apart, {100 * within[0]:.0f} % / {100 * within[1]:.0f} % of points within 5 m; exact truth"
+    )
     return RealCase("sim-understorey", src, tgt, truth, "tls", "tls", note, meta)
 
 

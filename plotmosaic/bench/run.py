@@ -21,7 +21,16 @@ from pydantic import BaseModel, Field
 
 from plotmosaic.bench.methods import MethodsConfig, PairInput, available, run_method
 from plotmosaic.bench.overlap import crop_to_overlap, overlap_fraction
-from plotmosaic.bench.protocol import PARAMS, PROTOCOLS, Protocol, is_success, params_to_matrix, pose_error, rotation_angle, sample_params
+from plotmosaic.bench.protocol import (
+    PARAMS,
+    PROTOCOLS,
+    Protocol,
+    is_success,
+    params_to_matrix,
+    pose_error,
+    rotation_angle,
+    sample_params,
+)
 from plotmosaic.bench.tables import markdown_table, plot_errors, summarise
 from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import atomic_output, write_text_atomic
@@ -76,8 +85,14 @@ def _cases(aligned: PointCloud, target: PointCloud, overlaps: list[float] | None
         yield pct, c.source, c.target, c.overlap
 
 
-def run_bench(pairs: list[BenchPair], config: BenchConfig, progress: bool = True, log: Callable[[str], None] | None = None,
-              failures: Path | None = None, max_failure_pictures: int = 3) -> BenchResult:
+def run_bench(
+    pairs: list[BenchPair],
+    config: BenchConfig,
+    progress: bool = True,
+    log: Callable[[str], None] | None = None,
+    failures: Path | None = None,
+    max_failure_pictures: int = 3,
+) -> BenchResult:
     """Every method on every trial of every pair (and overlap); one row per method x trial.
 
     `progress` shows a rich bar (terminals); `log` gets one line per finished trial (log files);
@@ -87,7 +102,11 @@ def run_bench(pairs: list[BenchPair], config: BenchConfig, progress: bool = True
     skipped = {m: why for m in config.methods if (why := available(m))}
     methods = [m for m in config.methods if m not in skipped]
     if not methods:
-        raise InputError("--methods: none of the methods can run here (" + "; ".join(f"{m}: {w}" for m, w in skipped.items()) + ")")
+        raise InputError(
+            "--methods: none of the methods can run here ("
+            + "; ".join(f"{m}: {w}" for m, w in skipped.items())
+            + ")"
+        )
     n_cases = len(config.overlaps) if config.overlaps else 1
     total = len(pairs) * n_cases * config.trials * len(methods)
     rows: list[dict] = []
@@ -95,7 +114,9 @@ def run_bench(pairs: list[BenchPair], config: BenchConfig, progress: bool = True
     with _progress(progress) as bar:
         task = bar.add_task("bench", total=total)
         for k, pair in enumerate(pairs):
-            aligned = PointCloud(apply_transform(pair.truth, pair.source.xyz), pair.source.attrs, pair.target.crs)
+            aligned = PointCloud(
+                apply_transform(pair.truth, pair.source.xyz), pair.source.attrs, pair.target.crs
+            )
             # one set of perturbations per pair, shared by every method and overlap: paired comparisons
             params = sample_params(config.protocol, config.trials, config.seed + 1009 * k)
             for wanted, src, tgt, achieved in _cases(aligned, pair.target, config.overlaps):
@@ -106,10 +127,17 @@ def run_bench(pairs: list[BenchPair], config: BenchConfig, progress: bool = True
                     truth = np.linalg.inv(P)
                     job = PairInput(moved, tgt, pair.source_kind, pair.target_kind)
                     for method in methods:
-                        bar.update(task, description=f"{pair.name} {'' if wanted is None else f'~{wanted:g}% '}{method} trial {i + 1}/{config.trials}")
+                        bar.update(
+                            task,
+                            description=f"{pair.name} {'' if wanted is None else f'~{wanted:g}% '}{method} trial {i + 1}/{config.trials}",
+                        )
                         out = run_method(method, job, config.methods_config, seed=config.seed + i)
                         err = pose_error(out.transform, truth, centre)
-                        ok = bool(is_success(err, config.success_rotation_deg, config.success_translation_m)[0])
+                        ok = bool(
+                            is_success(
+                                err, config.success_rotation_deg, config.success_translation_m
+                            )[0]
+                        )
                         rows.append(
                             {
                                 "pair": pair.name,
@@ -127,27 +155,47 @@ def run_bench(pairs: list[BenchPair], config: BenchConfig, progress: bool = True
                                 "picture": "",
                             }
                         )
-                        if failures is not None and method == "forestalign" and not ok and pictures < max_failure_pictures:
+                        if (
+                            failures is not None
+                            and method == "forestalign"
+                            and not ok
+                            and pictures < max_failure_pictures
+                        ):
                             pictures += 1
-                            rows[-1]["picture"] = _failure_picture(rows[-1], moved, tgt, out.transform, truth, Path(failures)).name
+                            rows[-1]["picture"] = _failure_picture(
+                                rows[-1], moved, tgt, out.transform, truth, Path(failures)
+                            ).name
                         bar.advance(task)
                         if log:
                             r = rows[-1]
-                            log(f"{pair.name} {'' if wanted is None else f'~{wanted:g}% '}{method} trial {i + 1}/{config.trials}: "
+                            log(
+                                f"{pair.name} {'' if wanted is None else f'~{wanted:g}% '}{method} trial {i + 1}/{config.trials}: "
                                 f"rotation {float(rotation_angle(err)[0]):.3f} deg, translation {np.linalg.norm(err[3:]):.3f} m, "
-                                f"{'success' if r['success'] else 'miss'}{' (failed)' if r['failed'] else ''}, {r['seconds']:.1f} s")
+                                f"{'success' if r['success'] else 'miss'}{' (failed)' if r['failed'] else ''}, {r['seconds']:.1f} s"
+                            )
     return BenchResult(rows, config, skipped, [p.name for p in pairs])
 
 
-def _failure_picture(row: dict, moved: PointCloud, target: PointCloud, estimate: np.ndarray, truth: np.ndarray, folder: Path) -> Path:
+def _failure_picture(
+    row: dict,
+    moved: PointCloud,
+    target: PointCloud,
+    estimate: np.ndarray,
+    truth: np.ndarray,
+    folder: Path,
+) -> Path:
     from plotmosaic.bench.failures import plot_failure
 
-    slug = "".join(ch if ch.isalnum() else "-" for ch in f"{row['pair']}-{row['method']}-trial{row['trial']}").strip("-")
+    slug = "".join(
+        ch if ch.isalnum() else "-" for ch in f"{row['pair']}-{row['method']}-trial{row['trial']}"
+    ).strip("-")
     err = np.array([row[p] for p in PARAMS])
     init = ", ".join(f"{row[f'init_{p}']:+.1f}" for p in PARAMS)
-    title = (f"{row['pair']}, {row['method']}, trial {row['trial']}: start (roll, pitch, yaw deg; x, y, z m) = ({init})\n"
-             f"error {float(rotation_angle(err)[0]):.2f} deg / {np.linalg.norm(err[3:]):.2f} m"
-             f"{' (the method refused it)' if row['failed'] else ''} {row['note']}")
+    title = (
+        f"{row['pair']}, {row['method']}, trial {row['trial']}: start (roll, pitch, yaw deg; x, y, z m) = ({init})\n"
+        f"error {float(rotation_angle(err)[0]):.2f} deg / {np.linalg.norm(err[3:]):.2f} m"
+        f"{' (the method refused it)' if row['failed'] else ''} {row['note']}"
+    )
     return plot_failure(moved.xyz, target.xyz, estimate, truth, folder / f"{slug}.png", title)
 
 
@@ -172,15 +220,42 @@ def _progress(enabled: bool):
     if not enabled:
         return _NoBar()
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn())
+    columns = (
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+    )
     return Progress(*columns, console=Console(stderr=True), transient=True)
 
 
 # ---------------------------------------------------------------- outputs
 
-CSV_FIELDS = ["pair", "overlap_wanted", "overlap", "method", "trial", *[f"init_{p}" for p in PARAMS], *PARAMS, "success", "failed", "seconds", "note", "confidence", "picture"]
+CSV_FIELDS = [
+    "pair",
+    "overlap_wanted",
+    "overlap",
+    "method",
+    "trial",
+    *[f"init_{p}" for p in PARAMS],
+    *PARAMS,
+    "success",
+    "failed",
+    "seconds",
+    "note",
+    "confidence",
+    "picture",
+]
 
 
 def write_trials_csv(rows: list[dict], path: str | Path) -> Path:
@@ -207,12 +282,16 @@ def read_trials_csv(path: str | Path) -> list[dict]:
             row["success"] = r["success"] == "True"
             row["failed"] = r["failed"] == "True"
             row["seconds"] = float(r["seconds"])
-            row["confidence"] = float(r["confidence"]) if r.get("confidence") not in (None, "") else None
+            row["confidence"] = (
+                float(r["confidence"]) if r.get("confidence") not in (None, "") else None
+            )
             rows.append(row)
     return rows
 
 
-def write_outputs(result: BenchResult, out: str | Path, title: str = "", command: str | None = None) -> dict[str, Path]:
+def write_outputs(
+    result: BenchResult, out: str | Path, title: str = "", command: str | None = None
+) -> dict[str, Path]:
     """trials.csv, table.md, errors.png (+ one PNG per overlap when swept), summary.json."""
     out = Path(out)
     paths = {"trials": write_trials_csv(result.rows, out / "trials.csv")}

@@ -42,7 +42,9 @@ def summarise(rows: list[dict]) -> list[dict]:
             sub = [r for r in rows if r["overlap_wanted"] == wanted and r["method"] == method]
             errors = np.array([[r[p] for p in PARAMS] for r in sub], dtype=float)
         rmse = np.sqrt(np.mean(errors**2, axis=0))
-        overlaps = [r["overlap"] for r in rows if r["overlap_wanted"] == wanted and r["overlap"] is not None]
+        overlaps = [
+            r["overlap"] for r in rows if r["overlap_wanted"] == wanted and r["overlap"] is not None
+        ]
         out.append(
             {
                 "overlap_wanted": wanted,
@@ -71,12 +73,28 @@ def markdown_table(summary: list[dict]) -> str:
     trials the method itself reported as failed, s/trial."""
     sweep = any(s["overlap_wanted"] is not None for s in summary)
     head = ["overlap"] if sweep else []
-    head += ["method", "n", "roll (deg)", "pitch (deg)", "yaw (deg)", "tx (m)", "ty (m)", "tz (m)", "success", "failed", "s/trial"]
+    head += [
+        "method",
+        "n",
+        "roll (deg)",
+        "pitch (deg)",
+        "yaw (deg)",
+        "tx (m)",
+        "ty (m)",
+        "tz (m)",
+        "success",
+        "failed",
+        "s/trial",
+    ]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for s in summary:
         cells = []
         if sweep:
-            cells.append("—" if s["overlap"] is None else f"~{s['overlap_wanted']:g}% ({100 * s['overlap']:.1f}%)")
+            cells.append(
+                "—"
+                if s["overlap"] is None
+                else f"~{s['overlap_wanted']:g}% ({100 * s['overlap']:.1f}%)"
+            )
         cells += [s["method"], str(s["n"])]
         cells += [_num(s[f"rmse_{p}"]) for p in PARAMS]
         cells.append("—" if s["success_rate"] is None else f"{100 * s['success_rate']:.0f}%")
@@ -98,7 +116,9 @@ def plot_errors(rows: list[dict], path: str | Path, title: str = "") -> Path:
     import matplotlib.pyplot as plt
 
     groups = [g for g in _groups(rows) if g[1] != INITIAL]
-    fig, axes = plt.subplots(2, 3, figsize=(max(11.0, 3 + 1.8 * 3 * len(groups) / 2), 8), squeeze=False)
+    fig, axes = plt.subplots(
+        2, 3, figsize=(max(11.0, 3 + 1.8 * 3 * len(groups) / 2), 8), squeeze=False
+    )
     for ax, p, unit in zip(axes.ravel(), PARAMS, ("deg",) * 3 + ("m",) * 3):
         init_data, est_data, labels = [], [], []
         for wanted, method in groups:
@@ -107,10 +127,15 @@ def plot_errors(rows: list[dict], path: str | Path, title: str = "") -> Path:
             est_data.append(np.array([r[p] for r in sub], dtype=float))
             labels.append(method if wanted is None else f"{method}\n~{wanted:g}%")
         pos = np.arange(len(groups), dtype=float)
-        for data, offset, colour, name in ((init_data, -0.2, "tab:blue", "initial"), (est_data, 0.2, "tab:orange", "estimate")):
+        for data, offset, colour, name in (
+            (init_data, -0.2, "tab:blue", "initial"),
+            (est_data, 0.2, "tab:orange", "estimate"),
+        ):
             ok = [i for i, d in enumerate(data) if len(d) > 1 and np.ptp(d) > 0]
             if ok:
-                parts = ax.violinplot([data[i] for i in ok], positions=pos[ok] + offset, widths=0.35, showmedians=True)
+                parts = ax.violinplot(
+                    [data[i] for i in ok], positions=pos[ok] + offset, widths=0.35, showmedians=True
+                )
                 for body in parts["bodies"]:
                     body.set_facecolor(colour)
                     body.set_alpha(0.5)
@@ -119,7 +144,18 @@ def plot_errors(rows: list[dict], path: str | Path, title: str = "") -> Path:
                         parts[key].set_color(colour)
             # every trial as a dot too: with few trials a violin says little
             for i, d in enumerate(data):
-                ax.plot(np.full(len(d), pos[i] + offset), d, "o", color=colour, mec="black", mew=0.3, alpha=0.8, ms=3, zorder=3, label=name if i == 0 else None)
+                ax.plot(
+                    np.full(len(d), pos[i] + offset),
+                    d,
+                    "o",
+                    color=colour,
+                    mec="black",
+                    mew=0.3,
+                    alpha=0.8,
+                    ms=3,
+                    zorder=3,
+                    label=name if i == 0 else None,
+                )
         rmse = [np.sqrt(np.mean(d**2)) if len(d) else np.nan for d in est_data]
         ax.set_title(f"{p} error ({unit})\nRMSE " + " / ".join(_num(v) for v in rmse), fontsize=9)
         linthresh = 1.0 if unit == "deg" else 0.1
@@ -132,7 +168,10 @@ def plot_errors(rows: list[dict], path: str | Path, title: str = "") -> Path:
         ax.set_ylabel(f"error ({unit})")
         ax.grid(axis="y", alpha=0.3)
     axes[0, 0].legend(loc="upper right", fontsize=8)
-    fig.suptitle((title + "\n" if title else "") + "blue: initial error (the perturbation), orange: error after registration; symmetric-log axis")
+    fig.suptitle(
+        (title + "\n" if title else "")
+        + "blue: initial error (the perturbation), orange: error after registration; symmetric-log axis"
+    )
     fig.tight_layout()
     path = Path(path)
     with atomic_output(path) as tmp:

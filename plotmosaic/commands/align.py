@@ -9,8 +9,8 @@ import typer
 from rich.console import Console
 
 from plotmosaic.commands.common import handle_errors
-from plotmosaic.poses import read_json, rigid_matrix
 from plotmosaic.errors import InputError
+from plotmosaic.poses import read_json, rigid_matrix
 
 
 def load_init(path: Path) -> np.ndarray:
@@ -27,7 +27,9 @@ def check_point_counts(files) -> None:
     for path, role in files:
         n = read_header_info(path).point_count
         if n < MIN_POINTS:
-            raise InputError(f"{path}: only {n} points ({role}), at least {MIN_POINTS} needed to register")
+            raise InputError(
+                f"{path}: only {n} points ({role}), at least {MIN_POINTS} needed to register"
+            )
 
 
 def summary_lines(result) -> list[str]:
@@ -35,7 +37,9 @@ def summary_lines(result) -> list[str]:
 
     T = result.transform
     rx, ry, rz = Rotation.from_matrix(T[:3, :3]).as_euler("xyz", degrees=True)
-    steps = ", ".join(f"{s['source_levels']}->{s['target_levels']}" for s in result.levels.get("steps", []))
+    steps = ", ".join(
+        f"{s['source_levels']}->{s['target_levels']}" for s in result.levels.get("steps", [])
+    )
     return [
         f"rotation (x, y, z) deg: {rx:+.4f} {ry:+.4f} {rz:+.4f}",
         f"translation (m):        {T[0, 3]:+.4f} {T[1, 3]:+.4f} {T[2, 3]:+.4f}",
@@ -50,13 +54,33 @@ def align_command(
     target: Path = typer.Argument(..., help="Target LAS/LAZ (kept fixed)."),
     source_kind: str = typer.Option("tls", "--source-kind", help="tls | mls | uls | als"),
     target_kind: str = typer.Option("tls", "--target-kind", help="tls | mls | uls | als"),
-    levels_source: int | None = typer.Option(None, "--levels-source", help="Complexity levels K of the source (default by kind: tls/mls 3, uls/als 2)."),
-    levels_target: int | None = typer.Option(None, "--levels-target", help="Complexity levels K of the target."),
-    init: Path | None = typer.Option(None, "--init", help="Initial guess, JSON: {'transform': 4x4} (e.g. a RESULT.json) or a 4x4 list; source file -> target file coordinates. A prior: the coarse stage searches around it (with --no-coarse, ICP starts from it)."),
+    levels_source: int | None = typer.Option(
+        None,
+        "--levels-source",
+        help="Complexity levels K of the source (default by kind: tls/mls 3, uls/als 2).",
+    ),
+    levels_target: int | None = typer.Option(
+        None, "--levels-target", help="Complexity levels K of the target."
+    ),
+    init: Path | None = typer.Option(
+        None,
+        "--init",
+        help="Initial guess, JSON: {'transform': 4x4} (e.g. a RESULT.json) or a 4x4 list; source file -> target file coordinates. A prior: the coarse stage searches around it (with --no-coarse, ICP starts from it).",
+    ),
     out: Path | None = typer.Option(None, "--out", help="Write RESULT.json here."),
-    save_levels: Path | None = typer.Option(None, "--save-levels", help="Folder for the levels: LAZ per cloud (level attribute) + levels.png."),
-    complexity: str = typer.Option("vmf+eigen", "--complexity", help="Grouping signal: vmf (the paper's) | vmf+eigen (vMF + local eigen-features)."),
-    no_coarse: bool = typer.Option(False, "--no-coarse", help="Skip the global coarse stage (start from --init or identity)."),
+    save_levels: Path | None = typer.Option(
+        None,
+        "--save-levels",
+        help="Folder for the levels: LAZ per cloud (level attribute) + levels.png.",
+    ),
+    complexity: str = typer.Option(
+        "vmf+eigen",
+        "--complexity",
+        help="Grouping signal: vmf (the paper's) | vmf+eigen (vMF + local eigen-features).",
+    ),
+    no_coarse: bool = typer.Option(
+        False, "--no-coarse", help="Skip the global coarse stage (start from --init or identity)."
+    ),
     seed: int = typer.Option(0, "--seed", help="Random seed (same seed, same result)."),
 ) -> None:
     """Register SOURCE onto TARGET with ForestAlign; print the transform and its quality figures.
@@ -86,8 +110,19 @@ def align_command(
 
     console = Console(stderr=True)
     with console.status("aligning") as status:
-        result = align_files(source, target, source_kind, target_kind, config, T0, levels_source, levels_target,
-                             seed, progress=lambda msg: status.update(msg), save_levels=save_levels)
+        result = align_files(
+            source,
+            target,
+            source_kind,
+            target_kind,
+            config,
+            T0,
+            levels_source,
+            levels_target,
+            seed,
+            progress=lambda msg: status.update(msg),
+            save_levels=save_levels,
+        )
     if out is not None:
         result.save(out)
     typer.echo(f"aligned {source.name} -> {target.name}")

@@ -23,28 +23,72 @@ def _floats(text: str | None, option: str) -> list[float] | None:
 
 @handle_errors
 def bench_command(
-    source: Path | None = typer.Argument(None, help="Source cloud (LAS/LAZ); omit with --manifest."),
-    target: Path | None = typer.Argument(None, help="Target cloud (LAS/LAZ); omit with --manifest."),
-    gt: str = typer.Option(..., "--gt", help="Ground truth: 'identity', a JSON with 'transform' (source -> target), or a poses file."),
-    manifest: Path | None = typer.Option(None, "--manifest", help="Bench pairs of a plot with known poses (e.g. sim/manifest.toml)."),
-    pairs: str = typer.Option("tls-tls", "--pairs", help="With --manifest: tls-tls | tls-als | prepost | all."),
-    max_pairs: int | None = typer.Option(None, "--max-pairs", min=1, help="With --manifest: only the first N pairs."),
-    source_id: str | None = typer.Option(None, "--source-id", help="Source scan id in a poses --gt (default: file stem)."),
-    target_id: str | None = typer.Option(None, "--target-id", help="Target scan id in a poses --gt (default: file stem)."),
+    source: Path | None = typer.Argument(
+        None, help="Source cloud (LAS/LAZ); omit with --manifest."
+    ),
+    target: Path | None = typer.Argument(
+        None, help="Target cloud (LAS/LAZ); omit with --manifest."
+    ),
+    gt: str = typer.Option(
+        ...,
+        "--gt",
+        help="Ground truth: 'identity', a JSON with 'transform' (source -> target), or a poses file.",
+    ),
+    manifest: Path | None = typer.Option(
+        None, "--manifest", help="Bench pairs of a plot with known poses (e.g. sim/manifest.toml)."
+    ),
+    pairs: str = typer.Option(
+        "tls-tls", "--pairs", help="With --manifest: tls-tls | tls-als | prepost | all."
+    ),
+    max_pairs: int | None = typer.Option(
+        None, "--max-pairs", min=1, help="With --manifest: only the first N pairs."
+    ),
+    source_id: str | None = typer.Option(
+        None, "--source-id", help="Source scan id in a poses --gt (default: file stem)."
+    ),
+    target_id: str | None = typer.Option(
+        None, "--target-id", help="Target scan id in a poses --gt (default: file stem)."
+    ),
     source_kind: str = typer.Option("tls", "--source-kind", help="tls | mls | uls | als"),
     target_kind: str = typer.Option("tls", "--target-kind", help="tls | mls | uls | als"),
     trials: int = typer.Option(10, "--trials", min=1, help="Random perturbations per pair."),
-    protocol: str = typer.Option("paper", "--protocol", help="paper (+-45 deg, +-15 m) | beyond (yaw +-180, roll/pitch +-10, +-25 m) | custom"),
-    max_rotation: float | None = typer.Option(None, "--max-rotation", help="custom: +- roll/pitch (deg), default 45."),
-    max_yaw: float | None = typer.Option(None, "--max-yaw", help="custom: +- yaw (deg), default = --max-rotation."),
-    max_translation: float | None = typer.Option(None, "--max-translation", help="custom: +- x/y/z (m), default 15."),
-    methods: str = typer.Option("forestalign,icp,fpfh-ransac,cpd", "--methods", help="Comma-separated: forestalign, icp, fpfh-ransac, cpd."),
-    overlap: str | None = typer.Option(None, "--overlap", help="Crop to these overlaps in percent, e.g. 28,15,5,1 (paper Table 1)."),
-    no_coarse: bool = typer.Option(False, "--no-coarse", help="forestalign without its global stage, from identity (the paper's local setting)."),
+    protocol: str = typer.Option(
+        "paper",
+        "--protocol",
+        help="paper (+-45 deg, +-15 m) | beyond (yaw +-180, roll/pitch +-10, +-25 m) | custom",
+    ),
+    max_rotation: float | None = typer.Option(
+        None, "--max-rotation", help="custom: +- roll/pitch (deg), default 45."
+    ),
+    max_yaw: float | None = typer.Option(
+        None, "--max-yaw", help="custom: +- yaw (deg), default = --max-rotation."
+    ),
+    max_translation: float | None = typer.Option(
+        None, "--max-translation", help="custom: +- x/y/z (m), default 15."
+    ),
+    methods: str = typer.Option(
+        "forestalign,icp,fpfh-ransac,cpd",
+        "--methods",
+        help="Comma-separated: forestalign, icp, fpfh-ransac, cpd.",
+    ),
+    overlap: str | None = typer.Option(
+        None, "--overlap", help="Crop to these overlaps in percent, e.g. 28,15,5,1 (paper Table 1)."
+    ),
+    no_coarse: bool = typer.Option(
+        False,
+        "--no-coarse",
+        help="forestalign without its global stage, from identity (the paper's local setting).",
+    ),
     seed: int = typer.Option(0, "--seed"),
-    out: Path = typer.Option(Path("bench"), "--out", help="Folder for trials.csv, table.md, errors.png, summary.json."),
+    out: Path = typer.Option(
+        Path("bench"), "--out", help="Folder for trials.csv, table.md, errors.png, summary.json."
+    ),
     title: str = typer.Option("", "--title", help="Heading of table.md."),
-    failure_pictures: int = typer.Option(3, "--failure-pictures", help="PNGs of forestalign's first N unsuccessful trials in OUT/failures."),
+    failure_pictures: int = typer.Option(
+        3,
+        "--failure-pictures",
+        help="PNGs of forestalign's first N unsuccessful trials in OUT/failures.",
+    ),
 ) -> None:
     """Paper-style benchmark: per-parameter RMSE, success rate and time over seeded random trials."""
     from plotmosaic.bench.methods import METHODS, MethodsConfig
@@ -64,7 +108,14 @@ def bench_command(
         if m not in METHODS:
             raise InputError(f"--methods: unknown method {m!r} (choose from {', '.join(METHODS)})")
     overlaps = _floats(overlap, "--overlap")
-    config = BenchConfig(protocol=proto, trials=trials, seed=seed, methods=names, overlaps=overlaps, methods_config=MethodsConfig(no_coarse=no_coarse))
+    config = BenchConfig(
+        protocol=proto,
+        trials=trials,
+        seed=seed,
+        methods=names,
+        overlaps=overlaps,
+        methods_config=MethodsConfig(no_coarse=no_coarse),
+    )
     if manifest is not None:
         if source or target:
             raise InputError("give either SOURCE TARGET or --manifest, not both")
@@ -75,10 +126,25 @@ def bench_command(
             raise InputError("give SOURCE and TARGET clouds (or --manifest)")
         T = load_truth(gt, source, target, source_id, target_id)
         src, tgt = read_cloud(source, attributes=False), read_cloud(target, attributes=False)
-        bench_pairs = [BenchPair(f"{source.stem}->{target.stem}", src, tgt, T, source_kind.lower(), target_kind.lower())]
+        bench_pairs = [
+            BenchPair(
+                f"{source.stem}->{target.stem}",
+                src,
+                tgt,
+                T,
+                source_kind.lower(),
+                target_kind.lower(),
+            )
+        ]
     tty = sys.stderr.isatty()
-    result = run_bench(bench_pairs, config, progress=tty, log=None if tty else (lambda msg: typer.echo(msg, err=True)),
-                       failures=out / "failures", max_failure_pictures=failure_pictures)
+    result = run_bench(
+        bench_pairs,
+        config,
+        progress=tty,
+        log=None if tty else (lambda msg: typer.echo(msg, err=True)),
+        failures=out / "failures",
+        max_failure_pictures=failure_pictures,
+    )
     command = "plotmosaic " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     paths = write_outputs(result, out, title, command)
     typer.echo(result.table, nl=False)

@@ -20,8 +20,19 @@ from plotmosaic.errors import PlotmosaicError
 
 INTERRUPTED = 130
 # OS errors that describe the user's files or disk, not a bug: reported as bad input (exit 2)
-_USER_ERRNOS = {errno.ENOENT, errno.EACCES, errno.EPERM, errno.ENOTDIR, errno.EISDIR, errno.ENAMETOOLONG,
-                errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.EEXIST, errno.ELOOP}
+_USER_ERRNOS = {
+    errno.ENOENT,
+    errno.EACCES,
+    errno.EPERM,
+    errno.ENOTDIR,
+    errno.EISDIR,
+    errno.ENAMETOOLONG,
+    errno.EROFS,
+    errno.ENOSPC,
+    errno.EDQUOT,
+    errno.EEXIST,
+    errno.ELOOP,
+}
 
 
 class _Interrupts:
@@ -78,7 +89,9 @@ def handle_errors(func: Callable) -> Callable:
                 raise typer.Exit(2) from None
             raise
         except Exception:
-            if interrupts.received:  # the interrupt surfaced wrapped in another error (LazrsError, ...)
+            if (
+                interrupts.received
+            ):  # the interrupt surfaced wrapped in another error (LazrsError, ...)
                 raise _interrupted() from None
             raise
 
@@ -100,7 +113,9 @@ def check_scan_files(manifest_path):
         path = manifest.resolve(scan.path)
         n = read_header_info(path).point_count
         if n < MIN_POINTS:
-            raise InputError(f"{path}: scan {scan.id!r} has only {n} points, at least {MIN_POINTS} needed to register")
+            raise InputError(
+                f"{path}: scan {scan.id!r} has only {n} points, at least {MIN_POINTS} needed to register"
+            )
     return manifest
 
 
@@ -114,12 +129,16 @@ def check_poses_match(manifest, poses_path):
     shared = [sid for sid in poses.scans if sid in plots]
     if not shared:
         names = ", ".join(sorted(poses.scans)[:5]) or "none"
-        raise InputError(f"{poses_path}: none of its scans ({names}) is in {manifest.source}; poses of another manifest?")
+        raise InputError(
+            f"{poses_path}: none of its scans ({names}) is in {manifest.source}; poses of another manifest?"
+        )
     wrong = [sid for sid in shared if poses.scans[sid].plot not in (None, plots[sid])]
     if wrong:
         sid = wrong[0]
-        raise InputError(f"{poses_path}: scan {sid!r} is in plot {poses.scans[sid].plot!r} there but in plot "
-                         f"{plots[sid]!r} in {manifest.source}; poses of another manifest?")
+        raise InputError(
+            f"{poses_path}: scan {sid!r} is in plot {poses.scans[sid].plot!r} there but in plot "
+            f"{plots[sid]!r} in {manifest.source}; poses of another manifest?"
+        )
     return poses
 
 
@@ -137,7 +156,9 @@ def no_empty_output(folder) -> Iterator[None]:
         yield
     except BaseException:
         if top is not None and top.is_dir():
-            for root, _dirs, _files in sorted(os.walk(top), key=lambda w: -len(w[0])):  # deepest first
+            for root, _dirs, _files in sorted(
+                os.walk(top), key=lambda w: -len(w[0])
+            ):  # deepest first
                 with contextlib.suppress(OSError):
                     os.rmdir(root)  # only succeeds on an empty folder
         raise

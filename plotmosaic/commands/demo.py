@@ -11,7 +11,9 @@ from plotmosaic.commands.common import handle_errors
 
 @handle_errors
 def demo_command(
-    outdir: Path = typer.Argument(Path("demo-output"), help="Folder for the simulated data and every result."),
+    outdir: Path = typer.Argument(
+        Path("demo-output"), help="Folder for the simulated data and every result."
+    ),
     seed: int = typer.Option(0, help="Seed of the simulation and of every random choice."),
     points_per_scan: int = typer.Option(400_000, help="TLS points per scan of the simulated plot."),
     jobs: int = typer.Option(None, help="Parallel pair jobs (default: number of cores)."),
@@ -20,18 +22,24 @@ def demo_command(
     """Simulate a forest plot (5 TLS scans + ALS), run register-plot, tie-to-als and merge, report errors."""
     from plotmosaic.demo import run_demo
 
-    result = run_demo(outdir, seed=seed, points_per_scan=points_per_scan, jobs=jobs, force=force, echo=typer.echo)
+    result = run_demo(
+        outdir, seed=seed, points_per_scan=points_per_scan, jobs=jobs, force=force, echo=typer.echo
+    )
     typer.echo("")
     typer.echo("pose errors against the simulator's ground truth")
     typer.echo(f"  {'scan':<10} {'plot frame':>22} {'ALS CRS (georeferenced)':>28}")
     for sid in sorted(result.geo_errors):
         pr, pt = result.plot_errors.get(sid, (float("nan"), float("nan")))
         gr, gt = result.geo_errors[sid]
-        typer.echo(f"  {sid:<10} {pt * 100:8.2f} cm {pr:7.3f} deg {gt * 100:12.2f} cm {gr:7.3f} deg")
+        typer.echo(
+            f"  {sid:<10} {pt * 100:8.2f} cm {pr:7.3f} deg {gt * 100:12.2f} cm {gr:7.3f} deg"
+        )
     worst_plot = max(result.plot_errors.values(), key=lambda e: e[1])
     worst_geo = max(result.geo_errors.values(), key=lambda e: e[1])
-    typer.echo(f"  worst: plot frame {worst_plot[1] * 100:.2f} cm / {max(e[0] for e in result.plot_errors.values()):.3f} deg, "
-               f"georeferenced {worst_geo[1] * 100:.2f} cm / {max(e[0] for e in result.geo_errors.values()):.3f} deg")
+    typer.echo(
+        f"  worst: plot frame {worst_plot[1] * 100:.2f} cm / {max(e[0] for e in result.plot_errors.values()):.3f} deg, "
+        f"georeferenced {worst_geo[1] * 100:.2f} cm / {max(e[0] for e in result.geo_errors.values()):.3f} deg"
+    )
     typer.echo("")
     typer.echo(f"merged LAZ:  {result.merged}")
     for report in result.reports:

@@ -25,7 +25,9 @@ def _describe_file(path: Path, full: bool) -> str:
         read_cloud(path)  # raises the "contains no points" error
     crs = info.crs.name if info.crs is not None else "none"
     lo, hi = info.mins, info.maxs
-    kind = f"LAS {info.version} PF{info.point_format}" if file_format(path) == "las" else info.version
+    kind = (
+        f"LAS {info.version} PF{info.point_format}" if file_format(path) == "las" else info.version
+    )
     return (
         f"{path}: {info.point_count:,} points{valid}, {kind}, CRS {crs}\n"
         f"  bounds x {lo[0]:.3f}..{hi[0]:.3f}  y {lo[1]:.3f}..{hi[1]:.3f}  z {lo[2]:.3f}..{hi[2]:.3f}\n"
@@ -52,28 +54,41 @@ def _describe_e57(path: Path, full: bool) -> str:
             raise InputError(f"{path}: {s.label}: contains no points")
         valid = ""
         if full:
-            n = sum(len(xyz) for xyz, _ in iter_e57_chunks(scan_ref(path, s.index), attributes=False))
+            n = sum(
+                len(xyz) for xyz, _ in iter_e57_chunks(scan_ref(path, s.index), attributes=False)
+            )
             valid = f" ({s.point_count - n:,} flagged invalid)" if n != s.point_count else ""
         name = repr(s.name) if s.name else "(no name)"
         pose = f"unusable stored pose ({s.pose_problem})" if s.pose_problem else pose_text(s.pose)
-        lines.append(f"  scan {s.index} {name} {s.guid or ''}: {s.point_count:,} points{valid}, {pose}")
+        lines.append(
+            f"  scan {s.index} {name} {s.guid or ''}: {s.point_count:,} points{valid}, {pose}"
+        )
     return "\n".join(lines)
 
 
 @handle_errors
 def info_command(
     paths: list[Path] = typer.Argument(..., help="LAS/LAZ/E57/PLY files or a manifest (.toml)."),
-    full: bool = typer.Option(False, "--full", help="Read every point (finds truncated files and NaNs)."),
+    full: bool = typer.Option(
+        False, "--full", help="Read every point (finds truncated files and NaNs)."
+    ),
 ) -> None:
     """Describe point-cloud files (an E57: every scan, with its stored pose) or validate a manifest and every scan it names."""
     for path in paths:
         if path.suffix.lower() == ".toml":
             manifest = load_manifest(path)
-            typer.echo(f"{path}: {len(manifest.plots)} plot(s), {len(manifest.scans)} scan(s), {len(manifest.als)} ALS tile(s)")
+            typer.echo(
+                f"{path}: {len(manifest.plots)} plot(s), {len(manifest.scans)} scan(s), {len(manifest.als)} ALS tile(s)"
+            )
             for plot in manifest.plots:
-                typer.echo(f"plot {plot.id} (crs {plot.crs or 'none'}, reference {plot.reference.id})")
+                typer.echo(
+                    f"plot {plot.id} (crs {plot.crs or 'none'}, reference {plot.reference.id})"
+                )
                 for scan in plot.scans:
-                    typer.echo(f"  [{scan.kind.value} K={scan.k}] {scan.id}: " + _describe_file(manifest.resolve(scan.path), full))
+                    typer.echo(
+                        f"  [{scan.kind.value} K={scan.k}] {scan.id}: "
+                        + _describe_file(manifest.resolve(scan.path), full)
+                    )
             for tile in manifest.als:
                 typer.echo("  [als] " + _describe_file(manifest.resolve(tile.path), full))
         elif file_format(path) == "e57" and split_scan_ref(path)[1] is None:

@@ -27,7 +27,9 @@ def scan_ids(scans: list[E57Scan]) -> list[str]:
     return ids
 
 
-def manifest_for(e57_path: Path, manifest_dir: Path | None, plot_id: str, kind: ScanKind, use_pose: bool) -> Manifest:
+def manifest_for(
+    e57_path: Path, manifest_dir: Path | None, plot_id: str, kind: ScanKind, use_pose: bool
+) -> Manifest:
     """The manifest naming every scan of the file by index; the path relative to `manifest_dir` when the
     file lies under it, else absolute."""
     scans = list_scans(e57_path)
@@ -38,7 +40,9 @@ def manifest_for(e57_path: Path, manifest_dir: Path | None, plot_id: str, kind: 
         raise InputError(f"{e57_path}: {empty[0].label}: contains no points")
     absolute = e57_path.resolve()
     inside = manifest_dir is not None and absolute.is_relative_to(manifest_dir.resolve())
-    path = Path(os.path.relpath(absolute, manifest_dir.resolve())) if inside else absolute  # no ../../ chains
+    path = (
+        Path(os.path.relpath(absolute, manifest_dir.resolve())) if inside else absolute
+    )  # no ../../ chains
     entries = [
         Scan(id=sid, path=path, kind=kind, scan=s.index, use_pose=use_pose, reference=s.index == 0)
         for sid, s in zip(scan_ids(scans), scans)
@@ -50,12 +54,18 @@ def manifest_for(e57_path: Path, manifest_dir: Path | None, plot_id: str, kind: 
 def manifest_from_command(
     path: Path = typer.Argument(..., help="An E57 file holding one or more scans."),
     out: Path | None = typer.Option(
-        None, "--out", help="Write the manifest here (paths relative to it) instead of to stdout (absolute paths)."
+        None,
+        "--out",
+        help="Write the manifest here (paths relative to it) instead of to stdout (absolute paths).",
     ),
-    plot_id: str = typer.Option("plot", "--plot-id", help="The plot's id (letters, digits, '-', '_', '.')."),
+    plot_id: str = typer.Option(
+        "plot", "--plot-id", help="The plot's id (letters, digits, '-', '_', '.')."
+    ),
     kind: ScanKind = typer.Option(ScanKind.tls, "--kind", help="Kind of every scan."),
     use_pose: bool = typer.Option(
-        False, "--use-pose", help="Offer each scan's stored pose as the initial guess (verified, never trusted)."
+        False,
+        "--use-pose",
+        help="Offer each scan's stored pose as the initial guess (verified, never trusted).",
     ),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing --out file."),
 ) -> None:

@@ -20,22 +20,50 @@ from plotmosaic.poses import load_poses
 @handle_errors
 def merge_command(
     manifest: Path = typer.Argument(..., help="Manifest (.toml) naming the scans (and ALS tiles)."),
-    poses: Path = typer.Option(..., "--poses", help="poses.json (ground truth, register-plot or tie-to-als)."),
-    out: Path = typer.Option(..., "--out", help="Merged cloud (.laz or .las); a sidecar <out>.json is written beside it."),
-    voxel: float | None = typer.Option(None, "--voxel", help="Keep one point per voxel of this size (m): evens out TLS density."),
-    include_als: bool = typer.Option(False, "--include-als", help="Add the manifest's ALS tiles, each with its own source id."),
-    bbox: str | None = typer.Option(None, "--bbox", help="Crop to xmin,ymin,xmax,ymax[,zmin,zmax] in output coordinates."),
+    poses: Path = typer.Option(
+        ..., "--poses", help="poses.json (ground truth, register-plot or tie-to-als)."
+    ),
+    out: Path = typer.Option(
+        ..., "--out", help="Merged cloud (.laz or .las); a sidecar <out>.json is written beside it."
+    ),
+    voxel: float | None = typer.Option(
+        None, "--voxel", help="Keep one point per voxel of this size (m): evens out TLS density."
+    ),
+    include_als: bool = typer.Option(
+        False, "--include-als", help="Add the manifest's ALS tiles, each with its own source id."
+    ),
+    bbox: str | None = typer.Option(
+        None, "--bbox", help="Crop to xmin,ymin,xmax,ymax[,zmin,zmax] in output coordinates."
+    ),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing output."),
-    skip_missing: bool = typer.Option(False, "--skip-missing", help="Leave out scans without a pose instead of failing."),
-    tiles: bool = typer.Option(False, "--tiles", help="Write one LAZ per square tile into the folder --out, plus index.json."),
-    tile_size: float = typer.Option(100.0, "--tile-size", help="Tile edge (m) with --tiles; a whole multiple of --voxel."),
-    memory_mb: int = typer.Option(512, "--memory-mb", help="Memory (MB) for thinning: tiles are cut to fit, whatever the size."),
+    skip_missing: bool = typer.Option(
+        False, "--skip-missing", help="Leave out scans without a pose instead of failing."
+    ),
+    tiles: bool = typer.Option(
+        False,
+        "--tiles",
+        help="Write one LAZ per square tile into the folder --out, plus index.json.",
+    ),
+    tile_size: float = typer.Option(
+        100.0, "--tile-size", help="Tile edge (m) with --tiles; a whole multiple of --voxel."
+    ),
+    memory_mb: int = typer.Option(
+        512,
+        "--memory-mb",
+        help="Memory (MB) for thinning: tiles are cut to fit, whatever the size.",
+    ),
 ) -> None:
     """Apply each scan's pose and write one LAS/LAZ 1.4 cloud (point_source_id = scan index)."""
     try:
         config = MergeConfig(
-            voxel=voxel, include_als=include_als, bbox=parse_bbox(bbox) if bbox else None, force=force, skip_missing=skip_missing,
-            tiles=tiles, tile_size=tile_size, tile_memory_mb=memory_mb,
+            voxel=voxel,
+            include_als=include_als,
+            bbox=parse_bbox(bbox) if bbox else None,
+            force=force,
+            skip_missing=skip_missing,
+            tiles=tiles,
+            tile_size=tile_size,
+            tile_memory_mb=memory_mb,
         )
     except ValidationError as exc:
         err = exc.errors()[0]
@@ -49,7 +77,9 @@ def merge_command(
     else:
         check_output_file(out, force=True)
     with _terminate_as_interrupt():
-        summary = merge_scans(load_manifest(manifest), load_poses(poses), out, config, progress=True, poses_path=poses)
+        summary = merge_scans(
+            load_manifest(manifest), load_poses(poses), out, config, progress=True, poses_path=poses
+        )
     print_summary(summary)
 
 
@@ -84,7 +114,9 @@ def print_summary(summary: MergeSummary) -> None:
     table.add_row("", "total", "", f"{summary.points_in:,}", f"{summary.points_out:,}")
     console.print(table)
     lo, hi = summary.mins, summary.maxs
-    lines = [f"bounds  x {lo[0]:.3f}..{hi[0]:.3f}  y {lo[1]:.3f}..{hi[1]:.3f}  z {lo[2]:.3f}..{hi[2]:.3f}"]
+    lines = [
+        f"bounds  x {lo[0]:.3f}..{hi[0]:.3f}  y {lo[1]:.3f}..{hi[1]:.3f}  z {lo[2]:.3f}..{hi[2]:.3f}"
+    ]
     if summary.crs:
         lines.append(f"CRS     {summary.crs_name} (from {summary.crs_source})")
     else:
@@ -92,13 +124,19 @@ def print_summary(summary: MergeSummary) -> None:
     if summary.voxel:
         lines.append(f"voxel   {summary.voxel:g} m (first point of each voxel in scan order)")
     if summary.tiles is not None:
-        lines.append(f"tiles   {len(summary.tiles)} LAZ files in {summary.out} (index: {summary.sidecar.name})")
+        lines.append(
+            f"tiles   {len(summary.tiles)} LAZ files in {summary.out} (index: {summary.sidecar.name})"
+        )
     if summary.bbox:
         lines.append(f"bbox    {', '.join(f'{v:.3f}' for v in summary.bbox)}")
     if summary.skipped:
         lines.append(f"left out (no pose): {', '.join(summary.skipped)}")
     if summary.ignored:
-        lines.append(f"note: poses for scans not in the manifest were ignored: {', '.join(summary.ignored)}")
-    lines.append(f"{summary.seconds:.1f} s, {summary.points_per_second / 1e6:.2f} M points/s; source id table in {summary.sidecar}")
+        lines.append(
+            f"note: poses for scans not in the manifest were ignored: {', '.join(summary.ignored)}"
+        )
+    lines.append(
+        f"{summary.seconds:.1f} s, {summary.points_per_second / 1e6:.2f} M points/s; source id table in {summary.sidecar}"
+    )
     for line in lines:
         typer.echo(line)

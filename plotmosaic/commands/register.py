@@ -7,9 +7,14 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from plotmosaic.commands.common import check_poses_match, check_scan_files, handle_errors, no_empty_output
-from plotmosaic.io.atomic import check_output_dir
+from plotmosaic.commands.common import (
+    check_poses_match,
+    check_scan_files,
+    handle_errors,
+    no_empty_output,
+)
 from plotmosaic.errors import InputError
+from plotmosaic.io.atomic import check_output_dir
 
 
 def _check_jobs(jobs: int | None) -> None:
@@ -20,16 +25,42 @@ def _check_jobs(jobs: int | None) -> None:
 @handle_errors
 def register_plot_command(
     manifest: Path = typer.Argument(..., help="Manifest (.toml) of one plot or a region of plots."),
-    out: Path = typer.Option(..., "--out", help="Output folder: poses.json, graph.json, report.md, pictures, pairs/ cache."),
-    jobs: int | None = typer.Option(None, "--jobs", "--workers", "-j", help="Thread budget shared by worker processes, "
-                                    "their two-thread maps and KD-tree queries (default: number of cores)."),
-    executor: str = typer.Option("local", "--executor", help="local (process pool) or dask (a Dask distributed cluster)."),
-    scheduler: str | None = typer.Option(None, "--scheduler", help="Dask scheduler address, e.g. tcp://host:8786 (with --executor dask)."),
-    max_distance: float = typer.Option(60.0, "--max-distance", help="With approximate positions: skip pairs of scans farther apart (m)."),
-    place_on_als: bool = typer.Option(True, "--place-on-als/--no-place-on-als", help="Plots of more than 8 scans without "
-                                      "positions: register each scan to the ALS first, then only neighbours to each other."),
+    out: Path = typer.Option(
+        ...,
+        "--out",
+        help="Output folder: poses.json, graph.json, report.md, pictures, pairs/ cache.",
+    ),
+    jobs: int | None = typer.Option(
+        None,
+        "--jobs",
+        "--workers",
+        "-j",
+        help="Thread budget shared by worker processes, "
+        "their two-thread maps and KD-tree queries (default: number of cores).",
+    ),
+    executor: str = typer.Option(
+        "local", "--executor", help="local (process pool) or dask (a Dask distributed cluster)."
+    ),
+    scheduler: str | None = typer.Option(
+        None,
+        "--scheduler",
+        help="Dask scheduler address, e.g. tcp://host:8786 (with --executor dask).",
+    ),
+    max_distance: float = typer.Option(
+        60.0,
+        "--max-distance",
+        help="With approximate positions: skip pairs of scans farther apart (m).",
+    ),
+    place_on_als: bool = typer.Option(
+        True,
+        "--place-on-als/--no-place-on-als",
+        help="Plots of more than 8 scans without "
+        "positions: register each scan to the ALS first, then only neighbours to each other.",
+    ),
     seed: int = typer.Option(0, "--seed", help="Random seed (same inputs + seed = same result)."),
-    force: bool = typer.Option(False, "--force", help="Register every pair again, ignoring the cache in OUT/pairs/."),
+    force: bool = typer.Option(
+        False, "--force", help="Register every pair again, ignoring the cache in OUT/pairs/."
+    ),
 ) -> None:
     """Register every overlapping pair of scans in each plot and place all scans with a pose graph."""
     from plotmosaic.graph.pipeline import RegisterConfig, register_plot
@@ -41,24 +72,55 @@ def register_plot_command(
         raise InputError("--scheduler needs --executor dask")
     if max_distance <= 0:
         raise InputError(f"--max-distance must be positive, not {max_distance}")
-    manifest, _ = check_scan_files(manifest), check_output_dir(out)  # bad input found before any work
-    result = register_plot(manifest, out, jobs, executor, scheduler, RegisterConfig(max_distance=max_distance, place_on_als=place_on_als),
-                           seed, force)
-    _summary(result.graph, [(p.plot, p.reference, p.solution.poses, p.solution.sigmas, p.solution.dropped)
-                            for p in result.plots], result.unplaced)
-    typer.echo(f"pairs: {result.pairs} ({result.computed} registered now, {result.pairs - result.computed} cached); "
-               f"{result.seconds:.1f} s")
+    manifest, _ = (
+        check_scan_files(manifest),
+        check_output_dir(out),
+    )  # bad input found before any work
+    result = register_plot(
+        manifest,
+        out,
+        jobs,
+        executor,
+        scheduler,
+        RegisterConfig(max_distance=max_distance, place_on_als=place_on_als),
+        seed,
+        force,
+    )
+    _summary(
+        result.graph,
+        [
+            (p.plot, p.reference, p.solution.poses, p.solution.sigmas, p.solution.dropped)
+            for p in result.plots
+        ],
+        result.unplaced,
+    )
+    typer.echo(
+        f"pairs: {result.pairs} ({result.computed} registered now, {result.pairs - result.computed} cached); "
+        f"{result.seconds:.1f} s"
+    )
     typer.echo(f"wrote {out / 'poses.json'}, {out / 'graph.json'}, {out / 'report.md'}")
 
 
 @handle_errors
 def tie_to_als_command(
-    manifest: Path = typer.Argument(..., help="Manifest (.toml) with the plots and [[als]] tile(s)."),
-    poses: Path = typer.Option(..., "--poses", help="poses.json from register-plot (graph.json beside it is used too)."),
-    out: Path = typer.Option(..., "--out", help="Output folder: poses.json in the ALS CRS, graph.json, report.md."),
-    buffer: float = typer.Option(20.0, "--buffer", help="ALS kept around each plot (m) when approximate CRS positions are known."),
+    manifest: Path = typer.Argument(
+        ..., help="Manifest (.toml) with the plots and [[als]] tile(s)."
+    ),
+    poses: Path = typer.Option(
+        ..., "--poses", help="poses.json from register-plot (graph.json beside it is used too)."
+    ),
+    out: Path = typer.Option(
+        ..., "--out", help="Output folder: poses.json in the ALS CRS, graph.json, report.md."
+    ),
+    buffer: float = typer.Option(
+        20.0,
+        "--buffer",
+        help="ALS kept around each plot (m) when approximate CRS positions are known.",
+    ),
     seed: int = typer.Option(0, "--seed", help="Random seed."),
-    jobs: int | None = typer.Option(None, "--jobs", "-j", help="Plots registered to the ALS at once (default: cores)."),
+    jobs: int | None = typer.Option(
+        None, "--jobs", "-j", help="Plots registered to the ALS at once (default: cores)."
+    ),
 ) -> None:
     """Register each plot to the ALS and optimise the whole region with the ALS frame fixed."""
     from plotmosaic.graph.anchors import TieConfig, tie_to_als
@@ -79,14 +141,21 @@ def tie_to_als_command(
         table.add_column(name)
     for a in result.anchors:
         r = a.residual
-        table.add_row(a.plot, a.status if a.status == "ok" else f"failed: {a.error}",
-                      "-" if a.fitness is None else f"{a.fitness:.3f}",
-                      "-" if a.inlier_rmse is None else f"{a.inlier_rmse * 100:.2f}",
-                      "-" if not r else f"{r['translation'] * 100:.2f} / {r['rotation_deg']:.3f}")
+        table.add_row(
+            a.plot,
+            a.status if a.status == "ok" else f"failed: {a.error}",
+            "-" if a.fitness is None else f"{a.fitness:.3f}",
+            "-" if a.inlier_rmse is None else f"{a.inlier_rmse * 100:.2f}",
+            "-" if not r else f"{r['translation'] * 100:.2f} / {r['rotation_deg']:.3f}",
+        )
     Console(highlight=False).print(table)
     poses = {k: v.transform for k, v in result.poses.scans.items()}
     sigmas = {k: v.sigma for k, v in result.poses.scans.items()}
-    _summary(result.graph, [("region, ALS CRS", "ALS fixed", poses, sigmas, result.solution.dropped)], result.unplaced)
+    _summary(
+        result.graph,
+        [("region, ALS CRS", "ALS fixed", poses, sigmas, result.solution.dropped)],
+        result.unplaced,
+    )
     typer.echo(f"{result.seconds:.1f} s; wrote {out / 'poses.json'} (ALS CRS), {out / 'report.md'}")
 
 
@@ -96,7 +165,9 @@ def _summary(G, solves, unplaced: list[str]) -> None:
 
     console = Console(highlight=False)
     kept = sum(1 for *_, e in G.edges(data=True) if not e.get("dropped"))
-    console.print(f"edges: {kept} kept, {G.number_of_edges() - kept} dropped, {len(G.graph.get('failed', []))} pairs failed")
+    console.print(
+        f"edges: {kept} kept, {G.number_of_edges() - kept} dropped, {len(G.graph.get('failed', []))} pairs failed"
+    )
     for plot, ref, poses, sigmas, dropped in solves:
         for d in dropped:
             console.print(f"  dropped {d['source']} -> {d['target']} ({d['reason']})")
@@ -107,8 +178,14 @@ def _summary(G, solves, unplaced: list[str]) -> None:
             if name == "ALS":
                 continue
             s = sigmas[name]
-            table.add_row(name, f"{T[0, 3]:.3f}", f"{T[1, 3]:.3f}", f"{T[2, 3]:.3f}",
-                          " ".join(f"{v * 1000:.1f}" for v in s[3:]), " ".join(f"{np.degrees(v):.4f}" for v in s[:3]))
+            table.add_row(
+                name,
+                f"{T[0, 3]:.3f}",
+                f"{T[1, 3]:.3f}",
+                f"{T[2, 3]:.3f}",
+                " ".join(f"{v * 1000:.1f}" for v in s[3:]),
+                " ".join(f"{np.degrees(v):.4f}" for v in s[:3]),
+            )
         console.print(table)
     if unplaced:
         console.print(f"not placed (no usable pair): {', '.join(unplaced)}")

@@ -12,12 +12,29 @@ from plotmosaic.errors import InputError
 
 @handle_errors
 def report_command(
-    directory: Path | None = typer.Argument(None, help="A register-plot / tie-to-als output folder (poses.json, graph.json), or an align RESULT.json that names its clouds."),
-    pair: tuple[Path, Path, Path] | None = typer.Option(None, "--pair", help="RESULT.json SOURCE TARGET of one `align` run."),
-    manifest: Path | None = typer.Option(None, "--manifest", help="Manifest of the scans (default: the paths recorded in graph.json)."),
-    out: Path | None = typer.Option(None, "--out", help="Output folder (default DIR/report, or report-<result> for --pair)."),
-    points: int = typer.Option(40_000, "--points", min=1000, help="Points drawn per scan (a seeded random subset)."),
-    no_levels: bool = typer.Option(False, "--no-levels", help="Skip the structural-complexity figure (it re-runs the levelling)."),
+    directory: Path | None = typer.Argument(
+        None,
+        help="A register-plot / tie-to-als output folder (poses.json, graph.json), or an align RESULT.json that names its clouds.",
+    ),
+    pair: tuple[Path, Path, Path] | None = typer.Option(
+        None, "--pair", help="RESULT.json SOURCE TARGET of one `align` run."
+    ),
+    manifest: Path | None = typer.Option(
+        None,
+        "--manifest",
+        help="Manifest of the scans (default: the paths recorded in graph.json).",
+    ),
+    out: Path | None = typer.Option(
+        None, "--out", help="Output folder (default DIR/report, or report-<result> for --pair)."
+    ),
+    points: int = typer.Option(
+        40_000, "--points", min=1000, help="Points drawn per scan (a seeded random subset)."
+    ),
+    no_levels: bool = typer.Option(
+        False,
+        "--no-levels",
+        help="Skip the structural-complexity figure (it re-runs the levelling).",
+    ),
     seed: int = typer.Option(0, "--seed"),
 ) -> None:
     """Pictures of a registration (before/after, breast-height slice, distances, levels, pose graph): index.md and report.html."""
@@ -27,14 +44,33 @@ def report_command(
         if directory is not None:
             raise InputError("give either a folder or --pair RESULT.json SOURCE TARGET, not both")
         result, source, target = pair
-        rep = report_pair(result, source, target, out or result.with_name(f"report-{result.stem}"), points=points, seed=seed, levels=not no_levels)
-    elif directory is not None and directory.is_file():  # an align RESULT.json that names its two clouds
+        rep = report_pair(
+            result,
+            source,
+            target,
+            out or result.with_name(f"report-{result.stem}"),
+            points=points,
+            seed=seed,
+            levels=not no_levels,
+        )
+    elif (
+        directory is not None and directory.is_file()
+    ):  # an align RESULT.json that names its two clouds
         source, target = pair_files(directory)
-        rep = report_pair(directory, source, target, out or directory.with_name(f"report-{directory.stem}"), points=points,
-                          seed=seed, levels=not no_levels)
+        rep = report_pair(
+            directory,
+            source,
+            target,
+            out or directory.with_name(f"report-{directory.stem}"),
+            points=points,
+            seed=seed,
+            levels=not no_levels,
+        )
     else:
         if directory is None:
-            raise InputError("give a register-plot output folder, or --pair RESULT.json SOURCE TARGET")
+            raise InputError(
+                "give a register-plot output folder, or --pair RESULT.json SOURCE TARGET"
+            )
         rep = report_dir(directory, out, manifest, points=points, seed=seed, levels=not no_levels)
     typer.echo(f"wrote {rep.index} and {len(rep.figures)} figures")
     if rep.html is not None:

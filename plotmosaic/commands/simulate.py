@@ -14,30 +14,78 @@ from plotmosaic.errors import InputError
 @handle_errors
 def simulate_command(
     outdir: Path = typer.Argument(..., help="Output folder (must be empty unless --force)."),
-    preset: str | None = typer.Option(None, "--preset", help="small (default) | paper | region | grassland | prepost | large | region10 | understorey"),
+    preset: str | None = typer.Option(
+        None,
+        "--preset",
+        help="small (default) | paper | region | grassland | prepost | large | region10 | understorey",
+    ),
     seed: int = typer.Option(0, "--seed", help="Random seed: the same seed gives the same files."),
-    points_per_scan: int | None = typer.Option(None, "--points-per-scan", help="Target points per TLS scan."),
-    angular_step: float | None = typer.Option(None, "--angular-step", help="TLS angular step in degrees (overrides --points-per-scan)."),
+    points_per_scan: int | None = typer.Option(
+        None, "--points-per-scan", help="Target points per TLS scan."
+    ),
+    angular_step: float | None = typer.Option(
+        None, "--angular-step", help="TLS angular step in degrees (overrides --points-per-scan)."
+    ),
     max_range: float | None = typer.Option(None, "--max-range", help="TLS maximum range (m)."),
     als_density: float | None = typer.Option(None, "--als-density", help="ALS returns per m2."),
     tree_density: float | None = typer.Option(None, "--tree-density", help="Trees per hectare."),
-    conifer_fraction: float | None = typer.Option(None, "--conifer-fraction", help="Share of conifers (0-1)."),
+    conifer_fraction: float | None = typer.Option(
+        None, "--conifer-fraction", help="Share of conifers (0-1)."
+    ),
     shrub_density: float | None = typer.Option(None, "--shrub-density", help="Shrubs per hectare."),
     grass_density: float | None = typer.Option(None, "--grass-density", help="Grass tufts per m2."),
-    flat_terrain: bool | None = typer.Option(None, "--flat-terrain/--sloped-terrain", help="Near-flat terrain (the hard case)."),
-    scan_grid: int | None = typer.Option(None, "--scan-grid", min=1, help="Scan positions on an N x N grid per plot (replaces the preset's layout)."),
-    scan_spacing: float = typer.Option(18.0, "--scan-spacing", help="With --scan-grid: metres between grid positions."),
-    approx_positions: bool = typer.Option(False, "--approx-positions", help="Write noisy approximate scanner positions (CRS frame)."),
-    approx_sigma: float | None = typer.Option(None, "--approx-sigma", help="Noise of the approximate positions (m)."),
-    figures: bool = typer.Option(False, "--figures", help="Also write PNG pictures to OUTDIR/figures."),
+    flat_terrain: bool | None = typer.Option(
+        None, "--flat-terrain/--sloped-terrain", help="Near-flat terrain (the hard case)."
+    ),
+    scan_grid: int | None = typer.Option(
+        None,
+        "--scan-grid",
+        min=1,
+        help="Scan positions on an N x N grid per plot (replaces the preset's layout).",
+    ),
+    scan_spacing: float = typer.Option(
+        18.0, "--scan-spacing", help="With --scan-grid: metres between grid positions."
+    ),
+    approx_positions: bool = typer.Option(
+        False, "--approx-positions", help="Write noisy approximate scanner positions (CRS frame)."
+    ),
+    approx_sigma: float | None = typer.Option(
+        None, "--approx-sigma", help="Noise of the approximate positions (m)."
+    ),
+    figures: bool = typer.Option(
+        False, "--figures", help="Also write PNG pictures to OUTDIR/figures."
+    ),
     force: bool = typer.Option(False, "--force", help="Write into a non-empty OUTDIR."),
-    from_cloud: Path | None = typer.Option(None, "--from-cloud", help="Cut virtual scans out of this real cloud (LAS/LAZ) instead of simulating."),
-    positions: str | None = typer.Option(None, "--positions", help="--from-cloud: scanner positions 'x,y;x,y' (or x,y,z), cloud coordinates."),
-    views: int | None = typer.Option(None, "--views", min=1, help="--from-cloud: this many positions on a grid around the centre..."),
-    spacing: float | None = typer.Option(None, "--spacing", help="--from-cloud: ...this far apart (m)."),
-    full_density_range: float | None = typer.Option(None, "--full-density-range", help="--from-cloud: points beyond it kept with probability (r0/r)^2 (m)."),
-    range_noise: float | None = typer.Option(None, "--range-noise", help="--from-cloud: range noise std (m), default 0."),
-    occupancy_voxel: float | None = typer.Option(None, "--occupancy-voxel", help="--from-cloud: occupancy voxel for the line of sight (m)."),
+    from_cloud: Path | None = typer.Option(
+        None,
+        "--from-cloud",
+        help="Cut virtual scans out of this real cloud (LAS/LAZ) instead of simulating.",
+    ),
+    positions: str | None = typer.Option(
+        None,
+        "--positions",
+        help="--from-cloud: scanner positions 'x,y;x,y' (or x,y,z), cloud coordinates.",
+    ),
+    views: int | None = typer.Option(
+        None,
+        "--views",
+        min=1,
+        help="--from-cloud: this many positions on a grid around the centre...",
+    ),
+    spacing: float | None = typer.Option(
+        None, "--spacing", help="--from-cloud: ...this far apart (m)."
+    ),
+    full_density_range: float | None = typer.Option(
+        None,
+        "--full-density-range",
+        help="--from-cloud: points beyond it kept with probability (r0/r)^2 (m).",
+    ),
+    range_noise: float | None = typer.Option(
+        None, "--range-noise", help="--from-cloud: range noise std (m), default 0."
+    ),
+    occupancy_voxel: float | None = typer.Option(
+        None, "--occupancy-voxel", help="--from-cloud: occupancy voxel for the line of sight (m)."
+    ),
 ) -> None:
     """Simulate a forest plot: terrain, trees, understory; TLS scans, an ALS tile, ground truth and a manifest."""
     from plotmosaic.simulate import make_config, simulate
@@ -48,27 +96,62 @@ def simulate_command(
     if outdir.is_dir() and any(outdir.iterdir()) and not force:
         raise InputError(f"{outdir}: folder is not empty (use --force to write into it)")
     if from_cloud is not None:
-        given = {"--preset": preset, "--points-per-scan": points_per_scan, "--angular-step": angular_step,
-                 "--als-density": als_density, "--tree-density": tree_density, "--conifer-fraction": conifer_fraction,
-                 "--shrub-density": shrub_density, "--grass-density": grass_density, "--flat-terrain": flat_terrain,
-                 "--approx-positions": approx_positions or None, "--scan-grid": scan_grid, "--approx-sigma": approx_sigma, "--figures": figures or None}
+        given = {
+            "--preset": preset,
+            "--points-per-scan": points_per_scan,
+            "--angular-step": angular_step,
+            "--als-density": als_density,
+            "--tree-density": tree_density,
+            "--conifer-fraction": conifer_fraction,
+            "--shrub-density": shrub_density,
+            "--grass-density": grass_density,
+            "--flat-terrain": flat_terrain,
+            "--approx-positions": approx_positions or None,
+            "--scan-grid": scan_grid,
+            "--approx-sigma": approx_sigma,
+            "--figures": figures or None,
+        }
         clash = [name for name, value in given.items() if value is not None]
         if clash:
             raise InputError(f"--from-cloud: {clash[0]} applies to the simulator only")
-        _cut(outdir, from_cloud, positions, views, spacing, seed, max_range=max_range, full_density_range=full_density_range,
-             range_noise=range_noise, voxel=occupancy_voxel)
+        _cut(
+            outdir,
+            from_cloud,
+            positions,
+            views,
+            spacing,
+            seed,
+            max_range=max_range,
+            full_density_range=full_density_range,
+            range_noise=range_noise,
+            voxel=occupancy_voxel,
+        )
         return
     if positions is not None or views is not None or spacing is not None:
         raise InputError("--positions/--views/--spacing need --from-cloud")
     overrides = dict(
-        points_per_scan=points_per_scan, angular_step=angular_step, max_range=max_range, als_density=als_density,
-        tree_density=tree_density, conifer_fraction=conifer_fraction, shrub_density=shrub_density,
-        grass_density=grass_density, flat_terrain=flat_terrain, approx_positions=approx_positions or None,
+        points_per_scan=points_per_scan,
+        angular_step=angular_step,
+        max_range=max_range,
+        als_density=als_density,
+        tree_density=tree_density,
+        conifer_fraction=conifer_fraction,
+        shrub_density=shrub_density,
+        grass_density=grass_density,
+        flat_terrain=flat_terrain,
+        approx_positions=approx_positions or None,
         approx_sigma_m=approx_sigma,
         scan_layout=None if scan_grid is None else grid_layout(scan_grid, scan_spacing),
     )
-    config = make_config(preset or "small", **overrides)  # before the progress bar: a bad preset is one clean line
-    columns = [TextColumn("{task.description:<14}"), BarColumn(), TextColumn("{task.completed}/{task.total}"), TimeElapsedColumn()]
+    config = make_config(
+        preset or "small", **overrides
+    )  # before the progress bar: a bad preset is one clean line
+    columns = [
+        TextColumn("{task.description:<14}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total}"),
+        TimeElapsedColumn(),
+    ]
     with Progress(*columns, transient=True) as bar:
         task = bar.add_task("building scene", total=None)
 
@@ -78,18 +161,30 @@ def simulate_command(
         result = simulate(outdir, seed=seed, figures=figures, progress=progress, config=config)
     n_tls = sum(v for k, v in result.points.items() if k != "als")
     scans = [k for k in result.points if k != "als"]
-    typer.echo(f"simulated {result.config.name} (seed {seed}) in {result.seconds['total']:.1f} s: "
-               f"{len(scans)} TLS scans, {n_tls:,} points ({n_tls // max(len(scans), 1):,} a scan); "
-               f"ALS {result.points['als']:,} points, {result.als_density:.1f} pts/m2")
+    typer.echo(
+        f"simulated {result.config.name} (seed {seed}) in {result.seconds['total']:.1f} s: "
+        f"{len(scans)} TLS scans, {n_tls:,} points ({n_tls // max(len(scans), 1):,} a scan); "
+        f"ALS {result.points['als']:,} points, {result.als_density:.1f} pts/m2"
+    )
     typer.echo(f"  manifest:     {result.manifest_path}")
     typer.echo(f"  ground truth: {result.ground_truth_path}")
-    typer.echo(f"  scans:        {outdir}/<plot>/<scan>.laz ({', '.join(scans[:3])}{', ...' if len(scans) > 3 else ''})")
+    typer.echo(
+        f"  scans:        {outdir}/<plot>/<scan>.laz ({', '.join(scans[:3])}{', ...' if len(scans) > 3 else ''})"
+    )
     typer.echo(f"  ALS:          {', '.join(str(p) for p in result.als_paths)}")
     for fig in result.figures:
         typer.echo(f"  figure:       {fig}")
 
 
-def _cut(outdir: Path, cloud: Path, positions: str | None, views: int | None, spacing: float | None, seed: int, **settings) -> None:
+def _cut(
+    outdir: Path,
+    cloud: Path,
+    positions: str | None,
+    views: int | None,
+    spacing: float | None,
+    seed: int,
+    **settings,
+) -> None:
     """`simulate --from-cloud`: virtual scans of a real cloud, ground truth and a manifest."""
     from plotmosaic.simulate.from_cloud import cut_cloud_to_folder, parse_positions
 
@@ -98,8 +193,10 @@ def _cut(outdir: Path, cloud: Path, positions: str | None, views: int | None, sp
     parsed = parse_positions(positions) if positions is not None else None
     result = cut_cloud_to_folder(outdir, cloud, parsed, views, spacing, seed, **settings)
     total = sum(result.points.values())
-    typer.echo(f"cut {len(result.points)} virtual scans from {cloud} (seed {seed}) in {result.seconds['total']:.1f} s: "
-               f"{total:,} points ({total // max(len(result.points), 1):,} a scan)")
+    typer.echo(
+        f"cut {len(result.points)} virtual scans from {cloud} (seed {seed}) in {result.seconds['total']:.1f} s: "
+        f"{total:,} points ({total // max(len(result.points), 1):,} a scan)"
+    )
     for sid, n in result.points.items():
         pos = ", ".join(f"{v:.2f}" for v in result.positions[sid])
         typer.echo(f"  {sid}: {n:,} points, scanner at ({pos})")

@@ -26,7 +26,6 @@ from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.graph.cache import PairCache, pair_key
 from plotmosaic.graph.executor import PairJob
 from plotmosaic.graph.pipeline import EDGE_FIELDS, compute_pairs
-from plotmosaic.graph.prepared import load_points, points_reader
 from plotmosaic.graph.posegraph import (
     PoseGraphConfig,
     Solution,
@@ -36,6 +35,7 @@ from plotmosaic.graph.posegraph import (
     inverse,
     optimise,
 )
+from plotmosaic.graph.prepared import load_points, points_reader
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.frame import Frame, apply_transform, translation
 from plotmosaic.io.las import PointCloud, read_cloud, write_cloud
@@ -49,7 +49,9 @@ class TieConfig(BaseModel):
     align: AlignConfig = Field(default_factory=AlignConfig)
     graph: PoseGraphConfig = Field(default_factory=PoseGraphConfig)
     buffer: float = Field(20.0, ge=0)  # metres of ALS kept around the plot's footprint
-    plot_voxel: float = Field(0.05, gt=0)  # thinning of the merged plot cloud (TLS is far denser than needed)
+    plot_voxel: float = Field(
+        0.05, gt=0
+    )  # thinning of the merged plot cloud (TLS is far denser than needed)
     report_points: int = 20_000
 
 
@@ -98,8 +100,13 @@ def _scan_points(manifest: Manifest, scan, prepared: dict[str, Path]) -> np.ndar
     return read_cloud(manifest.resolve(scan.path), attributes=False).xyz
 
 
-def plot_cloud(manifest: Manifest, plot: Plot, poses: Poses, voxel: float,
-               prepared: dict[str, Path] | None = None) -> PointCloud:
+def plot_cloud(
+    manifest: Manifest,
+    plot: Plot,
+    poses: Poses,
+    voxel: float,
+    prepared: dict[str, Path] | None = None,
+) -> PointCloud:
     """All placed scans of the plot in the plot frame, voxel-thinned."""
     parts = []
     for scan in plot.scans:
@@ -113,15 +120,23 @@ def plot_cloud(manifest: Manifest, plot: Plot, poses: Poses, voxel: float,
 
 def load_als(manifest: Manifest) -> tuple[PointCloud, object]:
     if not manifest.als:
-        raise InputError(f"{manifest.source}: no [[als]] tile in the manifest; tie-to-als needs one")
+        raise InputError(
+            f"{manifest.source}: no [[als]] tile in the manifest; tie-to-als needs one"
+        )
     clouds = [read_cloud(manifest.resolve(t.path), attributes=False) for t in manifest.als]
     crs = next((c.crs for c in clouds if c.crs is not None), None)
     return PointCloud(np.concatenate([c.xyz for c in clouds]), crs=crs), crs
 
 
-def crop_als(als: PointCloud, plot: Plot, cloud: PointCloud, buffer: float) -> tuple[PointCloud, str]:
+def crop_als(
+    als: PointCloud, plot: Plot, cloud: PointCloud, buffer: float
+) -> tuple[PointCloud, str]:
     """ALS within the plot's footprint + buffer when its approximate CRS positions are known, else all of it."""
-    approx = [s.approx_position for s in plot.scans if s.approx_position is not None and s.approx_position_frame == "crs"]
+    approx = [
+        s.approx_position
+        for s in plot.scans
+        if s.approx_position is not None and s.approx_position_frame == "crs"
+    ]
     if not approx:
         return als, "whole tile"
     centre = np.mean(np.asarray(approx)[:, :2], axis=0)
@@ -129,8 +144,10 @@ def crop_als(als: PointCloud, plot: Plot, cloud: PointCloud, buffer: float) -> t
     radius = float(np.linalg.norm(hi - lo) / 2 + buffer)
     keep = np.linalg.norm(als.xyz[:, :2] - centre, axis=1) <= radius
     if keep.sum() < 100:
-        raise InputError(f"plot {plot.id!r}: the ALS has only {int(keep.sum())} points within {radius:.0f} m of the "
-                         f"plot's approximate position ({centre[0]:.1f}, {centre[1]:.1f}); wrong CRS or position?")
+        raise InputError(
+            f"plot {plot.id!r}: the ALS has only {int(keep.sum())} points within {radius:.0f} m of the "
+            f"plot's approximate position ({centre[0]:.1f}, {centre[1]:.1f}); wrong CRS or position?"
+        )
     return als.select(keep), f"{radius:.0f} m around ({centre[0]:.1f}, {centre[1]:.1f})"
 
 
@@ -160,31 +177,59 @@ def _plot_edges(plot: Plot, poses: Poses, G: nx.Graph | None, ref: str) -> tuple
         if sid == ref or sid not in poses.scans:
             continue
         sp = poses.scans[sid]
-        info = None if sp.sigma is None else np.diag(1.0 / np.maximum(np.asarray(sp.sigma, float), 1e-6) ** 2)
-        edges.append({"source": sid, "target": ref, "transform": inverse(P_ref) @ sp.transform, "information": info,
-                      "fitness": 1.0, "overlap": 1.0, "status": "ok", "from_poses": True})
+        info = (
+            None
+            if sp.sigma is None
+            else np.diag(1.0 / np.maximum(np.asarray(sp.sigma, float), 1e-6) ** 2)
+        )
+        edges.append(
+            {
+                "source": sid,
+                "target": ref,
+                "transform": inverse(P_ref) @ sp.transform,
+                "information": info,
+                "fitness": 1.0,
+                "overlap": 1.0,
+                "status": "ok",
+                "from_poses": True,
+            }
+        )
     return nodes, edges
 
 
-def tie_to_als(manifest: str | Path | Manifest, poses_path: str | Path, out: str | Path, config: TieConfig | None = None,
-               seed: int = 0, jobs: int | None = None, executor: str = "local", scheduler: str | None = None,
-               progress: bool = True) -> TieResult:
+def tie_to_als(
+    manifest: str | Path | Manifest,
+    poses_path: str | Path,
+    out: str | Path,
+    config: TieConfig | None = None,
+    seed: int = 0,
+    jobs: int | None = None,
+    executor: str = "local",
+    scheduler: str | None = None,
+    progress: bool = True,
+) -> TieResult:
     start = time.perf_counter()
     config = config or TieConfig()
     manifest = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
     poses_path, out = Path(poses_path), Path(out)
     poses = load_poses(poses_path)
     if poses.frame != "plot":
-        raise InputError(f"{poses_path}: expected register-plot poses (frame 'plot'), got frame {poses.frame!r}")
+        raise InputError(
+            f"{poses_path}: expected register-plot poses (frame 'plot'), got frame {poses.frame!r}"
+        )
     graph_path = poses_path.parent / "graph.json"
     G_plot = graph_from_json(json.loads(graph_path.read_text())) if graph_path.is_file() else None
     out.mkdir(parents=True, exist_ok=True)
 
     if any(s.id == ALS_NODE for s in manifest.scans):
-        raise InputError(f"{manifest.source}: scan id {ALS_NODE!r} is reserved for the ALS frame in tie-to-als; rename the scan")
+        raise InputError(
+            f"{manifest.source}: scan id {ALS_NODE!r} is reserved for the ALS frame in tie-to-als; rename the scan"
+        )
     als, crs = load_als(manifest)
     if crs is None:
-        raise InputError(f"{manifest.resolve(manifest.als[0].path)}: the ALS tile has no CRS; cannot georeference")
+        raise InputError(
+            f"{manifest.resolve(manifest.als[0].path)}: the ALS tile has no CRS; cannot georeference"
+        )
     als_frame = Frame.around(als.xyz)  # the region is solved in ALS CRS - offset
     als_k = manifest.als[0].k
 
@@ -193,10 +238,14 @@ def tie_to_als(manifest: str | Path | Manifest, poses_path: str | Path, out: str
     config_json = config.align.model_dump_json()
     # register-plot's prepared clouds (voxel grids of every scan): no scan is read again to build the plots
     recorded = poses.extra.get("prepared") or {}
-    prepared_scans = {sid: poses_path.parent / "prepared" / Path(name).name for sid, name in recorded.items()}
+    prepared_scans = {
+        sid: poses_path.parent / "prepared" / Path(name).name for sid, name in recorded.items()
+    }
     for plot in manifest.plots:
         if not any(s.id in poses.scans for s in plot.scans):
-            anchors[plot.id] = Anchor(plot.id, "", "failed", error="no scan of this plot was placed by register-plot")
+            anchors[plot.id] = Anchor(
+                plot.id, "", "failed", error="no scan of this plot was placed by register-plot"
+            )
             continue
         ref = refs[plot.id] = _plot_reference(plot, poses, G_plot)
         cloud = plot_cloud(manifest, plot, poses, config.plot_voxel, prepared_scans)
@@ -205,10 +254,26 @@ def tie_to_als(manifest: str | Path | Manifest, poses_path: str | Path, out: str
         tgt = write_cloud(out / "plots" / f"{plot.id}_als.laz", crop, crs=crs)
         kind = plot.reference.kind.value
         key = pair_key(src, tgt, kind, "als", plot.reference.k, als_k, config_json, seed)
-        jobs_list.append(PairJob(key, plot.id, ALS_NODE, str(src), str(tgt), kind, "als", plot.reference.k, als_k,
-                                 config_json, seed, str(out / "prepared")))
+        jobs_list.append(
+            PairJob(
+                key,
+                plot.id,
+                ALS_NODE,
+                str(src),
+                str(tgt),
+                kind,
+                "als",
+                plot.reference.k,
+                als_k,
+                config_json,
+                seed,
+                str(out / "prepared"),
+            )
+        )
         anchors[plot.id] = Anchor(plot.id, ref, "pending", crop=how)
-    records, computed = compute_pairs(jobs_list, PairCache(out / "pairs"), executor, jobs, scheduler, False, progress)
+    records, computed = compute_pairs(
+        jobs_list, PairCache(out / "pairs"), executor, jobs, scheduler, False, progress
+    )
 
     # 2. one graph: every plot's pairwise edges + an anchor edge per plot to the fixed ALS node
     nodes, edges = {ALS_NODE: {"kind": "als", "plot": None}}, []
@@ -228,17 +293,28 @@ def tie_to_als(manifest: str | Path | Manifest, poses_path: str | Path, out: str
         info = np.asarray(rec["information"], float)
         Ad = gtsam.Pose3(P_ref).AdjointMap()
         edge = {k: rec.get(k) for k in EDGE_FIELDS}
-        edge.update(source=anchor.reference, target=ALS_NODE, anchor=job.source,
-                    transform=translation(-als_frame.offset) @ T @ P_ref, information=Ad.T @ info @ Ad)
+        edge.update(
+            source=anchor.reference,
+            target=ALS_NODE,
+            anchor=job.source,
+            transform=translation(-als_frame.offset) @ T @ P_ref,
+            information=Ad.T @ info @ Ad,
+        )
         edges.append(edge)
         anchor.status, anchor.transform = "ok", T
         anchor.fitness, anchor.inlier_rmse, anchor.overlap, anchor.confidence = (
-            rec.get("fitness"), rec.get("inlier_rmse"), rec.get("overlap"), rec.get("confidence"))
+            rec.get("fitness"),
+            rec.get("inlier_rmse"),
+            rec.get("overlap"),
+            rec.get("confidence"),
+        )
     if not any(a.status == "ok" for a in anchors.values()):
-        raise RegistrationFailed("no plot could be registered to the ALS: " + "; ".join(
-            f"{a.plot}: {a.error}" for a in anchors.values()))
+        raise RegistrationFailed(
+            "no plot could be registered to the ALS: "
+            + "; ".join(f"{a.plot}: {a.error}" for a in anchors.values())
+        )
     G = build_graph(nodes, edges)
-    for u, v, e in G.edges(data=True):  # register-plot decisions stand; the rest is re-checked
+    for _u, _v, e in G.edges(data=True):  # register-plot decisions stand; the rest is re-checked
         e["dropped"] = bool(e.get("dropped"))
     sol = optimise(G, ALS_NODE, config.graph)
     for a in anchors.values():
@@ -252,21 +328,39 @@ def tie_to_als(manifest: str | Path | Manifest, poses_path: str | Path, out: str
             continue
         scans[name] = ScanPose(E @ X, G.nodes[name].get("plot"), sol.sigmas[name])
     unplaced = sorted(s.id for s in manifest.scans if s.id not in scans)
-    extra = {"offset": [float(v) for v in als_frame.offset], "unplaced": unplaced,
-             "anchors": {a.plot: _anchor_dict(a) for a in anchors.values()}}
+    extra = {
+        "offset": [float(v) for v in als_frame.offset],
+        "unplaced": unplaced,
+        "anchors": {a.plot: _anchor_dict(a) for a in anchors.values()},
+    }
     result_poses = Poses(scans, frame="crs", crs=crs.to_wkt(), extra=extra)
-    result = TieResult(out, result_poses, G, list(anchors.values()), sol, als_frame.offset, unplaced, computed)
+    result = TieResult(
+        out, result_poses, G, list(anchors.values()), sol, als_frame.offset, unplaced, computed
+    )
     write_text_atomic(out / "graph.json", json.dumps(graph_to_json(G)))
     result_poses.save(out / "poses.json")
-    entries = {str(manifest.resolve(s.path)): prepared_scans[s.id] for s in manifest.scans if s.id in prepared_scans}
+    entries = {
+        str(manifest.resolve(s.path)): prepared_scans[s.id]
+        for s in manifest.scans
+        if s.id in prepared_scans
+    }
     write_tie_report(result, manifest, als, config, seed, reader=points_reader(entries))
     result.seconds = time.perf_counter() - start
     return result
 
 
 def _anchor_dict(a: Anchor) -> dict:
-    return {"reference": a.reference, "status": a.status, "fitness": a.fitness, "inlier_rmse": a.inlier_rmse,
-            "overlap": a.overlap, "confidence": a.confidence, "error": a.error, "crop": a.crop, "residual": a.residual}
+    return {
+        "reference": a.reference,
+        "status": a.status,
+        "fitness": a.fitness,
+        "inlier_rmse": a.inlier_rmse,
+        "overlap": a.overlap,
+        "confidence": a.confidence,
+        "error": a.error,
+        "crop": a.crop,
+        "residual": a.residual,
+    }
 
 
 # the report (report.md + report.html) is H-report's: plotmosaic/graph/report.py

@@ -13,7 +13,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 import sys
 from pathlib import Path
 
@@ -48,8 +47,16 @@ def file_hash(path: str | Path) -> str:
     return _hashes[memo] if scan is None else f"{_hashes[memo]}#{scan}"
 
 
-def pair_key(source_path, target_path, source_kind: str, target_kind: str, levels_source: int | None,
-             levels_target: int | None, config_json: str, seed: int) -> str:
+def pair_key(
+    source_path,
+    target_path,
+    source_kind: str,
+    target_kind: str,
+    levels_source: int | None,
+    levels_target: int | None,
+    config_json: str,
+    seed: int,
+) -> str:
     parts = {
         "source": file_hash(source_path),
         "target": file_hash(target_path),
@@ -88,7 +95,10 @@ class PairCache:
         return record
 
     def _discard(self, path: Path, why: str) -> None:
-        print(f"warning: {path}: damaged cache entry ({why}); registering the pair again", file=sys.stderr)
+        print(
+            f"warning: {path}: damaged cache entry ({why}); registering the pair again",
+            file=sys.stderr,
+        )
         return None
 
     def put(self, key: str, record: dict) -> None:
@@ -97,10 +107,6 @@ class PairCache:
 
     def keys(self) -> set[str]:
         return {p.stem for p in self.folder.glob("*.json") if not p.name.startswith(".")}
-
-    def clear(self) -> None:
-        for p in self.folder.glob("*.json"):
-            os.unlink(p)
 
 
 def _finite_number(value) -> bool:

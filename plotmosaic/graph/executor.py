@@ -17,9 +17,15 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from functools import partial
 
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
 import numpy as np
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
 
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.graph.prepared import PrepareJob, get_prepared, prepared_key
@@ -40,7 +46,9 @@ class PairJob:
     levels_target: int | None
     config_json: str
     seed: int
-    prepared: str | None = None  # DIR/prepared: the prepared-cloud cache shared by every pair and run
+    prepared: str | None = (
+        None  # DIR/prepared: the prepared-cloud cache shared by every pair and run
+    )
     init: tuple | None = None  # 4x4 rows, source file -> target file: a prior for the coarse stage
     prepare_json: str | None = None  # settings the scans are prepared with, when not config_json's
 
@@ -49,8 +57,10 @@ def prepare_jobs_for(job: PairJob, folder: str | None = None) -> tuple[PrepareJo
     """The two scans' prepare jobs; each scan is prepared once with the run's seed, whatever its role."""
     folder = folder or job.prepared
     out = []
-    for scan, path, kind, levels in ((job.source, job.source_path, job.source_kind, job.levels_source),
-                                     (job.target, job.target_path, job.target_kind, job.levels_target)):
+    for scan, path, kind, levels in (
+        (job.source, job.source_path, job.source_kind, job.levels_source),
+        (job.target, job.target_path, job.target_kind, job.levels_target),
+    ):
         settings = job.prepare_json or job.config_json
         key = prepared_key(path, kind, levels, settings, job.seed)
         out.append(PrepareJob(key, scan, path, kind, levels, settings, job.seed, folder))
@@ -119,7 +129,12 @@ def run_pair_job(job: PairJob) -> dict:
         record.update(status="failed", error=str(exc), cacheable=True)
         res = getattr(exc, "result", None)
         if res is not None:
-            record.update(fitness=res.fitness, inlier_rmse=res.inlier_rmse, overlap=res.overlap, confidence=res.confidence)
+            record.update(
+                fitness=res.fitness,
+                inlier_rmse=res.inlier_rmse,
+                overlap=res.overlap,
+                confidence=res.confidence,
+            )
     except Exception as exc:  # bad file, out of memory, a bug: record it, retry on the next run
         record.update(status="failed", error=f"{type(exc).__name__}: {exc}", cacheable=False)
     record["seconds"] = time.perf_counter() - start
@@ -161,16 +176,33 @@ def call_with_threads(threads: int, worker: Callable, job):
 
 def _progress(enabled: bool) -> Progress:
     return Progress(
-        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn(),
-        disable=not enabled, transient=False,
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        disable=not enabled,
+        transient=False,
     )
 
 
 def _failed(job, exc: BaseException) -> dict:
     if isinstance(job, PrepareJob):
-        return {"key": job.key, "scan": job.scan, "kind": "prepare", "status": "failed", "error": f"{type(exc).__name__}: {exc}"}
-    return {"source": job.source, "target": job.target, "key": job.key, "status": "failed",
-            "error": f"{type(exc).__name__}: {exc}", "cacheable": False}
+        return {
+            "key": job.key,
+            "scan": job.scan,
+            "kind": "prepare",
+            "status": "failed",
+            "error": f"{type(exc).__name__}: {exc}",
+        }
+    return {
+        "source": job.source,
+        "target": job.target,
+        "key": job.key,
+        "status": "failed",
+        "error": f"{type(exc).__name__}: {exc}",
+        "cacheable": False,
+    }
 
 
 def run_pairs(
@@ -216,8 +248,12 @@ def _run_local(jobs, tick, n_jobs, worker) -> None:
             tick(call_with_threads(budget(n_jobs), worker, job))
         return
     # spawn: Open3D and BLAS thread pools do not survive fork reliably
-    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_limit_threads,
-                               initargs=(per_worker,))
+    pool = ProcessPoolExecutor(
+        workers,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=_limit_threads,
+        initargs=(per_worker,),
+    )
     try:
         pending = {pool.submit(worker, job): job for job in jobs}
         while pending:
@@ -255,13 +291,19 @@ def _run_dask(jobs, tick, n_jobs, scheduler, worker) -> None:
             cluster = LocalCluster(n_workers=workers, threads_per_worker=1, dashboard_address=None)
             client = Client(cluster)
     except (OSError, TimeoutError) as exc:
-        raise InputError(f"--scheduler {scheduler}: cannot connect to the Dask scheduler ({exc})") from None
+        raise InputError(
+            f"--scheduler {scheduler}: cannot connect to the Dask scheduler ({exc})"
+        ) from None
     futures = []
     try:
-        if scheduler:  # someone else's cluster: one thread per Dask task thread, each already has its core
+        if (
+            scheduler
+        ):  # someone else's cluster: one thread per Dask task thread, each already has its core
             per_worker = 1
         run = partial(call_with_threads, per_worker, worker)
-        futures = client.map(run, list(jobs), key=[f"{_kind(job)}-{job.key}-{job.seed}" for job in jobs], pure=False)
+        futures = client.map(
+            run, list(jobs), key=[f"{_kind(job)}-{job.key}-{job.seed}" for job in jobs], pure=False
+        )
         by_key = {f.key: job for f, job in zip(futures, jobs)}
         for fut in as_completed(futures):
             try:
@@ -275,4 +317,3 @@ def _run_dask(jobs, tick, n_jobs, scheduler, worker) -> None:
         client.close()
         if cluster is not None:
             cluster.close()
-

@@ -22,9 +22,15 @@ from plotmosaic.manifest import Plot, Scan
 class PairSelection(BaseModel):
     """How register-plot chooses the pairs to register."""
 
-    all_pairs_up_to: int = Field(8, ge=2, le=64, description="plots of at most this many scans try every pair")
-    neighbours: int = Field(6, ge=2, le=16, description="nearest scans each scan of a big plot is paired with")
-    max_per_scan: int = Field(8, ge=2, le=16, description="cap on the pairs of one scan (linear growth)")
+    all_pairs_up_to: int = Field(
+        8, ge=2, le=64, description="plots of at most this many scans try every pair"
+    )
+    neighbours: int = Field(
+        6, ge=2, le=16, description="nearest scans each scan of a big plot is paired with"
+    )
+    max_per_scan: int = Field(
+        8, ge=2, le=16, description="cap on the pairs of one scan (linear growth)"
+    )
 
 
 def manifest_positions(plot: Plot) -> dict[str, np.ndarray] | None:
@@ -53,8 +59,9 @@ class _Components:
         return True
 
 
-def neighbour_pairs(xy: np.ndarray, neighbours: int = 6, max_per_scan: int = 8,
-                    max_distance: float | None = None) -> list[tuple[int, int]]:
+def neighbour_pairs(
+    xy: np.ndarray, neighbours: int = 6, max_per_scan: int = 8, max_distance: float | None = None
+) -> list[tuple[int, int]]:
     """Index pairs (i < j): each point's nearest neighbours, shortest first, at most `max_per_scan` per point,
     then the shortest links that join what is still apart. O(N log N) with a KD-tree."""
     xy = np.asarray(xy, dtype=np.float64)[:, :2]
@@ -64,9 +71,14 @@ def neighbour_pairs(xy: np.ndarray, neighbours: int = 6, max_per_scan: int = 8,
     tree = cKDTree(xy)
     k = min(n, neighbours + 1)
     dist, idx = tree.query(xy, k=k)
-    candidates = sorted({(float(d), min(i, int(j)), max(i, int(j)))
-                         for i in range(n) for d, j in zip(dist[i, 1:], idx[i, 1:])
-                         if max_distance is None or d <= max_distance})
+    candidates = sorted(
+        {
+            (float(d), min(i, int(j)), max(i, int(j)))
+            for i in range(n)
+            for d, j in zip(dist[i, 1:], idx[i, 1:])
+            if max_distance is None or d <= max_distance
+        }
+    )
     degree = np.zeros(n, dtype=int)
     chosen: set[tuple[int, int]] = set()
     comps = _Components(n)
@@ -83,7 +95,9 @@ def neighbour_pairs(xy: np.ndarray, neighbours: int = 6, max_per_scan: int = 8,
         if len(groups) == 1:
             break
         best = None
-        members = np.flatnonzero(roots == groups[0])  # the first component to its nearest other scan
+        members = np.flatnonzero(
+            roots == groups[0]
+        )  # the first component to its nearest other scan
         others = np.flatnonzero(roots != groups[0])
         d, j = cKDTree(xy[others]).query(xy[members], k=1)
         m = int(np.argmin(d))
@@ -96,8 +110,12 @@ def neighbour_pairs(xy: np.ndarray, neighbours: int = 6, max_per_scan: int = 8,
     return sorted(chosen)
 
 
-def candidate_pairs(plot: Plot, max_distance: float | None = None, positions: dict[str, np.ndarray] | None = None,
-                    selection: PairSelection | None = None) -> list[tuple[Scan, Scan]]:
+def candidate_pairs(
+    plot: Plot,
+    max_distance: float | None = None,
+    positions: dict[str, np.ndarray] | None = None,
+    selection: PairSelection | None = None,
+) -> list[tuple[Scan, Scan]]:
     """(source, target) pairs; the later scan in the manifest is the source.
 
     `positions`: scan id -> position in one frame (default: the manifest's approximate positions).
@@ -109,8 +127,12 @@ def candidate_pairs(plot: Plot, max_distance: float | None = None, positions: di
     placed = [s for s in scans if positions is not None and s.id in positions]
     if len(scans) > selection.all_pairs_up_to and len(placed) >= 3:
         xy = np.array([positions[s.id][:2] for s in placed])
-        chosen = {(placed[i].id, placed[j].id)
-                  for i, j in neighbour_pairs(xy, selection.neighbours, selection.max_per_scan, max_distance)}
+        chosen = {
+            (placed[i].id, placed[j].id)
+            for i, j in neighbour_pairs(
+                xy, selection.neighbours, selection.max_per_scan, max_distance
+            )
+        }
         order = {s.id: k for k, s in enumerate(scans)}
         # no position: paired with its neighbours in the manifest, which lists scans as they were
         # taken (a walk through the plot), so pairs stay bounded; an unconfirmed scan is reported unplaced
@@ -121,7 +143,9 @@ def candidate_pairs(plot: Plot, max_distance: float | None = None, positions: di
         for k, s in enumerate(scans):
             if s.id in positions:
                 continue
-            reach = min(len(scans), selection.max_per_scan + 1)  # not beyond the scans taken around it
+            reach = min(
+                len(scans), selection.max_per_scan + 1
+            )  # not beyond the scans taken around it
             near = (m for d in range(1, reach) for m in (k - d, k + d) if 0 <= m < len(scans))
             for m in near:  # nearest in the list first
                 if degree[s.id] >= selection.max_per_scan:
@@ -133,8 +157,11 @@ def candidate_pairs(plot: Plot, max_distance: float | None = None, positions: di
                     degree[s.id] += 1
                     degree[scans[m].id] += 1
         by_id = {s.id: s for s in scans}
-        return [(by_id[j], by_id[i]) for i, j in sorted(chosen, key=lambda e: (order[e[0]], order[e[1]]))
-                if order[i] < order[j]]
+        return [
+            (by_id[j], by_id[i])
+            for i, j in sorted(chosen, key=lambda e: (order[e[0]], order[e[1]]))
+            if order[i] < order[j]
+        ]
     pairs = []
     for target, source in combinations(scans, 2):
         if known and max_distance is not None:

@@ -20,18 +20,37 @@ from plotmosaic.align.config import AlignConfig
 from plotmosaic.errors import InputError
 from plotmosaic.graph.cache import PairCache, pair_key
 from plotmosaic.graph.executor import PairJob, prepare_jobs_for, run_pairs
-from plotmosaic.graph.prepared import PrepareJob, entry, points_reader, run_prepare_job
 from plotmosaic.graph.pairs import PairSelection, candidate_pairs, manifest_positions
 from plotmosaic.graph.placement import placed_poses, placement_jobs, prior
-from plotmosaic.graph.posegraph import PoseGraphConfig, Solution, build_graph, graph_to_json, optimise
+from plotmosaic.graph.posegraph import (
+    PoseGraphConfig,
+    Solution,
+    build_graph,
+    graph_to_json,
+    optimise,
+)
+from plotmosaic.graph.prepared import PrepareJob, entry, points_reader, run_prepare_job
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.las import read_header_info
 from plotmosaic.manifest import Manifest, Plot, load_manifest
 from plotmosaic.poses import Poses, ScanPose
 
 # Figures of a pair result kept on the graph edge (the full result stays in DIR/pairs/).
-EDGE_FIELDS = ("source", "target", "key", "status", "error", "transform", "information", "fitness", "inlier_rmse",
-               "overlap", "confidence", "sigma", "seconds")
+EDGE_FIELDS = (
+    "source",
+    "target",
+    "key",
+    "status",
+    "error",
+    "transform",
+    "information",
+    "fitness",
+    "inlier_rmse",
+    "overlap",
+    "confidence",
+    "sigma",
+    "seconds",
+)
 
 
 def _graph_align_config() -> AlignConfig:
@@ -42,12 +61,23 @@ def _graph_align_config() -> AlignConfig:
 class RegisterConfig(BaseModel):
     align: AlignConfig = Field(default_factory=_graph_align_config)
     graph: PoseGraphConfig = Field(default_factory=PoseGraphConfig)
-    max_distance: float | None = Field(60.0, gt=0)  # with approximate positions: farther pairs are not tried
+    max_distance: float | None = Field(
+        60.0, gt=0
+    )  # with approximate positions: farther pairs are not tried
     pairs: PairSelection = Field(default_factory=PairSelection)
-    place_on_als: bool = Field(True, description="big plots without positions: place each scan on the ALS first")
-    placement: AlignConfig = Field(default_factory=AlignConfig, description="scan -> ALS: verified poses only")
-    placement_min_confidence: float = Field(0.5, ge=0, le=1, description="a scan placed on the ALS less surely than "
-                                            "this is paired with every scan instead (a wrong place would pick wrong pairs)")
+    place_on_als: bool = Field(
+        True, description="big plots without positions: place each scan on the ALS first"
+    )
+    placement: AlignConfig = Field(
+        default_factory=AlignConfig, description="scan -> ALS: verified poses only"
+    )
+    placement_min_confidence: float = Field(
+        0.5,
+        ge=0,
+        le=1,
+        description="a scan placed on the ALS less surely than "
+        "this is paired with every scan instead (a wrong place would pick wrong pairs)",
+    )
     report_points: int = 20_000  # per scan in the pictures
 
 
@@ -79,8 +109,13 @@ class RegisterResult:
         return [s for p in self.plots for s in p.unplaced]
 
 
-def plan_jobs(manifest: Manifest, config: RegisterConfig, seed: int, prepared: str | Path | None = None,
-              placed: dict[str, np.ndarray] | None = None) -> list[PairJob]:
+def plan_jobs(
+    manifest: Manifest,
+    config: RegisterConfig,
+    seed: int,
+    prepared: str | Path | None = None,
+    placed: dict[str, np.ndarray] | None = None,
+) -> list[PairJob]:
     """The pair jobs of every plot; `prepared`: the prepared-cloud cache folder (DIR/prepared);
     `placed`: scan poses from the ALS step (positions for the pair selection, priors for the coarse stage)."""
     config_json = config.align.model_dump_json()
@@ -91,31 +126,69 @@ def plan_jobs(manifest: Manifest, config: RegisterConfig, seed: int, prepared: s
         positions = {s.id: placed[s.id][:3, 3] for s in plot.scans if s.id in placed} or None
         for source, target in candidate_pairs(plot, config.max_distance, positions, config.pairs):
             sp, tp = manifest.resolve(source.path), manifest.resolve(target.path)
-            key = pair_key(sp, tp, source.kind.value, target.kind.value, source.k, target.k, config_json, seed)
-            jobs.append(PairJob(key, source.id, target.id, str(sp), str(tp), source.kind.value, target.kind.value,
-                                source.k, target.k, config_json, seed, prepared, prior(placed, source.id, target.id)))
+            key = pair_key(
+                sp, tp, source.kind.value, target.kind.value, source.k, target.k, config_json, seed
+            )
+            jobs.append(
+                PairJob(
+                    key,
+                    source.id,
+                    target.id,
+                    str(sp),
+                    str(tp),
+                    source.kind.value,
+                    target.kind.value,
+                    source.k,
+                    target.k,
+                    config_json,
+                    seed,
+                    prepared,
+                    prior(placed, source.id, target.id),
+                )
+            )
     return jobs
 
 
-def place_scans(manifest: Manifest, config: RegisterConfig, seed: int, out: Path, executor: str = "local",
-                n_jobs: int | None = None, scheduler: str | None = None, force: bool = False,
-                progress: bool = True) -> tuple[dict[str, np.ndarray], list[PairJob], dict[str, dict]]:
+def place_scans(
+    manifest: Manifest,
+    config: RegisterConfig,
+    seed: int,
+    out: Path,
+    executor: str = "local",
+    n_jobs: int | None = None,
+    scheduler: str | None = None,
+    force: bool = False,
+    progress: bool = True,
+) -> tuple[dict[str, np.ndarray], list[PairJob], dict[str, dict]]:
     """Scans of big plots without positions registered to the ALS tile (N pairs instead of N(N-1)/2)."""
     if not config.place_on_als:
         return {}, [], {}
     jobs = []
     for plot in manifest.plots:
         if len(plot.scans) > config.pairs.all_pairs_up_to and manifest_positions(plot) is None:
-            jobs += placement_jobs(manifest, plot, config.placement.model_dump_json(), seed, str(out / "prepared"),
-                                   config.align.model_dump_json())
+            jobs += placement_jobs(
+                manifest,
+                plot,
+                config.placement.model_dump_json(),
+                seed,
+                str(out / "prepared"),
+                config.align.model_dump_json(),
+            )
     if not jobs:
         return {}, [], {}
-    records, _ = compute_pairs(jobs, PairCache(out / "placement"), executor, n_jobs, scheduler, force, progress)
+    records, _ = compute_pairs(
+        jobs, PairCache(out / "placement"), executor, n_jobs, scheduler, force, progress
+    )
     return placed_poses(jobs, records, config.placement_min_confidence), jobs, records
 
 
-def prepare_scans(jobs: list[PairJob], executor: str = "local", n_jobs: int | None = None,
-                  scheduler: str | None = None, progress: bool = True) -> dict[str, dict]:
+def prepare_scans(
+    jobs: list[PairJob],
+    executor: str = "local",
+    n_jobs: int | None = None,
+    scheduler: str | None = None,
+    progress: bool = True,
+) -> dict[str, dict]:
     """Read and prepare every scan these pairs need, once each, into their prepared-cloud cache.
 
     Returns the failed preparations by prepared key (their pairs are not run)."""
@@ -126,13 +199,29 @@ def prepare_scans(jobs: list[PairJob], executor: str = "local", n_jobs: int | No
                 unique.setdefault(pj.key, pj)
     todo = [pj for pj in unique.values() if not entry(pj.folder, pj.key).is_file()]
     # entries already on disk are checked when loaded (a damaged one is prepared again there)
-    records = run_pairs(todo, None, executor, n_jobs, scheduler, progress, worker=run_prepare_job, label="preparing scans")
+    records = run_pairs(
+        todo,
+        None,
+        executor,
+        n_jobs,
+        scheduler,
+        progress,
+        worker=run_prepare_job,
+        label="preparing scans",
+    )
     return {r["key"]: r for r in records if r.get("status") != "ok"}
 
 
-def compute_pairs(jobs: list[PairJob], cache: PairCache, executor: str = "local", n_jobs: int | None = None,
-                  scheduler: str | None = None, force: bool = False, progress: bool = True,
-                  on_result: Callable[[dict], None] | None = None) -> tuple[dict[str, dict], int]:
+def compute_pairs(
+    jobs: list[PairJob],
+    cache: PairCache,
+    executor: str = "local",
+    n_jobs: int | None = None,
+    scheduler: str | None = None,
+    force: bool = False,
+    progress: bool = True,
+    on_result: Callable[[dict], None] | None = None,
+) -> tuple[dict[str, dict], int]:
     """Records for every job, from the cache where present; returns (records by key, number computed).
 
     Scans are prepared first (one job per scan), then the pairs load them from the cache."""
@@ -152,10 +241,24 @@ def compute_pairs(jobs: list[PairJob], cache: PairCache, executor: str = "local"
     failed = prepare_scans(todo, executor, n_jobs, scheduler, progress)
     runnable = []
     for job in todo:
-        bad = [failed[pj.key] for pj in prepare_jobs_for(job) if pj.key in failed] if job.prepared else []
-        if bad:  # the scan itself cannot be used: its error, not a registration failure (not cached)
-            keep({"source": job.source, "target": job.target, "key": job.key, "status": "failed",
-                  "error": f"scan {bad[0]['scan']}: {bad[0].get('error')}", "cacheable": False})
+        bad = (
+            [failed[pj.key] for pj in prepare_jobs_for(job) if pj.key in failed]
+            if job.prepared
+            else []
+        )
+        if (
+            bad
+        ):  # the scan itself cannot be used: its error, not a registration failure (not cached)
+            keep(
+                {
+                    "source": job.source,
+                    "target": job.target,
+                    "key": job.key,
+                    "status": "failed",
+                    "error": f"scan {bad[0]['scan']}: {bad[0].get('error')}",
+                    "cacheable": False,
+                }
+            )
         else:
             runnable.append(job)
     run_pairs(runnable, keep, executor, n_jobs, scheduler, progress)
@@ -171,10 +274,18 @@ def _choose_reference(G: nx.Graph, plot: Plot) -> str:
     return max(sorted(biggest), key=lambda n: G.degree(n, weight="weight"))
 
 
-def register_plot(manifest: str | Path | Manifest, out: str | Path, jobs: int | None = None, executor: str = "local",
-                  scheduler: str | None = None, config: RegisterConfig | None = None, seed: int = 0,
-                  force: bool = False, progress: bool = True,
-                  on_result: Callable[[dict], None] | None = None) -> RegisterResult:
+def register_plot(
+    manifest: str | Path | Manifest,
+    out: str | Path,
+    jobs: int | None = None,
+    executor: str = "local",
+    scheduler: str | None = None,
+    config: RegisterConfig | None = None,
+    seed: int = 0,
+    force: bool = False,
+    progress: bool = True,
+    on_result: Callable[[dict], None] | None = None,
+) -> RegisterResult:
     start = time.perf_counter()
     config = config or RegisterConfig()
     manifest = manifest if isinstance(manifest, Manifest) else load_manifest(manifest)
@@ -182,8 +293,9 @@ def register_plot(manifest: str | Path | Manifest, out: str | Path, jobs: int | 
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a folder")
     cache = PairCache(out / "pairs")
-    placed, placement, placement_records = place_scans(manifest, config, seed, out, executor, jobs, scheduler, force,
-                                                       progress)
+    placed, placement, placement_records = place_scans(
+        manifest, config, seed, out, executor, jobs, scheduler, force, progress
+    )
     # poses stored in the scan files (E57 `use_pose = true`) are priors like the ALS step's, one
     # plot at a time so that frames never mix within a plot; the pairwise judge verifies them
     stored = manifest.stored_poses()
@@ -191,14 +303,20 @@ def register_plot(manifest: str | Path | Manifest, out: str | Path, jobs: int | 
         if not any(s.id in placed for s in plot.scans):
             placed.update({s.id: stored[s.id] for s in plot.scans if s.id in stored})
     job_list = plan_jobs(manifest, config, seed, out / "prepared", placed)
-    records, computed = compute_pairs(job_list, cache, executor, jobs, scheduler, force, progress, on_result)
+    records, computed = compute_pairs(
+        job_list, cache, executor, jobs, scheduler, force, progress, on_result
+    )
 
     nodes = {}
     for plot in manifest.plots:
         for scan in plot.scans:
             path = manifest.resolve(scan.path)
-            nodes[scan.id] = {"plot": plot.id, "kind": scan.kind.value, "path": str(path),
-                              "points": read_header_info(path).point_count}
+            nodes[scan.id] = {
+                "plot": plot.id,
+                "kind": scan.kind.value,
+                "path": str(path),
+                "points": read_header_info(path).point_count,
+            }
     edges = [{k: records[j.key].get(k) for k in EDGE_FIELDS} for j in job_list]
     G = build_graph(nodes, edges)
     failed = G.graph["failed"]
@@ -212,14 +330,25 @@ def register_plot(manifest: str | Path | Manifest, out: str | Path, jobs: int | 
         for name, T in sol.poses.items():
             scans[name] = ScanPose(T, plot.id, sol.sigmas[name])
     extra = {
-        "plots": {r.plot: {"reference": r.reference, "unplaced": r.unplaced, "dropped": r.solution.dropped} for r in results},
+        "plots": {
+            r.plot: {
+                "reference": r.reference,
+                "unplaced": r.unplaced,
+                "dropped": r.solution.dropped,
+            }
+            for r in results
+        },
         "unplaced": [s for r in results for s in r.unplaced],
     }
     if placement:  # scan -> ALS step of big plots without positions: which scans it placed
-        extra["placement"] = {j.source: "ok" if j.source in placed else placement_records[j.key].get("error")
-                              for j in placement}
+        extra["placement"] = {
+            j.source: "ok" if j.source in placed else placement_records[j.key].get("error")
+            for j in placement
+        }
     by_path = {str(manifest.resolve(s.path)): s.id for s in manifest.scans}
-    extra["prepared"] = {}  # scan id -> its prepared cloud under OUT/prepared (tie-to-als reuses them)
+    extra[
+        "prepared"
+    ] = {}  # scan id -> its prepared cloud under OUT/prepared (tie-to-als reuses them)
     for job in job_list:
         for pj in prepare_jobs_for(job):
             extra["prepared"][by_path[pj.path]] = entry(pj.folder, pj.key).name
@@ -230,7 +359,11 @@ def register_plot(manifest: str | Path | Manifest, out: str | Path, jobs: int | 
     poses.save(out / "poses.json")
     result.seconds = time.perf_counter() - start
     # the pictures use the prepared (voxel-thinned) points: no scan is read a second time
-    entries = {p: out / "prepared" / extra["prepared"][sid] for p, sid in by_path.items() if sid in extra["prepared"]}
+    entries = {
+        p: out / "prepared" / extra["prepared"][sid]
+        for p, sid in by_path.items()
+        if sid in extra["prepared"]
+    }
     write_register_report(result, manifest, config, seed, reader=points_reader(entries))
     result.seconds = time.perf_counter() - start
     return result

@@ -19,8 +19,14 @@ from plotmosaic.manifest import Manifest, Plot
 ALS_ID = "ALS"
 
 
-def placement_jobs(manifest: Manifest, plot: Plot, config_json: str, seed: int, prepared: str | None,
-                   prepare_json: str | None = None) -> list[PairJob]:
+def placement_jobs(
+    manifest: Manifest,
+    plot: Plot,
+    config_json: str,
+    seed: int,
+    prepared: str | None,
+    prepare_json: str | None = None,
+) -> list[PairJob]:
     """One scan -> ALS job per scan of the plot (the first ALS tile; none when the manifest has no ALS).
 
     `prepare_json`: the settings the scans are prepared with (register-plot's), so the same prepared
@@ -33,17 +39,37 @@ def placement_jobs(manifest: Manifest, plot: Plot, config_json: str, seed: int, 
     for scan in plot.scans:
         sp = manifest.resolve(scan.path)
         key = pair_key(sp, tp, scan.kind.value, "als", scan.k, tile.k, config_json, seed)
-        jobs.append(PairJob(key, scan.id, ALS_ID, str(sp), str(tp), scan.kind.value, "als", scan.k, tile.k,
-                            config_json, seed, prepared, None, prepare_json))
+        jobs.append(
+            PairJob(
+                key,
+                scan.id,
+                ALS_ID,
+                str(sp),
+                str(tp),
+                scan.kind.value,
+                "als",
+                scan.k,
+                tile.k,
+                config_json,
+                seed,
+                prepared,
+                None,
+                prepare_json,
+            )
+        )
     return jobs
 
 
-def placed_poses(jobs: list[PairJob], records: dict[str, dict], min_confidence: float = 0.0) -> dict[str, np.ndarray]:
+def placed_poses(
+    jobs: list[PairJob], records: dict[str, dict], min_confidence: float = 0.0
+) -> dict[str, np.ndarray]:
     """scan id -> its pose in the ALS CRS (scan file -> ALS file coordinates): verified pairs at least this sure."""
     out = {}
     for j in jobs:
         r = records.get(j.key, {})
-        if r.get("status") == "ok" and (r.get("confidence") is None or r["confidence"] >= min_confidence):
+        if r.get("status") == "ok" and (
+            r.get("confidence") is None or r["confidence"] >= min_confidence
+        ):
             out[j.source] = np.asarray(r["transform"], dtype=np.float64)
     return out
 

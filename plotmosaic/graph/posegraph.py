@@ -19,34 +19,64 @@ from typing import Literal
 import gtsam
 import networkx as nx
 import numpy as np
-from plotmosaic.io.frame import inverse, pose_error, rotation_deg  # noqa: F401  (re-exported)
 from pydantic import BaseModel, Field
+
+from plotmosaic.io.frame import inverse, pose_error, rotation_deg  # noqa: F401  (re-exported)
 
 
 class PoseGraphConfig(BaseModel):
     """Tuning of the pose-graph solve. Angles in degrees, lengths in metres."""
 
-    robust: Literal["cauchy", "huber", "none"] = Field("cauchy", description="robust kernel of every edge")
+    robust: Literal["cauchy", "huber", "none"] = Field(
+        "cauchy", description="robust kernel of every edge"
+    )
     robust_k: float = Field(3.0, gt=0, le=100, description="kernel width in whitened (sigma) units")
     # Pairwise information matrices from ICP are often over-confident: floor each sigma and cap
     # the ratio of strongest to weakest direction so the problem stays well conditioned.
-    min_sigma_rotation_deg: float = Field(0.01, gt=0, le=10, description="floor of an edge's rotation sigma")
-    min_sigma_translation: float = Field(0.002, gt=0, le=1, description="floor of an edge's translation sigma (m)")
-    max_information_ratio: float = Field(1e4, ge=1, le=1e12, description="cap on strongest / weakest direction")
-    fallback_sigma_rotation_deg: float = Field(0.1, gt=0, le=45, description="when a pair carries no information matrix")
+    min_sigma_rotation_deg: float = Field(
+        0.01, gt=0, le=10, description="floor of an edge's rotation sigma"
+    )
+    min_sigma_translation: float = Field(
+        0.002, gt=0, le=1, description="floor of an edge's translation sigma (m)"
+    )
+    max_information_ratio: float = Field(
+        1e4, ge=1, le=1e12, description="cap on strongest / weakest direction"
+    )
+    fallback_sigma_rotation_deg: float = Field(
+        0.1, gt=0, le=45, description="when a pair carries no information matrix"
+    )
     # A triangle of edges is inconsistent when going around it is off by more than this.
-    cycle_rotation_deg: float = Field(1.0, gt=0, description="triangle loop rotation beyond which it is inconsistent")
-    cycle_translation: float = Field(0.10, gt=0, description="triangle loop translation (m) beyond which it is inconsistent")
+    cycle_rotation_deg: float = Field(
+        1.0, gt=0, description="triangle loop rotation beyond which it is inconsistent"
+    )
+    cycle_translation: float = Field(
+        0.10, gt=0, description="triangle loop translation (m) beyond which it is inconsistent"
+    )
     # An edge whose coarse-stage confidence is below this is kept only when a consistent triangle
     # confirms it: a wrong coarse solution can still pass the pair's own fitness checks.
-    min_confidence: float = Field(0.25, ge=0, le=1, description="below: an edge needs a consistent triangle to stay")
+    min_confidence: float = Field(
+        0.25, ge=0, le=1, description="below: an edge needs a consistent triangle to stay"
+    )
     # After a solve, an edge is an outlier when its residual exceeds both a metric bound and a
     # chi-square bound (6 dof); the metric bound keeps over-confident good edges.
-    outlier_rotation_deg: float = Field(0.5, gt=0, description="residual rotation an outlier exceeds")
-    outlier_translation: float = Field(0.10, gt=0, description="residual translation (m) an outlier exceeds")
-    outlier_chi2: float = Field(22.46, gt=0, description="residual chi2 an outlier exceeds (6 dof, p = 0.999)")
-    max_drops: int = Field(50, ge=0, le=100_000, description="residual drops (one re-solve each); cycle-vote drops not counted")
-    max_iterations: int = Field(100, ge=1, le=10_000, description="Levenberg-Marquardt iterations per solve")
+    outlier_rotation_deg: float = Field(
+        0.5, gt=0, description="residual rotation an outlier exceeds"
+    )
+    outlier_translation: float = Field(
+        0.10, gt=0, description="residual translation (m) an outlier exceeds"
+    )
+    outlier_chi2: float = Field(
+        22.46, gt=0, description="residual chi2 an outlier exceeds (6 dof, p = 0.999)"
+    )
+    max_drops: int = Field(
+        50,
+        ge=0,
+        le=100_000,
+        description="residual drops (one re-solve each); cycle-vote drops not counted",
+    )
+    max_iterations: int = Field(
+        100, ge=1, le=10_000, description="Levenberg-Marquardt iterations per solve"
+    )
 
 
 def _pose3(T: np.ndarray) -> gtsam.Pose3:
@@ -68,7 +98,9 @@ def build_graph(nodes: dict[str, dict], edges: list[dict]) -> nx.Graph:
         G.add_node(name, **attrs)
     for e in edges:
         if e.get("status", "ok") != "ok":
-            G.graph["failed"].append({k: v for k, v in e.items() if k in ("source", "target", "error", "key")})
+            G.graph["failed"].append(
+                {k: v for k, v in e.items() if k in ("source", "target", "error", "key")}
+            )
             continue
         attrs = dict(e)
         attrs["transform"] = np.asarray(e["transform"], dtype=np.float64)
@@ -135,15 +167,21 @@ def kept(G: nx.Graph) -> nx.Graph:
 # --- information conditioning ----------------------------------------------------------------------
 
 
-def condition_information(info: np.ndarray | None, rmse: float | None, config: PoseGraphConfig) -> np.ndarray:
+def condition_information(
+    info: np.ndarray | None, rmse: float | None, config: PoseGraphConfig
+) -> np.ndarray:
     """A well-conditioned 6x6 information: sigmas floored, strongest/weakest ratio capped."""
-    floors = np.array([np.radians(config.min_sigma_rotation_deg)] * 3 + [config.min_sigma_translation] * 3)
+    floors = np.array(
+        [np.radians(config.min_sigma_rotation_deg)] * 3 + [config.min_sigma_translation] * 3
+    )
     S = np.diag(floors)
     A = None
     if info is not None:
         info = np.asarray(info, dtype=np.float64)
         if info.shape == (6, 6) and np.isfinite(info).all():
-            A = S @ ((info + info.T) / 2.0) @ S  # in floor units: eigenvalue 1 <=> sigma at the floor
+            A = (
+                S @ ((info + info.T) / 2.0) @ S
+            )  # in floor units: eigenvalue 1 <=> sigma at the floor
     if A is not None:
         w, V = np.linalg.eigh(A)
         if w.max() <= 0:
@@ -189,7 +227,13 @@ def cycle_errors(G: nx.Graph) -> list[dict]:
     out = []
     for a, b, c in triangles(kept(G)):
         loop = edge_transform(G, a, b) @ edge_transform(G, b, c) @ edge_transform(G, c, a)
-        out.append({"nodes": (a, b, c), "rotation_deg": rotation_deg(loop), "translation": float(np.linalg.norm(loop[:3, 3]))})
+        out.append(
+            {
+                "nodes": (a, b, c),
+                "rotation_deg": rotation_deg(loop),
+                "translation": float(np.linalg.norm(loop[:3, 3])),
+            }
+        )
     return out
 
 
@@ -203,7 +247,10 @@ def _tri_edges(tri: dict) -> tuple[tuple[str, str], ...]:
 
 
 def _inconsistent(tri: dict, config: PoseGraphConfig) -> bool:
-    return tri["rotation_deg"] > config.cycle_rotation_deg or tri["translation"] > config.cycle_translation
+    return (
+        tri["rotation_deg"] > config.cycle_rotation_deg
+        or tri["translation"] > config.cycle_translation
+    )
 
 
 def _count(tris: list[dict], config: PoseGraphConfig) -> dict[tuple[str, str], tuple[int, int]]:
@@ -248,8 +295,11 @@ def cycle_outliers(G: nx.Graph, config: PoseGraphConfig) -> list[tuple[str, str]
 
 
 def _unsure(G: nx.Graph, config: PoseGraphConfig) -> set[tuple[str, str]]:
-    return {_edge_id(u, v) for u, v, e in kept(G).edges(data=True)
-            if e.get("confidence") is not None and e["confidence"] < config.min_confidence}
+    return {
+        _edge_id(u, v)
+        for u, v, e in kept(G).edges(data=True)
+        if e.get("confidence") is not None and e["confidence"] < config.min_confidence
+    }
 
 
 def _unconfirmed(unsure: set, votes: dict) -> list[tuple[str, str]]:
@@ -261,7 +311,9 @@ def unverified(G: nx.Graph, config: PoseGraphConfig) -> list[tuple[str, str]]:
     return _unconfirmed(_unsure(G, config), triangle_votes(G, config))
 
 
-def vote(G: nx.Graph, config: PoseGraphConfig) -> tuple[list[tuple[str, str]], list[tuple[str, str]]]:
+def vote(
+    G: nx.Graph, config: PoseGraphConfig
+) -> tuple[list[tuple[str, str]], list[tuple[str, str]]]:
     """(cycle outliers, unverified unsure edges) from one pass over the triangles of the kept edges.
 
     Low-confidence edges stay out of the outlier vote: otherwise a plot with several wrong (and
@@ -283,7 +335,9 @@ def vote(G: nx.Graph, config: PoseGraphConfig) -> tuple[list[tuple[str, str]], l
 @dataclass
 class Solution:
     poses: dict[str, np.ndarray]  # placed scans only
-    sigmas: dict[str, np.ndarray]  # sqrt(diag(marginal covariance)): rx, ry, rz (rad), tx, ty, tz (m)
+    sigmas: dict[
+        str, np.ndarray
+    ]  # sqrt(diag(marginal covariance)): rx, ry, rz (rad), tx, ty, tz (m)
     unplaced: list[str]  # scans with no kept edge path to the reference
     iterations: int = 0
     error_before: float = 0.0
@@ -296,7 +350,11 @@ def _noise(info: np.ndarray, config: PoseGraphConfig):
     if config.robust == "none":
         return base
     est = gtsam.noiseModel.mEstimator
-    kernel = est.Cauchy.Create(config.robust_k) if config.robust == "cauchy" else est.Huber.Create(config.robust_k)
+    kernel = (
+        est.Cauchy.Create(config.robust_k)
+        if config.robust == "cauchy"
+        else est.Huber.Create(config.robust_k)
+    )
     return gtsam.noiseModel.Robust.Create(kernel, base)
 
 
@@ -305,18 +363,29 @@ def _conditioned(G: nx.Graph, u: str, v: str, config: PoseGraphConfig) -> np.nda
     e = G.edges[u, v]
     memo = e.get("_info")
     if memo is None or memo[0] is not config:
-        memo = e["_info"] = (config, condition_information(e.get("information"), e.get("inlier_rmse"), config))
+        memo = e["_info"] = (
+            config,
+            condition_information(e.get("information"), e.get("inlier_rmse"), config),
+        )
     return memo[1]
 
 
-def residual(G: nx.Graph, u: str, v: str, poses: dict[str, np.ndarray], config: PoseGraphConfig) -> dict:
+def residual(
+    G: nx.Graph, u: str, v: str, poses: dict[str, np.ndarray], config: PoseGraphConfig
+) -> dict:
     """Residual of one edge at the given poses: rotation (deg), translation (m) and chi2 (conditioned info)."""
     e = G.edges[u, v]
     i, j = e["source"], e["target"]
-    E = inverse(e["transform"]) @ inverse(poses[j]) @ poses[i]  # identity when the edge is satisfied
+    E = (
+        inverse(e["transform"]) @ inverse(poses[j]) @ poses[i]
+    )  # identity when the edge is satisfied
     xi = gtsam.Pose3.Logmap(_pose3(E))
     info = _conditioned(G, u, v, config)
-    return {"rotation_deg": rotation_deg(E), "translation": float(np.linalg.norm(E[:3, 3])), "chi2": float(xi @ info @ xi)}
+    return {
+        "rotation_deg": rotation_deg(E),
+        "translation": float(np.linalg.norm(E[:3, 3])),
+        "chi2": float(xi @ info @ xi),
+    }
 
 
 def _solve(G: nx.Graph, reference: str, config: PoseGraphConfig):
@@ -328,12 +397,20 @@ def _solve(G: nx.Graph, reference: str, config: PoseGraphConfig):
     values = gtsam.Values()
     for name in placed:
         values.insert(keys[name], _pose3(init[name]))
-    graph.add(gtsam.PriorFactorPose3(keys[reference], gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+    graph.add(
+        gtsam.PriorFactorPose3(
+            keys[reference], gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
+        )
+    )
     for u, v, e in kept(G).edges(data=True):
         if u not in keys or v not in keys:
             continue
         info = _conditioned(G, u, v, config)
-        graph.add(gtsam.BetweenFactorPose3(keys[e["target"]], keys[e["source"]], _pose3(e["transform"]), _noise(info, config)))
+        graph.add(
+            gtsam.BetweenFactorPose3(
+                keys[e["target"]], keys[e["source"]], _pose3(e["transform"]), _noise(info, config)
+            )
+        )
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(config.max_iterations)
     params.setRelativeErrorTol(1e-10)
@@ -343,14 +420,19 @@ def _solve(G: nx.Graph, reference: str, config: PoseGraphConfig):
     result = optimizer.optimize()
     poses = {name: result.atPose3(keys[name]).matrix() for name in placed}
     unplaced = sorted(n for n in G.nodes if n not in keys)
-    sol = Solution(poses, {}, unplaced, optimizer.iterations(), float(before), float(graph.error(result)))
+    sol = Solution(
+        poses, {}, unplaced, optimizer.iterations(), float(before), float(graph.error(result))
+    )
     return sol, graph, result, keys
 
 
 def _add_sigmas(sol: Solution, graph, result, keys: dict) -> Solution:
     """sqrt(diag(marginal covariance)) of every placed scan: one factorisation, after the last solve."""
     marginals = gtsam.Marginals(graph, result)
-    sol.sigmas = {name: np.sqrt(np.clip(np.diag(marginals.marginalCovariance(k)), 0, None)) for name, k in keys.items()}
+    sol.sigmas = {
+        name: np.sqrt(np.clip(np.diag(marginals.marginalCovariance(k)), 0, None))
+        for name, k in keys.items()
+    }
     return sol
 
 
@@ -383,16 +465,21 @@ def optimise(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None)
         _drop(G, u, v, "unverified", dropped)
     initial = spanning_tree_poses(G, reference)
     for u, v, e in G.edges(data=True):
-        e["residual_before"] = residual(G, u, v, initial, config) if u in initial and v in initial else None
+        e["residual_before"] = (
+            residual(G, u, v, initial, config) if u in initial and v in initial else None
+        )
     residual_drops = 0
     while True:
         sol, graph, result, keys = _solve(G, reference, config)
         worst, worst_chi2 = None, 0.0
-        for u, v, e in kept(G).edges(data=True):
+        for u, v in kept(G).edges():
             if u not in sol.poses or v not in sol.poses:
                 continue
             r = residual(G, u, v, sol.poses, config)
-            metric = r["rotation_deg"] > config.outlier_rotation_deg or r["translation"] > config.outlier_translation
+            metric = (
+                r["rotation_deg"] > config.outlier_rotation_deg
+                or r["translation"] > config.outlier_translation
+            )
             if metric and r["chi2"] > config.outlier_chi2 and r["chi2"] > worst_chi2:
                 worst, worst_chi2 = (u, v), r["chi2"]
         if worst is None or residual_drops >= config.max_drops:
@@ -401,8 +488,10 @@ def optimise(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None)
         residual_drops += 1
     _add_sigmas(sol, graph, result, keys)
     for u, v, e in G.edges(data=True):
-        e["residual_after"] = residual(G, u, v, sol.poses, config) if u in sol.poses and v in sol.poses else None
-    for u, v, e in G.edges(data=True):
+        e["residual_after"] = (
+            residual(G, u, v, sol.poses, config) if u in sol.poses and v in sol.poses else None
+        )
+    for _, _, e in G.edges(data=True):
         e.pop("_info", None)  # not part of the graph's saved form
     sol.dropped = dropped
     return sol

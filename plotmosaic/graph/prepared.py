@@ -34,8 +34,16 @@ _FIELDS = tuple(f.name for f in dataclasses.fields(PreparedCloud))
 
 def prepared_key(path, kind: str, levels: int | None, config_json: str, seed: int) -> str:
     """What determines a prepared cloud (the role in a pair does not: one preparation serves both)."""
-    parts = {"file": file_hash(path), "kind": kind, "levels": levels, "config": json.loads(config_json), "seed": seed,
-             "version": __version__, "format": FORMAT, "fields": _FIELDS}
+    parts = {
+        "file": file_hash(path),
+        "kind": kind,
+        "levels": levels,
+        "config": json.loads(config_json),
+        "seed": seed,
+        "version": __version__,
+        "format": FORMAT,
+        "fields": _FIELDS,
+    }
     return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:32]
 
 
@@ -63,7 +71,9 @@ def save_prepared(path: str | Path, cloud: PreparedCloud) -> Path:
     meta["normal_max_nn"] = cloud.target_normals.max_nn
     arrays["meta"] = np.frombuffer(json.dumps(meta, default=_plain).encode(), dtype=np.uint8)
     with atomic_output(path) as tmp:
-        with open(tmp, "wb") as f:  # a file object: np.savez would append ".npz" to the temporary name
+        with open(
+            tmp, "wb"
+        ) as f:  # a file object: np.savez would append ".npz" to the temporary name
             np.savez(f, **arrays)
     return Path(path)
 
@@ -100,6 +110,7 @@ def load_points(path: str | Path) -> np.ndarray:
 def points_reader(entries: dict[str, Path]):
     """A reader for the report's pictures: scan file -> points, from its prepared cloud when cached
     (`entries`: scan file path -> cache entry), else from the file (a damaged or missing entry)."""
+
     def read(path) -> np.ndarray:
         cached = entries.get(str(path))
         if cached is not None and Path(cached).is_file():
@@ -147,7 +158,9 @@ def _compute(job: PrepareJob) -> PreparedCloud:
     config = AlignConfig.model_validate_json(job.config_json)
     cloud = read_cloud(job.path, attributes=False)
     reads += 1
-    return prepare_cloud(cloud, job.kind, job.levels or default_levels(job.kind), config, job.seed, job.scan)
+    return prepare_cloud(
+        cloud, job.kind, job.levels or default_levels(job.kind), config, job.seed, job.scan
+    )
 
 
 def _load_or_warn(path: Path, scan: str) -> PreparedCloud | None:
@@ -157,8 +170,10 @@ def _load_or_warn(path: Path, scan: str) -> PreparedCloud | None:
     try:
         return load_prepared(path)
     except Exception as exc:  # truncated, foreign or edited file
-        print(f"warning: {path}: damaged prepared cloud of scan {scan} ({type(exc).__name__}: {exc}); preparing it again",
-              file=sys.stderr)
+        print(
+            f"warning: {path}: damaged prepared cloud of scan {scan} ({type(exc).__name__}: {exc}); preparing it again",
+            file=sys.stderr,
+        )
         return None
 
 
@@ -191,8 +206,12 @@ def run_prepare_job(job: PrepareJob) -> dict:
             save_prepared(path, _compute(job))
             record["computed"] = True
         record["status"] = "ok"
-    except Exception as exc:  # unreadable scan, too few points, out of memory: its pairs fail with this
-        record.update(status="failed", error=f"{type(exc).__name__}: {exc}" if not str(exc).startswith(job.scan)
-                      else str(exc))
+    except (
+        Exception
+    ) as exc:  # unreadable scan, too few points, out of memory: its pairs fail with this
+        record.update(
+            status="failed",
+            error=f"{type(exc).__name__}: {exc}" if not str(exc).startswith(job.scan) else str(exc),
+        )
     record["seconds"] = time.perf_counter() - start
     return record

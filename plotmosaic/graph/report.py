@@ -31,14 +31,18 @@ def yaw_deg(T: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(T[1, 0], T[0, 0])))
 
 
-def plot_scans(path: Path, clouds: dict[str, np.ndarray], title: str, origin: np.ndarray | None = None) -> Path:
+def plot_scans(
+    path: Path, clouds: dict[str, np.ndarray], title: str, origin: np.ndarray | None = None
+) -> Path:
     """Top and side view of every placed scan (points already in the common frame), one colour per scan."""
     origin = np.zeros(3) if origin is None else origin
     fig, (top, side) = plt.subplots(1, 2, figsize=(13, 5.5), gridspec_kw={"width_ratios": [1, 1.3]})
     cmap = plt.get_cmap("tab10" if len(clouds) <= 10 else "tab20")
     for n, (name, xyz) in enumerate(clouds.items()):
         xyz = xyz - origin
-        colour = "lightgrey" if name == "ALS" else cmap(n % cmap.N)  # the reference stays in the background
+        colour = (
+            "lightgrey" if name == "ALS" else cmap(n % cmap.N)
+        )  # the reference stays in the background
         top.scatter(xyz[:, 0], xyz[:, 1], s=0.3, color=colour, label=name, rasterized=True)
         side.scatter(xyz[:, 0], xyz[:, 2], s=0.3, color=colour, rasterized=True)
     top.set_aspect("equal")
@@ -53,7 +57,13 @@ def plot_scans(path: Path, clouds: dict[str, np.ndarray], title: str, origin: np
     return _savefig(fig, path)
 
 
-def plot_graph(path: Path, G: nx.Graph, poses: dict[str, np.ndarray], title: str, origin: np.ndarray | None = None) -> Path:
+def plot_graph(
+    path: Path,
+    G: nx.Graph,
+    poses: dict[str, np.ndarray],
+    title: str,
+    origin: np.ndarray | None = None,
+) -> Path:
     """Scans at their placed positions (top view); edges coloured by final translation residual, dropped dashed."""
     origin = np.zeros(3) if origin is None else origin
     fig, ax = plt.subplots(figsize=(7, 6.5))
@@ -69,7 +79,11 @@ def plot_graph(path: Path, G: nx.Graph, poses: dict[str, np.ndarray], title: str
             pos[n] = np.array([x0 + step, y0])
             step += 4.0
     cmap = plt.get_cmap("viridis")
-    res = [e["residual_after"]["translation"] * 100 for _, _, e in G.edges(data=True) if not e.get("dropped") and e.get("residual_after")]
+    res = [
+        e["residual_after"]["translation"] * 100
+        for _, _, e in G.edges(data=True)
+        if not e.get("dropped") and e.get("residual_after")
+    ]
     vmax = max(res + [1.0])
     for u, v, e in G.edges(data=True):
         (x1, y1), (x2, y2) = pos[u], pos[v]
@@ -81,12 +95,28 @@ def plot_graph(path: Path, G: nx.Graph, poses: dict[str, np.ndarray], title: str
             cm = (r["translation"] * 100) if r else 0.0
             ax.plot([x1, x2], [y1, y2], "-", color=cmap(cm / vmax), lw=2.5)
             label = f"{cm:.1f} cm" if r else ""
-        ax.text((x1 + x2) / 2, (y1 + y2) / 2, label, fontsize=7, ha="center", va="center",
-                bbox={"fc": "white", "ec": "none", "alpha": 0.7, "pad": 0.5})
+        ax.text(
+            (x1 + x2) / 2,
+            (y1 + y2) / 2,
+            label,
+            fontsize=7,
+            ha="center",
+            va="center",
+            bbox={"fc": "white", "ec": "none", "alpha": 0.7, "pad": 0.5},
+        )
     for n, (x, y) in pos.items():
         placed = n in poses
-        ax.scatter([x], [y], s=140, color="tab:blue" if placed else "lightgrey", edgecolor="black", zorder=3)
-        ax.text(x, y, f" {n}" + ("" if placed else " (unplaced)"), fontsize=9, va="bottom", zorder=4)
+        ax.scatter(
+            [x],
+            [y],
+            s=140,
+            color="tab:blue" if placed else "lightgrey",
+            edgecolor="black",
+            zorder=3,
+        )
+        ax.text(
+            x, y, f" {n}" + ("" if placed else " (unplaced)"), fontsize=9, va="bottom", zorder=4
+        )
     sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(0, vmax))
     fig.colorbar(sm, ax=ax, label="edge residual after optimisation (cm)", shrink=0.8)
     ax.set_aspect("equal")
@@ -97,9 +127,11 @@ def plot_graph(path: Path, G: nx.Graph, poses: dict[str, np.ndarray], title: str
 
 
 def edge_table(G: nx.Graph) -> list[str]:
-    rows = ["| source | target | fitness | RMSE (cm) | overlap | before (cm / deg) | after (cm / deg) | chi2 after | status |",
-            "|---|---|---|---|---|---|---|---|---|"]
-    for u, v, e in sorted(G.edges(data=True), key=lambda t: (t[2]["source"], t[2]["target"])):
+    rows = [
+        "| source | target | fitness | RMSE (cm) | overlap | before (cm / deg) | after (cm / deg) | chi2 after | status |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for _u, _v, e in sorted(G.edges(data=True), key=lambda t: (t[2]["source"], t[2]["target"])):
         b, a = e.get("residual_before"), e.get("residual_after")
         status = f"**dropped** ({e.get('drop_reason')})" if e.get("dropped") else "kept"
         rows.append(
@@ -110,9 +142,13 @@ def edge_table(G: nx.Graph) -> list[str]:
     return rows
 
 
-def pose_table(names: list[str], poses: dict[str, np.ndarray], sigmas: dict[str, np.ndarray]) -> list[str]:
-    rows = ["| scan | x (m) | y (m) | z (m) | yaw (deg) | tilt (deg) | sigma xyz (mm) | sigma rot (deg) |",
-            "|---|---|---|---|---|---|---|---|"]
+def pose_table(
+    names: list[str], poses: dict[str, np.ndarray], sigmas: dict[str, np.ndarray]
+) -> list[str]:
+    rows = [
+        "| scan | x (m) | y (m) | z (m) | yaw (deg) | tilt (deg) | sigma xyz (mm) | sigma rot (deg) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for n in names:
         if n not in poses:
             rows.append(f"| {n} | unplaced | | | | | | |")
@@ -122,12 +158,19 @@ def pose_table(names: list[str], poses: dict[str, np.ndarray], sigmas: dict[str,
         tilt = float(np.degrees(np.arccos(np.clip(R[2, 2], -1, 1))))
         sig_t = "-" if s is None else " / ".join(f"{v * 1000:.1f}" for v in s[3:])
         sig_r = "-" if s is None else " / ".join(f"{np.degrees(v):.4f}" for v in s[:3])
-        rows.append(f"| {n} | {T[0, 3]:.3f} | {T[1, 3]:.3f} | {T[2, 3]:.3f} | {yaw_deg(T):.2f} | {tilt:.2f} | {sig_t} | {sig_r} |")
+        rows.append(
+            f"| {n} | {T[0, 3]:.3f} | {T[1, 3]:.3f} | {T[2, 3]:.3f} | {yaw_deg(T):.2f} | {tilt:.2f} | {sig_t} | {sig_r} |"
+        )
     return rows
 
 
-def sample_clouds(paths: dict[str, Path], poses: dict[str, np.ndarray], n_points: int, seed: int,
-                  reader: Callable[[Path], np.ndarray]) -> dict[str, np.ndarray]:
+def sample_clouds(
+    paths: dict[str, Path],
+    poses: dict[str, np.ndarray],
+    n_points: int,
+    seed: int,
+    reader: Callable[[Path], np.ndarray],
+) -> dict[str, np.ndarray]:
     """A seeded random subset of each placed scan, moved into the common frame."""
     rng = np.random.default_rng(seed)
     out = {}
@@ -142,14 +185,22 @@ def sample_clouds(paths: dict[str, Path], poses: dict[str, np.ndarray], n_points
 
 
 def residual_summary(G: nx.Graph) -> dict:
-    kept = [e["residual_after"] for _, _, e in G.edges(data=True) if not e.get("dropped") and e.get("residual_after")]
+    kept = [
+        e["residual_after"]
+        for _, _, e in G.edges(data=True)
+        if not e.get("dropped") and e.get("residual_after")
+    ]
     if not kept:
         return {"edges": 0}
     t = np.array([r["translation"] for r in kept])
     r = np.array([r["rotation_deg"] for r in kept])
-    return {"edges": len(kept), "translation_rms": float(np.sqrt(np.mean(t**2))), "translation_max": float(t.max()),
-            "rotation_rms_deg": float(np.sqrt(np.mean(r**2))), "rotation_max_deg": float(r.max())}
-
+    return {
+        "edges": len(kept),
+        "translation_rms": float(np.sqrt(np.mean(t**2))),
+        "translation_max": float(t.max()),
+        "rotation_rms_deg": float(np.sqrt(np.mean(r**2))),
+        "rotation_max_deg": float(r.max()),
+    }
 
 
 # ---------------------------------------------------------------- report.md + report.html of a run
@@ -164,7 +215,9 @@ def _read_scan(path: Path) -> np.ndarray:
 def _pair_seconds(G: nx.Graph, nodes: list[str] | None = None) -> tuple[float | None, int]:
     """Sum of the recorded per-pair times over the graph's edges (cached pairs keep their first run's time)."""
     sub = G if nodes is None else G.subgraph(nodes)
-    secs = [e["seconds"] for *_, e in sub.edges(data=True) if isinstance(e.get("seconds"), (int, float))]
+    secs = [
+        e["seconds"] for *_, e in sub.edges(data=True) if isinstance(e.get("seconds"), (int, float))
+    ]
     return (float(sum(secs)) if secs else None), len(secs)
 
 
@@ -181,10 +234,16 @@ def _recorded(result) -> list:
     from plotmosaic.report.build import Stage
 
     timings = getattr(result, "timings", None)
-    return [Stage(k, float(v), "wall time") for k, v in timings.items() if isinstance(v, (int, float))] if isinstance(timings, dict) else []
+    return (
+        [Stage(k, float(v), "wall time") for k, v in timings.items() if isinstance(v, (int, float))]
+        if isinstance(timings, dict)
+        else []
+    )
 
 
-def write_register_report(result, manifest, config, seed: int, reader: Callable[[Path], np.ndarray] | None = None) -> Path:
+def write_register_report(
+    result, manifest, config, seed: int, reader: Callable[[Path], np.ndarray] | None = None
+) -> Path:
     """report.md (tables, pictures) and report.html (summary, breast-height slice, distances, map) of register-plot."""
     from plotmosaic.graph.posegraph import PoseGraphConfig
     from plotmosaic.report.build import ReportInput, Stage, build_report
@@ -194,35 +253,67 @@ def write_register_report(result, manifest, config, seed: int, reader: Callable[
     kept = sum(1 for *_, e in G.edges(data=True) if not e.get("dropped"))
     dropped = G.number_of_edges() - kept
     lines = [
-        "# register-plot report", "",
+        "# register-plot report",
+        "",
         f"- manifest: `{manifest.source}`",
         f"- pairs: {result.pairs} ({result.computed} registered in this run, {result.pairs - result.computed} from the cache)",
         f"- edges: {kept} kept, {dropped} dropped, {len(result.failed)} pairs failed",
-        f"- time: {result.seconds:.1f} s", "",
-        "The same in one page, with the breast-height slice, cloud-to-cloud distances and a map: [report.html](report.html)", "",
+        f"- time: {result.seconds:.1f} s",
+        "",
+        "The same in one page, with the breast-height slice, cloud-to-cloud distances and a map: [report.html](report.html)",
+        "",
     ]
     if result.unplaced:
-        lines += [f"**Not placed** (no pair left linking them to the reference): {', '.join(result.unplaced)}", ""]
+        lines += [
+            f"**Not placed** (no pair left linking them to the reference): {', '.join(result.unplaced)}",
+            "",
+        ]
     poses = {n: T for r in result.plots for n, T in r.solution.poses.items()}
     pair_s, n_timed = _pair_seconds(G)
     stages = [
-        Stage("pairwise registration", pair_s, f"sum of the per-pair times of {n_timed} pairs ({result.computed} run now, "
-              "the rest from the cache); the pairs ran in parallel, so the wall time is shorter"),
-        Stage("register-plot until this report", result.seconds, "pairs, pose graph and its checks, poses.json"),
+        Stage(
+            "pairwise registration",
+            pair_s,
+            f"sum of the per-pair times of {n_timed} pairs ({result.computed} run now, "
+            "the rest from the cache); the pairs ran in parallel, so the wall time is shorter",
+        ),
+        Stage(
+            "register-plot until this report",
+            result.seconds,
+            "pairs, pose graph and its checks, poses.json",
+        ),
         *_recorded(result),
     ]
     tables = []
     for r in result.plots:
-        tables += [(f"Plot {r.plot}: poses (plot frame)", pose_table(r.scans, r.solution.poses, r.solution.sigmas)),
-                   (f"Plot {r.plot}: edges", edge_table(G.subgraph(r.scans)))]
+        tables += [
+            (
+                f"Plot {r.plot}: poses (plot frame)",
+                pose_table(r.scans, r.solution.poses, r.solution.sigmas),
+            ),
+            (f"Plot {r.plot}: edges", edge_table(G.subgraph(r.scans))),
+        ]
     inp = ReportInput(
-        title="register-plot report", out=out, graph=G, poses=poses,
+        title="register-plot report",
+        out=out,
+        graph=G,
+        poses=poses,
         paths={n: Path(G.nodes[n]["path"]) for n in G.nodes if "path" in G.nodes[n]},
-        plots={r.plot: r.scans for r in result.plots}, reader=reader or _read_scan, stages=stages,
-        unplaced=result.unplaced, failed=result.failed, tables_md=tables,
-        facts=[f"manifest: {manifest.source}", "frame: the plot frame (each plot's reference scan)"],
-        min_confidence=getattr(getattr(config, "graph", None), "min_confidence", PoseGraphConfig().min_confidence),
-        bundle=residual_summary(G))
+        plots={r.plot: r.scans for r in result.plots},
+        reader=reader or _read_scan,
+        stages=stages,
+        unplaced=result.unplaced,
+        failed=result.failed,
+        tables_md=tables,
+        facts=[
+            f"manifest: {manifest.source}",
+            "frame: the plot frame (each plot's reference scan)",
+        ],
+        min_confidence=getattr(
+            getattr(config, "graph", None), "min_confidence", PoseGraphConfig().min_confidence
+        ),
+        bundle=residual_summary(G),
+    )
     cfg = ReportConfig(picture_points=getattr(config, "report_points", 20_000))
     _, figures = build_report(inp, cfg, seed, overview=True)
     for r in result.plots:
@@ -232,66 +323,146 @@ def write_register_report(result, manifest, config, seed: int, reader: Callable[
         if r.unplaced:
             lines += [f"Not placed: **{', '.join(r.unplaced)}**.", ""]
         if r.solution.dropped:
-            lines += ["Dropped edges (inconsistent): " + ", ".join(f"{d['source']} -> {d['target']} ({d['reason']})" for d in r.solution.dropped), ""]
+            lines += [
+                "Dropped edges (inconsistent): "
+                + ", ".join(
+                    f"{d['source']} -> {d['target']} ({d['reason']})" for d in r.solution.dropped
+                ),
+                "",
+            ]
         if s["edges"]:
-            lines += [(f"Kept-edge residuals after optimisation: translation RMS {s['translation_rms'] * 100:.2f} cm "
-                      f"(max {s['translation_max'] * 100:.2f}), rotation RMS {s['rotation_rms_deg']:.3f} deg "
-                      f"(max {s['rotation_max_deg']:.3f})."), ""]
+            lines += [
+                (
+                    f"Kept-edge residuals after optimisation: translation RMS {s['translation_rms'] * 100:.2f} cm "
+                    f"(max {s['translation_max'] * 100:.2f}), rotation RMS {s['rotation_rms_deg']:.3f} deg "
+                    f"(max {s['rotation_max_deg']:.3f})."
+                ),
+                "",
+            ]
         lines += ["### Poses", ""] + pose_table(r.scans, r.solution.poses, r.solution.sigmas) + [""]
-        lines += ["### Edges", "", "Residuals before = at the spanning-tree initialisation, after = at the optimised poses.", ""]
+        lines += [
+            "### Edges",
+            "",
+            "Residuals before = at the spanning-tree initialisation, after = at the optimised poses.",
+            "",
+        ]
         lines += edge_table(sub) + [""]
         failed = [f for f in result.failed if f["source"] in r.scans]
         if failed:
-            lines += ["### Failed pairs", ""] + [f"- {f['source']} -> {f['target']}: {f.get('error')}" for f in failed] + [""]
-        graph_png = plot_graph(out / f"{r.plot}_graph.png", sub, r.solution.poses, f"plot {r.plot}: pose graph")
+            lines += (
+                ["### Failed pairs", ""]
+                + [f"- {f['source']} -> {f['target']}: {f.get('error')}" for f in failed]
+                + [""]
+            )
+        graph_png = plot_graph(
+            out / f"{r.plot}_graph.png", sub, r.solution.poses, f"plot {r.plot}: pose graph"
+        )
         lines += _md_figures(figures, r.plot) + [f"![graph]({graph_png.name})", ""]
     return write_text_atomic(out / "report.md", "\n".join(lines))
 
 
-def write_tie_report(result, manifest, als, config, seed: int, reader: Callable[[Path], np.ndarray] | None = None) -> Path:
+def write_tie_report(
+    result, manifest, als, config, seed: int, reader: Callable[[Path], np.ndarray] | None = None
+) -> Path:
     """report.md and report.html of tie-to-als: anchors, poses in the ALS CRS, slice and distances, map over the ALS CHM."""
     from plotmosaic.graph.posegraph import PoseGraphConfig
     from plotmosaic.report.build import ReportInput, Stage, build_report
     from plotmosaic.report.config import ReportConfig
 
     out, G = result.out, result.graph
-    lines = ["# tie-to-als report", "", f"- manifest: `{manifest.source}`",
-             f"- region solved in ALS CRS minus offset ({', '.join(f'{v:.0f}' for v in result.offset)})",
-             f"- plot -> ALS registrations: {len(result.anchors)} ({result.computed} run now, rest cached)", "",
-             ("The same in one page, with the breast-height slice, cloud-to-cloud distances and a map over the ALS "
-             "canopy height: [report.html](report.html)"), ""]
+    lines = [
+        "# tie-to-als report",
+        "",
+        f"- manifest: `{manifest.source}`",
+        f"- region solved in ALS CRS minus offset ({', '.join(f'{v:.0f}' for v in result.offset)})",
+        f"- plot -> ALS registrations: {len(result.anchors)} ({result.computed} run now, rest cached)",
+        "",
+        (
+            "The same in one page, with the breast-height slice, cloud-to-cloud distances and a map over the ALS "
+            "canopy height: [report.html](report.html)"
+        ),
+        "",
+    ]
     if result.unplaced:
         lines += [f"**Not placed**: {', '.join(result.unplaced)}", ""]
-    anchor_rows = ["| plot | reference scan | status | fitness | inlier RMSE (cm) | overlap | ALS crop | anchor residual (cm / deg) |",
-                   "|---|---|---|---|---|---|---|---|"]
+    anchor_rows = [
+        "| plot | reference scan | status | fitness | inlier RMSE (cm) | overlap | ALS crop | anchor residual (cm / deg) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for a in result.anchors:
         r = a.residual
         res = "-" if not r else f"{r['translation'] * 100:.2f} / {r['rotation_deg']:.3f}"
         status = a.status if a.status == "ok" else f"failed: {a.error}"
-        anchor_rows.append(f"| {a.plot} | {a.reference} | {status} | {_fmt(a.fitness, 1, 3)} | {_fmt(a.inlier_rmse, 100, 2)} "
-                           f"| {_fmt(a.overlap, 1, 3)} | {a.crop} | {res} |")
-    pose_rows = pose_table([s.id for s in manifest.scans], {k: v.transform for k, v in result.poses.scans.items()},
-                           {k: v.sigma for k, v in result.poses.scans.items()})
+        anchor_rows.append(
+            f"| {a.plot} | {a.reference} | {status} | {_fmt(a.fitness, 1, 3)} | {_fmt(a.inlier_rmse, 100, 2)} "
+            f"| {_fmt(a.overlap, 1, 3)} | {a.crop} | {res} |"
+        )
+    pose_rows = pose_table(
+        [s.id for s in manifest.scans],
+        {k: v.transform for k, v in result.poses.scans.items()},
+        {k: v.sigma for k, v in result.poses.scans.items()},
+    )
     edge_rows = edge_table(G)
-    lines += ["## Anchors (plot -> ALS)", "", *anchor_rows, "", "## Poses (ALS CRS)", "", *pose_rows, "",
-              "## Edges", "", *edge_rows, ""]
+    lines += [
+        "## Anchors (plot -> ALS)",
+        "",
+        *anchor_rows,
+        "",
+        "## Poses (ALS CRS)",
+        "",
+        *pose_rows,
+        "",
+        "## Edges",
+        "",
+        *edge_rows,
+        "",
+    ]
     poses = {k: v.transform for k, v in result.poses.scans.items()}
     plots = {p.id: [s.id for s in p.scans] for p in manifest.plots}
-    anchor_s = [e.get("seconds") for *_, e in G.edges(data=True) if e.get("anchor") and isinstance(e.get("seconds"), (int, float))]
-    stages = [Stage("plot -> ALS registration", float(sum(anchor_s)) if anchor_s else None,
-                    f"sum of the per-pair times of {len(anchor_s)} anchor pairs ({result.computed} run now)"),
-              Stage("tie-to-als until this report", result.seconds or None,
-                    "" if result.seconds else "tie-to-als does not record its time before the report is written"),
-              *_recorded(result)]
+    anchor_s = [
+        e.get("seconds")
+        for *_, e in G.edges(data=True)
+        if e.get("anchor") and isinstance(e.get("seconds"), (int, float))
+    ]
+    stages = [
+        Stage(
+            "plot -> ALS registration",
+            float(sum(anchor_s)) if anchor_s else None,
+            f"sum of the per-pair times of {len(anchor_s)} anchor pairs ({result.computed} run now)",
+        ),
+        Stage(
+            "tie-to-als until this report",
+            result.seconds or None,
+            ""
+            if result.seconds
+            else "tie-to-als does not record its time before the report is written",
+        ),
+        *_recorded(result),
+    ]
     als_xyz = _als_near(als.xyz, poses, 40.0)
     inp = ReportInput(
-        title="tie-to-als report (georeferenced)", out=out, graph=G, poses=poses,
-        paths={s.id: manifest.resolve(s.path) for s in manifest.scans}, plots=plots, reader=reader or _read_scan,
-        stages=stages, unplaced=result.unplaced,
-        tables_md=[("Anchors (plot -> ALS)", anchor_rows), ("Poses (ALS CRS)", pose_rows), ("Edges", edge_rows)],
-        facts=[f"manifest: {manifest.source}", "frame: the ALS CRS"] + [_anchor_fact(a) for a in result.anchors], als_xyz=als_xyz,
-        min_confidence=getattr(getattr(config, "graph", None), "min_confidence", PoseGraphConfig().min_confidence),
-        bundle=residual_summary(G))
+        title="tie-to-als report (georeferenced)",
+        out=out,
+        graph=G,
+        poses=poses,
+        paths={s.id: manifest.resolve(s.path) for s in manifest.scans},
+        plots=plots,
+        reader=reader or _read_scan,
+        stages=stages,
+        unplaced=result.unplaced,
+        tables_md=[
+            ("Anchors (plot -> ALS)", anchor_rows),
+            ("Poses (ALS CRS)", pose_rows),
+            ("Edges", edge_rows),
+        ],
+        facts=[f"manifest: {manifest.source}", "frame: the ALS CRS"]
+        + [_anchor_fact(a) for a in result.anchors],
+        als_xyz=als_xyz,
+        min_confidence=getattr(
+            getattr(config, "graph", None), "min_confidence", PoseGraphConfig().min_confidence
+        ),
+        bundle=residual_summary(G),
+    )
     cfg = ReportConfig(picture_points=getattr(config, "report_points", 20_000))
     _, figures = build_report(inp, cfg, seed, overview=True)
     for p in plots:
@@ -303,12 +474,20 @@ def _anchor_fact(a) -> str:
     if a.status != "ok":
         return f"plot {a.plot} -> ALS: failed ({a.error})"
     r = a.residual
-    res = f", {r['translation'] * 100:.2f} cm / {r['rotation_deg']:.3f} deg off the joint solution" if r else ""
-    return (f"plot {a.plot} -> ALS (through {a.reference}): fitness {_fmt(a.fitness, 1, 3)}, "
-            f"inlier RMSE {_fmt(a.inlier_rmse, 100, 1)} cm{res}")
+    res = (
+        f", {r['translation'] * 100:.2f} cm / {r['rotation_deg']:.3f} deg off the joint solution"
+        if r
+        else ""
+    )
+    return (
+        f"plot {a.plot} -> ALS (through {a.reference}): fitness {_fmt(a.fitness, 1, 3)}, "
+        f"inlier RMSE {_fmt(a.inlier_rmse, 100, 1)} cm{res}"
+    )
 
 
-def _als_near(als_xyz: np.ndarray, poses: dict[str, np.ndarray], margin: float) -> np.ndarray | None:
+def _als_near(
+    als_xyz: np.ndarray, poses: dict[str, np.ndarray], margin: float
+) -> np.ndarray | None:
     """ALS points within `margin` of the scanners' bounding box: the map's canopy-height background."""
     if not len(als_xyz) or not poses:
         return None

@@ -15,7 +15,9 @@ from plotmosaic.io.frame import inverse
 
 def _pose(rng: np.random.Generator, x: float, y: float) -> np.ndarray:
     T = np.eye(4)
-    T[:3, :3] = gtsam.Rot3.Ypr(rng.uniform(-np.pi, np.pi), np.radians(rng.normal(0, 1)), np.radians(rng.normal(0, 1))).matrix()
+    T[:3, :3] = gtsam.Rot3.Ypr(
+        rng.uniform(-np.pi, np.pi), np.radians(rng.normal(0, 1)), np.radians(rng.normal(0, 1))
+    ).matrix()
     T[:3, 3] = [x + rng.normal(0, 1), y + rng.normal(0, 1), rng.normal(0, 0.3)]
     return T
 
@@ -30,8 +32,14 @@ def _information(rng: np.random.Generator, n: int = 200, sigma: float = 0.003) -
     return J.T @ J / sigma**2
 
 
-def grid_graph(n_scans: int, wrong_share: float = 0.05, spacing: float = 15.0, seed: int = 0,
-               rot_noise_deg: float = 0.002, trans_noise: float = 0.0005):
+def grid_graph(
+    n_scans: int,
+    wrong_share: float = 0.05,
+    spacing: float = 15.0,
+    seed: int = 0,
+    rot_noise_deg: float = 0.002,
+    trans_noise: float = 0.0005,
+):
     """(truth poses, nodes, edges, wrong edge ids): scans on a near-square grid, edges to the 8 grid neighbours.
 
     Truth is in the frame of scan "s0000" (the reference). Wrong edges are off by 3-20 deg and 1-5 m.
@@ -55,7 +63,9 @@ def grid_graph(n_scans: int, wrong_share: float = 0.05, spacing: float = 15.0, s
     edges = []
     for source, target in pairs:
         T = inverse(truth[target]) @ truth[source]
-        xi = np.concatenate([np.radians(rng.normal(0, rot_noise_deg, 3)), rng.normal(0, trans_noise, 3)])
+        xi = np.concatenate(
+            [np.radians(rng.normal(0, rot_noise_deg, 3)), rng.normal(0, trans_noise, 3)]
+        )
         T = T @ gtsam.Pose3.Expmap(xi).matrix()
         if (source, target) in wrong:
             axis = rng.normal(size=3) * [0.1, 0.1, 1.0]
@@ -63,7 +73,17 @@ def grid_graph(n_scans: int, wrong_share: float = 0.05, spacing: float = 15.0, s
             shift = rng.normal(size=3) * [1, 1, 0.2]
             shift *= rng.uniform(1, 5) / np.linalg.norm(shift)
             T = T @ gtsam.Pose3.Expmap(np.concatenate([angle, shift])).matrix()
-        edges.append({"source": source, "target": target, "transform": T, "fitness": 0.8, "inlier_rmse": 0.01,
-                      "overlap": 0.6, "confidence": 0.9, "information": _information(rng)})
+        edges.append(
+            {
+                "source": source,
+                "target": target,
+                "transform": T,
+                "fitness": 0.8,
+                "inlier_rmse": 0.01,
+                "overlap": 0.6,
+                "confidence": 0.9,
+                "information": _information(rng),
+            }
+        )
     nodes = {n: {"kind": "tls", "plot": "P1"} for n in names}
     return truth, nodes, edges, sorted(wrong)

@@ -2,7 +2,14 @@
 
 from plotmosaic.io.atomic import atomic_output
 from plotmosaic.io.frame import Frame
-from plotmosaic.io.las import PointCloud, file_format, iter_chunks, read_cloud, read_crs, read_header_info, write_cloud
+from plotmosaic.io.las import (
+    PointCloud,
+    file_format,
+    iter_chunks,
+    read_cloud,
+    read_header_info,
+    write_cloud,
+)
 
 __all__ = [
     "Frame",
@@ -11,7 +18,6 @@ __all__ = [
     "file_format",
     "iter_chunks",
     "read_cloud",
-    "read_crs",
     "read_header_info",
     "write_cloud",
 ]

@@ -19,7 +19,9 @@ from pathlib import Path
 from plotmosaic.errors import InputError
 
 TEMP_NAME = re.compile(r"^\..+\.tmp-(\d+)$")  # our own temporaries: `.NAME.tmp-PID`
-NAME_MAX = 255  # bytes per path component on every common file system (ext4, xfs, btrfs, NTFS, APFS)
+NAME_MAX = (
+    255  # bytes per path component on every common file system (ext4, xfs, btrfs, NTFS, APFS)
+)
 _cleaned: set[str] = set()  # folders already swept for stale temporaries in this process
 
 
@@ -56,7 +58,9 @@ def remove_stale_temporaries(folder: str | Path) -> list[Path]:
         if not m or entry.is_symlink() or _alive(int(m.group(1))):
             continue
         with contextlib.suppress(OSError):
-            if entry.is_dir(follow_symlinks=False):  # a temporary folder (merge's tiles and spill files)
+            if entry.is_dir(
+                follow_symlinks=False
+            ):  # a temporary folder (merge's tiles and spill files)
                 shutil.rmtree(entry.path)
             else:
                 os.unlink(entry.path)
@@ -67,12 +71,19 @@ def remove_stale_temporaries(folder: str | Path) -> list[Path]:
 def _check_names(path: Path) -> None:
     for part in path.parts:
         if len(os.fsencode(part)) > NAME_MAX:
-            raise InputError(f"{path}: the name {part[:40]}... is {len(os.fsencode(part))} bytes long, "
-                             f"more than the {NAME_MAX} a file system allows")
+            raise InputError(
+                f"{path}: the name {part[:40]}... is {len(os.fsencode(part))} bytes long, "
+                f"more than the {NAME_MAX} a file system allows"
+            )
     # the temporary's name is the longest one we write
-    name, extra = len(os.fsencode(path.name)), len(os.fsencode(_temp_name(path).name)) - len(os.fsencode(path.name))
+    name, extra = (
+        len(os.fsencode(path.name)),
+        len(os.fsencode(_temp_name(path).name)) - len(os.fsencode(path.name)),
+    )
     if name + extra > NAME_MAX:
-        raise InputError(f"{path}: the file name is {name} bytes long, at most {NAME_MAX - extra} can be written")
+        raise InputError(
+            f"{path}: the file name is {name} bytes long, at most {NAME_MAX - extra} can be written"
+        )
 
 
 def _existing_ancestor(folder: Path) -> Path:
@@ -114,7 +125,9 @@ def _probe(folder: Path, what: Path) -> None:
                 d.rmdir()
 
 
-def check_writable(path: Path, force: bool = True, create: bool = True, probe: bool = False) -> Path:
+def check_writable(
+    path: Path, force: bool = True, create: bool = True, probe: bool = False
+) -> Path:
     """`path` can be written as a file: not a folder, (with force=False) not existing, its folder usable.
 
     create=True makes the missing parent folders (what a writer needs); probe=True writes and removes a
@@ -132,7 +145,9 @@ def check_writable(path: Path, force: bool = True, create: bool = True, probe: b
         try:
             parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise InputError(f"{path}: cannot create output folder ({exc.strerror or exc})") from None
+            raise InputError(
+                f"{path}: cannot create output folder ({exc.strerror or exc})"
+            ) from None
     if parent.exists() and not os.access(parent, os.W_OK):
         raise InputError(f"{path}: output folder {parent} is not writable")
     if probe:

@@ -58,7 +58,9 @@ class E57Scan:
     fields: tuple[str, ...]
     pose: np.ndarray | None  # 4x4 scan -> file frame, None when the file stores none
     bounds: tuple[np.ndarray, np.ndarray] | None  # cartesianBounds (scan frame), when stored
-    pose_problem: str | None = None  # why a stored pose was unusable (an error only where the pose is used)
+    pose_problem: str | None = (
+        None  # why a stored pose was unusable (an error only where the pose is used)
+    )
 
     @property
     def label(self) -> str:
@@ -174,8 +176,16 @@ def _describe(node, index: int) -> E57Scan:
         pose, problem = _pose(node), None
     except Exception as exc:  # the points are still usable: registration does not need the pose
         pose, problem = None, _short(exc)
-    return E57Scan(index, _string(node, "name"), _string(node, "guid"), int(points.childCount()), fields, pose,
-                   _bounds(node), problem)
+    return E57Scan(
+        index,
+        _string(node, "name"),
+        _string(node, "guid"),
+        int(points.childCount()),
+        fields,
+        pose,
+        _bounds(node),
+        problem,
+    )
 
 
 def list_scans(path: str | Path) -> list[E57Scan]:
@@ -198,7 +208,9 @@ def scan_list_text(scans: list[E57Scan]) -> str:
     return ", ".join(f"{s.index} {s.name!r}" if s.name else str(s.index) for s in scans)
 
 
-def select_scan(path: str | Path, selector: int | str | None, scans: list[E57Scan] | None = None) -> E57Scan:
+def select_scan(
+    path: str | Path, selector: int | str | None, scans: list[E57Scan] | None = None
+) -> E57Scan:
     """The scan a manifest means: an index, a name or GUID, or (None) the only scan of the file."""
     path = Path(path)
     scans = list_scans(path) if scans is None else scans
@@ -207,7 +219,9 @@ def select_scan(path: str | Path, selector: int | str | None, scans: list[E57Sca
     if selector is None:
         if len(scans) > 1:
             listing = scan_list_text(scans)
-            raise InputError(f"{path}: holds {len(scans)} scans, say which with `scan = INDEX or NAME` ({listing})")
+            raise InputError(
+                f"{path}: holds {len(scans)} scans, say which with `scan = INDEX or NAME` ({listing})"
+            )
         return scans[0]
     if isinstance(selector, int):
         if not 0 <= selector < len(scans):
@@ -255,7 +269,9 @@ def attribute_names(scan: E57Scan) -> list[str]:
     return [las_names[f] for f in _wanted(scan.fields, True)]
 
 
-def _limits(node, group: str, lo_name: str, hi_name: str, default: tuple[float, float]) -> tuple[float, float]:
+def _limits(
+    node, group: str, lo_name: str, hi_name: str, default: tuple[float, float]
+) -> tuple[float, float]:
     g = _child(node, group)
     if g is not None:
         g = _libe57().StructureNode(g)
@@ -314,7 +330,9 @@ def iter_e57_chunks(
         elif all(f in scan.fields for f in _RAE):
             coords, state = _RAE, "sphericalInvalidState"
         else:
-            raise InputError(f"{where}: neither cartesian nor spherical coordinates (fields: {', '.join(scan.fields)})")
+            raise InputError(
+                f"{where}: neither cartesian nor spherical coordinates (fields: {', '.join(scan.fields)})"
+            )
         extra = _wanted(scan.fields, attributes)
         n = max(1, min(chunk_size, scan.point_count))
         arrays = {f: np.empty(n, np.float64) for f in coords}
@@ -322,14 +340,23 @@ def iter_e57_chunks(
         if state in scan.fields:
             arrays[state] = np.empty(n, np.int8)
         # per-point "no value" flags of intensity / colour: such values are written as 0
-        flags = {f: flag for f, flag in (("intensity", "isIntensityInvalid"), ("colorRed", "isColorInvalid"))
-                 if f in extra and flag in scan.fields}
+        flags = {
+            f: flag
+            for f, flag in (("intensity", "isIntensityInvalid"), ("colorRed", "isColorInvalid"))
+            if f in extra and flag in scan.fields
+        }
         if "colorRed" in flags:
             flags.update({"colorGreen": "isColorInvalid", "colorBlue": "isColorInvalid"})
         for flag in set(flags.values()):
             arrays[flag] = np.empty(n, np.int8)
         ilim = (
-            _limits(node, "intensityLimits", "intensityMinimum", "intensityMaximum", _field_range(proto, "intensity"))
+            _limits(
+                node,
+                "intensityLimits",
+                "intensityMinimum",
+                "intensityMaximum",
+                _field_range(proto, "intensity"),
+            )
             if "intensity" in extra
             else None
         )
@@ -350,13 +377,17 @@ def iter_e57_chunks(
                 try:
                     got = reader.read()
                 except Exception as exc:
-                    raise InputError(f"{where}: corrupt or truncated point data ({_short(exc)})") from None
+                    raise InputError(
+                        f"{where}: corrupt or truncated point data ({_short(exc)})"
+                    ) from None
                 if got == 0:
                     break
                 keep = slice(0, got)
                 valid = arrays[state][keep] == 0 if state in arrays else np.ones(got, bool)
                 c = [arrays[f][keep][valid] for f in coords]
-                if coords is _RAE:  # E57 spherical: azimuth from +x towards +y, elevation from the xy plane
+                if (
+                    coords is _RAE
+                ):  # E57 spherical: azimuth from +x towards +y, elevation from the xy plane
                     r, az, el = c
                     c = [r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)]
                 attrs = {}

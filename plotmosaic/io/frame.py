@@ -24,7 +24,7 @@ class Frame:
     offset: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     @classmethod
-    def around(cls, xyz: np.ndarray, step: float = 1.0) -> "Frame":
+    def around(cls, xyz: np.ndarray, step: float = 1.0) -> Frame:
         """A frame centred on the cloud's bounding box, offset rounded to `step` metres."""
         xyz = np.asarray(xyz, dtype=np.float64)
         if len(xyz) == 0:
@@ -39,18 +39,23 @@ class Frame:
     def to_global(self, xyz: np.ndarray) -> np.ndarray:
         return np.asarray(xyz, dtype=np.float64) + self.offset
 
-    def to_dict(self) -> dict:
-        return {"offset": [float(v) for v in self.offset]}
-
 
 def to_global_transform(T_local: np.ndarray, source: Frame, target: Frame) -> np.ndarray:
     """Transform mapping source file coordinates to target file coordinates."""
-    return translation(target.offset) @ np.asarray(T_local, dtype=np.float64) @ translation(-source.offset)
+    return (
+        translation(target.offset)
+        @ np.asarray(T_local, dtype=np.float64)
+        @ translation(-source.offset)
+    )
 
 
 def to_local_transform(T_global: np.ndarray, source: Frame, target: Frame) -> np.ndarray:
     """Inverse of `to_global_transform`: a file-coordinate transform expressed between local frames."""
-    return translation(-target.offset) @ np.asarray(T_global, dtype=np.float64) @ translation(source.offset)
+    return (
+        translation(-target.offset)
+        @ np.asarray(T_global, dtype=np.float64)
+        @ translation(source.offset)
+    )
 
 
 def apply_transform(T: np.ndarray, xyz: np.ndarray) -> np.ndarray:
@@ -77,4 +82,6 @@ def rotation_deg(T: np.ndarray) -> float:
 
 def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     """(rotation deg, translation m) between two poses."""
-    return rotation_deg(inverse(T_true) @ T_est), float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
+    return rotation_deg(inverse(T_true) @ T_est), float(
+        np.linalg.norm(T_est[:3, 3] - T_true[:3, 3])
+    )

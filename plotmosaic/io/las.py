@@ -50,12 +50,14 @@ class PointCloud:
         self.xyz = np.ascontiguousarray(self.xyz, dtype=np.float64).reshape(-1, 3)
         for name, values in self.attrs.items():
             if len(values) != len(self.xyz):
-                raise ValueError(f"attribute {name!r} has {len(values)} values for {len(self.xyz)} points")
+                raise ValueError(
+                    f"attribute {name!r} has {len(values)} values for {len(self.xyz)} points"
+                )
 
     def __len__(self) -> int:
         return len(self.xyz)
 
-    def select(self, index: np.ndarray) -> "PointCloud":
+    def select(self, index: np.ndarray) -> PointCloud:
         return PointCloud(self.xyz[index], {k: v[index] for k, v in self.attrs.items()}, self.crs)
 
 
@@ -91,7 +93,7 @@ READ_SUFFIXES = (".las", ".laz", ".e57", ".ply")
 
 
 def file_format(path: str | Path) -> str:
-    """"las", "e57" or "ply" from the suffix (an E57 reference path `FILE.e57#INDEX` is "e57")."""
+    """ "las", "e57" or "ply" from the suffix (an E57 reference path `FILE.e57#INDEX` is "e57")."""
     if e57.is_e57(path):
         return "e57"
     return "ply" if Path(path).suffix.lower() == ".ply" else "las"
@@ -156,10 +158,6 @@ def read_header_info(path: str | Path) -> HeaderInfo:
         )
 
 
-def read_crs(path: str | Path) -> CRS | None:
-    return read_header_info(path).crs
-
-
 def _wanted_attributes(header: laspy.LasHeader, attributes: bool | Iterable[str]) -> list[str]:
     present = set(header.point_format.dimension_names)
     if attributes is True:
@@ -177,8 +175,11 @@ def iter_chunks(
     """Yield the file as PointCloud chunks of at most `chunk_size` points."""
     path = _check_file(Path(path))
     if file_format(path) != "las":  # E57 blocks at most 1M points: libE57's buffers are per field
-        blocks = e57.iter_e57_chunks(path, min(chunk_size, e57.CHUNK_SIZE), attributes) if file_format(path) == "e57" \
+        blocks = (
+            e57.iter_e57_chunks(path, min(chunk_size, e57.CHUNK_SIZE), attributes)
+            if file_format(path) == "e57"
             else ply.iter_ply_chunks(path, chunk_size, attributes)
+        )
         for xyz, attrs in blocks:
             yield PointCloud(xyz, attrs)
         return
@@ -187,16 +188,22 @@ def iter_chunks(
         names = _wanted_attributes(reader.header, attributes)
         try:
             for chunk in reader.chunk_iterator(chunk_size):
-                xyz = np.column_stack([np.asarray(chunk.x), np.asarray(chunk.y), np.asarray(chunk.z)])
+                xyz = np.column_stack(
+                    [np.asarray(chunk.x), np.asarray(chunk.y), np.asarray(chunk.z)]
+                )
                 attrs = {n: np.array(chunk[n]) for n in names}
                 yield PointCloud(xyz, attrs, crs)
         except InputError:
             raise
         except Exception as exc:
-            raise InputError(f"{path}: corrupt or truncated LAS/LAZ data ({short_error(exc)})") from None
+            raise InputError(
+                f"{path}: corrupt or truncated LAS/LAZ data ({short_error(exc)})"
+            ) from None
 
 
-def read_cloud(path: str | Path, attributes: bool | Iterable[str] = True, min_points: int = 1) -> PointCloud:
+def read_cloud(
+    path: str | Path, attributes: bool | Iterable[str] = True, min_points: int = 1
+) -> PointCloud:
     """Read a whole point-cloud file as float64 xyz (+ attributes), validating it on the way."""
     path = _check_file(Path(path))
     if file_format(path) != "las":
@@ -237,7 +244,11 @@ _OTHER_INFO: dict[tuple[str, int, int], HeaderInfo] = {}
 
 def _read_other(path: Path, attributes: bool | Iterable[str], min_points: int) -> PointCloud:
     """E57 / PLY: the chunks copied into arrays of the record count, cut to the valid points."""
-    count = e57.resolve_scan(path)[1].point_count if file_format(path) == "e57" else ply.point_count(path)
+    count = (
+        e57.resolve_scan(path)[1].point_count
+        if file_format(path) == "e57"
+        else ply.point_count(path)
+    )
     xyz = np.empty((count, 3), dtype=np.float64)
     attrs: dict[str, np.ndarray] = {}
     n = 0
@@ -277,12 +288,19 @@ def _other_header_info(path: Path) -> HeaderInfo:
             raise InputError(f"{file}: {scan.label}: contains no points")
     else:
         file = path
-        count, names, bounds, version = ply.point_count(path), ply.attribute_names(path), None, "PLY"
+        count, names, bounds, version = (
+            ply.point_count(path),
+            ply.attribute_names(path),
+            None,
+            "PLY",
+        )
     st = file.stat()
     memo = (str(path), st.st_mtime_ns, st.st_size)
     if memo in _OTHER_INFO:
         return _OTHER_INFO[memo]
-    box = bounds if bounds is not None else partial(_streamed_bounds, str(path))  # a partial: pickles
+    box = (
+        bounds if bounds is not None else partial(_streamed_bounds, str(path))
+    )  # a partial: pickles
     info = HeaderInfo(path, count, -1, version, box, None, ("X", "Y", "Z", *names))
     _OTHER_INFO[memo] = info
     return info
@@ -305,13 +323,17 @@ class CloudRecordReader:
         self.info = read_header_info(path)
         attrs = [n for n in self.info.dimensions if n not in ("X", "Y", "Z")]
         self.extra = {}
-        for chunk in iter_chunks(path, chunk_size=1):  # the extra attributes' dtypes, from one point
-            self.extra = {n: v.dtype for n, v in chunk.attrs.items() if n not in STANDARD_ATTRIBUTES}
+        for chunk in iter_chunks(
+            path, chunk_size=1
+        ):  # the extra attributes' dtypes, from one point
+            self.extra = {
+                n: v.dtype for n, v in chunk.attrs.items() if n not in STANDARD_ATTRIBUTES
+            }
             break
         # nominal header (fields, extra dims); each chunk's records carry their own offsets
         self.header = make_header(attrs, self.extra, None, np.zeros(3), OTHER_SCALE)
 
-    def __enter__(self) -> "CloudRecordReader":
+    def __enter__(self) -> CloudRecordReader:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -325,7 +347,13 @@ class CloudRecordReader:
             if not len(chunk):
                 continue
             # offsets per chunk: stored bounds (cartesianBounds) need not hold the points
-            header = make_header(chunk.attrs.keys(), self.extra, None, las_offsets(chunk.xyz.min(axis=0)), OTHER_SCALE)
+            header = make_header(
+                chunk.attrs.keys(),
+                self.extra,
+                None,
+                las_offsets(chunk.xyz.min(axis=0)),
+                OTHER_SCALE,
+            )
             yield make_record(header, chunk.xyz, chunk.attrs)
 
 
@@ -357,7 +385,9 @@ def make_header(
     return header
 
 
-def make_record(header: laspy.LasHeader, xyz: np.ndarray, attrs: dict[str, np.ndarray]) -> laspy.ScaleAwarePointRecord:
+def make_record(
+    header: laspy.LasHeader, xyz: np.ndarray, attrs: dict[str, np.ndarray]
+) -> laspy.ScaleAwarePointRecord:
     """Points for `header` from float64 xyz and attribute arrays (unknown attributes are dropped)."""
     record = laspy.ScaleAwarePointRecord.zeros(len(xyz), header=header)
     xyz = np.asarray(xyz, dtype=np.float64)
@@ -394,8 +424,14 @@ def write_cloud(
     mins = cloud.xyz.min(axis=0) if len(cloud) else np.zeros(3)
     header = make_header(cloud.attrs.keys(), _extra_dims(cloud), crs, las_offsets(mins), scale)
     with atomic_output(path, force=force) as tmp:
-        with laspy.open(tmp, mode="w", header=header, do_compress=path.suffix.lower() == ".laz") as writer:
+        with laspy.open(
+            tmp, mode="w", header=header, do_compress=path.suffix.lower() == ".laz"
+        ) as writer:
             for start in range(0, len(cloud), chunk_size):
                 part = slice(start, start + chunk_size)
-                writer.write_points(make_record(header, cloud.xyz[part], {k: v[part] for k, v in cloud.attrs.items()}))
+                writer.write_points(
+                    make_record(
+                        header, cloud.xyz[part], {k: v[part] for k, v in cloud.attrs.items()}
+                    )
+                )
     return path

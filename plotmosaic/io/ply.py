@@ -54,7 +54,9 @@ def _vertices(path: Path):
     names = array.dtype.names or ()
     missing = [c for c in "xyz" if c not in names]
     if missing:
-        raise InputError(f"{path}: PLY vertices lack {', '.join(missing)} (properties: {', '.join(names)})")
+        raise InputError(
+            f"{path}: PLY vertices lack {', '.join(missing)} (properties: {', '.join(names)})"
+        )
     return array
 
 
@@ -62,7 +64,9 @@ def _vertex_header(path: Path) -> tuple[int, np.dtype]:
     """(vertex count, vertex dtype) from the header alone: an ASCII body is not parsed for them."""
     try:
         with open(path, "rb") as f:
-            header = PlyData._parse_header(f)  # plyfile 1.x; the header parser PlyData.read itself uses
+            header = PlyData._parse_header(
+                f
+            )  # plyfile 1.x; the header parser PlyData.read itself uses
         vertex = header["vertex"]
         return int(vertex.count), np.dtype(vertex.dtype())
     except (AttributeError, TypeError):  # a plyfile without that helper: read the file
@@ -93,7 +97,9 @@ def _layout(dtype: np.dtype) -> dict[str, str]:
     return out
 
 
-def _to_uint16(values: np.ndarray, full_range: tuple[float, float] | None) -> tuple[np.ndarray, bool]:
+def _to_uint16(
+    values: np.ndarray, full_range: tuple[float, float] | None
+) -> tuple[np.ndarray, bool]:
     """LAS uint16 values and whether that was exact (uint8 is stretched by 257, floats by their range)."""
     dt = values.dtype
     if dt == np.uint16:
@@ -139,10 +145,17 @@ def iter_ply_chunks(
         layout = {}
     elif attributes is not True:
         wanted = set(attributes)
-        layout = {p: a for p, a in layout.items() if a in wanted or (a == "intensity" and "intensity_raw" in wanted)}
+        layout = {
+            p: a
+            for p, a in layout.items()
+            if a in wanted or (a == "intensity" and "intensity_raw" in wanted)
+        }
     ranges = {}
     for ply, las in layout.items():  # one whole-column pass, so every chunk maps values alike
-        if las in ("intensity", "red", "green", "blue") and array.dtype[ply] not in (np.uint8, np.uint16):
+        if las in ("intensity", "red", "green", "blue") and array.dtype[ply] not in (
+            np.uint8,
+            np.uint16,
+        ):
             col = np.asarray(array[ply])
             ranges[ply] = (float(np.nanmin(col)), float(np.nanmax(col)))
     try:

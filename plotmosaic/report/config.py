@@ -8,38 +8,143 @@ from pydantic import BaseModel, Field
 class SliceConfig(BaseModel):
     """Breast-height slice: where it is cut and how stems are found in it."""
 
-    height: float = Field(1.3, gt=0, le=5, description="breast height above the local ground (m), the forester's DBH height")
-    half_width: float = Field(0.05, gt=0, le=0.5, description="half thickness of the slice (m): thin enough for sharp rings")
-    dtm_cell: float = Field(1.0, gt=0.1, le=10, description="cell of the coarse ground model (m): lowest point per cell")
-    dtm_spike: float = Field(0.3, gt=0, le=5, description="a cell this much above the opened ground saw no ground (stem base, log)")
-    keep_low: float = Field(0.5, ge=0, le=1.2, description="per scan, points this close above its own cell minimum are ground, not kept")
-    keep_high: float = Field(2.5, ge=1.4, le=10, description="per scan, points this far above its own cell minimum cannot be in the slice")
-    stratum_voxel: float = Field(0.005, gt=0, le=0.05, description="one point per cube (m) of the kept low stratum: bounds memory, keeps mm rings")
-    stem_cell: float = Field(0.1, gt=0.005, le=0.5, description="raster cell that joins a stem's ring points into one cluster (m)")
-    stem_min_points: int = Field(8, ge=4, le=10_000, description="fewest slice points of one scan for a circle fit on its arc")
-    stem_max_radius: float = Field(0.6, gt=0.02, le=3, description="largest stem radius (m): bigger clusters are shrubs or logs")
-    stem_min_radius: float = Field(0.03, gt=0, le=0.5, description="smallest stem radius (m): smaller are saplings and twigs")
-    stem_arc_rmse: float = Field(0.015, gt=0, le=0.2, description="one scan's arc must fit a circle this well (m) to be a stem")
+    height: float = Field(
+        1.3,
+        gt=0,
+        le=5,
+        description="breast height above the local ground (m), the forester's DBH height",
+    )
+    half_width: float = Field(
+        0.05,
+        gt=0,
+        le=0.5,
+        description="half thickness of the slice (m): thin enough for sharp rings",
+    )
+    dtm_cell: float = Field(
+        1.0, gt=0.1, le=10, description="cell of the coarse ground model (m): lowest point per cell"
+    )
+    dtm_spike: float = Field(
+        0.3,
+        gt=0,
+        le=5,
+        description="a cell this much above the opened ground saw no ground (stem base, log)",
+    )
+    keep_low: float = Field(
+        0.5,
+        ge=0,
+        le=1.2,
+        description="per scan, points this close above its own cell minimum are ground, not kept",
+    )
+    keep_high: float = Field(
+        2.5,
+        ge=1.4,
+        le=10,
+        description="per scan, points this far above its own cell minimum cannot be in the slice",
+    )
+    stratum_voxel: float = Field(
+        0.005,
+        gt=0,
+        le=0.05,
+        description="one point per cube (m) of the kept low stratum: bounds memory, keeps mm rings",
+    )
+    stem_cell: float = Field(
+        0.1,
+        gt=0.005,
+        le=0.5,
+        description="raster cell that joins a stem's ring points into one cluster (m)",
+    )
+    stem_min_points: int = Field(
+        8,
+        ge=4,
+        le=10_000,
+        description="fewest slice points of one scan for a circle fit on its arc",
+    )
+    stem_max_radius: float = Field(
+        0.6,
+        gt=0.02,
+        le=3,
+        description="largest stem radius (m): bigger clusters are shrubs or logs",
+    )
+    stem_min_radius: float = Field(
+        0.03, gt=0, le=0.5, description="smallest stem radius (m): smaller are saplings and twigs"
+    )
+    stem_arc_rmse: float = Field(
+        0.015,
+        gt=0,
+        le=0.2,
+        description="one scan's arc must fit a circle this well (m) to be a stem",
+    )
     insets: int = Field(4, ge=0, le=12, description="zoomed stems drawn beside the slice")
 
 
 class DistanceConfig(BaseModel):
     """Cloud-to-cloud distances of registered scans (point to the other scan's local plane)."""
 
-    voxel: float = Field(0.02, gt=0.001, le=0.5, description="one point per cube of this size (m): evens TLS density, keeps cm detail")
-    max_points: int = Field(200_000, ge=1000, le=10_000_000, description="cap per scan after thinning: bounds memory and KD-tree time")
-    neighbourhood: float = Field(0.15, gt=0, le=2, description="the other scan must be dense within this radius (m): the overlap")
-    neighbours: int = Field(6, ge=3, le=64, description="points of the other scan that define its local plane")
-    colour_max: float = Field(0.05, gt=0, le=1, description="top of the distance colour scale (m): 5 cm shows cm errors")
-    edge_figures: int = Field(12, ge=0, le=200, description="edges drawn (the worst by median distance); all are in the table")
+    voxel: float = Field(
+        0.02,
+        gt=0.001,
+        le=0.5,
+        description="one point per cube of this size (m): evens TLS density, keeps cm detail",
+    )
+    max_points: int = Field(
+        200_000,
+        ge=1000,
+        le=10_000_000,
+        description="cap per scan after thinning: bounds memory and KD-tree time",
+    )
+    neighbourhood: float = Field(
+        0.15,
+        gt=0,
+        le=2,
+        description="the other scan must be dense within this radius (m): the overlap",
+    )
+    neighbours: int = Field(
+        6, ge=3, le=64, description="points of the other scan that define its local plane"
+    )
+    colour_max: float = Field(
+        0.05, gt=0, le=1, description="top of the distance colour scale (m): 5 cm shows cm errors"
+    )
+    edge_figures: int = Field(
+        12,
+        ge=0,
+        le=200,
+        description="edges drawn (the worst by median distance); all are in the table",
+    )
 
 
 class ReportConfig(BaseModel):
     slice: SliceConfig = Field(default_factory=SliceConfig)
     distance: DistanceConfig = Field(default_factory=DistanceConfig)
-    picture_points: int = Field(20_000, ge=1000, le=1_000_000, description="points per scan in the overview pictures")
-    view3d_points: int = Field(20_000, ge=0, le=1_000_000, description="points per scan in the interactive 3D view (0: none)")
-    view3d_total: int = Field(300_000, ge=1000, le=5_000_000, description="points over all scans in the 3D view: keeps the page under view3d_max_mb")
-    view3d_max_mb: float = Field(20.0, gt=0, le=200, description="the 3D page is skipped above this size: it must open quickly")
-    weak_ring_spread: float = Field(0.02, gt=0, le=1, description="a median ring spread above this (m) is flagged as doubled stems")
-    weak_distance: float = Field(0.03, gt=0, le=1, description="a scan's median distance to neighbours above this (m) is flagged")
+    picture_points: int = Field(
+        20_000, ge=1000, le=1_000_000, description="points per scan in the overview pictures"
+    )
+    view3d_points: int = Field(
+        20_000,
+        ge=0,
+        le=1_000_000,
+        description="points per scan in the interactive 3D view (0: none)",
+    )
+    view3d_total: int = Field(
+        300_000,
+        ge=1000,
+        le=5_000_000,
+        description="points over all scans in the 3D view: keeps the page under view3d_max_mb",
+    )
+    view3d_max_mb: float = Field(
+        20.0,
+        gt=0,
+        le=200,
+        description="the 3D page is skipped above this size: it must open quickly",
+    )
+    weak_ring_spread: float = Field(
+        0.02,
+        gt=0,
+        le=1,
+        description="a median ring spread above this (m) is flagged as doubled stems",
+    )
+    weak_distance: float = Field(
+        0.03,
+        gt=0,
+        le=1,
+        description="a scan's median distance to neighbours above this (m) is flagged",
+    )

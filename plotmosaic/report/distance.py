@@ -22,7 +22,9 @@ def thin(xyz: np.ndarray, voxel: float, cap: int, rng: np.random.Generator) -> n
     return xyz[idx]
 
 
-def edge_distances(source: str, target: str, clouds: dict[str, np.ndarray], trees: dict, cfg: DistanceConfig) -> dict:
+def edge_distances(
+    source: str, target: str, clouds: dict[str, np.ndarray], trees: dict, cfg: DistanceConfig
+) -> dict:
     """Distance of each source point to the plane through its nearest target points, in the overlap.
 
     The overlap is where the target is dense around the source point (all `neighbours` within
@@ -42,9 +44,16 @@ def edge_distances(source: str, target: str, clouds: dict[str, np.ndarray], tree
     _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", q, q))
     normal = vecs[:, :, 0]  # the smallest eigenvector: the local plane's normal
     d = np.abs(np.einsum("ni,ni->n", p - centre, normal))
-    return {"source": source, "target": target, "distances": d, "points": p, "max_distance": 2 * cfg.colour_max,
-            "median": float(np.median(d)) if len(d) else float("nan"),
-            "p90": float(np.quantile(d, 0.9)) if len(d) else float("nan"), "share": float(ok.mean()) if len(ok) else 0.0}
+    return {
+        "source": source,
+        "target": target,
+        "distances": d,
+        "points": p,
+        "max_distance": 2 * cfg.colour_max,
+        "median": float(np.median(d)) if len(d) else float("nan"),
+        "p90": float(np.quantile(d, 0.9)) if len(d) else float("nan"),
+        "share": float(ok.mean()) if len(ok) else 0.0,
+    }
 
 
 def scan_medians(edges: list[dict]) -> dict[str, float]:
@@ -53,4 +62,8 @@ def scan_medians(edges: list[dict]) -> dict[str, float]:
     for e in edges:
         for s in (e["source"], e["target"]):
             pooled.setdefault(s, []).append(e["distances"])
-    return {s: float(np.median(np.concatenate(v))) for s, v in sorted(pooled.items()) if sum(map(len, v))}
+    return {
+        s: float(np.median(np.concatenate(v)))
+        for s, v in sorted(pooled.items())
+        if sum(map(len, v))
+    }

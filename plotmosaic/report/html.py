@@ -26,8 +26,10 @@ def esc(text: object) -> str:
 def image(png: Path, caption: str) -> str:
     """A figure with the PNG inlined (data URI), so the page needs no other file."""
     data = base64.b64encode(Path(png).read_bytes()).decode("ascii")
-    return (f'<figure><img src="data:image/png;base64,{data}" alt="{esc(caption)}">'
-            f"<figcaption>{esc(caption)}</figcaption></figure>")
+    return (
+        f'<figure><img src="data:image/png;base64,{data}" alt="{esc(caption)}">'
+        f"<figcaption>{esc(caption)}</figcaption></figure>"
+    )
 
 
 def table(header: list[str], rows: list[list[object]], caption: str | None = None) -> str:
@@ -39,7 +41,11 @@ def table(header: list[str], rows: list[list[object]], caption: str | None = Non
 
 def markdown_table(lines: list[str], caption: str | None = None) -> str:
     """An HTML table from the markdown table rows report.md carries (| a | b | ... with a --- line)."""
-    rows = [[c.strip().replace("**", "") for c in ln.strip().strip("|").split("|")] for ln in lines if ln.strip().startswith("|")]
+    rows = [
+        [c.strip().replace("**", "") for c in ln.strip().strip("|").split("|")]
+        for ln in lines
+        if ln.strip().startswith("|")
+    ]
     rows = [r for r in rows if not all(set(c) <= set("-: ") for c in r)]
     return table(rows[0], rows[1:], caption) if rows else ""
 
@@ -69,6 +75,10 @@ class Page:
         self.parts.append(f'<p><a href="{esc(href)}">{esc(text)}</a></p>')
 
     def write(self, path: Path) -> Path:
-        doc = (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>{esc(self.title)}</title>'
-               f"<style>{STYLE}</style></head><body><h1>{esc(self.title)}</h1>\n" + "\n".join(self.parts) + "\n</body></html>\n")
+        doc = (
+            f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>{esc(self.title)}</title>'
+            f"<style>{STYLE}</style></head><body><h1>{esc(self.title)}</h1>\n"
+            + "\n".join(self.parts)
+            + "\n</body></html>\n"
+        )
         return write_text_atomic(path, doc)

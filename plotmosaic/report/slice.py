@@ -39,7 +39,9 @@ def cell_minima(xyz: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
     return keys[first], zmin
 
 
-def merge_minima(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+def merge_minima(
+    a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
     """Cell minima of the union of two point sets from each set's cell minima."""
     keys, z = np.vstack([a[0], b[0]]), np.concatenate([a[1], b[1]])
     if not len(keys):
@@ -72,15 +74,24 @@ class Ground:
         slope = np.arctan(np.hypot(gx, gy))
         aspect = np.arctan2(-gx, gy)
         az, alt = np.radians(azimuth), np.radians(altitude)
-        shade = np.clip(np.sin(alt) * np.cos(slope) + np.cos(alt) * np.sin(slope) * np.cos(az - aspect), 0, 1)
+        shade = np.clip(
+            np.sin(alt) * np.cos(slope) + np.cos(alt) * np.sin(slope) * np.cos(az - aspect), 0, 1
+        )
         return shade if self.seen is None else np.where(self.seen, shade, np.nan)
 
     @property
     def extent(self) -> tuple[float, float, float, float]:
-        return (self.x0, self.x0 + self.z.shape[1] * self.cell, self.y0, self.y0 + self.z.shape[0] * self.cell)
+        return (
+            self.x0,
+            self.x0 + self.z.shape[1] * self.cell,
+            self.y0,
+            self.y0 + self.z.shape[0] * self.cell,
+        )
 
 
-def ground_model(minima: tuple[np.ndarray, np.ndarray], cell: float, spike: float, opening: int = 5) -> Ground:
+def ground_model(
+    minima: tuple[np.ndarray, np.ndarray], cell: float, spike: float, opening: int = 5
+) -> Ground:
     """DTM from cell minima: cells above a grey opening replaced by it, empty cells from the nearest cell."""
     keys, zmin = minima
     if not len(keys):
@@ -123,7 +134,9 @@ def low_stratum(xyz: np.ndarray, cfg: SliceConfig) -> np.ndarray:
     return xyz[(dz >= cfg.keep_low) & (dz <= cfg.keep_high)]
 
 
-def breast_height_slice(clouds: dict[str, np.ndarray], ground: Ground, cfg: SliceConfig) -> dict[str, np.ndarray]:
+def breast_height_slice(
+    clouds: dict[str, np.ndarray], ground: Ground, cfg: SliceConfig
+) -> dict[str, np.ndarray]:
     """Each scan's points within half_width of `height` above the ground."""
     out = {}
     for name, xyz in clouds.items():
@@ -143,7 +156,9 @@ def fit_circle(xy: np.ndarray, iterations: int = 10) -> tuple[np.ndarray, float,
     sol, *_ = np.linalg.lstsq(A, (p**2).sum(axis=1), rcond=None)
     c = sol[:2] / 2
     r = float(np.sqrt(max(sol[2] + c @ c, 1e-12)))
-    for _ in range(iterations):  # the algebraic fit is biased on a half arc; the geometric one is not
+    for _ in range(
+        iterations
+    ):  # the algebraic fit is biased on a half arc; the geometric one is not
         d = p - c
         dist = np.maximum(np.linalg.norm(d, axis=1), 1e-12)
         J = np.column_stack([-d / dist[:, None], -np.ones(len(p))])
@@ -162,9 +177,15 @@ class Stem:
     centre: np.ndarray
     radius: float
     spread: float  # ring spread (m): RMS offset of the other scans' rings from the best-seen scan's ring
-    points: dict[str, np.ndarray] = field(default_factory=dict)  # scan -> its (n, 2) slice points here
-    arcs: dict[str, tuple[np.ndarray, float, float]] = field(default_factory=dict)  # scan -> own circle fit
-    offsets: dict[str, float] = field(default_factory=dict)  # scan -> offset of its ring from the best-seen scan's (m)
+    points: dict[str, np.ndarray] = field(
+        default_factory=dict
+    )  # scan -> its (n, 2) slice points here
+    arcs: dict[str, tuple[np.ndarray, float, float]] = field(
+        default_factory=dict
+    )  # scan -> own circle fit
+    offsets: dict[str, float] = field(
+        default_factory=dict
+    )  # scan -> offset of its ring from the best-seen scan's (m)
 
     @property
     def scans(self) -> list[str]:
@@ -210,7 +231,7 @@ def find_stems(slices: dict[str, np.ndarray], cfg: SliceConfig) -> list[Stem]:
     max_extent = 2 * cfg.stem_max_radius + 2 * cfg.stem_cell
     stems = []
     for k in range(n_lab):
-        idx = order[bounds[k]:bounds[k + 1]]
+        idx = order[bounds[k] : bounds[k + 1]]
         if len(idx) < 2 * cfg.stem_min_points or np.ptp(xy[idx], axis=0).max() > max_extent:
             continue
         per = {names[s]: xy[idx[owner[idx] == s]] for s in np.unique(owner[idx])}
@@ -220,7 +241,9 @@ def find_stems(slices: dict[str, np.ndarray], cfg: SliceConfig) -> list[Stem]:
             continue
         best = max(arcs, key=lambda n: len(per[n]))
         _, r_best, rmse_best = arcs[best]
-        if not (cfg.stem_min_radius <= r_best <= cfg.stem_max_radius and rmse_best <= cfg.stem_arc_rmse):
+        if not (
+            cfg.stem_min_radius <= r_best <= cfg.stem_max_radius and rmse_best <= cfg.stem_arc_rmse
+        ):
             continue
         centre, radius, _ = fit_circle(np.vstack([per[n] for n in arcs]))
         seen = sorted(arcs, key=lambda n: (-len(per[n]), n))
@@ -232,8 +255,13 @@ def find_stems(slices: dict[str, np.ndarray], cfg: SliceConfig) -> list[Stem]:
     return stems
 
 
-def ring_offsets(per: dict[str, np.ndarray], names: list[str], start: tuple[np.ndarray, float],
-                 damping: float = 1.0, iterations: int = 15) -> dict[str, np.ndarray]:
+def ring_offsets(
+    per: dict[str, np.ndarray],
+    names: list[str],
+    start: tuple[np.ndarray, float],
+    damping: float = 1.0,
+    iterations: int = 15,
+) -> dict[str, np.ndarray]:
     """Offset (m) of each scan's ring from the first scan's: one radius, one centre per scan.
 
     Gauss-Newton on |p - c - d_s| - r with d_first = 0. A scan sees only its side of a stem, so an
@@ -254,7 +282,7 @@ def ring_offsets(per: dict[str, np.ndarray], names: list[str], start: tuple[np.n
             J[:, :2] = -v / dist[:, None]
             J[:, 2] = -1.0
             if k:
-                J[:, 3 + 2 * (k - 1):5 + 2 * (k - 1)] = -v / dist[:, None]
+                J[:, 3 + 2 * (k - 1) : 5 + 2 * (k - 1)] = -v / dist[:, None]
             rows.append(J)
             res.append(dist - r)
         damp = np.zeros((m - 3, m))

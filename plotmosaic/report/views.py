@@ -25,8 +25,15 @@ def scan_colours(names: list[str]) -> dict[str, tuple]:
     return {n: cmap(k % cmap.N) for k, n in enumerate(names)}
 
 
-def plot_breast_slice(path: Path, slices: dict[str, np.ndarray], stems: list[Stem], title: str, origin: np.ndarray,
-                      insets: int = 4, colours: dict | None = None) -> Path:
+def plot_breast_slice(
+    path: Path,
+    slices: dict[str, np.ndarray],
+    stems: list[Stem],
+    title: str,
+    origin: np.ndarray,
+    insets: int = 4,
+    colours: dict | None = None,
+) -> Path:
     """The slice from above, one colour per scan, and zoomed stems (the ones most scans see) at 1 cm scale."""
     colours = colours or scan_colours(list(slices))
     chosen = stems[:insets]
@@ -38,7 +45,14 @@ def plot_breast_slice(path: Path, slices: dict[str, np.ndarray], stems: list[Ste
     ax = fig.add_subplot(gs[:, :2])
     for name, xyz in slices.items():
         p = xyz[:, :2] - origin[:2]
-        ax.scatter(p[:, 0], p[:, 1], s=1.5, color=colours[name], label=f"{name} ({len(p)} pts)", rasterized=True)
+        ax.scatter(
+            p[:, 0],
+            p[:, 1],
+            s=1.5,
+            color=colours[name],
+            label=f"{name} ({len(p)} pts)",
+            rasterized=True,
+        )
     for k, st in enumerate(chosen):
         c = st.centre - origin[:2]
         h = st.radius + 0.15
@@ -60,7 +74,13 @@ def _stem_inset(ax, st: Stem, colours: dict, origin: np.ndarray, number: int) ->
     h = st.radius + 0.12
     for name, p in st.points.items():
         q = p - origin[:2]
-        ax.scatter(q[:, 0], q[:, 1], s=6, color=colours.get(name, "grey"), label=name if name in st.arcs else None)
+        ax.scatter(
+            q[:, 0],
+            q[:, 1],
+            s=6,
+            color=colours.get(name, "grey"),
+            label=name if name in st.arcs else None,
+        )
     ax.add_patch(Circle(tuple(c), st.radius, fill=False, ls="--", lw=0.7, ec="black"))
     ax.set_xlim(c[0] - h, c[0] + h)
     ax.set_ylim(c[1] - h, c[1] + h)
@@ -74,15 +94,25 @@ def _stem_inset(ax, st: Stem, colours: dict, origin: np.ndarray, number: int) ->
     ax.set_xticks(np.arange(np.ceil((c[0] - h) * 10) / 10, c[0] + h, 0.1))
     ax.set_yticks(np.arange(np.ceil((c[1] - h) * 10) / 10, c[1] + h, 0.1))
     ax.tick_params(labelsize=7)
-    ax.set_title(f"stem {number}: r = {st.radius * 100:.1f} cm, {len(st.arcs)} scans, ring spread {st.spread * 100:.1f} cm",
-                 fontsize=9)
+    ax.set_title(
+        f"stem {number}: r = {st.radius * 100:.1f} cm, {len(st.arcs)} scans, ring spread {st.spread * 100:.1f} cm",
+        fontsize=9,
+    )
     ax.legend(fontsize=6, markerscale=1.5, loc="upper right")
 
 
-def plot_edge_distances(path: Path, edges: list[dict], origin: np.ndarray, colour_max: float, cell: float = 0.25) -> Path:
+def plot_edge_distances(
+    path: Path, edges: list[dict], origin: np.ndarray, colour_max: float, cell: float = 0.25
+) -> Path:
     """Per edge: histogram of distances to the other scan's local surface in the overlap, and a map of them from above."""
     n = max(1, len(edges))
-    fig, axes = plt.subplots(n, 2, figsize=(12, 4.3 * n), squeeze=False, gridspec_kw={"width_ratios": [1, 1.25], "hspace": 0.45})
+    fig, axes = plt.subplots(
+        n,
+        2,
+        figsize=(12, 4.3 * n),
+        squeeze=False,
+        gridspec_kw={"width_ratios": [1, 1.25], "hspace": 0.45},
+    )
     cmap = plt.get_cmap("turbo")
     for (hist, top), e in zip(axes, edges):
         d = e["distances"]
@@ -90,11 +120,21 @@ def plot_edge_distances(path: Path, edges: list[dict], origin: np.ndarray, colou
         hist.axvline(e["median"] * 100, color="black", ls="--", lw=1)
         hist.set_xlabel("distance to the other scan's local surface (cm)")
         hist.set_ylabel("points")
-        hist.set_title(f"{e['source']} -> {e['target']}: median {e['median'] * 100:.2f} cm, "
-                       f"90% {e['p90'] * 100:.2f} cm ({len(d)} points)", fontsize=9)
+        hist.set_title(
+            f"{e['source']} -> {e['target']}: median {e['median'] * 100:.2f} cm, "
+            f"90% {e['p90'] * 100:.2f} cm ({len(d)} points)",
+            fontsize=9,
+        )
         img, ext = _distance_raster(e["points"][:, :2] - origin[:2], d, cell)
-        sc = top.imshow(np.minimum(img, colour_max) * 100, origin="lower", extent=ext, cmap=cmap, vmin=0,
-                        vmax=colour_max * 100, interpolation="nearest")
+        sc = top.imshow(
+            np.minimum(img, colour_max) * 100,
+            origin="lower",
+            extent=ext,
+            cmap=cmap,
+            vmin=0,
+            vmax=colour_max * 100,
+            interpolation="nearest",
+        )
         top.set_aspect("equal")
         top.set_title(f"overlap from above, mean distance per {cell * 100:.0f} cm cell", fontsize=9)
         fig.colorbar(sc, ax=top, label="cm", shrink=0.85)
@@ -123,9 +163,18 @@ def plot_scan_distances(path: Path, medians: dict[str, float], spreads: dict[str
     names = list(medians)
     fig, ax = plt.subplots(figsize=(max(6, 0.6 * len(names) + 3), 4.2))
     x = np.arange(len(names))
-    ax.bar(x - 0.2, [medians[n] * 100 for n in names], 0.4, label="median distance to neighbours (cm)")
-    ax.bar(x + 0.2, [spreads.get(n, np.nan) * 100 for n in names], 0.4, label="median ring spread of its stems (cm)")
-    ax.set_xticks(x, names, rotation=45 if len(names) > 8 else 0, ha="right" if len(names) > 8 else "center")
+    ax.bar(
+        x - 0.2, [medians[n] * 100 for n in names], 0.4, label="median distance to neighbours (cm)"
+    )
+    ax.bar(
+        x + 0.2,
+        [spreads.get(n, np.nan) * 100 for n in names],
+        0.4,
+        label="median ring spread of its stems (cm)",
+    )
+    ax.set_xticks(
+        x, names, rotation=45 if len(names) > 8 else 0, ha="right" if len(names) > 8 else "center"
+    )
     ax.set_ylabel("cm")
     ax.set_title("per scan, after the joint solve")
     ax.legend(fontsize=8)
@@ -133,8 +182,15 @@ def plot_scan_distances(path: Path, medians: dict[str, float], spreads: dict[str
     return _savefig(fig, path)
 
 
-def plot_map(path: Path, G: nx.Graph, positions: dict[str, np.ndarray], background: tuple[np.ndarray, tuple, str] | None,
-             title: str, origin: np.ndarray, unsure: set[tuple[str, str]] = frozenset()) -> Path:
+def plot_map(
+    path: Path,
+    G: nx.Graph,
+    positions: dict[str, np.ndarray],
+    background: tuple[np.ndarray, tuple, str] | None,
+    title: str,
+    origin: np.ndarray,
+    unsure: set[tuple[str, str]] = frozenset(),
+) -> Path:
     """Scan positions and edges from above: kept (solid), dropped (red dashed, reason), unsure (orange dotted).
 
     `background` is (image, extent in the same frame as positions, label): canopy height or hillshade.
@@ -143,8 +199,15 @@ def plot_map(path: Path, G: nx.Graph, positions: dict[str, np.ndarray], backgrou
     if background is not None:
         img, ext, label = background
         e = (ext[0] - origin[0], ext[1] - origin[0], ext[2] - origin[1], ext[3] - origin[1])
-        im = ax.imshow(np.ma.masked_invalid(img), origin="lower", extent=e, cmap="Greens" if "canopy" in label else "gray",
-                       alpha=0.75, vmin=0 if "canopy" not in label else None, vmax=1 if "canopy" not in label else None)
+        im = ax.imshow(
+            np.ma.masked_invalid(img),
+            origin="lower",
+            extent=e,
+            cmap="Greens" if "canopy" in label else "gray",
+            alpha=0.75,
+            vmin=0 if "canopy" not in label else None,
+            vmax=1 if "canopy" not in label else None,
+        )
         if "canopy" in label:
             fig.colorbar(im, ax=ax, label=label, shrink=0.7)
     pos = {n: positions[n][:2] - origin[:2] for n in G.nodes if n in positions}
@@ -163,8 +226,15 @@ def plot_map(path: Path, G: nx.Graph, positions: dict[str, np.ndarray], backgrou
             ax.plot([x1, x2], [y1, y2], "-", color="tab:blue", lw=2.2)
             r = e.get("residual_after")
             label = f"{r['translation'] * 100:.1f} cm" if r else ""
-        ax.text((x1 + x2) / 2, (y1 + y2) / 2, label, fontsize=7, ha="center", va="center",
-                bbox={"fc": "white", "ec": "none", "alpha": 0.75, "pad": 0.5})
+        ax.text(
+            (x1 + x2) / 2,
+            (y1 + y2) / 2,
+            label,
+            fontsize=7,
+            ha="center",
+            va="center",
+            bbox={"fc": "white", "ec": "none", "alpha": 0.75, "pad": 0.5},
+        )
     for n, (x, y) in pos.items():
         ax.scatter([x], [y], s=150, color="gold", edgecolor="black", zorder=3, marker="^")
         ax.text(x, y, f"  {n}", fontsize=9, va="bottom", zorder=4, weight="bold")
@@ -192,7 +262,12 @@ def canopy_height(als_xyz: np.ndarray, cell: float = 1.0) -> tuple[np.ndarray, t
     lo = np.array([round(ground.x0 / cell), round(ground.y0 / cell)])
     ij = keys - lo
     top = np.full(ground.z.shape, np.nan)
-    ok = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < ground.z.shape[1]) & (ij[:, 1] < ground.z.shape[0])
+    ok = (
+        (ij[:, 0] >= 0)
+        & (ij[:, 1] >= 0)
+        & (ij[:, 0] < ground.z.shape[1])
+        & (ij[:, 1] < ground.z.shape[0])
+    )
     np.fmax.at(top, (ij[ok, 1], ij[ok, 0]), als_xyz[ok, 2])
     chm = np.clip(np.nan_to_num(top - ground.z, nan=0.0), 0, None)
     return chm, ground.extent, "ALS canopy height (m)"

@@ -18,7 +18,9 @@ from plotmosaic.simulate.terrain import Terrain
 SPEED_MS = 60.0  # aircraft ground speed, for gps_time
 
 
-def _pulses(n: int, extent, terrain: Terrain, cfg: AlsConfig, rng) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _pulses(
+    n: int, extent, terrain: Terrain, cfg: AlsConfig, rng
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Origins, unit directions and times of n pulses aimed at uniform ground points of the tile."""
     xmin, ymin, xmax, ymax = extent
     x, y = rng.uniform(xmin, xmax, n), rng.uniform(ymin, ymax, n)
@@ -29,7 +31,9 @@ def _pulses(n: int, extent, terrain: Terrain, cfg: AlsConfig, rng) -> tuple[np.n
     c = np.array([(xmin + xmax) / 2, (ymin + ymax) / 2])
     u = (target[:, :2] - c) @ across
     line = np.round(u / spacing)
-    plane_xy = target[:, :2] + ((line * spacing - u)[:, None] * across)  # nearest line, abeam of the target
+    plane_xy = target[:, :2] + (
+        (line * spacing - u)[:, None] * across
+    )  # nearest line, abeam of the target
     origin = np.column_stack([plane_xy, np.full(n, cfg.altitude_m + float(np.median(terrain.z)))])
     d = target - origin
     d /= np.linalg.norm(d, axis=1, keepdims=True)
@@ -67,7 +71,9 @@ def classify(xyz: np.ndarray, label: np.ndarray, terrain: Terrain) -> np.ndarray
     return cls
 
 
-def scan_als(scene: Scene, terrain: Terrain, extent, cfg: AlsConfig, rng: np.random.Generator) -> PointCloud:
+def scan_als(
+    scene: Scene, terrain: Terrain, extent, cfg: AlsConfig, rng: np.random.Generator
+) -> PointCloud:
     """Returns over `extent` (xmin, ymin, xmax, ymax) in the scene's local frame."""
     area = (extent[2] - extent[0]) * (extent[3] - extent[1])
     wanted = int(round(cfg.density_per_m2 * area))
@@ -101,5 +107,10 @@ def scan_als(scene: Scene, terrain: Terrain, extent, cfg: AlsConfig, rng: np.ran
         "gps_time": np.concatenate([q[4] for q in parts]),
         "classification": classify(xyz, label, terrain),
     }
-    attrs["intensity"] = np.clip((np.array([0.35, 0.4, 0.5, 0.45] + [0.0] * 252)[label] / attrs["number_of_returns"]) * 60000, 0, 65535).astype(np.uint16)
+    attrs["intensity"] = np.clip(
+        (np.array([0.35, 0.4, 0.5, 0.45] + [0.0] * 252)[label] / attrs["number_of_returns"])
+        * 60000,
+        0,
+        65535,
+    ).astype(np.uint16)
     return PointCloud(xyz, attrs)

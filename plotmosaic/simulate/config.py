@@ -24,10 +24,14 @@ class TerrainConfig(_Model):
     slope_azimuth_deg: float = 35.0
     undulation_m: float = Field(1.2, ge=0, description="amplitude of the smooth undulations")
     undulation_wavelength_m: tuple[float, float] = (12.0, 60.0)
-    microrelief_m: float = Field(0.08, ge=0, description="hummocks, pits, litter mounds (std); they shadow grazing rays")
+    microrelief_m: float = Field(
+        0.08, ge=0, description="hummocks, pits, litter mounds (std); they shadow grazing rays"
+    )
     microrelief_scale_m: float = Field(1.2, gt=0)
     roughness_m: float = Field(0.015, ge=0, description="micro-roughness (per-vertex noise, std)")
-    flat: bool = Field(False, description="near-flat terrain (hard case): no slope, 5 cm undulations")
+    flat: bool = Field(
+        False, description="near-flat terrain (hard case): no slope, 5 cm undulations"
+    )
 
 
 class ForestConfig(_Model):
@@ -39,14 +43,24 @@ class ForestConfig(_Model):
     broadleaf_height_m: tuple[float, float] = (10.0, 20.0)
     max_lean_deg: float = 8.0
     stem_sides: int = Field(24, ge=8, description="facets around a stem: enough for smooth normals")
-    foliage_per_m: float = Field(40.0, gt=0, description="foliage elements per metre of conifer branch")
-    broadleaf_leaves: int = Field(4000, ge=10, description="foliage elements of a full-size broadleaf crown")
+    foliage_per_m: float = Field(
+        40.0, gt=0, description="foliage elements per metre of conifer branch"
+    )
+    broadleaf_leaves: int = Field(
+        4000, ge=10, description="foliage elements of a full-size broadleaf crown"
+    )
     leaf_size_m: tuple[float, float] = (0.06, 0.14)
-    detail_radius_m: float = Field(70.0, description="trees farther from every plot centre get coarse foliage")
-    coarse_factor: int = Field(6, ge=1, description="coarse foliage: this many times fewer, larger elements")
+    detail_radius_m: float = Field(
+        70.0, description="trees farther from every plot centre get coarse foliage"
+    )
+    coarse_factor: int = Field(
+        6, ge=1, description="coarse foliage: this many times fewer, larger elements"
+    )
     shrubs_per_ha: float = Field(500.0, ge=0)
     shrub_elements: int = Field(300, ge=1)
-    saplings_per_ha: float = Field(150.0, ge=0, description="young conifers 1.5-5 m tall (understory)")
+    saplings_per_ha: float = Field(
+        150.0, ge=0, description="young conifers 1.5-5 m tall (understory)"
+    )
     # Bunchgrass: it hides the ground from grazing rays, so scans far apart see different ground.
     grass_tufts_per_m2: float = Field(3.0, ge=0)
     grass_blades: int = Field(20, ge=1)
@@ -54,12 +68,18 @@ class ForestConfig(_Model):
     grass_height_m: tuple[float, float] = (0.15, 0.5)
     logs_per_ha: float = Field(25.0, ge=0)
     debris_per_ha: float = Field(400.0, ge=0, description="fallen branches on the ground (woody)")
-    clearance_m: float = Field(1.5, ge=0, description="no stem or shrub this close to a scanner position")
+    clearance_m: float = Field(
+        1.5, ge=0, description="no stem or shrub this close to a scanner position"
+    )
 
 
 class TlsConfig(_Model):
-    points_per_scan: int = Field(2_000_000, ge=1000, description="target points; sets the angular step")
-    angular_step_deg: float | None = Field(None, gt=0, description="fixed angular step (overrides points_per_scan)")
+    points_per_scan: int = Field(
+        2_000_000, ge=1000, description="target points; sets the angular step"
+    )
+    angular_step_deg: float | None = Field(
+        None, gt=0, description="fixed angular step (overrides points_per_scan)"
+    )
     fov_horizontal_deg: float = 360.0
     fov_vertical_deg: float = 300.0  # BLK360: from 60 deg below the horizon to the zenith
     min_range_m: float = 0.6
@@ -80,17 +100,23 @@ class AlsConfig(_Model):
     fov_deg: float = 40.0
     heading_deg: float = 0.0
     max_returns: int = Field(5, ge=1)
-    transmission: float = Field(0.55, ge=0, le=1, description="chance a pulse goes on after a foliage/understory hit")
+    transmission: float = Field(
+        0.55, ge=0, le=1, description="chance a pulse goes on after a foliage/understory hit"
+    )
     dead_zone_m: float = Field(1.0, ge=0, description="minimum separation of returns along a pulse")
     range_noise_m: float = 0.03
-    margin_m: float = Field(15.0, description="tile edge beyond the plot(s) extent (scan positions)")
+    margin_m: float = Field(
+        15.0, description="tile edge beyond the plot(s) extent (scan positions)"
+    )
     chunk_pulses: int = 1_000_000
 
 
 class FireConfig(_Model):
     grass_removed: float = Field(0.8, ge=0, le=1)
     shrubs_removed: float = Field(0.7, ge=0, le=1)
-    post_jitter_m: float = Field(0.8, ge=0, description="POST scans stand this far from the PRE positions")
+    post_jitter_m: float = Field(
+        0.8, ge=0, description="POST scans stand this far from the PRE positions"
+    )
 
 
 class SimulationConfig(_Model):
@@ -98,7 +124,9 @@ class SimulationConfig(_Model):
     origin: tuple[float, float, float] = (470250.0, 3810150.0, 2100.0)
     plot_centres: list[tuple[float, float]] = Field(default_factory=lambda: [(0.0, 0.0)])
     scan_layout: list[tuple[float, float]] = Field(default_factory=lambda: list(PAPER_LAYOUT))
-    scene_margin_m: float = Field(35.0, description="scene (terrain, trees) beyond the scan positions")
+    scene_margin_m: float = Field(
+        35.0, description="scene (terrain, trees) beyond the scan positions"
+    )
     prepost: bool = False
     approx_positions: bool = False
     approx_sigma_m: float = Field(3.0, ge=0)
@@ -112,7 +140,9 @@ class SimulationConfig(_Model):
 def grid_layout(n_side: int, spacing: float, n: int | None = None) -> list[tuple[float, float]]:
     """Scan positions on an n_side x n_side grid `spacing` apart, centred on the plot centre (first `n` of them)."""
     half = (n_side - 1) / 2.0
-    cells = [((i - half) * spacing, (j - half) * spacing) for j in range(n_side) for i in range(n_side)]
+    cells = [
+        ((i - half) * spacing, (j - half) * spacing) for j in range(n_side) for i in range(n_side)
+    ]
     return cells[: n if n is not None else len(cells)]
 
 
@@ -217,7 +247,10 @@ PRESETS: dict[str, SimulationConfig] = {
         **{
             "forest.trees_per_ha": 600.0,
             "forest.conifer_fraction": 0.4,
-            "forest.broadleaf_height_m": (6.0, 12.0),  # a low leafy subcanopy closes the sky within ~5 m
+            "forest.broadleaf_height_m": (
+                6.0,
+                12.0,
+            ),  # a low leafy subcanopy closes the sky within ~5 m
             "forest.shrubs_per_ha": 9000.0,
             "forest.saplings_per_ha": 6000.0,
             "forest.clearance_m": 1.0,
@@ -271,4 +304,6 @@ def make_config(preset: str = "small", **overrides) -> SimulationConfig:
         return SimulationConfig.model_validate(data)
     except ValidationError as exc:
         err = exc.errors()[0]
-        raise InputError(f"simulation setting {'.'.join(map(str, err['loc']))}: {err['msg']}") from None
+        raise InputError(
+            f"simulation setting {'.'.join(map(str, err['loc']))}: {err['msg']}"
+        ) from None

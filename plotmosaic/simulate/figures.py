@@ -22,13 +22,17 @@ COLOURS = np.array([[0.62, 0.50, 0.36], [0.45, 0.20, 0.10], [0.15, 0.55, 0.20], 
 
 
 def _legend(ax) -> None:
-    handles = [Line2D([], [], marker="o", ls="", color=COLOURS[k], label=n) for k, n in LABEL_NAMES.items()]
+    handles = [
+        Line2D([], [], marker="o", ls="", color=COLOURS[k], label=n) for k, n in LABEL_NAMES.items()
+    ]
     ax.legend(handles=handles, loc="upper right", fontsize=7, markerscale=1.2, framealpha=0.85)
 
 
 def _scatter(ax, x, y, labels, size=0.05, order=None) -> None:
     idx = np.argsort(order, kind="stable") if order is not None else np.arange(len(x))
-    ax.scatter(x[idx], y[idx], c=COLOURS[np.minimum(labels[idx], 3)], s=size, linewidths=0, rasterized=True)
+    ax.scatter(
+        x[idx], y[idx], c=COLOURS[np.minimum(labels[idx], 3)], s=size, linewidths=0, rasterized=True
+    )
 
 
 def _save(fig, path: Path) -> Path:
@@ -38,7 +42,13 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
-def _world_points(world: World, samples: dict[str, PointCloud], poses: dict[str, ScanPose], plot_id: str, cap: int = 1_500_000):
+def _world_points(
+    world: World,
+    samples: dict[str, PointCloud],
+    poses: dict[str, ScanPose],
+    plot_id: str,
+    cap: int = 1_500_000,
+):
     """Sampled points of one plot's scans in the local frame, with labels."""
     xyz, lab = [], []
     for sid, cloud in samples.items():
@@ -53,7 +63,15 @@ def _world_points(world: World, samples: dict[str, PointCloud], poses: dict[str,
     return xyz, lab
 
 
-def plot_top_side(world: World, xyz: np.ndarray, lab: np.ndarray, sites_xy: np.ndarray, title: str, out_top: Path, out_side: Path) -> list[Path]:
+def plot_top_side(
+    world: World,
+    xyz: np.ndarray,
+    lab: np.ndarray,
+    sites_xy: np.ndarray,
+    title: str,
+    out_top: Path,
+    out_side: Path,
+) -> list[Path]:
     hag = xyz[:, 2] - world.terrain.height(xyz[:, 0], xyz[:, 1])
     fig, axes = plt.subplots(1, 2, figsize=(13, 6.2))
     _scatter(axes[0], xyz[:, 0], xyz[:, 1], lab, order=xyz[:, 2])
@@ -111,10 +129,23 @@ def plot_als(world: World, als: PointCloud, out: Path) -> Path:
     slab = np.abs(xyz[:, 1] - yc) < 3.0
     fig, axes = plt.subplots(2, 1, figsize=(13, 8), constrained_layout=True)
     _scatter(axes[0], xyz[slab, 0], xyz[slab, 2], lab[slab], size=1.0)
-    axes[0].set_title(f"ALS: side view of a 6 m slab, coloured by label ({len(als)} points in the sample)")
+    axes[0].set_title(
+        f"ALS: side view of a 6 m slab, coloured by label ({len(als)} points in the sample)"
+    )
     nr = als.attrs["return_number"][slab]
-    sc = axes[1].scatter(xyz[slab, 0], xyz[slab, 2], c=nr, s=1.0, cmap="viridis", vmin=1, vmax=max(3, int(nr.max())), rasterized=True)
-    axes[1].set_title("the same slab coloured by return number (later returns reach the ground through gaps)")
+    sc = axes[1].scatter(
+        xyz[slab, 0],
+        xyz[slab, 2],
+        c=nr,
+        s=1.0,
+        cmap="viridis",
+        vmin=1,
+        vmax=max(3, int(nr.max())),
+        rasterized=True,
+    )
+    axes[1].set_title(
+        "the same slab coloured by return number (later returns reach the ground through gaps)"
+    )
     fig.colorbar(sc, ax=list(axes), label="return number (lower panel)", shrink=0.6)
     for ax in axes:
         ax.set_aspect("equal")
@@ -124,14 +155,30 @@ def plot_als(world: World, als: PointCloud, out: Path) -> Path:
     return _save(fig, out)
 
 
-def make_figures(outdir: Path, world: World, samples: dict[str, PointCloud], poses: dict[str, ScanPose], als: PointCloud) -> list[Path]:
+def make_figures(
+    outdir: Path,
+    world: World,
+    samples: dict[str, PointCloud],
+    poses: dict[str, ScanPose],
+    als: PointCloud,
+) -> list[Path]:
     outdir = Path(outdir)
     paths = []
     pid = world.plot_ids[0]
     site_xy = np.array([s.xy for s in world.sites if s.plot_id == pid])
     xyz, lab = _world_points(world, samples, poses, pid)
-    paths += plot_top_side(world, xyz, lab, site_xy, f"{world.config.name} plot {pid}", outdir / "sim_plot_top.png", outdir / "sim_plot_side.png")
+    paths += plot_top_side(
+        world,
+        xyz,
+        lab,
+        site_xy,
+        f"{world.config.name} plot {pid}",
+        outdir / "sim_plot_top.png",
+        outdir / "sim_plot_side.png",
+    )
     first = next(s.scan_id for s in world.sites if s.plot_id == pid)
-    paths.append(plot_scan(world, samples[first], poses[first], first, outdir / "sim_scan_occlusion.png"))
+    paths.append(
+        plot_scan(world, samples[first], poses[first], first, outdir / "sim_scan_occlusion.png")
+    )
     paths.append(plot_als(world, als, outdir / "sim_als_side.png"))
     return paths

@@ -35,7 +35,14 @@ from scipy.spatial import cKDTree
 from plotmosaic.errors import InputError
 from plotmosaic.io.frame import translation
 
-RING_RADII = (0.25, 0.5, 0.75, 1.0, 1.25, 1.5)  # where a scanner standing in a trunk or a bush is moved to
+RING_RADII = (
+    0.25,
+    0.5,
+    0.75,
+    1.0,
+    1.25,
+    1.5,
+)  # where a scanner standing in a trunk or a bush is moved to
 
 
 class CutConfig(BaseModel):
@@ -43,22 +50,85 @@ class CutConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    voxel: float = Field(0.1, gt=0.005, le=2.0, description="occupancy voxel edge: finer than stems, coarser than the point spacing")
-    height_above_ground: float = Field(1.5, ge=0, le=100, description="tripod height over the local ground for (x, y) positions")
-    ground_radius: float = Field(2.0, gt=0, le=50, description="horizontal radius around a position where the local ground is read")
-    ground_percentile: float = Field(2.0, ge=0, le=50, description="low z percentile near the position taken as ground (robust to a few low outliers)")
-    min_range: float = Field(0.5, ge=0, le=10, description="nothing nearer is seen (the tripod) and occupancy nearer does not block")
-    max_range: float | None = Field(None, gt=0, description="nothing farther is seen (None: no limit)")
-    full_density_range: float = Field(5.0, gt=0, description="r0: beyond it a point is kept with probability (r0/r)^2, as a fixed angular step gives")
-    tolerance: float = Field(0.05, ge=0, le=5, description="occupied voxels this much (+ a voxel / cos incidence) in front of a point never hide it")
-    max_tolerance: float = Field(1.5, ge=0, le=10, description="cap of the grazing-incidence tolerance (a far ground patch is not hidden by itself)")
-    normal_neighbours: int = Field(12, ge=4, le=100, description="neighbours of the local plane that gives the incidence angle")
-    range_noise: float = Field(0.0, ge=0, le=0.5, description="std of the noise added along each ray (0: points exactly as in the cloud)")
-    max_tilt_deg: float = Field(2.0, ge=0, le=90, description="tilt of each view's random frame (a levelled tripod), heading uniform")
-    clearance: float = Field(0.3, ge=0, le=5, description="a scanner needs this much free space (and no trunk around it); otherwise it is moved up to 1.5 m")
-    max_grid_cells: int = Field(200_000_000, ge=1_000_000, description="bytes of the dense occupancy grid of one view: the voxel grows to fit")
-    chunk_samples: int = Field(4_000_000, ge=10_000, description="ray samples tested at once (memory ~ 30 bytes each)")
-    min_points: int = Field(100, ge=1, description="a view with fewer points is an error (a position outside the cloud)")
+    voxel: float = Field(
+        0.1,
+        gt=0.005,
+        le=2.0,
+        description="occupancy voxel edge: finer than stems, coarser than the point spacing",
+    )
+    height_above_ground: float = Field(
+        1.5, ge=0, le=100, description="tripod height over the local ground for (x, y) positions"
+    )
+    ground_radius: float = Field(
+        2.0,
+        gt=0,
+        le=50,
+        description="horizontal radius around a position where the local ground is read",
+    )
+    ground_percentile: float = Field(
+        2.0,
+        ge=0,
+        le=50,
+        description="low z percentile near the position taken as ground (robust to a few low outliers)",
+    )
+    min_range: float = Field(
+        0.5,
+        ge=0,
+        le=10,
+        description="nothing nearer is seen (the tripod) and occupancy nearer does not block",
+    )
+    max_range: float | None = Field(
+        None, gt=0, description="nothing farther is seen (None: no limit)"
+    )
+    full_density_range: float = Field(
+        5.0,
+        gt=0,
+        description="r0: beyond it a point is kept with probability (r0/r)^2, as a fixed angular step gives",
+    )
+    tolerance: float = Field(
+        0.05,
+        ge=0,
+        le=5,
+        description="occupied voxels this much (+ a voxel / cos incidence) in front of a point never hide it",
+    )
+    max_tolerance: float = Field(
+        1.5,
+        ge=0,
+        le=10,
+        description="cap of the grazing-incidence tolerance (a far ground patch is not hidden by itself)",
+    )
+    normal_neighbours: int = Field(
+        12, ge=4, le=100, description="neighbours of the local plane that gives the incidence angle"
+    )
+    range_noise: float = Field(
+        0.0,
+        ge=0,
+        le=0.5,
+        description="std of the noise added along each ray (0: points exactly as in the cloud)",
+    )
+    max_tilt_deg: float = Field(
+        2.0,
+        ge=0,
+        le=90,
+        description="tilt of each view's random frame (a levelled tripod), heading uniform",
+    )
+    clearance: float = Field(
+        0.3,
+        ge=0,
+        le=5,
+        description="a scanner needs this much free space (and no trunk around it); otherwise it is moved up to 1.5 m",
+    )
+    max_grid_cells: int = Field(
+        200_000_000,
+        ge=1_000_000,
+        description="bytes of the dense occupancy grid of one view: the voxel grows to fit",
+    )
+    chunk_samples: int = Field(
+        4_000_000, ge=10_000, description="ray samples tested at once (memory ~ 30 bytes each)"
+    )
+    min_points: int = Field(
+        100, ge=1, description="a view with fewer points is an error (a position outside the cloud)"
+    )
 
 
 @dataclass
@@ -88,15 +158,23 @@ def make_cut_config(config: CutConfig | None = None, **settings) -> CutConfig:
 # ---------------------------------------------------------------- positions
 
 
-def grid_positions(points: np.ndarray, n: int, spacing: float, angle_deg: float = 0.0) -> list[tuple[float, float]]:
+def grid_positions(
+    points: np.ndarray, n: int, spacing: float, angle_deg: float = 0.0
+) -> list[tuple[float, float]]:
     """`n` scanner positions on a square grid `spacing` apart, centred on the cloud's xy bounding box."""
     if n < 1 or spacing <= 0:
-        raise InputError(f"--views {n} --spacing {spacing}: need at least one view and a positive spacing")
+        raise InputError(
+            f"--views {n} --spacing {spacing}: need at least one view and a positive spacing"
+        )
     xy = np.asarray(points, dtype=np.float64)[:, :2]
     centre = (xy.min(axis=0) + xy.max(axis=0)) / 2.0
     cols = int(np.ceil(np.sqrt(n)))
     rows = int(np.ceil(n / cols))
-    grid = [((c - (cols - 1) / 2.0) * spacing, (r - (rows - 1) / 2.0) * spacing) for r in range(rows) for c in range(cols)][:n]
+    grid = [
+        ((c - (cols - 1) / 2.0) * spacing, (r - (rows - 1) / 2.0) * spacing)
+        for r in range(rows)
+        for c in range(cols)
+    ][:n]
     a = np.radians(angle_deg)
     rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
     return [tuple(float(v) for v in centre + rot @ np.array(g)) for g in grid]
@@ -109,9 +187,13 @@ def parse_positions(text: str) -> list[tuple[float, ...]]:
         try:
             values = tuple(float(v) for v in entry.split(","))
         except ValueError:
-            raise InputError(f"--positions: entry {k} ({entry.strip()!r}) is not x,y or x,y,z numbers") from None
+            raise InputError(
+                f"--positions: entry {k} ({entry.strip()!r}) is not x,y or x,y,z numbers"
+            ) from None
         if len(values) not in (2, 3) or not np.isfinite(values).all():
-            raise InputError(f"--positions: entry {k} ({entry.strip()!r}) is not x,y or x,y,z numbers")
+            raise InputError(
+                f"--positions: entry {k} ({entry.strip()!r}) is not x,y or x,y,z numbers"
+            )
         out.append(values)
     if not out:
         raise InputError("--positions: no positions given (write 'x,y;x,y')")
@@ -126,21 +208,35 @@ def _ground_z(xy_tree: cKDTree, z: np.ndarray, xy: np.ndarray, cfg: CutConfig) -
     if len(near) < 10:  # sparse spot: the nearest points still say where the ground is
         dist, near = xy_tree.query(xy, k=min(50, len(z)))
         if float(np.min(dist)) > 5.0:
-            raise InputError(f"scanner position ({xy[0]:.2f}, {xy[1]:.2f}) is {float(np.min(dist)):.1f} m from the nearest point of the cloud")
+            raise InputError(
+                f"scanner position ({xy[0]:.2f}, {xy[1]:.2f}) is {float(np.min(dist)):.1f} m from the nearest point of the cloud"
+            )
     return float(np.percentile(z[np.atleast_1d(near)], cfg.ground_percentile))
 
 
-def _place(tree: cKDTree, xy_tree: cKDTree, local: np.ndarray, pos: tuple, cfg: CutConfig, k: int) -> np.ndarray:
+def _place(
+    tree: cKDTree, xy_tree: cKDTree, local: np.ndarray, pos: tuple, cfg: CutConfig, k: int
+) -> np.ndarray:
     """Scanner position (local frame) for a user position, moved off a trunk or bush if it stands in one."""
     if len(pos) == 3:
         return np.asarray(pos, dtype=np.float64)
     xy0 = np.asarray(pos[:2], dtype=np.float64)
-    candidates = [xy0] + [xy0 + r * np.array([np.cos(a), np.sin(a)]) for r in RING_RADII for a in np.linspace(0, 2 * np.pi, 12, endpoint=False)]
+    candidates = [xy0] + [
+        xy0 + r * np.array([np.cos(a), np.sin(a)])
+        for r in RING_RADII
+        for a in np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    ]
     for xy in candidates:
-        s = np.array([xy[0], xy[1], _ground_z(xy_tree, local[:, 2], xy, cfg) + cfg.height_above_ground])
-        if cfg.clearance == 0 or not (tree.query_ball_point(s, cfg.clearance) or _enclosed(tree, local, s, cfg.clearance)):
+        s = np.array(
+            [xy[0], xy[1], _ground_z(xy_tree, local[:, 2], xy, cfg) + cfg.height_above_ground]
+        )
+        if cfg.clearance == 0 or not (
+            tree.query_ball_point(s, cfg.clearance) or _enclosed(tree, local, s, cfg.clearance)
+        ):
             return s
-    raise InputError(f"position {k + 1}: no free space for a scanner within {RING_RADII[-1]} m (clearance {cfg.clearance} m)")
+    raise InputError(
+        f"position {k + 1}: no free space for a scanner within {RING_RADII[-1]} m (clearance {cfg.clearance} m)"
+    )
 
 
 def _enclosed(tree: cKDTree, local: np.ndarray, s: np.ndarray, clearance: float) -> bool:
@@ -198,7 +294,9 @@ def _grid(local: np.ndarray, lo: np.ndarray, hi: np.ndarray, cfg: CutConfig) -> 
     return _Grid(occupied, lo, shape, voxel)
 
 
-def _visible(grid: _Grid, scanner: np.ndarray, pts: np.ndarray, tol: np.ndarray, cfg: CutConfig) -> np.ndarray:
+def _visible(
+    grid: _Grid, scanner: np.ndarray, pts: np.ndarray, tol: np.ndarray, cfg: CutConfig
+) -> np.ndarray:
     """True where the ray scanner -> point crosses no occupied voxel between min_range and r - tol."""
     d = pts - scanner
     r = np.linalg.norm(d, axis=1)
@@ -222,7 +320,9 @@ def _visible(grid: _Grid, scanner: np.ndarray, pts: np.ndarray, tol: np.ndarray,
             continue  # these rays end inside the free zone around the scanner: nothing can block them
         n_steps = steps(stop[sel[-1]])
         t = (cfg.min_range + step * np.arange(n_steps)).astype(np.float32)
-        p = (scanner - grid.origin).astype(np.float32) + u[sel, None, :].astype(np.float32) * t[None, :, None]
+        p = (scanner - grid.origin).astype(np.float32) + u[sel, None, :].astype(np.float32) * t[
+            None, :, None
+        ]
         ijk = np.floor(p / np.float32(grid.voxel)).astype(np.int32)
         ok = np.all((ijk >= 0) & (ijk < shape), axis=2) & (t[None, :] < stop[sel, None])
         flat = (ijk[..., 0].astype(np.int64) * shape[1] + ijk[..., 1]) * shape[2] + ijk[..., 2]
@@ -235,7 +335,9 @@ def _visible(grid: _Grid, scanner: np.ndarray, pts: np.ndarray, tol: np.ndarray,
 # ---------------------------------------------------------------- the cut
 
 
-def cut_views(points: np.ndarray, positions: list, seed: int = 0, config: CutConfig | None = None, **settings) -> list[View]:
+def cut_views(
+    points: np.ndarray, positions: list, seed: int = 0, config: CutConfig | None = None, **settings
+) -> list[View]:
     """One virtual scan per position (see the module docstring); same inputs + seed = same views."""
     cfg = make_cut_config(config, **settings)
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -243,7 +345,9 @@ def cut_views(points: np.ndarray, positions: list, seed: int = 0, config: CutCon
         raise InputError(f"cloud has {len(pts)} points, at least {cfg.min_points} needed")
     if not np.isfinite(pts).all():
         raise InputError("cloud has NaN or infinite coordinates")
-    offset = np.floor((pts.min(axis=0) + pts.max(axis=0)) / 2.0)  # local frame: UTM keeps its millimetres
+    offset = np.floor(
+        (pts.min(axis=0) + pts.max(axis=0)) / 2.0
+    )  # local frame: UTM keeps its millimetres
     local = pts - offset
     tree = cKDTree(local)
     xy_tree = cKDTree(local[:, :2])
@@ -258,8 +362,15 @@ def cut_views(points: np.ndarray, positions: list, seed: int = 0, config: CutCon
     return views
 
 
-def _cut_one(local: np.ndarray, tree: cKDTree, scanner: np.ndarray, cfg: CutConfig, rng: np.random.Generator,
-             offset: np.ndarray, k: int) -> View:
+def _cut_one(
+    local: np.ndarray,
+    tree: cKDTree,
+    scanner: np.ndarray,
+    cfg: CutConfig,
+    rng: np.random.Generator,
+    offset: np.ndarray,
+    k: int,
+) -> View:
     t0 = time.perf_counter()
     R = _frame_rotation(rng, cfg.max_tilt_deg)
     r = np.linalg.norm(local - scanner, axis=1)
@@ -269,7 +380,9 @@ def _cut_one(local: np.ndarray, tree: cKDTree, scanner: np.ndarray, cfg: CutConf
         cand &= r <= cfg.max_range
     idx = np.flatnonzero(cand)
     if len(idx) < cfg.min_points:
-        raise InputError(f"position {k + 1}: only {len(idx)} points within range (need {cfg.min_points})")
+        raise InputError(
+            f"position {k + 1}: only {len(idx)} points within range (need {cfg.min_points})"
+        )
     reach = cfg.max_range if cfg.max_range is not None else float(r.max())
     lo = np.maximum(local.min(axis=0), scanner - reach)
     hi = np.minimum(local.max(axis=0), scanner + reach)
@@ -277,13 +390,19 @@ def _cut_one(local: np.ndarray, tree: cKDTree, scanner: np.ndarray, cfg: CutConf
     cand_pts = local[idx]
     normals = _normals(tree, local, cand_pts, cfg.normal_neighbours)
     ray = cand_pts - scanner
-    cos = np.abs(np.einsum("ij,ij->i", normals, ray)) / np.maximum(np.linalg.norm(ray, axis=1), 1e-9)
+    cos = np.abs(np.einsum("ij,ij->i", normals, ray)) / np.maximum(
+        np.linalg.norm(ray, axis=1), 1e-9
+    )
     # the ray runs within a voxel of the point's own surface over ~voxel / cos(incidence) before it
-    tol = np.minimum(cfg.tolerance + grid.voxel / np.maximum(cos, 1e-3), max(cfg.max_tolerance, cfg.tolerance))
+    tol = np.minimum(
+        cfg.tolerance + grid.voxel / np.maximum(cos, 1e-3), max(cfg.max_tolerance, cfg.tolerance)
+    )
     seen = _visible(grid, scanner, cand_pts, tol, cfg)
     idx = idx[seen]
     if len(idx) < cfg.min_points:
-        raise InputError(f"position {k + 1}: only {len(idx)} points visible (need {cfg.min_points})")
+        raise InputError(
+            f"position {k + 1}: only {len(idx)} points visible (need {cfg.min_points})"
+        )
     rel = local[idx] - scanner
     if cfg.range_noise > 0:
         dist = np.linalg.norm(rel, axis=1)
@@ -291,8 +410,13 @@ def _cut_one(local: np.ndarray, tree: cKDTree, scanner: np.ndarray, cfg: CutConf
     view_pts = rel @ R  # R.T @ rel per row: cloud axes -> view axes
     truth = translation(offset) @ translation(scanner)
     truth[:3, :3] = R
-    stats = {"candidates": int(cand.sum()), "seen": len(idx), "voxel": grid.voxel, "seconds": time.perf_counter() - t0,
-             "within_5m": float(np.mean(np.linalg.norm(rel, axis=1) <= 5.0))}
+    stats = {
+        "candidates": int(cand.sum()),
+        "seen": len(idx),
+        "voxel": grid.voxel,
+        "seconds": time.perf_counter() - t0,
+        "within_5m": float(np.mean(np.linalg.norm(rel, axis=1) <= 5.0)),
+    }
     return View(view_pts, truth, idx, scanner + offset, stats)
 
 
@@ -310,8 +434,16 @@ class CutResult:
     seconds: dict[str, float]
 
 
-def cut_cloud_to_folder(outdir: str | Path, cloud_path: str | Path, positions: list | None = None, n_views: int | None = None,
-                        spacing: float | None = None, seed: int = 0, plot_id: str = "P1", **settings) -> CutResult:
+def cut_cloud_to_folder(
+    outdir: str | Path,
+    cloud_path: str | Path,
+    positions: list | None = None,
+    n_views: int | None = None,
+    spacing: float | None = None,
+    seed: int = 0,
+    plot_id: str = "P1",
+    **settings,
+) -> CutResult:
     """Read a LAS/LAZ cloud, cut views, write one LAZ per view + ground_truth.json + manifest.toml into `outdir`."""
     from plotmosaic.io.atomic import write_text_atomic
     from plotmosaic.io.las import STANDARD_ATTRIBUTES, PointCloud, read_cloud, write_cloud
@@ -345,10 +477,32 @@ def cut_cloud_to_folder(outdir: str | Path, cloud_path: str | Path, positions: l
         points[sid] = len(view.points)
         where[sid] = [float(v) for v in view.position]
         scans.append(Scan(id=sid, path=rel, kind="tls", reference=k == 0))
-    manifest = Manifest(name=f"virtual scans of {Path(cloud_path).name} (seed {seed})", plots=[Plot(id=plot_id, crs=crs_text, scans=scans)])
+    manifest = Manifest(
+        name=f"virtual scans of {Path(cloud_path).name} (seed {seed})",
+        plots=[Plot(id=plot_id, crs=crs_text, scans=scans)],
+    )
     manifest_path = write_text_atomic(outdir / "manifest.toml", dump_manifest(manifest))
-    extra = {"from_cloud": {"source": str(cloud_path), "seed": seed, "positions": where, "settings": cfg.model_dump()}}
-    truth = Poses(scans=poses, frame="crs" if crs is not None else "plot", crs=crs.to_wkt() if crs is not None else None, extra=extra)
+    extra = {
+        "from_cloud": {
+            "source": str(cloud_path),
+            "seed": seed,
+            "positions": where,
+            "settings": cfg.model_dump(),
+        }
+    }
+    truth = Poses(
+        scans=poses,
+        frame="crs" if crs is not None else "plot",
+        crs=crs.to_wkt() if crs is not None else None,
+        extra=extra,
+    )
     truth_path = truth.save(outdir / "ground_truth.json")
-    return CutResult(outdir, manifest_path, truth_path, paths, points, where,
-                     {"read": t_read, "total": time.perf_counter() - t0})
+    return CutResult(
+        outdir,
+        manifest_path,
+        truth_path,
+        paths,
+        points,
+        where,
+        {"read": t_read, "total": time.perf_counter() - t0},
+    )

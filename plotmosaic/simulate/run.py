@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 from pyproj import CRS
 
+from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.frame import translation
 from plotmosaic.io.las import PointCloud, write_cloud
-from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.manifest import AlsTile, Manifest, Plot, Scan, dump_manifest
 from plotmosaic.poses import Poses, ScanPose
 from plotmosaic.simulate.als import scan_als
@@ -60,7 +60,11 @@ ALS_PATH = Path("als") / "als.laz"
 
 def expected_scans(config: SimulationConfig) -> list[tuple[str, str, Path]]:
     """(plot id, scan id, relative path) of every TLS scan `simulate` writes for this config."""
-    return [(pid, scan_id(pid, i), scan_path(pid, scan_id(pid, i))) for pid in plot_ids(config) for i in range(len(config.scan_layout))]
+    return [
+        (pid, scan_id(pid, i), scan_path(pid, scan_id(pid, i)))
+        for pid in plot_ids(config)
+        for i in range(len(config.scan_layout))
+    ]
 
 
 def crs_wkt() -> str:
@@ -77,7 +81,12 @@ def als_extent(world: World) -> tuple[float, float, float, float]:
     xy = np.array([s.xy for s in world.sites])
     ext = square_extent(xy, world.config.als.margin_m)
     e = world.extent  # never beyond the scene
-    return max(ext[0], e[0] + 1), max(ext[1], e[1] + 1), min(ext[2], e[2] - 1), min(ext[3], e[3] - 1)
+    return (
+        max(ext[0], e[0] + 1),
+        max(ext[1], e[1] + 1),
+        min(ext[2], e[2] - 1),
+        min(ext[3], e[3] - 1),
+    )
 
 
 def simulate(
@@ -95,7 +104,9 @@ def simulate(
     cfg = config if config is not None else make_config(preset, **overrides)
     world = build_world(cfg, seed)
     seconds = {"world": time.perf_counter() - t_start}
-    rng_pose, rng_tls, rng_als, rng_approx, rng_fig = (np.random.default_rng(s) for s in np.random.SeedSequence([seed, 1]).spawn(5))
+    rng_pose, rng_tls, rng_als, rng_approx, rng_fig = (
+        np.random.default_rng(s) for s in np.random.SeedSequence([seed, 1]).spawn(5)
+    )
     origin = world.origin
     to_world = translation(origin)
 
@@ -126,8 +137,14 @@ def simulate(
         if cfg.approx_positions:
             approx = tuple(float(v) for v in T[:3, 3] + rng_approx.normal(0, cfg.approx_sigma_m, 3))
         first = not plots.get(site.plot_id)
-        scan = Scan(id=site.scan_id, path=rel, kind="tls", reference=first, approx_position=approx,
-                    approx_position_frame="crs")
+        scan = Scan(
+            id=site.scan_id,
+            path=rel,
+            kind="tls",
+            reference=first,
+            approx_position=approx,
+            approx_position_frame="crs",
+        )
         plots.setdefault(site.plot_id, []).append(scan)
     seconds["tls"] = time.perf_counter() - t0
 
@@ -153,13 +170,29 @@ def simulate(
         als=[AlsTile(path=ALS_PATH)],
     )
     manifest_path = write_text_atomic(outdir / "manifest.toml", dump_manifest(manifest))
-    truth = Poses(scans=poses, frame="crs", crs=crs_wkt(), extra={"simulation": {"preset": cfg.name, "seed": seed, "origin": [float(v) for v in origin]}})
+    truth = Poses(
+        scans=poses,
+        frame="crs",
+        crs=crs_wkt(),
+        extra={
+            "simulation": {"preset": cfg.name, "seed": seed, "origin": [float(v) for v in origin]}
+        },
+    )
     truth_path = truth.save(outdir / "ground_truth.json")
 
     result = SimulationResult(
-        outdir=outdir, manifest_path=manifest_path, ground_truth_path=truth_path, scan_paths=scan_paths,
-        als_paths=[als_path], figures=[], config=cfg, seed=seed, points=points,
-        als_density=len(als) / area, als_extent=extent, seconds=seconds,
+        outdir=outdir,
+        manifest_path=manifest_path,
+        ground_truth_path=truth_path,
+        scan_paths=scan_paths,
+        als_paths=[als_path],
+        figures=[],
+        config=cfg,
+        seed=seed,
+        points=points,
+        als_density=len(als) / area,
+        als_extent=extent,
+        seconds=seconds,
     )
     if figures:
         from plotmosaic.simulate.figures import make_figures

@@ -58,7 +58,9 @@ class Scene:
             o3d.core.Tensor(np.ascontiguousarray(mesh.triangles, dtype=np.uint32)),
         )
 
-    def cast(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def cast(
+        self, origins: np.ndarray, directions: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Indices of the rays that hit, their distance, the label and unit face normal of the hit."""
         rays = np.empty((len(directions), 6), dtype=np.float32)
         rays[:, :3] = origins
@@ -67,7 +69,12 @@ class Scene:
         t = out["t_hit"].numpy()
         hit = np.flatnonzero(np.isfinite(t))
         prim = out["primitive_ids"].numpy()[hit]
-        return hit, t[hit].astype(np.float64), self.labels[prim], out["primitive_normals"].numpy()[hit]
+        return (
+            hit,
+            t[hit].astype(np.float64),
+            self.labels[prim],
+            out["primitive_normals"].numpy()[hit],
+        )
 
     def distance(self, points_local: np.ndarray) -> np.ndarray:
         """Unsigned distance from each point to the nearest triangle."""
@@ -93,7 +100,9 @@ def _sites(config: SimulationConfig, rng: np.random.Generator) -> list[Site]:
     for pid, centre in zip(plot_ids(config), centres):
         ang = rng.uniform(0, 2 * np.pi, len(layout))
         rad = config.tls.position_jitter_m * np.sqrt(rng.random(len(layout)))
-        xy = np.asarray(centre) + layout + np.column_stack([np.cos(ang), np.sin(ang)]) * rad[:, None]
+        xy = (
+            np.asarray(centre) + layout + np.column_stack([np.cos(ang), np.sin(ang)]) * rad[:, None]
+        )
         post = config.prepost and pid == "POST"
         if post:  # the crew comes back and sets the tripod near, not on, the old spots
             ang = rng.uniform(0, 2 * np.pi, len(layout))
@@ -112,7 +121,9 @@ def square_extent(xy: np.ndarray, margin: float) -> tuple[float, float, float, f
 
 def build_world(config: SimulationConfig, seed: int = 0) -> World:
     """Everything the scans are taken of; the same (config, seed) always gives the same world."""
-    rng_terrain, rng_sites, rng_veg, rng_fire = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4))
+    rng_terrain, rng_sites, rng_veg, rng_fire = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)
+    )
     sites = _sites(config, rng_sites)
     scan_xy = np.array([s.xy for s in sites])
     extent = square_extent(scan_xy, config.scene_margin_m)
@@ -123,13 +134,29 @@ def build_world(config: SimulationConfig, seed: int = 0) -> World:
     post_mesh = None
     if config.prepost:
         post_mesh = burn(mesh, vegetation, config, rng_fire)
-    return World(config, seed, np.asarray(config.origin, dtype=np.float64), extent, terrain, vegetation, sites, mesh, post_mesh)
+    return World(
+        config,
+        seed,
+        np.asarray(config.origin, dtype=np.float64),
+        extent,
+        terrain,
+        vegetation,
+        sites,
+        mesh,
+        post_mesh,
+    )
 
 
-def burn(mesh: Mesh, vegetation: Vegetation, config: SimulationConfig, rng: np.random.Generator) -> Mesh:
+def burn(
+    mesh: Mesh, vegetation: Vegetation, config: SimulationConfig, rng: np.random.Generator
+) -> Mesh:
     """A low-intensity surface fire: most grass tufts and many shrubs are gone, trees untouched."""
-    gone = np.concatenate([
-        vegetation.grass_ids[rng.random(len(vegetation.grass_ids)) < config.fire.grass_removed],
-        vegetation.shrub_ids[rng.random(len(vegetation.shrub_ids)) < config.fire.shrubs_removed],
-    ])
+    gone = np.concatenate(
+        [
+            vegetation.grass_ids[rng.random(len(vegetation.grass_ids)) < config.fire.grass_removed],
+            vegetation.shrub_ids[
+                rng.random(len(vegetation.shrub_ids)) < config.fire.shrubs_removed
+            ],
+        ]
+    )
     return mesh.select(~np.isin(mesh.owners, gone))

@@ -36,7 +36,11 @@ class Terrain:
         u, v = fx - i, fy - j
         z00, z10, z01, z11 = self.z[j, i], self.z[j, i + 1], self.z[j + 1, i], self.z[j + 1, i + 1]
         lower = u + v <= 1  # the mesh splits each cell along the (1,0)-(0,1) diagonal
-        return np.where(lower, z00 + u * (z10 - z00) + v * (z01 - z00), z11 + (1 - u) * (z01 - z11) + (1 - v) * (z10 - z11))
+        return np.where(
+            lower,
+            z00 + u * (z10 - z00) + v * (z01 - z00),
+            z11 + (1 - u) * (z01 - z11) + (1 - v) * (z10 - z11),
+        )
 
     def mesh(self) -> Mesh:
         ny, nx = self.z.shape
@@ -45,12 +49,24 @@ class Terrain:
         X, Y = np.meshgrid(xs, ys)
         verts = np.column_stack([X.ravel(), Y.ravel(), self.z.ravel()])
         idx = np.arange(nx * ny).reshape(ny, nx)
-        a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+        a, b, c, d = (
+            idx[:-1, :-1].ravel(),
+            idx[:-1, 1:].ravel(),
+            idx[1:, :-1].ravel(),
+            idx[1:, 1:].ravel(),
+        )
         tris = np.concatenate([np.stack([a, b, c], 1), np.stack([d, c, b], 1)])
-        return Mesh(verts, tris.astype(np.int64), np.full(len(tris), GROUND, np.uint8), np.full(len(tris), -1, np.int32))
+        return Mesh(
+            verts,
+            tris.astype(np.int64),
+            np.full(len(tris), GROUND, np.uint8),
+            np.full(len(tris), -1, np.int32),
+        )
 
 
-def make_terrain(extent: tuple[float, float, float, float], cfg: TerrainConfig, rng: np.random.Generator) -> Terrain:
+def make_terrain(
+    extent: tuple[float, float, float, float], cfg: TerrainConfig, rng: np.random.Generator
+) -> Terrain:
     """Heights over extent (xmin, ymin, xmax, ymax), zero mean near the origin."""
     xmin, ymin, xmax, ymax = extent
     nx = int(np.ceil((xmax - xmin) / cfg.cell)) + 1
@@ -71,8 +87,17 @@ def make_terrain(extent: tuple[float, float, float, float], cfg: TerrainConfig, 
         kx, ky = 2 * np.pi / lam[k] * np.cos(theta[k]), 2 * np.pi / lam[k] * np.sin(theta[k])
         z += weights[k] * np.cos(kx * X + ky * Y + phase[k])
     if cfg.microrelief_m > 0:  # smooth bumps a metre or so across: white noise, upsampled
-        coarse = rng.normal(0.0, 1.0, (int(ny * cfg.cell / cfg.microrelief_scale_m) + 3, int(nx * cfg.cell / cfg.microrelief_scale_m) + 3))
-        fine = zoom(coarse, (cfg.microrelief_scale_m / cfg.cell,) * 2, order=3, mode="nearest")[:ny, :nx]
+        coarse = rng.normal(
+            0.0,
+            1.0,
+            (
+                int(ny * cfg.cell / cfg.microrelief_scale_m) + 3,
+                int(nx * cfg.cell / cfg.microrelief_scale_m) + 3,
+            ),
+        )
+        fine = zoom(coarse, (cfg.microrelief_scale_m / cfg.cell,) * 2, order=3, mode="nearest")[
+            :ny, :nx
+        ]
         z += fine / max(fine.std(), 1e-9) * cfg.microrelief_m
     z += rng.normal(0.0, cfg.roughness_m, z.shape)
     terrain = Terrain(xmin, ymin, cfg.cell, z)

@@ -11,7 +11,6 @@ import numpy as np
 
 from plotmosaic.io.las import PointCloud
 from plotmosaic.simulate.config import TlsConfig
-from plotmosaic.simulate.mesh import LABEL_NAMES
 from plotmosaic.simulate.scene import Scene
 
 # Reflectance at 830 nm by label: ground, bark, needles/leaves, grass/shrubs.
@@ -73,7 +72,9 @@ def angular_step(scene: Scene, pose: np.ndarray, cfg: TlsConfig, rng: np.random.
     return float(np.sqrt(span * frac / cfg.points_per_scan))
 
 
-def scan_tls(scene: Scene, pose: np.ndarray, cfg: TlsConfig, rng: np.random.Generator, t0: float = 0.0) -> PointCloud:
+def scan_tls(
+    scene: Scene, pose: np.ndarray, cfg: TlsConfig, rng: np.random.Generator, t0: float = 0.0
+) -> PointCloud:
     """One scan from `pose` (scanner -> scene local frame), points in the scanner frame."""
     step = angular_step(scene, pose, cfg, rng)
     az, el = _grid(step, cfg)
@@ -92,7 +93,12 @@ def scan_tls(scene: Scene, pose: np.ndarray, cfg: TlsConfig, rng: np.random.Gene
         attrs = {"label": label, "gps_time": gps}
         if cfg.intensity:
             cos = np.abs(np.einsum("ij,ij->i", normal, dw[hit]))
-            val = REFLECTANCE[label] * (0.35 + 0.65 * cos) * np.exp(-r / 80.0) * rng.normal(1.0, 0.05, len(r))
+            val = (
+                REFLECTANCE[label]
+                * (0.35 + 0.65 * cos)
+                * np.exp(-r / 80.0)
+                * rng.normal(1.0, 0.05, len(r))
+            )
             attrs["intensity"] = np.clip(val * 60000, 0, 65535).astype(np.uint16)
         parts.append((xyz, attrs))
     xyz = np.concatenate([p[0] for p in parts]) if parts else np.zeros((0, 3))
@@ -101,7 +107,3 @@ def scan_tls(scene: Scene, pose: np.ndarray, cfg: TlsConfig, rng: np.random.Gene
     attrs["return_number"] = np.ones(n, np.uint8)
     attrs["number_of_returns"] = np.ones(n, np.uint8)
     return PointCloud(xyz, attrs)
-
-
-def label_counts(labels: np.ndarray) -> dict[str, int]:
-    return {name: int((labels == k).sum()) for k, name in LABEL_NAMES.items()}
