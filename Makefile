@@ -3,7 +3,7 @@ VENV ?= .venv
 PYTHON ?= python3
 BIN := $(VENV)/bin
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo lint test bench clean
 
 setup: $(VENV)/.installed
 
@@ -16,7 +16,11 @@ $(VENV)/.installed: pyproject.toml scripts/install-system-deps.sh
 demo: setup
 	$(BIN)/plotmosaic demo demo-output
 
-test: setup
+lint: setup
+	$(BIN)/ruff check plotmosaic tests benchmarks
+	$(BIN)/ruff format --check plotmosaic tests benchmarks
+
+test: setup lint
 	$(BIN)/python -m pytest -q
 
 clean:
