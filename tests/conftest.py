@@ -2,7 +2,17 @@ from pathlib import Path
 
 import pytest
 
-SPANNER = Path(__file__).resolve().parents[2] / "shared" / "data" / "spanner"
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+SPANNER = SHARED / "spanner"
+E57_DIR = SHARED / "e57"
+
+
+@pytest.fixture(scope="session")
+def e57_dir() -> Path:
+    """The shared E57 samples; tests using them skip only when the folder is absent."""
+    if not E57_DIR.is_dir():
+        pytest.skip("shared/data/e57 not present")
+    return E57_DIR
 
 
 @pytest.fixture(scope="session")

@@ -1,5 +1,8 @@
-"""Assertions shared by the CLI tests."""
+"""Assertions and writers shared by the tests."""
 
+from pathlib import Path
+
+import numpy as np
 from typer.testing import CliRunner
 
 from plotmosaic.cli import app
@@ -22,3 +25,28 @@ def assert_one_line_error(result, *needles, code=2):
     assert "Traceback" not in result.output
     for needle in needles:
         assert needle in lines[0], lines[0]
+
+
+def _quaternion(R: np.ndarray) -> list[float]:
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    return [w, x, y, z]
+
+
+def write_e57(path: Path, scans: list[tuple[str, np.ndarray, np.ndarray, dict]]) -> Path:
+    """An E57 with one scan per (name, local xyz, pose 4x4, extra fields) written with pye57."""
+    import pye57
+
+    with pye57.E57(str(path), mode="w") as e57:
+        for name, xyz, pose, extra in scans:
+            data = {
+                "cartesianX": xyz[:, 0],
+                "cartesianY": xyz[:, 1],
+                "cartesianZ": xyz[:, 2],
+                **extra,
+            }
+            e57.write_scan_raw(
+                data, name=name, rotation=_quaternion(pose[:3, :3]), translation=pose[:3, 3]
+            )
+    return path

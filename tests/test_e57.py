@@ -4,7 +4,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import assert_one_line_error, invoke
+from helpers import assert_one_line_error, invoke, write_e57
 
 from plotmosaic.errors import InputError
 from plotmosaic.io.e57 import list_scans, scan_ref, stored_pose
@@ -12,16 +12,6 @@ from plotmosaic.io.frame import inverse, pose_error
 from plotmosaic.io.las import iter_chunks, open_las, read_cloud, read_header_info
 from plotmosaic.manifest import load_manifest
 from plotmosaic.poses import load_poses
-
-E57_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "e57"
-
-
-@pytest.fixture(scope="session")
-def e57_dir() -> Path:
-    """The shared E57 samples; tests using them skip only when the folder is absent."""
-    if not E57_DIR.is_dir():
-        pytest.skip("shared/data/e57 not present")
-    return E57_DIR
 
 
 @pytest.mark.parametrize(
@@ -79,31 +69,6 @@ def test_stored_pose_and_normals(e57_dir):
 
 
 # ---------------------------------------------------------------- a 3-scan project file
-
-
-def _quaternion(R: np.ndarray) -> list[float]:
-    from scipy.spatial.transform import Rotation
-
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
-    return [w, x, y, z]
-
-
-def write_e57(path: Path, scans: list[tuple[str, np.ndarray, np.ndarray, dict]]) -> Path:
-    """An E57 with one scan per (name, local xyz, pose 4x4, extra fields) written with pye57."""
-    import pye57
-
-    with pye57.E57(str(path), mode="w") as e57:
-        for name, xyz, pose, extra in scans:
-            data = {
-                "cartesianX": xyz[:, 0],
-                "cartesianY": xyz[:, 1],
-                "cartesianZ": xyz[:, 2],
-                **extra,
-            }
-            e57.write_scan_raw(
-                data, name=name, rotation=_quaternion(pose[:3, :3]), translation=pose[:3, 3]
-            )
-    return path
 
 
 SUBSET = ["P1-S0", "P1-S2", "P1-S3"]  # neighbours, as in test_register.py
