@@ -167,7 +167,8 @@ def profile_merge(root: Path) -> None:
     from threadpoolctl import threadpool_limits
 
     from plotmosaic.manifest import load_manifest
-    from plotmosaic.merge import MergeConfig, merge_scans, plan_sources, posed_record, read_records
+    from plotmosaic.merge import merge_scans, plan_sources, posed_record, read_records
+    from plotmosaic.merge_config import MergeConfig
     from plotmosaic.poses import load_poses
 
     manifest, poses = load_manifest(root / "manifest.toml"), load_poses(root / "poses.json")

@@ -13,7 +13,8 @@ from plotmosaic.graph.anchors import tie_to_als
 from plotmosaic.graph.pipeline import register_plot
 from plotmosaic.graph.posegraph import inverse, pose_error
 from plotmosaic.manifest import load_manifest
-from plotmosaic.merge import MergeConfig, merge_scans
+from plotmosaic.merge import merge_scans
+from plotmosaic.merge_config import MergeConfig
 from plotmosaic.poses import Poses, load_poses
 from plotmosaic.simulate.run import simulate
 

@@ -28,7 +28,6 @@ from pathlib import Path
 
 import laspy
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 from pyproj import CRS
 from pyproj.exceptions import CRSError
 from threadpoolctl import threadpool_limits
@@ -37,7 +36,6 @@ from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import atomic_output, check_writable
 from plotmosaic.io.frame import apply_transform, translation
 from plotmosaic.io.las import (
-    CHUNK_SIZE,
     STANDARD_ATTRIBUTES,
     HeaderInfo,
     las_offsets,
@@ -47,84 +45,14 @@ from plotmosaic.io.las import (
     short_error,
 )
 from plotmosaic.manifest import Manifest
+from plotmosaic.merge_config import SCALE, MergeConfig, bbox_limits
 from plotmosaic.parallel import in_two_threads, threads
 from plotmosaic.poses import Poses
 
-SCALE = 0.001  # 1 mm
 VLR_USER_ID = "plotmosaic"
 VLR_RECORD_ID = 1
 MAX_SOURCE_ID = 65535  # point_source_id is a uint16
 TILE_INDEX = "index.json"  # the index of a tiled output (--tiles), inside its folder
-
-
-class MergeConfig(BaseModel):
-    """Options of `merge` (defaults = plain merge of every posed scan)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    voxel: float | None = Field(
-        default=None, gt=0, description="voxel size (m) for thinning, rounded to whole mm"
-    )
-    include_als: bool = False
-    bbox: tuple[float, ...] | None = (
-        None  # xmin, ymin, xmax, ymax[, zmin, zmax] in output coordinates
-    )
-    force: bool = False
-    skip_missing: bool = False
-    chunk_size: int = Field(default=CHUNK_SIZE, ge=1)
-    tile_memory_mb: int = Field(
-        default=512,
-        ge=1,
-        le=1 << 20,
-        description="memory (MB) for the tiles thinned at once: tiles are cut to fit it, whatever the output size",
-    )
-    tiles: bool = Field(
-        default=False,
-        description="write one LAZ per square tile into the folder --out, plus index.json",
-    )
-    tile_size: float = Field(
-        default=100.0,
-        gt=0,
-        le=100_000,
-        description="tile edge (m) with --tiles, whole mm; tiles are anchored at the output offset (a multiple of 1 km)",
-    )
-
-    @field_validator("voxel")
-    @classmethod
-    def _voxel_mm(cls, value: float | None) -> float | None:
-        if value is not None and round(value / SCALE) < 1:
-            raise ValueError("must be at least 0.001 (1 mm, the output resolution)")
-        return value
-
-    @field_validator("tile_size")
-    @classmethod
-    def _tile_mm(cls, value: float) -> float:
-        if abs(round(value / SCALE) * SCALE - value) > 1e-9 * max(1.0, value):
-            raise ValueError("must be a whole number of mm")
-        return value
-
-    @model_validator(mode="after")
-    def _tiles_on_voxel_faces(self) -> MergeConfig:
-        # a voxel cut by a tile edge would be thinned twice: tiles must be whole voxels
-        if self.tiles and self.voxel and round(self.tile_size / SCALE) % round(self.voxel / SCALE):
-            raise ValueError(
-                f"--tile-size {self.tile_size:g} must be a whole multiple of --voxel {self.voxel:g}"
-            )
-        return self
-
-    @field_validator("bbox")
-    @classmethod
-    def _bbox(cls, value: tuple[float, ...] | None) -> tuple[float, ...] | None:
-        if value is None:
-            return None
-        if len(value) not in (4, 6):
-            raise ValueError("needs 4 or 6 numbers: xmin,ymin,xmax,ymax[,zmin,zmax]")
-        if not all(np.isfinite(value)):
-            raise ValueError("numbers must be finite")
-        lo, hi = _bbox_limits(value)
-        if np.any(lo >= hi):
-            raise ValueError("each min must be smaller than its max")
-        return tuple(float(v) for v in value)
 
 
 def parse_bbox(text: str) -> tuple[float, ...]:
@@ -148,11 +76,6 @@ def _first_error(exc: Exception) -> str:
         msg = errors()[0]["msg"]
         return msg.removeprefix("Value error, ")
     return str(exc)
-
-
-def _bbox_limits(bbox: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
-    zlo, zhi = (bbox[4], bbox[5]) if len(bbox) == 6 else (-np.inf, np.inf)
-    return np.array([bbox[0], bbox[1], zlo]), np.array([bbox[2], bbox[3], zhi])
 
 
 @dataclass
@@ -697,7 +620,7 @@ def _merge_scans(
             )
     mins, maxs = output_bounds(sources)
     if config.bbox is not None:
-        lo, hi = _bbox_limits(config.bbox)
+        lo, hi = bbox_limits(config.bbox)
         if np.any(lo > maxs) or np.any(hi < mins):
             raise InputError(
                 f"--bbox does not overlap the merged scans (x {mins[0]:.3f}..{maxs[0]:.3f}, y {mins[1]:.3f}..{maxs[1]:.3f}, z {mins[2]:.3f}..{maxs[2]:.3f})"
@@ -1068,7 +991,7 @@ def posed_record(
     q = q.astype(np.int64)
     index = None
     if bbox is not None:
-        lo, hi = _bbox_limits(bbox)
+        lo, hi = bbox_limits(bbox)
         xyz = q * header.scales + header.offsets  # the coordinates as written
         index = np.flatnonzero(np.all((xyz >= lo) & (xyz <= hi), axis=1))
     if thin is not None:

@@ -4,8 +4,8 @@ import gtsam
 import numpy as np
 import pytest
 
+from plotmosaic.graph.config import PoseGraphConfig
 from plotmosaic.graph.posegraph import (
-    PoseGraphConfig,
     build_graph,
     condition_information,
     cycle_outliers,

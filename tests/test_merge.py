@@ -28,7 +28,8 @@ from plotmosaic.manifest import (
     dump_manifest,
     load_manifest,
 )
-from plotmosaic.merge import MergeConfig, merge_scans, read_source_table
+from plotmosaic.merge import merge_scans, read_source_table
+from plotmosaic.merge_config import MergeConfig
 from plotmosaic.poses import Poses, ScanPose, load_poses
 
 N = 20_000

@@ -12,7 +12,8 @@ import pytest
 from pyproj import CRS
 
 from plotmosaic.graph.cache import PairCache
-from plotmosaic.graph.pipeline import RegisterConfig, plan_jobs, register_plot
+from plotmosaic.graph.config import RegisterConfig
+from plotmosaic.graph.pipeline import plan_jobs, register_plot
 from plotmosaic.graph.posegraph import inverse, pose_error
 from plotmosaic.manifest import dump_manifest, load_manifest
 from plotmosaic.poses import load_poses

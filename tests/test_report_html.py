@@ -82,7 +82,8 @@ class _Page(HTMLParser):
 
 def _registered_folder(sim, out: Path):
     """register-plot's result on the small plot built from the truth (plus one bad pair), without registering."""
-    from plotmosaic.graph.pipeline import PlotResult, RegisterConfig, RegisterResult
+    from plotmosaic.graph.config import RegisterConfig
+    from plotmosaic.graph.pipeline import PlotResult, RegisterResult
     from plotmosaic.graph.posegraph import build_graph, optimise
     from plotmosaic.manifest import load_manifest
     from plotmosaic.poses import Poses, ScanPose

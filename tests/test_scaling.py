@@ -46,7 +46,8 @@ def test_grid_of_150_scans_with_wrong_edges_drops_every_wrong_edge():
 
 
 def _pair_jobs(sim, folder, ids=("P1-S0", "P1-S2", "P1-S3")):
-    from plotmosaic.graph.pipeline import RegisterConfig, plan_jobs
+    from plotmosaic.graph.config import RegisterConfig
+    from plotmosaic.graph.pipeline import plan_jobs
     from plotmosaic.manifest import load_manifest
 
     m = load_manifest(sim.manifest_path)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from plotmosaic.align.coarse_config import CoarseConfig
 from plotmosaic.align.judge_config import JudgeConfig
@@ -18,6 +18,44 @@ DEFAULT_LEVELS = {"tls": 3, "mls": 3, "uls": 2, "als": 2}
 
 def default_levels(kind: str) -> int:
     return DEFAULT_LEVELS[kind.lower()]
+
+
+class StrayConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    enabled: bool = Field(
+        True, description="drop points detached from the cloud before any grid is built"
+    )
+    core_quantile: float = Field(
+        0.02,
+        gt=0,
+        lt=0.25,
+        description="the bulk: quantiles q..1-q per axis (a "
+        "cluster of NaN-written points below q cannot move them)",
+    )
+    core_margin: float = Field(
+        1.0,
+        ge=0,
+        le=10,
+        description="the bulk widened by this multiple of its width: "
+        "a scan's sparse far range stays untouched",
+    )
+    min_margin_m: float = Field(
+        50.0, ge=0, description="and by at least this much: thin clouds (a flat z range)"
+    )
+    max_gap_m: float = Field(
+        20.0, gt=0, description="an empty gap this wide along an axis detaches what lies beyond"
+    )
+    detached_max_fraction: float = Field(
+        0.01,
+        ge=0,
+        lt=0.5,
+        description="a detached part holding at most this "
+        "share of the points is stray; more is real data",
+    )
+    sample_points: int = Field(
+        200_000, ge=1000, description="strided sample for the quantiles (stable to <1 %)"
+    )
 
 
 class VmfConfig(BaseModel):
@@ -111,3 +149,4 @@ class AlignConfig(BaseModel):
     )
     coarse: CoarseConfig = CoarseConfig()
     judge: JudgeConfig = JudgeConfig()
+    stray: StrayConfig = StrayConfig()

@@ -12,45 +12,8 @@ beyond a further gap past it is judged the same way). Linear time
 from __future__ import annotations
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
-
-class StrayConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
-
-    enabled: bool = Field(
-        True, description="drop points detached from the cloud before any grid is built"
-    )
-    core_quantile: float = Field(
-        0.02,
-        gt=0,
-        lt=0.25,
-        description="the bulk: quantiles q..1-q per axis (a "
-        "cluster of NaN-written points below q cannot move them)",
-    )
-    core_margin: float = Field(
-        1.0,
-        ge=0,
-        le=10,
-        description="the bulk widened by this multiple of its width: "
-        "a scan's sparse far range stays untouched",
-    )
-    min_margin_m: float = Field(
-        50.0, ge=0, description="and by at least this much: thin clouds (a flat z range)"
-    )
-    max_gap_m: float = Field(
-        20.0, gt=0, description="an empty gap this wide along an axis detaches what lies beyond"
-    )
-    detached_max_fraction: float = Field(
-        0.01,
-        ge=0,
-        lt=0.5,
-        description="a detached part holding at most this "
-        "share of the points is stray; more is real data",
-    )
-    sample_points: int = Field(
-        200_000, ge=1000, description="strided sample for the quantiles (stable to <1 %)"
-    )
+from plotmosaic.align.config import StrayConfig
 
 
 def _axis_strays(v: np.ndarray, keep: np.ndarray, config: StrayConfig) -> None:

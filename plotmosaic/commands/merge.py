@@ -13,7 +13,8 @@ from plotmosaic.commands.common import handle_errors
 from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import check_output_dir, check_output_file
 from plotmosaic.manifest import load_manifest
-from plotmosaic.merge import MergeConfig, MergeSummary, merge_scans, parse_bbox
+from plotmosaic.merge import MergeSummary, merge_scans, parse_bbox
+from plotmosaic.merge_config import MergeConfig
 from plotmosaic.poses import load_poses
 
 

@@ -63,7 +63,8 @@ def register_plot_command(
     ),
 ) -> None:
     """Register every overlapping pair of scans in each plot and place all scans with a pose graph."""
-    from plotmosaic.graph.pipeline import RegisterConfig, register_plot
+    from plotmosaic.graph.config import RegisterConfig
+    from plotmosaic.graph.pipeline import register_plot
 
     _check_jobs(jobs)
     if executor not in ("local", "dask"):
@@ -123,7 +124,8 @@ def tie_to_als_command(
     ),
 ) -> None:
     """Register each plot to the ALS and optimise the whole region with the ALS frame fixed."""
-    from plotmosaic.graph.anchors import TieConfig, tie_to_als
+    from plotmosaic.graph.anchors import tie_to_als
+    from plotmosaic.graph.config import TieConfig
 
     _check_jobs(jobs)
     if buffer < 0:

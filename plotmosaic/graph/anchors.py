@@ -18,16 +18,14 @@ from pathlib import Path
 import gtsam
 import networkx as nx
 import numpy as np
-from pydantic import BaseModel, Field
 
-from plotmosaic.align.config import AlignConfig
 from plotmosaic.align.voxel import voxel_centroids
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.graph.cache import PairCache, pair_key
+from plotmosaic.graph.config import TieConfig
 from plotmosaic.graph.executor import PairJob
 from plotmosaic.graph.pipeline import EDGE_FIELDS, compute_pairs
 from plotmosaic.graph.posegraph import (
-    PoseGraphConfig,
     Solution,
     build_graph,
     graph_from_json,
@@ -43,16 +41,6 @@ from plotmosaic.manifest import Manifest, Plot, load_manifest
 from plotmosaic.poses import Poses, ScanPose, load_poses
 
 ALS_NODE = "ALS"
-
-
-class TieConfig(BaseModel):
-    align: AlignConfig = Field(default_factory=AlignConfig)
-    graph: PoseGraphConfig = Field(default_factory=PoseGraphConfig)
-    buffer: float = Field(20.0, ge=0)  # metres of ALS kept around the plot's footprint
-    plot_voxel: float = Field(
-        0.05, gt=0
-    )  # thinning of the merged plot cloud (TLS is far denser than needed)
-    report_points: int = 20_000
 
 
 @dataclass

@@ -13,24 +13,10 @@ from __future__ import annotations
 from itertools import combinations
 
 import numpy as np
-from pydantic import BaseModel, Field
 from scipy.spatial import cKDTree
 
+from plotmosaic.graph.config import PairSelection
 from plotmosaic.manifest import Plot, Scan
-
-
-class PairSelection(BaseModel):
-    """How register-plot chooses the pairs to register."""
-
-    all_pairs_up_to: int = Field(
-        8, ge=2, le=64, description="plots of at most this many scans try every pair"
-    )
-    neighbours: int = Field(
-        6, ge=2, le=16, description="nearest scans each scan of a big plot is paired with"
-    )
-    max_per_scan: int = Field(
-        8, ge=2, le=16, description="cap on the pairs of one scan (linear growth)"
-    )
 
 
 def manifest_positions(plot: Plot) -> dict[str, np.ndarray] | None:

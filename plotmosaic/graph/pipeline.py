@@ -14,16 +14,16 @@ from pathlib import Path
 
 import networkx as nx
 import numpy as np
-from pydantic import BaseModel, Field
 
-from plotmosaic.align.config import AlignConfig
 from plotmosaic.errors import InputError
 from plotmosaic.graph.cache import PairCache, pair_key
+from plotmosaic.graph.config import (
+    RegisterConfig,
+)
 from plotmosaic.graph.executor import PairJob, prepare_jobs_for, run_pairs
-from plotmosaic.graph.pairs import PairSelection, candidate_pairs, manifest_positions
+from plotmosaic.graph.pairs import candidate_pairs, manifest_positions
 from plotmosaic.graph.placement import placed_poses, placement_jobs, prior
 from plotmosaic.graph.posegraph import (
-    PoseGraphConfig,
     Solution,
     build_graph,
     graph_to_json,
@@ -51,34 +51,6 @@ EDGE_FIELDS = (
     "sigma",
     "seconds",
 )
-
-
-def _graph_align_config() -> AlignConfig:
-    # unsure pairs still become edges: the pose graph keeps one only when a loop confirms it
-    return AlignConfig(min_confidence=0.0)
-
-
-class RegisterConfig(BaseModel):
-    align: AlignConfig = Field(default_factory=_graph_align_config)
-    graph: PoseGraphConfig = Field(default_factory=PoseGraphConfig)
-    max_distance: float | None = Field(
-        60.0, gt=0
-    )  # with approximate positions: farther pairs are not tried
-    pairs: PairSelection = Field(default_factory=PairSelection)
-    place_on_als: bool = Field(
-        True, description="big plots without positions: place each scan on the ALS first"
-    )
-    placement: AlignConfig = Field(
-        default_factory=AlignConfig, description="scan -> ALS: verified poses only"
-    )
-    placement_min_confidence: float = Field(
-        0.5,
-        ge=0,
-        le=1,
-        description="a scan placed on the ALS less surely than "
-        "this is paired with every scan instead (a wrong place would pick wrong pairs)",
-    )
-    report_points: int = 20_000  # per scan in the pictures
 
 
 @dataclass

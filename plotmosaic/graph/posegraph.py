@@ -14,69 +14,13 @@ offender, re-solve, repeat).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
 
 import gtsam
 import networkx as nx
 import numpy as np
-from pydantic import BaseModel, Field
 
+from plotmosaic.graph.config import PoseGraphConfig
 from plotmosaic.io.frame import inverse, pose_error, rotation_deg  # noqa: F401  (re-exported)
-
-
-class PoseGraphConfig(BaseModel):
-    """Tuning of the pose-graph solve. Angles in degrees, lengths in metres."""
-
-    robust: Literal["cauchy", "huber", "none"] = Field(
-        "cauchy", description="robust kernel of every edge"
-    )
-    robust_k: float = Field(3.0, gt=0, le=100, description="kernel width in whitened (sigma) units")
-    # Pairwise information matrices from ICP are often over-confident: floor each sigma and cap
-    # the ratio of strongest to weakest direction so the problem stays well conditioned.
-    min_sigma_rotation_deg: float = Field(
-        0.01, gt=0, le=10, description="floor of an edge's rotation sigma"
-    )
-    min_sigma_translation: float = Field(
-        0.002, gt=0, le=1, description="floor of an edge's translation sigma (m)"
-    )
-    max_information_ratio: float = Field(
-        1e4, ge=1, le=1e12, description="cap on strongest / weakest direction"
-    )
-    fallback_sigma_rotation_deg: float = Field(
-        0.1, gt=0, le=45, description="when a pair carries no information matrix"
-    )
-    # A triangle of edges is inconsistent when going around it is off by more than this.
-    cycle_rotation_deg: float = Field(
-        1.0, gt=0, description="triangle loop rotation beyond which it is inconsistent"
-    )
-    cycle_translation: float = Field(
-        0.10, gt=0, description="triangle loop translation (m) beyond which it is inconsistent"
-    )
-    # An edge whose coarse-stage confidence is below this is kept only when a consistent triangle
-    # confirms it: a wrong coarse solution can still pass the pair's own fitness checks.
-    min_confidence: float = Field(
-        0.25, ge=0, le=1, description="below: an edge needs a consistent triangle to stay"
-    )
-    # After a solve, an edge is an outlier when its residual exceeds both a metric bound and a
-    # chi-square bound (6 dof); the metric bound keeps over-confident good edges.
-    outlier_rotation_deg: float = Field(
-        0.5, gt=0, description="residual rotation an outlier exceeds"
-    )
-    outlier_translation: float = Field(
-        0.10, gt=0, description="residual translation (m) an outlier exceeds"
-    )
-    outlier_chi2: float = Field(
-        22.46, gt=0, description="residual chi2 an outlier exceeds (6 dof, p = 0.999)"
-    )
-    max_drops: int = Field(
-        50,
-        ge=0,
-        le=100_000,
-        description="residual drops (one re-solve each); cycle-vote drops not counted",
-    )
-    max_iterations: int = Field(
-        100, ge=1, le=10_000, description="Levenberg-Marquardt iterations per solve"
-    )
 
 
 def _pose3(T: np.ndarray) -> gtsam.Pose3:

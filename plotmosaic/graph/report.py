@@ -245,7 +245,7 @@ def write_register_report(
     result, manifest, config, seed: int, reader: Callable[[Path], np.ndarray] | None = None
 ) -> Path:
     """report.md (tables, pictures) and report.html (summary, breast-height slice, distances, map) of register-plot."""
-    from plotmosaic.graph.posegraph import PoseGraphConfig
+    from plotmosaic.graph.config import PoseGraphConfig
     from plotmosaic.report.build import ReportInput, Stage, build_report
     from plotmosaic.report.config import ReportConfig
 
@@ -365,7 +365,7 @@ def write_tie_report(
     result, manifest, als, config, seed: int, reader: Callable[[Path], np.ndarray] | None = None
 ) -> Path:
     """report.md and report.html of tie-to-als: anchors, poses in the ALS CRS, slice and distances, map over the ALS CHM."""
-    from plotmosaic.graph.posegraph import PoseGraphConfig
+    from plotmosaic.graph.config import PoseGraphConfig
     from plotmosaic.report.build import ReportInput, Stage, build_report
     from plotmosaic.report.config import ReportConfig
 

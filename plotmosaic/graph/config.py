@@ -1,0 +1,156 @@
+"""Settings of register-plot, its pose graph and tie-to-als (a leaf: imports only config modules)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from plotmosaic.align.config import AlignConfig
+
+
+class PairSelection(BaseModel):
+    """How register-plot chooses the pairs to register."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    all_pairs_up_to: int = Field(
+        8, ge=2, le=64, description="plots of at most this many scans try every pair"
+    )
+    neighbours: int = Field(
+        6, ge=2, le=16, description="nearest scans each scan of a big plot is paired with"
+    )
+    max_per_scan: int = Field(
+        8, ge=2, le=16, description="cap on the pairs of one scan (linear growth)"
+    )
+
+
+class PoseGraphConfig(BaseModel):
+    """Tuning of the pose-graph solve. Angles in degrees, lengths in metres."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    robust: Literal["cauchy", "huber", "none"] = Field(
+        "cauchy", description="robust kernel of every edge"
+    )
+    robust_k: float = Field(3.0, gt=0, le=100, description="kernel width in whitened (sigma) units")
+    # Pairwise information matrices from ICP are often over-confident: floor each sigma and cap
+    # the ratio of strongest to weakest direction so the problem stays well conditioned.
+    min_sigma_rotation_deg: float = Field(
+        0.01, gt=0, le=10, description="floor of an edge's rotation sigma"
+    )
+    min_sigma_translation: float = Field(
+        0.002, gt=0, le=1, description="floor of an edge's translation sigma (m)"
+    )
+    max_information_ratio: float = Field(
+        1e4, ge=1, le=1e12, description="cap on strongest / weakest direction"
+    )
+    fallback_sigma_rotation_deg: float = Field(
+        0.1, gt=0, le=45, description="when a pair carries no information matrix"
+    )
+    # A triangle of edges is inconsistent when going around it is off by more than this.
+    cycle_rotation_deg: float = Field(
+        1.0, gt=0, description="triangle loop rotation beyond which it is inconsistent"
+    )
+    cycle_translation: float = Field(
+        0.10,
+        gt=0,
+        description="triangle loop translation (m) beyond which it is inconsistent",
+    )
+    # An edge whose coarse-stage confidence is below this is kept only when a consistent triangle
+    # confirms it: a wrong coarse solution can still pass the pair's own fitness checks.
+    min_confidence: float = Field(
+        0.25, ge=0, le=1, description="below: an edge needs a consistent triangle to stay"
+    )
+    # After a solve, an edge is an outlier when its residual exceeds both a metric bound and a
+    # chi-square bound (6 dof); the metric bound keeps over-confident good edges.
+    outlier_rotation_deg: float = Field(
+        0.5, gt=0, description="residual rotation an outlier exceeds"
+    )
+    outlier_translation: float = Field(
+        0.10, gt=0, description="residual translation (m) an outlier exceeds"
+    )
+    outlier_chi2: float = Field(
+        22.46, gt=0, description="residual chi2 an outlier exceeds (6 dof, p = 0.999)"
+    )
+    max_drops: int = Field(
+        50,
+        ge=0,
+        le=100_000,
+        description="residual drops (one re-solve each); cycle-vote drops not counted",
+    )
+    max_iterations: int = Field(
+        100, ge=1, le=10_000, description="Levenberg-Marquardt iterations per solve"
+    )
+
+
+def graph_align_config() -> AlignConfig:
+    """Pairwise settings of register-plot: unsure pairs still become edges (the pose graph keeps
+    one only when a loop confirms it)."""
+    return AlignConfig(min_confidence=0.0)
+
+
+class RegisterConfig(BaseModel):
+    """Settings of register-plot."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    align: AlignConfig = Field(
+        default_factory=graph_align_config, description="pairwise registration of two scans"
+    )
+    graph: PoseGraphConfig = Field(
+        default_factory=PoseGraphConfig, description="the pose-graph solve of each plot"
+    )
+    max_distance: float | None = Field(
+        60.0,
+        gt=0,
+        le=100_000,
+        description="with approximate positions: pairs of scans farther apart (m) are not tried",
+    )
+    pairs: PairSelection = Field(
+        default_factory=PairSelection, description="which pairs are registered"
+    )
+    place_on_als: bool = Field(
+        True, description="big plots without positions: place each scan on the ALS first"
+    )
+    placement: AlignConfig = Field(
+        default_factory=AlignConfig, description="scan -> ALS: verified poses only"
+    )
+    placement_min_confidence: float = Field(
+        0.5,
+        ge=0,
+        le=1,
+        description="a scan placed on the ALS less surely than "
+        "this is paired with every scan instead (a wrong place would pick wrong pairs)",
+    )
+    report_points: int = Field(
+        20_000, ge=1000, le=1_000_000, description="points per scan in the report's pictures"
+    )
+
+
+class TieConfig(BaseModel):
+    """Settings of tie-to-als."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    align: AlignConfig = Field(
+        default_factory=AlignConfig, description="registration of each plot to the ALS"
+    )
+    graph: PoseGraphConfig = Field(
+        default_factory=PoseGraphConfig, description="the region's pose graph, ALS fixed"
+    )
+    buffer: float = Field(
+        20.0,
+        ge=0,
+        le=100_000,
+        description="metres of ALS kept around each plot's footprint (with CRS positions)",
+    )
+    plot_voxel: float = Field(
+        0.05,
+        gt=0,
+        le=10,
+        description="thinning (m) of the merged plot cloud: TLS is far denser than needed",
+    )
+    report_points: int = Field(
+        20_000, ge=1000, le=1_000_000, description="points per scan in the report's pictures"
+    )
