@@ -27,7 +27,7 @@ from scipy.spatial.transform import Rotation
 
 from plotmosaic.align import judge
 from plotmosaic.align.config import AlignConfig
-from plotmosaic.align.pipeline import global_search, prepare_pair, register_prepared
+from plotmosaic.align.pipeline import final_icp, global_search, prepare_pair, register_prepared
 from plotmosaic.errors import RegistrationFailed
 from plotmosaic.io.frame import to_local_transform
 from plotmosaic.io.las import PointCloud, read_cloud
@@ -195,23 +195,25 @@ def run_case(
                 "score": score,
                 "margin": margin,
                 "confidence": float(np.clip(margin / jc.full_margin, 0, 1)),
+                # this pose handed over as a stored pose (E57 use_pose): would it skip the search?
+                **stored_check(ps, pt, A, cfg, truth_local, centre),
             }
         )
     # the pipeline on its three paths and the true-pose control
     local = cfg.model_copy(deep=True)
     local.coarse.enabled = False
-    for path, c, init in (
-        ("default", cfg, None),
-        ("--no-coarse", local, None),
-        ("true pose, --no-coarse", local, T_true),
-        ("true pose, --init", cfg, T_true),
+    for path, c, init, stored in (
+        ("default", cfg, None, False),
+        ("--no-coarse", local, None, False),
+        ("true pose, --no-coarse", local, T_true, False),
+        ("true pose, --init", cfg, T_true, False),
+        ("true pose, stored", cfg, T_true, True),
+        ("identity, stored", cfg, np.eye(4), True),
     ):
-        if init is None and path.startswith("true"):
-            continue
         if path.startswith("true") and T_true is None:
             continue
         try:
-            r = register_prepared(ps, pt, c, init, 0)
+            r = register_prepared(ps, pt, c, init, 0, stored=stored)
             accepted = True
         except RegistrationFailed as exc:
             r, accepted = exc.result, False
@@ -247,6 +249,7 @@ def run_case(
                 "score": j.get("score"),
                 "rival": j.get("rival_score"),
                 "judge_s": r.timings.get("judge"),
+                "skipped": "coarse_skipped" in r.timings,
             }
         )
     print(
@@ -254,6 +257,18 @@ def run_case(
         file=sys.stderr,
         flush=True,
     )
+
+
+def stored_check(ps, pt, A, cfg: AlignConfig, truth_local, centre) -> dict:
+    """The stored-pose check (judge.verify_stored after the fine ICP) from pose A."""
+    F = final_icp(ps, pt, A, cfg)[0]
+    v = judge.verify_stored(ps, pt, A, F, cfg.judge)
+    return {
+        "stored_verified": v["verified"],
+        "sharpness": v["sharpness"],
+        "stored_correction_deg": v["correction_deg"],
+        "stored_right": right(F, truth_local, centre),
+    }
 
 
 def histogram(values, edges) -> list[int]:
@@ -303,10 +318,12 @@ def report(rows: list, outcomes: list, cfg: AlignConfig) -> str:
     lines.append(
         f"right poses passing both thresholds: {sum(x['confidence'] >= cfg.min_confidence and x['score'] >= jc.min_score for x in r)} / {len(r)}"
     )
+    lines.append(stored_table(rows, jc))
     lines.append(
         "\n| case | path | outcome | error deg / m | confidence | judge score / rival | judge s |"
+        " search |"
     )
-    lines.append("|---|---|---|---|---|---|---|")
+    lines.append("|---|---|---|---|---|---|---|---|")
     bad = 0
     for o in outcomes:
         verdict = ("right" if o["right"] else "WRONG") if o["accepted"] else "refused (exit 3)"
@@ -315,9 +332,42 @@ def report(rows: list, outcomes: list, cfg: AlignConfig) -> str:
         conf = "-" if o["confidence"] is None else f"{o['confidence']:.2f}"
         sc = "-" if o["score"] is None else f"{o['score']:.3f} / {o['rival']:.3f}"
         js = "-" if o.get("judge_s") is None else f"{o['judge_s']:.2f}"
-        lines.append(f"| {o['case']} | {o['path']} | {verdict} | {err} | {conf} | {sc} | {js} |")
+        search = "skipped" if o.get("skipped") else "ran"
+        lines.append(
+            f"| {o['case']} | {o['path']} | {verdict} | {err} | {conf} | {sc} | {js} | {search} |"
+        )
     lines.append(f"\nwrong poses accepted (exit 0): {bad}")
     return "\n".join(lines)
+
+
+def stored_table(rows: list, jc) -> str:
+    """Every refined pose handed over as a stored pose: sharpness after the fine ICP, and whether
+    the check passed (a verified wrong one would skip the search with a wrong pose)."""
+    edges = [0.0, 0.01, 0.02, 0.03, 0.04, 0.05, 0.06, 0.08, 0.1, 0.15, 0.2, 1.0]
+    r = [x for x in rows if x["stored_right"]]
+    w = [x for x in rows if not x["stored_right"]]
+    out = [
+        f"\nStored-pose check (every refined pose handed over as a stored pose, fine ICP from it):"
+        f" {len(r)} end right, {len(w)} end wrong; min sharpness {jc.stored_min_sharpness},"
+        f" max correction {jc.stored_max_correction_deg} deg / {jc.stored_max_correction_m} m\n",
+        "| sharpness bin | right | right verified | wrong | wrong verified |",
+        "|---|---|---|---|---|",
+    ]
+    for a, b in zip(edges[:-1], edges[1:]):
+        rr = [x for x in r if a <= x["sharpness"] < b]
+        ww = [x for x in w if a <= x["sharpness"] < b]
+        if rr or ww:
+            out.append(
+                f"| {a:.2f}-{b:.2f} | {len(rr)} | {sum(x['stored_verified'] for x in rr)} |"
+                f" {len(ww)} | {sum(x['stored_verified'] for x in ww)} |"
+            )
+    worst = max((x["sharpness"] for x in w), default=0.0)
+    out.append(
+        f"\nhighest sharpness of a wrong pose: {worst:.3f}; wrong poses verified:"
+        f" {sum(x['stored_verified'] for x in w)}; lowest sharpness of a right pose:"
+        f" {min((x['sharpness'] for x in r), default=float('nan')):.3f}"
+    )
+    return "\n".join(out)
 
 
 def refined_truth(uas: np.ndarray, als: np.ndarray, cache: Path) -> np.ndarray:

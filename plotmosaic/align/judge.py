@@ -222,3 +222,35 @@ def judge(
         seconds=time.perf_counter() - t0,
         rivals=table,
     )
+
+
+def sharpness(prof: dict) -> float:
+    """Share within the smallest scale over share within the largest, structure points, both
+    directions: near 1 when the clouds coincide, low when they only come close by chance."""
+    near = prof["structure_st"][0] + prof["structure_ts"][0]
+    far = prof["structure_st"][-1] + prof["structure_ts"][-1]
+    return float(near / far) if far > 0 else 0.0
+
+
+def verify_stored(src, tgt, T: np.ndarray, A: np.ndarray, config: JudgeConfig) -> dict:
+    """Does the stored pose T (source local -> target local) hold? A, the fine ICP from it, must
+    barely move it and fit sharply (`sharpness`) with at least `min_score`. Returns the figures and
+    `verified`; `failed` names the checks that did not pass."""
+    deg, m = separation(A, T, src.points.mean(axis=0))
+    prof = profile(src, tgt, A, config)
+    sharp = sharpness(prof)
+    checks = {
+        "correction": deg <= config.stored_max_correction_deg
+        and m <= config.stored_max_correction_m,
+        "sharpness": sharp >= config.stored_min_sharpness,
+        "score": prof["score"] >= config.min_score,
+    }
+    return {
+        "verified": all(checks.values()),
+        "failed": [k for k, ok in checks.items() if not ok],
+        "correction_deg": deg,
+        "correction_m": m,
+        "sharpness": sharp,
+        "score": prof["score"],
+        "profile": prof,
+    }

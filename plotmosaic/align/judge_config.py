@@ -55,3 +55,23 @@ class JudgeConfig(BaseModel):
         le=1,
         description="relative margin over the best rival that counts as confidence 1",
     )
+    # a stored pose (E57 `use_pose = true`) that verifies skips the global search; these decide it
+    stored_max_correction_deg: float = Field(
+        0.5,
+        gt=0,
+        le=10,
+        description="a right stored pose barely turns under ICP: most it may (deg)",
+    )
+    stored_max_correction_m: float = Field(
+        0.10,
+        gt=0,
+        le=2,
+        description="most a verified stored pose may move under ICP (m, at the source centroid)",
+    )
+    stored_min_sharpness: float = Field(
+        0.035,
+        gt=0,
+        le=1,
+        description="least share within the smallest scale over share within the largest (structure"
+        " points, both directions): chance alignments are blunt",
+    )

@@ -227,8 +227,12 @@ def register_prepared(
     init: np.ndarray | None = None,
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
+    stored: bool = False,
 ) -> PairResult:
-    """Registration of two prepared clouds; `init` (source file -> target file) is a prior for the coarse stage, or the start itself with the coarse stage off."""
+    """Registration of two prepared clouds; `init` (source file -> target file) is a prior for the
+    coarse stage, or the start itself with the coarse stage off. `stored`: `init` is a pose stored
+    in the scan files (E57 `use_pose`): when it verifies (judge.verify_stored) the search is skipped,
+    else it is a prior like any other."""
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
     coarse = None
@@ -237,7 +241,19 @@ def register_prepared(
     )
     T_start = T.copy()
     hypotheses: list[dict] = []
-    if config.coarse.enabled:
+    check, fine = None, None
+    if stored and init is not None and config.judge.enabled:
+        # the fine stage from the stored pose is the check: a right one barely moves and fits sharply
+        say("verifying the stored pose")
+        t = time.perf_counter()
+        fine = final_icp(src, tgt, T, config)
+        check = judge_mod.verify_stored(src, tgt, T, fine[0], config.judge)
+        check["seconds"] = time.perf_counter() - t
+    skipped = check is not None and check["verified"]
+    if skipped:
+        # no search, so no rivals either; the level stage neither (the fine ICP is done)
+        coarse = {"skipped": "stored pose verified", "stored_pose": _stored_record(check)}
+    elif config.coarse.enabled:
         # with an initial guess the coarse stage searches around it and keeps it if it verifies best:
         # ICP alone from a guess 10 deg / 2 m off can settle in a wrong minimum that still looks fit
         say("coarse alignment")
@@ -248,9 +264,12 @@ def register_prepared(
         T = np.asarray(cres.transform, dtype=float)
         coarse = cres.to_dict()
         hypotheses = list(cres.hypotheses)
+        if check is not None:
+            coarse["stored_pose"] = _stored_record(check)
     if (
         config.judge.enabled
         and config.judge.global_rivals
+        and not skipped
         and (init is not None or not config.coarse.enabled)
     ):
         # a local result (from --init or --no-coarse) has no rivals of its own: the global search gives them
@@ -260,13 +279,18 @@ def register_prepared(
     t_coarse = time.perf_counter()
 
     rng = np.random.default_rng(seed)
-    T, steps, start_fit, level_fit, reverted, matching = _level_stage(
-        src, tgt, config, T, coarse is not None, rng
-    )
-    t_levels = time.perf_counter()
-
-    say("final ICP")
-    T, p, q, n, iterations, reverse = final_icp(src, tgt, T, config)
+    if skipped:
+        steps, start_fit, level_fit, reverted = [], None, None, False
+        matching = _matching(src, tgt)
+        t_levels = time.perf_counter()
+        T, p, q, n, iterations, reverse = fine
+    else:
+        T, steps, start_fit, level_fit, reverted, matching = _level_stage(
+            src, tgt, config, T, coarse is not None, rng
+        )
+        t_levels = time.perf_counter()
+        say("final ICP")
+        T, p, q, n, iterations, reverse = final_icp(src, tgt, T, config)
     t_final = time.perf_counter()
 
     verdict = None
@@ -275,7 +299,12 @@ def register_prepared(
         candidates = _candidates(hypotheses, T_start)
         refined: dict = {}  # rivals refined once for both verdicts
         verdict = judge_mod.judge(src, tgt, T, candidates, config.judge, refined)
-        if verdict.rival_better and config.coarse.enabled and verdict.rival_transform is not None:
+        if (
+            verdict.rival_better
+            and config.coarse.enabled
+            and not skipped
+            and verdict.rival_transform is not None
+        ):
             # the global search's pick lost to another of its hypotheses once both are refined:
             # finish that one the same way and keep whichever the judge prefers
             say("final ICP from a better rival")
@@ -329,6 +358,7 @@ def register_prepared(
         confidence=None if verdict is None else verdict.confidence,
         judge=None if verdict is None else _judge_record(verdict, src, tgt),
         timings={
+            **({"coarse_skipped": "stored pose verified"} if skipped else {}),
             "coarse": t_coarse - t0,
             "levels_icp": t_levels - t_coarse,
             "final_icp": t_final - t_levels,
@@ -345,6 +375,12 @@ def register_prepared(
     return result
 
 
+def _stored_record(check: dict) -> dict:
+    """verify_stored's figures for PairResult.coarse (no transform: the result has it)."""
+    keep = ("verified", "failed", "correction_deg", "correction_m", "sharpness", "score", "seconds")
+    return {k: check[k] for k in keep}
+
+
 def _judge_record(verdict, src: PreparedCloud, tgt: PreparedCloud) -> dict:
     """The judge's figures for PairResult, the rival's transform in file coordinates."""
     d = verdict.to_dict()
@@ -353,6 +389,14 @@ def _judge_record(verdict, src: PreparedCloud, tgt: PreparedCloud) -> dict:
             verdict.rival_transform, src.frame, tgt.frame
         ).tolist()
     return d
+
+
+def _matching(src: PreparedCloud, tgt: PreparedCloud) -> dict[int, int]:
+    return match_levels(
+        [s["match_value"] for s in src.level_stats],
+        [s["match_value"] for s in tgt.level_stats],
+        compress=False,
+    )
 
 
 def _level_stage(
@@ -365,11 +409,7 @@ def _level_stage(
 ):
     """Incremental ICP over the matched levels; reverted when it ends worse than it started."""
     T_init = T.copy()
-    matching = match_levels(
-        [s["match_value"] for s in src.level_stats],
-        [s["match_value"] for s in tgt.level_stats],
-        compress=False,
-    )
+    matching = _matching(src, tgt)
     steps = []
     for j, (ls, lt) in enumerate(incremental_steps(matching)):
         sp, _ = src.subset(ls)

@@ -8,6 +8,8 @@ a crash of the whole run. The scheduling itself is concurrent.futures' or Dask's
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import multiprocessing
 import os
 import time
@@ -51,6 +53,21 @@ class PairJob:
     )
     init: tuple | None = None  # 4x4 rows, source file -> target file: a prior for the coarse stage
     prepare_json: str | None = None  # settings the scans are prepared with, when not config_json's
+    stored: bool = False  # init comes from poses stored in the scan files (E57 use_pose): verified
+    # first, and the search is skipped when it holds
+
+
+def with_stored_poses(jobs: Sequence[PairJob], scans: set[str]) -> list[PairJob]:
+    """Jobs whose two scans' priors are stored poses (`Manifest.stored_poses`) marked `stored`, their
+    keys told apart (a result found without the stored pose is another pair result)."""
+    out = []
+    for job in jobs:
+        if job.init is None or job.source not in scans or job.target not in scans:
+            out.append(job)
+            continue
+        pose = hashlib.sha256(json.dumps(job.init).encode()).hexdigest()[:12]
+        out.append(dataclasses.replace(job, stored=True, key=f"{job.key}-stored-{pose}"))
+    return out
 
 
 def prepare_jobs_for(job: PairJob, folder: str | None = None) -> tuple[PrepareJob, PrepareJob]:
@@ -122,7 +139,7 @@ def run_pair_job(job: PairJob) -> dict:
         tgt, t_tgt = get(pt)
         src, tgt = _in_role(src, ps.key, "source"), _in_role(tgt, pt.key, "target")
         init = None if job.init is None else np.asarray(job.init, dtype=np.float64)
-        result = register_prepared(src, tgt, config, init, job.seed)
+        result = register_prepared(src, tgt, config, init, job.seed, stored=job.stored)
         result.timings = {"prepare_source": t_src, "prepare_target": t_tgt, **result.timings}
         record.update(result.to_dict(), status="ok")
     except RegistrationFailed as exc:  # a real outcome of this pair: cache it, with its figures
