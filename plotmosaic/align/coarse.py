@@ -368,23 +368,32 @@ def _vertical_pairs(
     return pairs[: config.max_vertical_pairs]
 
 
-def _fpfh_starts(
-    src: _Base, tgt: _Base, pairs, config: CoarseConfig, rng: np.random.Generator
-) -> list[tuple]:
-    """(local 4x4, hypothesis dict) from FPFH matches: 4-DoF per vertical pair, and one 6-DoF search."""
+def _fpfh_matches(src: _Base, tgt: _Base, config: CoarseConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Mutually matched FPFH points (source, target), local frames."""
     fs, ft = (
         features3d.fpfh_features(src.points, config),
         features3d.fpfh_features(tgt.points, config),
     )
     i, j = features3d.mutual_matches(fs, ft)
-    p, q = fs.points[i], ft.points[j]
+    return fs.points[i], ft.points[j]
+
+
+def _fpfh_starts(
+    matches: tuple[np.ndarray, np.ndarray],
+    pairs,
+    config: CoarseConfig,
+    rng: np.random.Generator,
+    six_dof: bool,
+) -> list[tuple]:
+    """(local 4x4, hypothesis dict) from FPFH matches: 4-DoF per vertical pair, and (`six_dof`) one 6-DoF search."""
+    p, q = matches
     out = []
-    for vs, vt in pairs[: config.fpfh_vertical_pairs]:
+    for vs, vt in pairs:
         Rs, Rt = vs.R, vt.R
         for A, n in features3d.ransac_4dof(rotate(p, Rs), rotate(q, Rt), config, rng):
             T = _homogeneous(Rt.T) @ A @ _homogeneous(Rs)
             out.append((T, {"generator": "fpfh", "vertical": f"{vs.name}/{vt.name}", "votes": n}))
-    if config.fpfh_six_dof:
+    if six_dof and config.fpfh_six_dof:
         for T, n in features3d.ransac_6dof(p, q, config, rng):
             out.append((T, {"generator": "fpfh", "vertical": "none (6-DoF)", "votes": n}))
     return out
@@ -423,11 +432,19 @@ def _stem_starts(
 
 
 def _raster_starts(
-    src: _Base, tgt: _Base, pairs, weights, config: CoarseConfig, prior: np.ndarray | None
+    src: _Base,
+    tgt: _Base,
+    pairs,
+    weights,
+    config: CoarseConfig,
+    prior: np.ndarray | None,
+    first: int = 0,
 ) -> tuple[list[tuple], float | None]:
-    """(local 4x4, hypothesis dict) of the raster search per vertical pair, and the raster cell used."""
+    """(local 4x4, hypothesis dict) of the raster search per vertical pair, and the raster cell used.
+
+    `first`: the index of `pairs[0]` among all vertical pairs (pair 0 gets the most hypotheses)."""
     out, cell = [], None
-    for k, (vs, vt) in enumerate(pairs):
+    for k, (vs, vt) in enumerate(pairs, start=first):
         ls, lt = _level(src, vs, config), _level(tgt, vt, config)
         prior_l = None if prior is None else _homogeneous(lt.R) @ prior @ _homogeneous(ls.R.T)
         hyps = _search(ls, lt, weights, config, prior_l)[
@@ -508,6 +525,10 @@ def coarse_align(
     vertical hypothesis, and all go through one verification. `prior` (source local -> target
     local, e.g. from --init): the raster search looks around it instead of everywhere, and the prior
     itself is verified beside the hypotheses found, so a start that is already right stays.
+
+    The first vertical pair is searched and verified first; the other pairs only when its best pose
+    is not already settled (`_settled`): clearly ahead of its distinct rivals, fitting well and found
+    by two generators independently. Its rivals stay in the hypotheses for the judge.
     """
     config = config or CoarseConfig()
     start = time.perf_counter()
@@ -533,124 +554,53 @@ def coarse_align(
     timing = {"levelling": time.perf_counter() - start}
     weights = _weights(source.kind, target.kind, config)
     prior = None if prior is None else np.asarray(prior, dtype=float)
-    starts, cell = _raster_starts(src, tgt, pairs, weights, config, prior)
-    timing["search"] = time.perf_counter() - start - timing["levelling"]
-    gen_rng = np.random.default_rng(
-        [seed, 1]
-    )  # generators draw from their own stream: adding one changes no other
-    if config.fpfh:
+    verify = _Verifier(src, tgt, source.kind in AIRBORNE or target.kind in AIRBORNE, config, rng)
+    # generators draw from their own stream: adding one changes no other
+    gen_rng = np.random.default_rng([seed, 1])
+    matches = None
+
+    def clock(name: str, t: float) -> None:
+        timing[name] = timing.get(name, 0.0) + time.perf_counter() - t
+
+    def generate(first: int, chosen) -> tuple[list[tuple], float | None]:
+        nonlocal matches
         t = time.perf_counter()
-        starts += _fpfh_starts(src, tgt, pairs, config, gen_rng)
-        timing["fpfh"] = time.perf_counter() - t
-    if config.stems:
-        t = time.perf_counter()
-        starts += _stem_starts(src, tgt, pairs, config, gen_rng)
-        timing["stems"] = time.perf_counter() - t
+        out, cell = _raster_starts(src, tgt, chosen, weights, config, prior, first)
+        clock("search", t)
+        if config.fpfh:
+            t = time.perf_counter()
+            if matches is None:
+                matches = _fpfh_matches(src, tgt, config)
+            own = chosen[: max(0, config.fpfh_vertical_pairs - first)]
+            out += _fpfh_starts(matches, own, config, gen_rng, six_dof=first == 0)
+            clock("fpfh", t)
+        if config.stems:
+            t = time.perf_counter()
+            out += _stem_starts(src, tgt, chosen, config, gen_rng)
+            clock("stems", t)
+        return out, cell
+
+    starts, cell = generate(0, pairs[:1])
     if prior is not None:
         starts.append(
             (prior, {"generator": "prior", "vertical": "prior", "prior": True})
         )  # never merged away
     starts = _unique_starts(starts, config)
-    t_gen = time.perf_counter()
-
-    airborne = source.kind in AIRBORNE or target.kind in AIRBORNE
-    d = config.verify_distance_airborne if airborne else config.verify_distance_ground
-    iterations = config.verify_iterations_airborne if airborne else config.verify_iterations
-    # verification in the clouds' local frames (each hypothesis carries its own verticals); one kept
-    # point (and its own normal: averaged axial normals cancel) per verify cube
-    keep = thin(tgt.points, config.verify_voxel)
-    tgt_v = (
-        tgt.points[keep],
-        tgt.normals[keep],
-        cKDTree(tgt.points[keep], balanced_tree=False, compact_nodes=False),
-    )
-    keep = thin(src.points, config.verify_voxel)
-    keep = keep[sample(len(keep), config.verify_points, rng)]
-    src_v = src.points[keep]
-    # non-flat under the source's first vertical: one fixed set, so every hypothesis is scored on the same points
-    up = src.verticals[0].up
-    flat_ok = np.abs(src.normals[keep] @ up) < config.structure_normal_z
-    structure = src_v[flat_ok]
-    few = sample(len(src_v), config.screen_points, rng)
-    src_few, structure_few = src_v[few], src_v[few][flat_ok[few]]
-
-    def screen(start):
-        A = _refine(src_few, tgt_v, start[0], (config.screen_distance_factor * d,), iterations)
-        return _score(structure_few, tgt_v, A, config.screen_score_factor * d), A, start[1]
-
-    def refine(A):
-        A = _refine(
-            src_v, tgt_v, A, tuple(f * d for f in config.refine_distance_factors), iterations
-        )
-        return A, _score(structure, tgt_v, A, d)
-
-    # independent ICPs, two at a time (KD-tree queries release the GIL); refined: the best screened
-    # of each generator first (so no generator's best is lost to another's near-duplicates), then by score
-    screened = sorted(in_two_threads(screen, starts), key=lambda r: -r[0])
-    # screened poses have converged: refine distinct ones only, so the runner-up is a real rival
-    distinct: list[int] = []
-    for i, (_, A, _) in enumerate(screened):
-        if all(_distinct(A, screened[j][1], config) for j in distinct):
-            distinct.append(i)
-    chosen = [
-        k
-        for k in (
-            next((i for i in distinct if screened[i][2]["generator"] == gen), None)
-            for gen in ("raster", "fpfh", "stems", "prior")
-        )
-        if k is not None and screened[k][0] > 0
-    ]
-    chosen = sorted(
-        chosen + [i for i in distinct if i not in chosen][: max(0, config.refine_top - len(chosen))]
-    )
-    top = dict(zip(chosen, in_two_threads(refine, [screened[i][1] for i in chosen])))
-    results = []
-    for rank, (pre, A, h) in enumerate(screened):
-        refined = rank in top
-        A, score = top[rank] if refined else (A, None)
-        results.append(
-            {
-                "T": A,
-                "refined": refined,
-                "score": score,
-                "screen_score": pre,
-                "raster_score": h.get("score"),  # None for other generators (strict JSON: no NaN)
-                "yaw_deg": float(np.degrees(h["yaw"])) if "yaw" in h else _yaw_deg(A),
-                "overlap": h.get("overlap"),
-                "prior": bool(h.get("prior", False)),
-                "generator": h["generator"],
-                "vertical": h["vertical"],
-            }
-            | {k: h[k] for k in ("votes", "agree") if k in h}
-        )
-    if not results:
-        results.append(
-            {
-                "T": np.eye(4),
-                "refined": True,
-                "score": 0.0,
-                "screen_score": 0.0,
-                "raster_score": 0.0,
-                "yaw_deg": 0.0,
-                "overlap": 0.0,
-                "prior": False,
-                "generator": "none",
-                "vertical": "none",
-            }
-        )
-    results.sort(
-        key=lambda r: (not r["refined"], -(r["score"] if r["refined"] else r["screen_score"]))
-    )
+    t = time.perf_counter()
+    results, confidence = verify(starts)
+    clock("verify", t)
+    settled = config.settle_early and _settled(results, confidence, config)
+    if len(pairs) > 1 and not settled:
+        more, _ = generate(1, pairs[1:])
+        starts = _unique_starts(starts + more, config)
+        t = time.perf_counter()
+        results, confidence = verify(starts)
+        clock("verify", t)
     best = results[0]
-    # only refined hypotheses compete: an unrefined one may be the best pose not yet converged
-    runner_up = next(
-        (r for r in results[1:] if r["refined"] and _distinct(best["T"], r["T"], config)), None
-    )
-    second = runner_up["score"] if runner_up else 0.0
-    confidence = float(1.0 - second / best["score"]) if best["score"] > 0 else 0.0
     counts = {
         g: sum(r["generator"] == g for r in results) for g in ("raster", "fpfh", "stems", "prior")
     }
+    searched = pairs if len(pairs) == 1 or not settled else pairs[:1]
     return CoarseResult(
         transform=best["T"],
         confidence=confidence,
@@ -663,8 +613,158 @@ def coarse_align(
             "source": src.info,
             "target": tgt.info,
             "raster_cell": cell,
-            "vertical_pairs": [f"{a.name}/{b.name}" for a, b in pairs],
+            "vertical_pairs": [f"{a.name}/{b.name}" for a, b in searched],
+            "vertical_pairs_skipped": len(pairs) - len(searched),
             "hypotheses_by_generator": counts,
         },
-        timing=timing | {"verify": time.perf_counter() - t_gen},
+        timing=timing,
     )
+
+
+def _support(results: list[dict], best: dict, config: CoarseConfig) -> set[str]:
+    """Generators whose own hypotheses reached `best`'s pose (screened or as a duplicate start)."""
+    out = set()
+    for r in results:
+        if not _distinct(best["T"], r["T"], config):
+            out.add(r["generator"])
+            out.update(a.split(":")[0] for a in r.get("agree", []))
+    return out - {"prior"}
+
+
+def _settled(results: list[dict], confidence: float, config: CoarseConfig) -> bool:
+    """The first vertical pair's best pose needs no other: ahead of its rivals, fitting, found twice."""
+    best = results[0]
+    return (
+        best["refined"]
+        and confidence >= config.settled_confidence
+        and (best["score"] or 0.0) >= config.settled_score
+        and len(_support(results, best, config)) >= config.settled_generators
+    )
+
+
+class _Verifier:
+    """Screens starts (short ICP), refines the best distinct ones, and ranks them; each start and each
+    refinement is computed once, so a second call with more starts only pays for the new ones."""
+
+    def __init__(self, src: _Base, tgt: _Base, airborne: bool, config: CoarseConfig, rng):
+        self.config = config
+        d = config.verify_distance_airborne if airborne else config.verify_distance_ground
+        self.d = d
+        self.iterations = (
+            config.verify_iterations_airborne if airborne else config.verify_iterations
+        )
+        # verification in the clouds' local frames (each hypothesis carries its own verticals); one kept
+        # point (and its own normal: averaged axial normals cancel) per verify cube
+        keep = thin(tgt.points, config.verify_voxel)
+        self.tgt_v = (
+            tgt.points[keep],
+            tgt.normals[keep],
+            cKDTree(tgt.points[keep], balanced_tree=False, compact_nodes=False),
+        )
+        keep = thin(src.points, config.verify_voxel)
+        keep = keep[sample(len(keep), config.verify_points, rng)]
+        self.src_v = src.points[keep]
+        # non-flat under the source's first vertical: one fixed set, so every hypothesis is scored on the same points
+        up = src.verticals[0].up
+        flat_ok = np.abs(src.normals[keep] @ up) < config.structure_normal_z
+        self.structure = self.src_v[flat_ok]
+        few = sample(len(self.src_v), config.screen_points, rng)
+        self.src_few, self.structure_few = self.src_v[few], self.src_v[few][flat_ok[few]]
+        self.screened: dict[
+            int, tuple
+        ] = {}  # id of a start's hypothesis dict -> (score, pose, dict)
+        self.refined: dict[int, tuple] = {}  # the same key -> (pose, score)
+
+    def _screen(self, start):
+        c, d = self.config, self.d
+        A = _refine(
+            self.src_few, self.tgt_v, start[0], (c.screen_distance_factor * d,), self.iterations
+        )
+        return _score(self.structure_few, self.tgt_v, A, c.screen_score_factor * d), A, start[1]
+
+    def _refine(self, A):
+        c, d = self.config, self.d
+        A = _refine(
+            self.src_v,
+            self.tgt_v,
+            A,
+            tuple(f * d for f in c.refine_distance_factors),
+            self.iterations,
+        )
+        return A, _score(self.structure, self.tgt_v, A, d)
+
+    def __call__(self, starts: list[tuple]) -> tuple[list[dict], float]:
+        config = self.config
+        new = [s for s in starts if id(s[1]) not in self.screened]
+        for s, r in zip(new, in_two_threads(self._screen, new)):
+            self.screened[id(s[1])] = r
+        # independent ICPs, two at a time (KD-tree queries release the GIL); refined: the best screened
+        # of each generator first (so no generator's best is lost to another's near-duplicates), then by score
+        screened = sorted((self.screened[id(s[1])] for s in starts), key=lambda r: -r[0])
+        # screened poses have converged: refine distinct ones only, so the runner-up is a real rival
+        distinct: list[int] = []
+        for i, (_, A, _) in enumerate(screened):
+            if all(_distinct(A, screened[j][1], config) for j in distinct):
+                distinct.append(i)
+        chosen = [
+            k
+            for k in (
+                next((i for i in distinct if screened[i][2]["generator"] == gen), None)
+                for gen in ("raster", "fpfh", "stems", "prior")
+            )
+            if k is not None and screened[k][0] > 0
+        ]
+        chosen = sorted(
+            chosen
+            + [i for i in distinct if i not in chosen][: max(0, config.refine_top - len(chosen))]
+        )
+        todo = [i for i in chosen if id(screened[i][2]) not in self.refined]
+        for i, r in zip(todo, in_two_threads(self._refine, [screened[i][1] for i in todo])):
+            self.refined[id(screened[i][2])] = r
+        results = []
+        for rank, (pre, A, h) in enumerate(screened):
+            refined = rank in chosen
+            A, score = self.refined[id(h)] if refined else (A, None)
+            results.append(
+                {
+                    "T": A,
+                    "refined": refined,
+                    "score": score,
+                    "screen_score": pre,
+                    "raster_score": h.get(
+                        "score"
+                    ),  # None for other generators (strict JSON: no NaN)
+                    "yaw_deg": float(np.degrees(h["yaw"])) if "yaw" in h else _yaw_deg(A),
+                    "overlap": h.get("overlap"),
+                    "prior": bool(h.get("prior", False)),
+                    "generator": h["generator"],
+                    "vertical": h["vertical"],
+                }
+                | {k: h[k] for k in ("votes", "agree") if k in h}
+            )
+        if not results:
+            results.append(
+                {
+                    "T": np.eye(4),
+                    "refined": True,
+                    "score": 0.0,
+                    "screen_score": 0.0,
+                    "raster_score": 0.0,
+                    "yaw_deg": 0.0,
+                    "overlap": 0.0,
+                    "prior": False,
+                    "generator": "none",
+                    "vertical": "none",
+                }
+            )
+        results.sort(
+            key=lambda r: (not r["refined"], -(r["score"] if r["refined"] else r["screen_score"]))
+        )
+        best = results[0]
+        # only refined hypotheses compete: an unrefined one may be the best pose not yet converged
+        runner_up = next(
+            (r for r in results[1:] if r["refined"] and _distinct(best["T"], r["T"], config)), None
+        )
+        second = runner_up["score"] if runner_up else 0.0
+        confidence = float(1.0 - second / best["score"]) if best["score"] > 0 else 0.0
+        return results, confidence

@@ -87,6 +87,25 @@ class CoarseConfig(BaseModel):
     max_vertical_pairs: int = Field(
         3, ge=1, le=36, description="(source, target) vertical pairs searched"
     )
+    settle_early: bool = Field(
+        True,
+        description="search the other vertical pairs only when the first pair's best pose is not settled",
+    )
+    settled_confidence: float = Field(
+        0.5,
+        ge=0,
+        le=1,
+        description="settled: its margin over the best distinct refined rival is at least this ...",
+    )
+    settled_score: float = Field(
+        0.2,
+        ge=0,
+        le=1,
+        description="... its refined score (share of non-flat points with a partner) at least this ...",
+    )
+    settled_generators: int = Field(
+        2, ge=1, le=3, description="... and this many generators reached it on their own"
+    )
     z_up_max_deg: float = Field(
         8.0, ge=0, le=45, description="z-up is a candidate when an estimate lies within this of it"
     )
@@ -290,6 +309,9 @@ class CoarseConfig(BaseModel):
     )
     stem_hypotheses: int = Field(
         3, ge=1, le=20, description="distinct stem-map poses handed to verification"
+    )
+    stem_vote_yaw_deg: float = Field(
+        3.0, gt=0, le=30, description="heading bin (deg) of the stem-pair vote accumulator"
     )
     # --- verification
     start_duplicate_m: float = Field(
