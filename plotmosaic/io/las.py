@@ -201,6 +201,21 @@ def iter_chunks(
             ) from None
 
 
+def _las_records(path: Path, attributes: bool | Iterable[str], chunk_size: int = CHUNK_SIZE):
+    """(count, raw point record, attribute names, header) per chunk of a LAS/LAZ file."""
+    with open_las(path, xyz_only=attributes is False) as reader:
+        names = _wanted_attributes(reader.header, attributes)
+        try:
+            for chunk in reader.chunk_iterator(chunk_size):
+                yield len(chunk), chunk, names, reader.header
+        except InputError:
+            raise
+        except Exception as exc:
+            raise InputError(
+                f"{path}: corrupt or truncated LAS/LAZ data ({short_error(exc)})"
+            ) from None
+
+
 def read_cloud(
     path: str | Path, attributes: bool | Iterable[str] = True, min_points: int = 1
 ) -> PointCloud:
@@ -214,12 +229,17 @@ def read_cloud(
     xyz = np.empty((info.point_count, 3), dtype=np.float64)
     attrs: dict[str, np.ndarray] = {}
     n = 0
-    for chunk in iter_chunks(path, attributes=attributes):
-        m = len(chunk)
+    for m, chunk, names, header in _las_records(path, attributes):
         if n + m > info.point_count:
             raise InputError(f"{path}: holds more points than its header says ({info.point_count})")
-        xyz[n : n + m] = chunk.xyz
-        for name, values in chunk.attrs.items():
+        # scaled straight into the output columns: laspy's x/y/z arrays and a column_stack were two
+        # extra passes over every point (~30 % of the Python-side read time of an 8M-point scan)
+        for i, raw in enumerate((chunk.X, chunk.Y, chunk.Z)):
+            out = xyz[n : n + m, i]
+            np.multiply(raw, header.scales[i], out=out)
+            out += header.offsets[i]
+        for name in names:
+            values = np.asarray(chunk[name])
             if name not in attrs:
                 attrs[name] = np.empty(info.point_count, dtype=values.dtype)
             attrs[name][n : n + m] = values
