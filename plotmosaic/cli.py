@@ -14,6 +14,7 @@ from plotmosaic import __version__
 from plotmosaic.commands import (
     align,
     bench,
+    config_command,
     demo,
     info,
     manifest_from,
@@ -35,6 +36,7 @@ Typical run on a plot scanned from five positions, with an ALS tile over the reg
   plotmosaic merge sim/manifest.toml --poses geo/poses.json --out merged.laz
   plotmosaic demo demo-output                        # all of the above on a built-in demo
   plotmosaic info sim/manifest.toml --full           # check a manifest and its files
+  plotmosaic config --defaults > my.toml             # every setting; give back with --config
 """
 
 app = typer.Typer(help=HELP, no_args_is_help=True, add_completion=False, rich_markup_mode=None)
@@ -65,6 +67,7 @@ app.command("report")(report.report_command)
 app.command("demo")(demo.demo_command)
 app.command("info")(info.info_command)
 app.command("manifest-from")(manifest_from.manifest_from_command)
+app.command("config")(config_command.config_command)
 
 
 def main() -> None:

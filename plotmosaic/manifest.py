@@ -26,10 +26,10 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from plotmosaic.align.config import DEFAULT_LEVELS, KINDS, MAX_LEVELS
 from plotmosaic.errors import InputError
 from plotmosaic.io.e57 import is_e57, list_scans, scan_ref, select_scan, split_scan_ref, stored_pose
 
-DEFAULT_LEVELS = {"tls": 3, "mls": 3, "uls": 2, "als": 2}
 _SAFE_ID = re.compile(r"^[\w.-]+$")
 
 
@@ -48,11 +48,8 @@ def safe_id(text: str) -> str:
     return out or "scan"
 
 
-class ScanKind(str, Enum):
-    tls = "tls"
-    mls = "mls"
-    uls = "uls"
-    als = "als"
+# the sensor kinds of align/config.py (one list): tls, mls, uls, als
+ScanKind = Enum("ScanKind", {k: k for k in KINDS}, type=str)
 
 
 class _Strict(BaseModel):
@@ -66,7 +63,7 @@ class Scan(_Strict):
     approx_position: tuple[float, float, float] | None = None
     # "crs": easting/northing/height in the plot's CRS; "plot": metres in the plot's own frame
     approx_position_frame: Literal["crs", "plot"] = "plot"
-    levels: int | None = Field(default=None, ge=1, le=6)
+    levels: int | None = Field(default=None, ge=1, le=MAX_LEVELS)
     reference: bool = False
     scan: int | str | None = None  # which scan of an E57 file: 0-based index, or name / GUID
     use_pose: bool = False  # offer the E57's stored pose as the registration's initial guess
@@ -98,7 +95,7 @@ class Scan(_Strict):
 
 class AlsTile(_Strict):
     path: Path
-    levels: int | None = Field(default=None, ge=1, le=6)
+    levels: int | None = Field(default=None, ge=1, le=MAX_LEVELS)
 
     @property
     def k(self) -> int:

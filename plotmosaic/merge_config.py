@@ -15,15 +15,23 @@ class MergeConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     voxel: float | None = Field(
-        default=None, gt=0, description="voxel size (m) for thinning, rounded to whole mm"
+        default=None,
+        gt=0,
+        le=1000,
+        description="voxel size (m) for thinning, rounded to whole mm (unset: no thinning)",
     )
-    include_als: bool = False
-    bbox: tuple[float, ...] | None = (
-        None  # xmin, ymin, xmax, ymax[, zmin, zmax] in output coordinates
+    include_als: bool = Field(default=False, description="add the manifest's ALS tiles")
+    bbox: tuple[float, ...] | None = Field(
+        default=None,
+        description="keep only xmin, ymin, xmax, ymax[, zmin, zmax] in output coordinates",
     )
-    force: bool = False
-    skip_missing: bool = False
-    chunk_size: int = Field(default=CHUNK_SIZE, ge=1)
+    force: bool = Field(default=False, description="overwrite an existing output")
+    skip_missing: bool = Field(
+        default=False, description="skip scans without a pose instead of failing"
+    )
+    chunk_size: int = Field(
+        default=CHUNK_SIZE, ge=1, le=1_000_000_000, description="points read and written at once"
+    )
     tile_memory_mb: int = Field(
         default=512,
         ge=1,

@@ -9,7 +9,10 @@ from pydantic import BaseModel, ConfigDict, Field
 from plotmosaic.align.coarse_config import CoarseConfig
 from plotmosaic.align.judge_config import JudgeConfig
 
-KINDS = ("tls", "mls", "uls", "als")
+KINDS = ("tls", "mls", "uls", "als")  # sensor kinds: terrestrial, mobile, UAV, airborne
+# complexity levels K of one cloud: the level schedule repeats its last entry beyond 3, and more
+# than 6 groups of a forest scan are no longer distinct structures
+MAX_LEVELS = 6
 
 # Levels per sensor kind (paper, Algorithm 1): ground-based scans see ground, stems and foliage;
 # airborne scans mostly ground and canopy. Grassland plots (no trees) should use 1-2 via the flag.
@@ -21,6 +24,8 @@ def default_levels(kind: str) -> int:
 
 
 class StrayConfig(BaseModel):
+    """Stray points dropped before any grid is built (align/outliers.py)."""
+
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
     enabled: bool = Field(
@@ -59,43 +64,36 @@ class StrayConfig(BaseModel):
 
 
 class VmfConfig(BaseModel):
-    sample_size: int = 10_000  # EM runs on a seeded subsample (drawn at delta0 density); every point is then labelled
-    max_iter: int = 60
-    tol: float = 1e-4  # relative change of the mean log-likelihood
-    n_init: int = 2  # restarts; the best log-likelihood wins
-    kappa_max: float = 500.0
+    """EM of the von Mises-Fisher mixture that groups points into complexity levels."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    # EM runs on a seeded subsample (drawn at delta0 density); every point is then labelled
+    sample_size: int = Field(
+        10_000, ge=100, le=10_000_000, description="points of the seeded EM subsample"
+    )
+    max_iter: int = Field(60, ge=1, le=10_000, description="EM iterations at most")
+    tol: float = Field(
+        1e-4, gt=0, le=1, description="EM stops below this relative change of the log-likelihood"
+    )
+    n_init: int = Field(2, ge=1, le=100, description="EM restarts; the best log-likelihood wins")
+    kappa_max: float = Field(
+        500.0, gt=0, le=1e6, description="cap on a component's concentration kappa"
+    )
 
 
 class IcpStage(BaseModel):
-    max_distance: float  # correspondence distance (m)
-    iterations: int
+    """One stage of an ICP schedule."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    max_distance: float = Field(gt=0, le=1000, description="correspondence distance (m)")
+    iterations: int = Field(ge=1, le=10_000, description="ICP iterations at most")
 
 
-class AlignConfig(BaseModel):
-    voxel: float = Field(0.05, gt=0)  # delta0
-    normal_radius: float = Field(0.25, gt=0)  # r, spherical neighbourhood
-    normal_max_nn: int = 20  # cap the neighbourhood size: speed on dense TLS, same planes
-    # Sparse airborne clouds (~10-50 pts/m2) have almost no neighbours within 0.25 m; use a wider sphere.
-    normal_radius_sparse: float = 1.0
-    sparse_min_neighbors: int = (
-        6  # median neighbours within normal_radius below this => sparse cloud
-    )
-    # level normals/features come from a support cloud of one delta0 point per (ratio x radius) cube,
-    # so that `level_max_nn` neighbours span the 0.25 m (normal) and 0.5 m (feature) spheres on
-    # dense scans too (20 neighbours of the delta0 cloud span only ~0.13 m on a dense surface)
-    level_support_ratio: float = 0.4
-    level_max_nn: int = 32
-    final_voxel: float = Field(0.025, gt=0)  # delta for the last ICP
-    complexity: Literal["vmf", "vmf+eigen"] = "vmf+eigen"
-    vmf: VmfConfig = VmfConfig()
-    # Level steps run on one point per `level_cell` cube: evens out the 1/r^2 density of TLS around
-    # the scanner, which otherwise pulls the scanner positions together (and is faster).
-    level_cell: float = 0.2
-    level_max_points: int = (
-        150_000  # cap on the labelled sample (seeded): TLS scans of 8M points give ~650k cubes
-    )
-    # Incremental ICP: for level step j (0 = least complex), a coarse-to-fine schedule of stages.
-    level_schedule: list[list[IcpStage]] = [
+def _level_schedule() -> list[list[IcpStage]]:
+    # for level step j (0 = least complex), a coarse-to-fine schedule of stages
+    return [
         [IcpStage(max_distance=3.0, iterations=30), IcpStage(max_distance=1.0, iterations=30)],
         # the second level brings the first x/y/yaw constraints: start wide again
         [
@@ -105,38 +103,119 @@ class AlignConfig(BaseModel):
         ],
         [IcpStage(max_distance=0.4, iterations=30), IcpStage(max_distance=0.2, iterations=30)],
     ]
-    # after the coarse stage (verified to ~0.3 m) level stages wider than this are skipped
-    level_max_distance_after_coarse: float = 1.0
-    level_max_source_points: int = 10_000  # seeded subsample of the source per level step
-    min_eig_ratio: float = 0.02  # level steps move only along directions this well constrained (see icp.point_to_plane_icp)
-    level_keep_ratio: float = (
-        0.98  # level ICP result kept only if its fitness >= this x that of its start
+
+
+def _final_schedule() -> list[IcpStage]:
+    return [IcpStage(max_distance=0.25, iterations=30), IcpStage(max_distance=0.1, iterations=20)]
+
+
+class AlignConfig(BaseModel):
+    """Pairwise ForestAlign registration (defaults = the paper's Algorithm 1)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    voxel: float = Field(0.05, gt=0, le=10, description="delta0: voxel (m) of the working clouds")
+    normal_radius: float = Field(
+        0.25, gt=0, le=10, description="r: spherical neighbourhood (m) of the normals"
     )
-    level_tol: float = (
-        1e-4  # a level stage ends when a step moves points < this (m); the final ICP refines
+    normal_max_nn: int = Field(
+        20, ge=3, le=1000, description="cap on a normal's neighbours: speed on dense TLS"
     )
-    final_tol: float = 5e-5
-    final_schedule: list[IcpStage] = [
-        IcpStage(max_distance=0.25, iterations=30),
-        IcpStage(max_distance=0.1, iterations=20),
-    ]
-    final_max_source_points: int = (
-        40_000  # seeded sample of the source's delta grid for the last ICP (target kept whole)
+    # Sparse airborne clouds (~10-50 pts/m2) have almost no neighbours within 0.25 m.
+    normal_radius_sparse: float = Field(
+        1.0, gt=0, le=100, description="normal radius (m) of a sparse (airborne) cloud"
     )
-    robust_kernel: float = (
-        0.1  # least Tukey width (m) of the final ICP (half the correspondence distance above it)
+    sparse_min_neighbors: int = Field(
+        6, ge=1, le=1000, description="median neighbours within normal_radius below this: sparse"
     )
-    quality_max_points: int = (
-        100_000  # query points per direction for fitness / overlap (+-0.2 % on the figures)
+    # level normals/features come from a support cloud of one delta0 point per (ratio x radius)
+    # cube, so that `level_max_nn` neighbours span the 0.25 m (normal) and 0.5 m (feature) spheres
+    # on dense scans too (20 neighbours of the delta0 cloud span only ~0.13 m on a dense surface)
+    level_support_ratio: float = Field(
+        0.4, gt=0, le=10, description="support cloud cube as a share of the radius"
     )
-    quality_distance: float = 0.25  # fitness / inlier RMSE / overlap distance (paper: 25 cm)
-    min_fitness: float = 0.1  # below => RegistrationFailed (exit 3); sparse true pairs reach ~0.18
-    min_overlap: float = 0.05
-    max_inlier_rmse: float = 0.2  # point-to-point at 0.25 m; a sparse ALS target alone gives ~0.16
+    level_max_nn: int = Field(
+        32, ge=3, le=1000, description="neighbours of a level normal / feature at most"
+    )
+    final_voxel: float = Field(0.025, gt=0, le=10, description="delta: voxel (m) of the last ICP")
+    complexity: Literal["vmf", "vmf+eigen"] = Field(
+        "vmf+eigen", description="grouping signal: vmf (the paper's) or vMF + eigen-features"
+    )
+    vmf: VmfConfig = Field(default_factory=VmfConfig, description="the vMF mixture's EM")
+    # Level steps run on one point per `level_cell` cube: evens out the 1/r^2 density of TLS around
+    # the scanner, which otherwise pulls the scanner positions together (and is faster).
+    level_cell: float = Field(
+        0.2, gt=0, le=100, description="level steps run on one point per cube (m)"
+    )
+    level_max_points: int = Field(
+        150_000,
+        ge=1000,
+        le=100_000_000,
+        description="cap on the labelled sample (seeded): 8M-point TLS gives ~650k cubes",
+    )
+    level_schedule: list[list[IcpStage]] = Field(
+        default_factory=_level_schedule,
+        min_length=1,
+        description="incremental ICP: per level step, its coarse-to-fine stages",
+    )
+    level_max_distance_after_coarse: float = Field(
+        1.0,
+        gt=0,
+        le=1000,
+        description="after the coarse stage (verified to ~0.3 m) wider level stages are skipped",
+    )
+    level_max_source_points: int = Field(
+        10_000, ge=100, le=100_000_000, description="seeded source subsample per level step"
+    )
+    # see icp.point_to_plane_icp
+    min_eig_ratio: float = Field(
+        0.02, ge=0, le=1, description="level steps move only along this well constrained axes"
+    )
+    level_keep_ratio: float = Field(
+        0.98, ge=0, le=10, description="a level result is kept if its fitness >= this x its start's"
+    )
+    level_tol: float = Field(
+        1e-4, gt=0, le=1, description="a level stage ends when a step moves points less (m)"
+    )
+    final_tol: float = Field(
+        5e-5, gt=0, le=1, description="the final ICP ends when a step moves points less (m)"
+    )
+    final_schedule: list[IcpStage] = Field(
+        default_factory=_final_schedule, min_length=1, description="stages of the final ICP"
+    )
+    final_max_source_points: int = Field(
+        40_000,
+        ge=100,
+        le=100_000_000,
+        description="seeded sample of the source's delta grid for the last ICP (target whole)",
+    )
+    robust_kernel: float = Field(
+        0.1,
+        gt=0,
+        le=100,
+        description="least Tukey width (m) of the final ICP (half the distance above it)",
+    )
+    quality_max_points: int = Field(
+        100_000,
+        ge=1000,
+        le=100_000_000,
+        description="query points per direction for fitness / overlap (+-0.2 %)",
+    )
+    quality_distance: float = Field(
+        0.25, gt=0, le=100, description="fitness / inlier RMSE / overlap distance (m; paper 25 cm)"
+    )
+    min_fitness: float = Field(
+        0.1, ge=0, le=1, description="below: cannot register (exit 3); sparse true pairs ~0.18"
+    )
+    min_overlap: float = Field(0.05, ge=0, le=1, description="below: cannot register (exit 3)")
+    max_inlier_rmse: float = Field(
+        0.2, gt=0, le=100, description="above (m): cannot register; sparse ALS alone gives ~0.16"
+    )
     # judge confidence below this => ambiguous => exit 3: a distinct rival pose fits almost as well
-    # (benchmarks/bench_judge.py, 12 real and simulated cases: right poses 0.29-1.0, wrong ones 0.00-0.10;
-    # but a leaf-on UAS strip -> ALS pose 10.6 deg / 1.6 m off reached 0.21 in bench_coarse_real.py, so
-    # the floor sits between that and the lowest right pose; register-plot sets 0 and lets its loops decide)
+    # (benchmarks/bench_judge.py, 12 real and simulated cases: right poses 0.29-1.0, wrong ones
+    # 0.00-0.10; but a leaf-on UAS strip -> ALS pose 10.6 deg / 1.6 m off reached 0.21 in
+    # bench_coarse_real.py, so the floor sits between that and the lowest right pose;
+    # register-plot sets 0 and lets its loops decide)
     min_confidence: float = Field(
         0.25, ge=0, le=1, description="least judge confidence (margin over the best distinct rival)"
     )
@@ -147,6 +226,12 @@ class AlignConfig(BaseModel):
         ge=1,
         description="target spacing / source spacing above which the final ICP runs target -> source",
     )
-    coarse: CoarseConfig = CoarseConfig()
-    judge: JudgeConfig = JudgeConfig()
-    stray: StrayConfig = StrayConfig()
+    coarse: CoarseConfig = Field(
+        default_factory=CoarseConfig, description="the global coarse search"
+    )
+    judge: JudgeConfig = Field(
+        default_factory=JudgeConfig, description="the pose judge (distinct rivals)"
+    )
+    stray: StrayConfig = Field(
+        default_factory=StrayConfig, description="stray points dropped before any grid"
+    )

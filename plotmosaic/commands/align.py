@@ -8,7 +8,14 @@ import numpy as np
 import typer
 from rich.console import Console
 
-from plotmosaic.commands.common import handle_errors
+from plotmosaic.align.config import DEFAULT_LEVELS, KINDS, MAX_LEVELS
+from plotmosaic.commands.common import (
+    CONFIG_HELP,
+    CONFIG_USED,
+    handle_errors,
+    run_settings,
+    write_config_used,
+)
 from plotmosaic.errors import InputError
 from plotmosaic.poses import read_json, rigid_matrix
 
@@ -32,6 +39,17 @@ def check_point_counts(files) -> None:
             )
 
 
+_KIND_HELP = " | ".join(KINDS)
+_LEVELS_HELP = ", ".join(f"{k} {v}" for k, v in DEFAULT_LEVELS.items())
+
+
+def config_used_path(out: Path | None, save_levels: Path | None) -> Path | None:
+    """Where `align` writes the settings it used: beside RESULT.json, else in the levels folder."""
+    if out is not None:
+        return out.with_name(f"{out.stem}.{CONFIG_USED}")
+    return save_levels / CONFIG_USED if save_levels is not None else None
+
+
 def summary_lines(result) -> list[str]:
     from scipy.spatial.transform import Rotation
 
@@ -52,12 +70,12 @@ def summary_lines(result) -> list[str]:
 def align_command(
     source: Path = typer.Argument(..., help="Source LAS/LAZ (moved onto the target)."),
     target: Path = typer.Argument(..., help="Target LAS/LAZ (kept fixed)."),
-    source_kind: str = typer.Option("tls", "--source-kind", help="tls | mls | uls | als"),
-    target_kind: str = typer.Option("tls", "--target-kind", help="tls | mls | uls | als"),
+    source_kind: str = typer.Option(KINDS[0], "--source-kind", help=_KIND_HELP),
+    target_kind: str = typer.Option(KINDS[0], "--target-kind", help=_KIND_HELP),
     levels_source: int | None = typer.Option(
         None,
         "--levels-source",
-        help="Complexity levels K of the source (default by kind: tls/mls 3, uls/als 2).",
+        help=f"Complexity levels K of the source, 1 to {MAX_LEVELS} (default by kind: {_LEVELS_HELP}).",
     ),
     levels_target: int | None = typer.Option(
         None, "--levels-target", help="Complexity levels K of the target."
@@ -67,27 +85,35 @@ def align_command(
         "--init",
         help="Initial guess, JSON: {'transform': 4x4} (e.g. a RESULT.json) or a 4x4 list; source file -> target file coordinates. A prior: the coarse stage searches around it (with --no-coarse, ICP starts from it).",
     ),
-    out: Path | None = typer.Option(None, "--out", help="Write RESULT.json here."),
+    out: Path | None = typer.Option(
+        None,
+        "--out",
+        help=f"Write RESULT.json here (and the settings used as RESULT.{CONFIG_USED} beside it).",
+    ),
     save_levels: Path | None = typer.Option(
         None,
         "--save-levels",
         help="Folder for the levels: LAZ per cloud (level attribute) + levels.png.",
     ),
-    complexity: str = typer.Option(
-        "vmf+eigen",
+    complexity: str | None = typer.Option(
+        None,
         "--complexity",
-        help="Grouping signal: vmf (the paper's) | vmf+eigen (vMF + local eigen-features).",
+        help="Grouping signal: vmf (the paper's) | vmf+eigen (vMF + local eigen-features); "
+        "default align.complexity of the settings.",
     ),
-    no_coarse: bool = typer.Option(
-        False, "--no-coarse", help="Skip the global coarse stage (start from --init or identity)."
+    coarse: bool | None = typer.Option(
+        None,
+        "--coarse/--no-coarse",
+        help="Run or skip the global coarse stage (skipped: start from --init or identity); "
+        "default align.coarse.enabled of the settings.",
     ),
+    config: Path | None = typer.Option(None, "--config", help=CONFIG_HELP),
     seed: int = typer.Option(0, "--seed", help="Random seed (same seed, same result)."),
 ) -> None:
     """Register SOURCE onto TARGET with ForestAlign; print the transform and its quality figures.
 
     Exit 0 on success, 2 on bad input, 3 when the pair cannot be registered (the message shows why).
     """
-    from plotmosaic.align.config import KINDS, AlignConfig
     from plotmosaic.align.pipeline import align_files
     from plotmosaic.io.atomic import check_output_dir, check_output_file
 
@@ -95,18 +121,22 @@ def align_command(
         if kind.lower() not in KINDS:
             raise InputError(f"{which} {kind!r}: expected one of {', '.join(KINDS)}")
     for k, which in ((levels_source, "--levels-source"), (levels_target, "--levels-target")):
-        if k is not None and not 1 <= k <= 5:
-            raise InputError(f"{which} {k}: expected 1 to 5 levels")
-    if complexity not in ("vmf", "vmf+eigen"):
+        if k is not None and not 1 <= k <= MAX_LEVELS:
+            raise InputError(f"{which} {k}: expected 1 to {MAX_LEVELS} levels")
+    if complexity is not None and complexity not in ("vmf", "vmf+eigen"):
         raise InputError(f"--complexity {complexity!r}: expected vmf or vmf+eigen")
+    settings = run_settings(
+        config, {"align": {"complexity": complexity, "coarse": {"enabled": coarse}}}
+    )
+    used = config_used_path(out, save_levels)
     T0 = load_init(init) if init is not None else None
     check_point_counts([(source, "SOURCE"), (target, "TARGET")])
     if out is not None:
         check_output_file(out)
     if save_levels is not None:
         check_output_dir(save_levels)
-    config = AlignConfig(complexity=complexity)
-    config.coarse.enabled = not no_coarse
+    if used is not None:
+        check_output_file(used)
 
     console = Console(stderr=True)
     with console.status("aligning") as status:
@@ -115,7 +145,7 @@ def align_command(
             target,
             source_kind,
             target_kind,
-            config,
+            settings.align_config(),
             T0,
             levels_source,
             levels_target,
@@ -125,6 +155,8 @@ def align_command(
         )
     if out is not None:
         result.save(out)
+    if used is not None:
+        write_config_used(used, settings, "align")
     typer.echo(f"aligned {source.name} -> {target.name}")
     for line in summary_lines(result):
         typer.echo("  " + line)
@@ -132,3 +164,5 @@ def align_command(
         typer.echo(f"  result: {out}")
     if save_levels is not None:
         typer.echo(f"  levels: {save_levels}/source_levels.laz, target_levels.laz, levels.png")
+    if used is not None:
+        typer.echo(f"  settings used: {used}")

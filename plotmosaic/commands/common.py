@@ -162,3 +162,41 @@ def no_empty_output(folder) -> Iterator[None]:
                 with contextlib.suppress(OSError):
                     os.rmdir(root)  # only succeeds on an empty folder
         raise
+
+
+# ---- settings: --config FILE.toml, options over it, config-used.toml beside the outputs ----
+
+CONFIG_HELP = (
+    "Settings file (TOML; `plotmosaic config --defaults` prints every key). Options given on the "
+    "command line override it."
+)
+CONFIG_USED = "config-used.toml"
+
+
+def run_settings(config_path, overrides: dict | None = None):
+    """The settings of this run: defaults, then the --config file, then the command's options
+    (nested {"section": {"key": value}}; None = not given). Bad keys or values: exit 2, one line."""
+    from plotmosaic.errors import InputError
+    from plotmosaic.settings import Settings, SettingsError, load_settings, with_overrides
+
+    try:
+        settings = load_settings(config_path) if config_path is not None else Settings()
+        return with_overrides(settings, overrides or {}, "command-line option")
+    except SettingsError as exc:
+        raise InputError(str(exc)) from None
+
+
+def write_config_used(path, settings, command: str):
+    """The settings a run used, as TOML beside its outputs (atomic): `--config` repeats the run."""
+    import shlex
+    import sys
+
+    from plotmosaic.io.atomic import write_text_atomic
+    from plotmosaic.settings import dump_settings
+
+    argv = " ".join(shlex.quote(a) for a in sys.argv[1:])
+    header = (
+        f"Settings used by `plotmosaic {command}` (give back with --config to repeat the run).\n"
+        f"command line: plotmosaic {argv}"
+    )
+    return write_text_atomic(path, dump_settings(settings, header))

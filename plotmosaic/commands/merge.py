@@ -9,13 +9,21 @@ from pathlib import Path
 import typer
 from pydantic import ValidationError
 
-from plotmosaic.commands.common import handle_errors
+from plotmosaic.commands.common import (
+    CONFIG_HELP,
+    CONFIG_USED,
+    handle_errors,
+    run_settings,
+    write_config_used,
+)
 from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import check_output_dir, check_output_file
 from plotmosaic.manifest import load_manifest
 from plotmosaic.merge import MergeSummary, merge_scans, parse_bbox
 from plotmosaic.merge_config import MergeConfig
 from plotmosaic.poses import load_poses
+
+_MERGE = MergeConfig.model_fields
 
 
 @handle_errors
@@ -30,41 +38,50 @@ def merge_command(
     voxel: float | None = typer.Option(
         None, "--voxel", help="Keep one point per voxel of this size (m): evens out TLS density."
     ),
-    include_als: bool = typer.Option(
-        False, "--include-als", help="Add the manifest's ALS tiles, each with its own source id."
+    include_als: bool | None = typer.Option(
+        None, "--include-als", help="Add the manifest's ALS tiles, each with its own source id."
     ),
     bbox: str | None = typer.Option(
         None, "--bbox", help="Crop to xmin,ymin,xmax,ymax[,zmin,zmax] in output coordinates."
     ),
-    force: bool = typer.Option(False, "--force", help="Overwrite an existing output."),
-    skip_missing: bool = typer.Option(
-        False, "--skip-missing", help="Leave out scans without a pose instead of failing."
+    force: bool | None = typer.Option(None, "--force", help="Overwrite an existing output."),
+    skip_missing: bool | None = typer.Option(
+        None, "--skip-missing", help="Leave out scans without a pose instead of failing."
     ),
-    tiles: bool = typer.Option(
-        False,
+    tiles: bool | None = typer.Option(
+        None,
         "--tiles",
         help="Write one LAZ per square tile into the folder --out, plus index.json.",
     ),
-    tile_size: float = typer.Option(
-        100.0, "--tile-size", help="Tile edge (m) with --tiles; a whole multiple of --voxel."
+    tile_size: float | None = typer.Option(
+        None,
+        "--tile-size",
+        help="Tile edge (m) with --tiles; a whole multiple of --voxel "
+        f"(default merge.tile_size, {_MERGE['tile_size'].default:g}).",
     ),
-    memory_mb: int = typer.Option(
-        512,
+    memory_mb: int | None = typer.Option(
+        None,
         "--memory-mb",
-        help="Memory (MB) for thinning: tiles are cut to fit, whatever the size.",
+        help="Memory (MB) for thinning: tiles are cut to fit, whatever the size "
+        f"(default merge.tile_memory_mb, {_MERGE['tile_memory_mb'].default}).",
     ),
+    config: Path | None = typer.Option(None, "--config", help=CONFIG_HELP),
 ) -> None:
     """Apply each scan's pose and write one LAS/LAZ 1.4 cloud (point_source_id = scan index)."""
-    try:
-        config = MergeConfig(
-            voxel=voxel,
-            include_als=include_als,
-            bbox=parse_bbox(bbox) if bbox else None,
-            force=force,
-            skip_missing=skip_missing,
-            tiles=tiles,
-            tile_size=tile_size,
-            tile_memory_mb=memory_mb,
+    settings = run_settings(config)
+    given = {
+        "voxel": voxel,
+        "include_als": include_als,
+        "bbox": parse_bbox(bbox) if bbox else None,
+        "force": force,
+        "skip_missing": skip_missing,
+        "tiles": tiles,
+        "tile_size": tile_size,
+        "tile_memory_mb": memory_mb,
+    }
+    try:  # options over the file's [merge]; a bad option is named as the option
+        merge = MergeConfig.model_validate(
+            settings.merge.model_dump() | {k: v for k, v in given.items() if v is not None}
         )
     except ValidationError as exc:
         err = exc.errors()[0]
@@ -73,15 +90,20 @@ def merge_command(
             raise InputError(msg) from None
         name = {"tile_memory_mb": "memory_mb"}.get(str(err["loc"][0]), str(err["loc"][0]))
         raise InputError(f"--{name.replace('_', '-')}: {msg}") from None
-    if tiles:  # the output location is checked (with a real write probe) before any work
+    settings = settings.model_copy(update={"merge": merge})
+    used = out / CONFIG_USED if merge.tiles else out.with_name(f"{out.stem}.{CONFIG_USED}")
+    if merge.tiles:  # the output location is checked (with a real write probe) before any work
         check_output_dir(out.parent if str(out.parent) else Path("."))
     else:
         check_output_file(out, force=True)
+        check_output_file(used, force=True)
     with _terminate_as_interrupt():
         summary = merge_scans(
-            load_manifest(manifest), load_poses(poses), out, config, progress=True, poses_path=poses
+            load_manifest(manifest), load_poses(poses), out, merge, progress=True, poses_path=poses
         )
+        write_config_used(used, settings, "merge")
     print_summary(summary)
+    typer.echo(f"settings used: {used}")
 
 
 @contextlib.contextmanager

@@ -2,19 +2,45 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import typer
 
 from plotmosaic.commands.common import (
+    CONFIG_HELP,
+    CONFIG_USED,
     check_poses_match,
     check_scan_files,
     handle_errors,
     no_empty_output,
+    run_settings,
+    write_config_used,
 )
 from plotmosaic.errors import InputError
+from plotmosaic.graph.config import PairSelection, RegisterOptions, TieOptions
 from plotmosaic.io.atomic import check_output_dir
+
+_REGISTER = RegisterOptions.model_fields
+_PAIRS = PairSelection.model_fields
+_TIE = TieOptions.model_fields
+
+
+@contextlib.contextmanager
+def _recorded(out: Path, settings, command: str) -> Iterator[None]:
+    """Run the stage; the settings it used land in OUT/config-used.toml (also when it fails with
+    a result folder to explain)."""
+    from plotmosaic.errors import PlotmosaicError
+
+    try:
+        yield
+    except PlotmosaicError:
+        if out.is_dir() and any(out.iterdir()):
+            write_config_used(out / CONFIG_USED, settings, command)
+        raise
+    write_config_used(out / CONFIG_USED, settings, command)
 
 
 def _check_jobs(jobs: int | None) -> None:
@@ -46,24 +72,26 @@ def register_plot_command(
         "--scheduler",
         help="Dask scheduler address, e.g. tcp://host:8786 (with --executor dask).",
     ),
-    max_distance: float = typer.Option(
-        60.0,
+    max_distance: float | None = typer.Option(
+        None,
         "--max-distance",
-        help="With approximate positions: skip pairs of scans farther apart (m).",
+        help="With approximate positions: skip pairs of scans farther apart (m) "
+        f"(default register_plot.max_distance, {_REGISTER['max_distance'].default:g}).",
     ),
-    place_on_als: bool = typer.Option(
-        True,
+    place_on_als: bool | None = typer.Option(
+        None,
         "--place-on-als/--no-place-on-als",
-        help="Plots of more than 8 scans without "
-        "positions: register each scan to the ALS first, then only neighbours to each other.",
+        help=f"Plots of more than {_PAIRS['all_pairs_up_to'].default} scans without "
+        "positions: register each scan to the ALS first, then only neighbours to each other "
+        "(default register_plot.place_on_als, on).",
     ),
+    config: Path | None = typer.Option(None, "--config", help=CONFIG_HELP),
     seed: int = typer.Option(0, "--seed", help="Random seed (same inputs + seed = same result)."),
     force: bool = typer.Option(
         False, "--force", help="Register every pair again, ignoring the cache in OUT/pairs/."
     ),
 ) -> None:
     """Register every overlapping pair of scans in each plot and place all scans with a pose graph."""
-    from plotmosaic.graph.config import RegisterConfig
     from plotmosaic.graph.pipeline import register_plot
 
     _check_jobs(jobs)
@@ -71,22 +99,19 @@ def register_plot_command(
         raise InputError(f"--executor must be 'local' or 'dask', not {executor!r}")
     if scheduler and executor != "dask":
         raise InputError("--scheduler needs --executor dask")
-    if max_distance <= 0:
+    if max_distance is not None and max_distance <= 0:
         raise InputError(f"--max-distance must be positive, not {max_distance}")
+    settings = run_settings(
+        config, {"register_plot": {"max_distance": max_distance, "place_on_als": place_on_als}}
+    )
     manifest, _ = (
         check_scan_files(manifest),
         check_output_dir(out),
     )  # bad input found before any work
-    result = register_plot(
-        manifest,
-        out,
-        jobs,
-        executor,
-        scheduler,
-        RegisterConfig(max_distance=max_distance, place_on_als=place_on_als),
-        seed,
-        force,
-    )
+    with _recorded(out, settings, "register-plot"):
+        result = register_plot(
+            manifest, out, jobs, executor, scheduler, settings.register_config(), seed, force
+        )
     _summary(
         result.graph,
         [
@@ -99,7 +124,9 @@ def register_plot_command(
         f"pairs: {result.pairs} ({result.computed} registered now, {result.pairs - result.computed} cached); "
         f"{result.seconds:.1f} s"
     )
-    typer.echo(f"wrote {out / 'poses.json'}, {out / 'graph.json'}, {out / 'report.md'}")
+    typer.echo(
+        f"wrote {out / 'poses.json'}, {out / 'graph.json'}, {out / 'report.md'}, {out / CONFIG_USED}"
+    )
 
 
 @handle_errors
@@ -113,11 +140,13 @@ def tie_to_als_command(
     out: Path = typer.Option(
         ..., "--out", help="Output folder: poses.json in the ALS CRS, graph.json, report.md."
     ),
-    buffer: float = typer.Option(
-        20.0,
+    buffer: float | None = typer.Option(
+        None,
         "--buffer",
-        help="ALS kept around each plot (m) when approximate CRS positions are known.",
+        help="ALS kept around each plot (m) when approximate CRS positions are known "
+        f"(default tie_to_als.buffer, {_TIE['buffer'].default:g}).",
     ),
+    config: Path | None = typer.Option(None, "--config", help=CONFIG_HELP),
     seed: int = typer.Option(0, "--seed", help="Random seed."),
     jobs: int | None = typer.Option(
         None, "--jobs", "-j", help="Plots registered to the ALS at once (default: cores)."
@@ -125,16 +154,16 @@ def tie_to_als_command(
 ) -> None:
     """Register each plot to the ALS and optimise the whole region with the ALS frame fixed."""
     from plotmosaic.graph.anchors import tie_to_als
-    from plotmosaic.graph.config import TieConfig
 
     _check_jobs(jobs)
-    if buffer < 0:
+    if buffer is not None and buffer < 0:
         raise InputError(f"--buffer must not be negative, not {buffer}")
+    settings = run_settings(config, {"tie_to_als": {"buffer": buffer}})
     manifest = check_scan_files(manifest)  # bad input found before any work (and before OUT exists)
     check_poses_match(manifest, poses)
     check_output_dir(out)
-    with no_empty_output(out):
-        result = tie_to_als(manifest, poses, out, TieConfig(buffer=buffer), seed, jobs)
+    with no_empty_output(out), _recorded(out, settings, "tie-to-als"):
+        result = tie_to_als(manifest, poses, out, settings.tie_config(), seed, jobs)
     from rich.console import Console
     from rich.table import Table
 
@@ -158,7 +187,10 @@ def tie_to_als_command(
         [("region, ALS CRS", "ALS fixed", poses, sigmas, result.solution.dropped)],
         result.unplaced,
     )
-    typer.echo(f"{result.seconds:.1f} s; wrote {out / 'poses.json'} (ALS CRS), {out / 'report.md'}")
+    typer.echo(
+        f"{result.seconds:.1f} s; wrote {out / 'poses.json'} (ALS CRS), {out / 'report.md'}, "
+        f"{out / CONFIG_USED}"
+    )
 
 
 def _summary(G, solves, unplaced: list[str]) -> None:

@@ -90,31 +90,19 @@ def graph_align_config() -> AlignConfig:
     return AlignConfig(min_confidence=0.0)
 
 
-class RegisterConfig(BaseModel):
-    """Settings of register-plot."""
+class RegisterOptions(BaseModel):
+    """register-plot's own settings (beside its pairwise and pose-graph settings)."""
 
     model_config = ConfigDict(extra="forbid")
 
-    align: AlignConfig = Field(
-        default_factory=graph_align_config, description="pairwise registration of two scans"
-    )
-    graph: PoseGraphConfig = Field(
-        default_factory=PoseGraphConfig, description="the pose-graph solve of each plot"
-    )
     max_distance: float | None = Field(
         60.0,
         gt=0,
         le=100_000,
         description="with approximate positions: pairs of scans farther apart (m) are not tried",
     )
-    pairs: PairSelection = Field(
-        default_factory=PairSelection, description="which pairs are registered"
-    )
     place_on_als: bool = Field(
         True, description="big plots without positions: place each scan on the ALS first"
-    )
-    placement: AlignConfig = Field(
-        default_factory=AlignConfig, description="scan -> ALS: verified poses only"
     )
     placement_min_confidence: float = Field(
         0.5,
@@ -128,17 +116,28 @@ class RegisterConfig(BaseModel):
     )
 
 
-class TieConfig(BaseModel):
-    """Settings of tie-to-als."""
+class RegisterConfig(RegisterOptions):
+    """Settings of register-plot."""
+
+    align: AlignConfig = Field(
+        default_factory=graph_align_config, description="pairwise registration of two scans"
+    )
+    graph: PoseGraphConfig = Field(
+        default_factory=PoseGraphConfig, description="the pose-graph solve of each plot"
+    )
+    pairs: PairSelection = Field(
+        default_factory=PairSelection, description="which pairs are registered"
+    )
+    placement: AlignConfig = Field(
+        default_factory=AlignConfig, description="scan -> ALS: verified poses only"
+    )
+
+
+class TieOptions(BaseModel):
+    """tie-to-als's own settings (beside its pairwise and pose-graph settings)."""
 
     model_config = ConfigDict(extra="forbid")
 
-    align: AlignConfig = Field(
-        default_factory=AlignConfig, description="registration of each plot to the ALS"
-    )
-    graph: PoseGraphConfig = Field(
-        default_factory=PoseGraphConfig, description="the region's pose graph, ALS fixed"
-    )
     buffer: float = Field(
         20.0,
         ge=0,
@@ -153,4 +152,15 @@ class TieConfig(BaseModel):
     )
     report_points: int = Field(
         20_000, ge=1000, le=1_000_000, description="points per scan in the report's pictures"
+    )
+
+
+class TieConfig(TieOptions):
+    """Settings of tie-to-als."""
+
+    align: AlignConfig = Field(
+        default_factory=AlignConfig, description="registration of each plot to the ALS"
+    )
+    graph: PoseGraphConfig = Field(
+        default_factory=PoseGraphConfig, description="the region's pose graph, ALS fixed"
     )

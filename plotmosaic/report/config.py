@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 
 class SliceConfig(BaseModel):
     """Breast-height slice: where it is cut and how stems are found in it."""
+
+    model_config = ConfigDict(extra="forbid")
 
     height: float = Field(
         1.3,
@@ -80,6 +82,8 @@ class SliceConfig(BaseModel):
 class DistanceConfig(BaseModel):
     """Cloud-to-cloud distances of registered scans (point to the other scan's local plane)."""
 
+    model_config = ConfigDict(extra="forbid")
+
     voxel: float = Field(
         0.02,
         gt=0.001,
@@ -113,8 +117,14 @@ class DistanceConfig(BaseModel):
 
 
 class ReportConfig(BaseModel):
-    slice: SliceConfig = Field(default_factory=SliceConfig)
-    distance: DistanceConfig = Field(default_factory=DistanceConfig)
+    """Pictures and pages of the registration report."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    slice: SliceConfig = Field(default_factory=SliceConfig, description="breast-height slice")
+    distance: DistanceConfig = Field(
+        default_factory=DistanceConfig, description="cloud-to-cloud distances"
+    )
     picture_points: int = Field(
         20_000, ge=1000, le=1_000_000, description="points per scan in the overview pictures"
     )

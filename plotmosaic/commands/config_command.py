@@ -1,0 +1,50 @@
+"""`plotmosaic config`: print the default settings, or check a settings file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from plotmosaic.commands.common import handle_errors, run_settings
+from plotmosaic.errors import InputError
+
+
+@handle_errors
+def config_command(
+    defaults: bool = typer.Option(
+        False, "--defaults", help="Print every setting with its default and a comment (TOML)."
+    ),
+    check: Path | None = typer.Option(
+        None, "--check", help="Check a settings file: exit 0 if usable, else 2 naming the key."
+    ),
+) -> None:
+    """The settings of every stage: `--defaults > my.toml`, edit, then give it with --config."""
+    from plotmosaic.settings import default_toml
+
+    if defaults == (check is not None):
+        raise InputError("give one of --defaults or --check FILE.toml")
+    if defaults:
+        typer.echo(default_toml(), nl=False)
+        return
+    settings = run_settings(check)
+    changed = _changed(settings)
+    typer.echo(f"{check}: ok ({len(changed)} settings differ from the defaults)")
+    for key in changed:
+        typer.echo(f"  {key}")
+
+
+def _changed(settings) -> list[str]:
+    from plotmosaic.settings import Settings
+
+    out: list[str] = []
+
+    def walk(a, b, loc):
+        if isinstance(a, dict):
+            for k in a:
+                walk(a[k], b.get(k), f"{loc}.{k}" if loc else k)
+        elif a != b:
+            out.append(loc)
+
+    walk(settings.model_dump(), Settings().model_dump(), "")
+    return out

@@ -1,0 +1,162 @@
+"""One settings file for every stage: --config, config-used.toml, `config --defaults`, named errors."""
+
+from __future__ import annotations
+
+import json
+import tomllib
+
+import numpy as np
+import pytest
+
+from plotmosaic.align.config import MAX_LEVELS
+from plotmosaic.commands.common import run_settings
+from plotmosaic.errors import InputError
+from plotmosaic.graph.config import RegisterConfig, TieConfig
+from plotmosaic.manifest import Scan
+from plotmosaic.merge_config import MergeConfig
+from plotmosaic.poses import load_poses
+from plotmosaic.settings import Settings, dump_settings, load_settings, settings_from_dict
+from tests.helpers import assert_one_line_error, invoke
+
+FAST = """
+[align]
+voxel = 0.1
+final_voxel = 0.05
+complexity = "vmf"
+
+[align.coarse]
+enabled = true
+"""
+
+
+@pytest.fixture(scope="module")
+def pair(small_sim, tmp_path_factory):
+    """Two scans of the small plot and a start 0.4 m off the truth (ICP only: fast)."""
+    truth = load_poses(small_sim.ground_truth_path)
+    T = np.linalg.inv(truth.transform("P1-S0")) @ truth.transform("P1-S1")
+    T[:3, 3] += [0.3, -0.2, 0.1]
+    folder = tmp_path_factory.mktemp("config")
+    (folder / "init.json").write_text(json.dumps({"transform": T.tolist()}))
+    (folder / "fast.toml").write_text(FAST)
+    return small_sim.scan_paths["P1-S1"], small_sim.scan_paths["P1-S0"], folder
+
+
+def test_config_used_given_back_repeats_align_bit_for_bit(pair, tmp_path):
+    src, tgt, folder = pair
+    init, fast = folder / "init.json", folder / "fast.toml"
+    first = invoke(
+        "align",
+        src,
+        tgt,
+        "--init",
+        init,
+        "--config",
+        fast,
+        "--no-coarse",
+        "--out",
+        tmp_path / "a.json",
+    )
+    assert first.exit_code == 0, first.output
+    used = tmp_path / "a.config-used.toml"
+    settings = load_settings(used)
+    # the option beat the file, the file's other keys stayed, the rest kept its defaults
+    assert settings.align.coarse.enabled is False
+    assert settings.align.complexity == "vmf" and settings.align.voxel == 0.1
+    assert settings.align.judge == Settings().align.judge
+
+    again = invoke(
+        "align", src, tgt, "--init", init, "--config", used, "--out", tmp_path / "b.json"
+    )
+    assert again.exit_code == 0, again.output
+    a, b = (json.loads((tmp_path / n).read_text()) for n in ("a.json", "b.json"))
+    assert a["transform"] == b["transform"]  # floats from JSON: bit for bit
+    for key in ("fitness", "inlier_rmse", "overlap", "information", "levels", "confidence"):
+        assert a.get(key) == b.get(key), key
+    assert load_settings(tmp_path / "b.config-used.toml") == settings
+
+
+BAD = [
+    ("[align.judge]\nfoo = 1\n", "align.judge.foo", "unknown"),  # JudgeConfig allows extras itself
+    ("[merge]\nvoxle = 0.1\n", "merge.voxle", "unknown"),
+    ("[nosuch]\n", "nosuch", "unknown"),
+    ("[align.coarse]\ncell = 0\n", "align.coarse.cell", "greater than 0"),
+    ("[register_plot]\nmax_distance = -5\n", "register_plot.max_distance", "greater than 0"),
+    ("[align]\nlevel_schedule = [[{max_distance = 1.0}]]\n", "level_schedule[0][0].iterations", ""),
+    ("[align\n", "not valid TOML", ""),
+]
+
+
+@pytest.mark.parametrize("text, key, why", BAD)
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["align", "a.laz", "b.laz"],
+        ["register-plot", "m.toml", "--out", "o"],
+        ["tie-to-als", "m.toml", "--poses", "p.json", "--out", "o"],
+        ["merge", "m.toml", "--poses", "p.json", "--out", "o.laz"],
+        ["config", "--check"],
+    ],
+    ids=lambda c: c[0] if isinstance(c, list) else None,
+)
+def test_bad_settings_file_exits_2_naming_the_key(tmp_path, monkeypatch, command, text, key, why):
+    monkeypatch.chdir(tmp_path)  # nothing may be written: the settings are checked before any work
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text)
+    args = [*command, bad] if command[0] == "config" else [*command, "--config", bad]
+    assert_one_line_error(invoke(*args), str(bad), key, why, code=2)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.toml"]
+
+
+def test_defaults_print_and_load_back_equal(tmp_path):
+    res = invoke("config", "--defaults")
+    assert res.exit_code == 0, res.output
+    text = res.output
+    assert "# delta0: voxel (m) of the working clouds" in text  # each key with its description
+    loaded = settings_from_dict(tomllib.loads(text))
+    assert loaded == Settings()
+    # the sections build exactly the stages' own defaults
+    assert loaded.register_config() == RegisterConfig()
+    assert loaded.tie_config() == TieConfig()
+    assert loaded.merge_config() == MergeConfig()
+    path = tmp_path / "d.toml"
+    path.write_text(text)
+    ok = invoke("config", "--check", path)
+    assert ok.exit_code == 0 and "0 settings differ" in ok.output, ok.output
+
+
+def test_floats_round_trip_exactly():
+    awkward = {
+        "align": {"voxel": 0.1 + 0.2, "min_confidence": 1 / 3, "level_tol": 1e-300},
+        "posegraph": {"outlier_chi2": 1e300, "robust_k": 2.0000000000000004},
+        "merge": {"bbox": [0.1, -0.7, 1e5 + 0.3, 2.5]},
+        "register_plot": {"max_distance": 59.99999999999999},
+    }
+    settings = settings_from_dict(awkward)
+    back = settings_from_dict(tomllib.loads(dump_settings(settings)))
+    assert back == settings
+    assert back.align.voxel == 0.1 + 0.2 and back.posegraph.robust_k == 2.0000000000000004
+
+
+def test_options_override_the_file_and_unset_options_keep_it(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text(
+        "[register_plot]\nmax_distance = 30.0\nplace_on_als = false\n[tie_to_als]\nbuffer = 5.0\n"
+    )
+    s = run_settings(path, {"register_plot": {"max_distance": 45.0, "place_on_als": None}})
+    assert s.register_plot.max_distance == 45.0  # given on the command line
+    assert s.register_plot.place_on_als is False  # not given: the file's
+    assert s.tie_to_als.buffer == 5.0
+    r = s.register_config()
+    assert r.max_distance == 45.0 and r.place_on_als is False
+    assert r.align.min_confidence == 0.0 and r.placement.min_confidence == 0.25
+    assert s.tie_config().buffer == 5.0
+    with pytest.raises(InputError, match="register_plot.max_distance"):
+        run_settings(path, {"register_plot": {"max_distance": -1.0}})
+
+
+def test_one_levels_limit_for_manifest_and_cli(tmp_path):
+    assert Scan(id="s", path="s.laz", levels=MAX_LEVELS).levels == MAX_LEVELS
+    with pytest.raises(ValueError):
+        Scan(id="s", path="s.laz", levels=MAX_LEVELS + 1)
+    res = invoke("align", "a.laz", "b.laz", "--levels-source", MAX_LEVELS + 1)
+    assert_one_line_error(res, "--levels-source", f"1 to {MAX_LEVELS}", code=2)
