@@ -419,3 +419,93 @@ def test_real_cases_treels_pair_has_exact_truth_in_own_frames():
     d, _ = cKDTree(case.target.xyz).query(apply_transform(case.truth, case.source.xyz))
     assert np.mean(d < 1e-6) > 0.05  # points both views saw land exactly on each other
     assert case.bench_pair().name == "treels-2views"
+
+
+def test_suite_draws_depend_on_the_trial_only_and_a_run_resumes(tmp_path):
+    from plotmosaic.bench.real_suite import (
+        SUITE_PROTOCOLS,
+        append_trials,
+        draw,
+        key,
+        plan,
+        read_trials,
+    )
+
+    a = draw("paper", 0, "treels-2views", 7)
+    np.testing.assert_array_equal(a, draw("paper", 0, "treels-2views", 7))
+    assert np.all(np.abs(a) <= SUITE_PROTOCOLS["paper"].ranges)
+    assert not np.allclose(a, draw("paper", 0, "treels-2views", 8))
+    assert not np.allclose(a, draw("paper", 0, "mls-2views", 7))
+    assert not np.allclose(a, draw("paper", 1, "treels-2views", 7))
+    assert np.all(draw("true", 0, "x", 3) == 0)
+    methods = ["forestalign", "icp"]
+    jobs = plan(["c"], {"paper": 3, "true": 1}, methods, set())
+    assert [(j.protocol, j.trial, j.methods) for j in jobs] == [
+        ("paper", 0, ("forestalign", "icp")),
+        ("paper", 1, ("forestalign", "icp")),
+        ("paper", 2, ("forestalign", "icp")),
+        ("true", 0, ("forestalign", "icp")),
+    ]
+    path = tmp_path / "trials.jsonl"
+    rows = [
+        {
+            "case": "c",
+            "protocol": "paper",
+            "trial": 0,
+            "method": m,
+            "failed": False,
+            "success": True,
+        }
+        for m in methods
+    ] + [
+        {
+            "case": "c",
+            "protocol": "paper",
+            "trial": 1,
+            "method": "icp",
+            "failed": True,
+            "success": False,
+        }
+    ]
+    append_trials(path, rows)
+    with open(path, "a") as fh:
+        fh.write('{"case": "c", "proto')  # a line cut short by a killed run
+    back = read_trials(path)
+    assert [r["outcome"] for r in back] == ["found", "found", "refused"]
+    left = plan(["c"], {"paper": 3}, methods, {key(r) for r in back})
+    assert [(j.trial, j.methods) for j in left] == [
+        (1, ("forestalign",)),
+        (2, ("forestalign", "icp")),
+    ]
+
+
+def test_rigid_cpd_fixed_scale_converges_to_the_pose():
+    pytest.importorskip("probreg")
+    from scipy.spatial.transform import Rotation
+
+    from plotmosaic.bench.methods import CpdConfig, _rigid_cpd
+
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-15, 15, (600, 3)) * [1, 1, 0.5]
+    R = Rotation.from_euler("zyx", [8, 2, -3], degrees=True).as_matrix()
+    y = (x - [0.8, -0.4, 0.1]) @ R  # y -> x: x = R y + t
+    T = _rigid_cpd(y, x, CpdConfig(maxiter=100))
+    # probreg's own fixed-scale M-step keeps sigma^2 at the clouds' spread and stops degrees off
+    assert np.degrees(Rotation.from_matrix(T[:3, :3] @ R.T).magnitude()) < 0.01
+    np.testing.assert_allclose(T[:3, 3], [0.8, -0.4, 0.1], atol=1e-3)
+
+
+def test_accuracy_table_gives_rmse_per_angle_of_the_found():
+    from plotmosaic.bench.real_suite import accuracy
+
+    rows = [
+        _row("uas-als", "paper", "forestalign", [0.03, -0.04, 0.02, 0.004, 0, 0]),
+        _row("uas-als", "true", "forestalign", [0.01, 0.02, -0.06, 0, 0.003, 0]),
+        _row("uas-als", "paper", "forestalign", [9, 0, 0, 2, 0, 0]),
+    ]
+    line = [x for x in accuracy(rows).splitlines() if x.startswith("| uas-als | forestalign")][0]
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    assert cells[2] == "2 / 3"
+    assert float(cells[3]) == pytest.approx(np.sqrt((0.03**2 + 0.01**2) / 2), abs=1e-4)
+    assert float(cells[5]) == pytest.approx(np.sqrt((0.02**2 + 0.06**2) / 2), abs=1e-4)
+    assert float(cells[7]) == pytest.approx(1000 * np.sqrt((0.004**2 + 0.003**2) / 2), abs=0.1)

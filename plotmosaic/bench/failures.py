@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plotmosaic.io.atomic import atomic_output
+from plotmosaic.bench.figures import pyplot, save_png
 from plotmosaic.io.frame import apply_transform
 
 
@@ -28,10 +28,7 @@ def plot_failure(
 
     Coordinates are shown relative to the target's centre so UTM values stay readable.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     rng = np.random.default_rng(seed)
     src = _thin(np.asarray(source, dtype=np.float64), max_points, rng)
@@ -51,7 +48,4 @@ def plot_failure(
         ax.legend(loc="upper right", markerscale=25, fontsize=8)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    with atomic_output(path) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
-    plt.close(fig)
-    return Path(path)
+    return save_png(fig, path, dpi=100)

@@ -3,7 +3,8 @@
   forestalign  plotmosaic's pipeline (global coarse stage on; `--no-coarse` starts it at identity)
   icp          Open3D point-to-point ICP from identity (the paper's "standard ICP")
   fpfh-ransac  Open3D FPFH features + RANSAC, refined by the same ICP (a standard global method)
-  cpd          rigid Coherent Point Drift from probreg (optional; the paper's Table 3 baseline)
+  cpd          rigid Coherent Point Drift from probreg (optional; the paper's Table 3 baseline; scale fixed,
+               sigma^2 update corrected), refined by the same ICP
 
 Baselines work in a local frame around the target so UTM coordinates keep their centimetres.
 """
@@ -44,6 +45,8 @@ class CpdConfig(BaseModel):
     voxel: float = 0.3
     maxiter: int = 50
     w: float = 0.1  # outlier weight: forests never overlap fully
+    tol: float = 1e-4
+    refine: bool = True  # then the ICP of fpfh-ransac (IcpConfig), as a global method is used
 
 
 class MethodsConfig(BaseModel):
@@ -64,6 +67,7 @@ class MethodOutput:
     confidence: float | None = (
         None  # forestalign's own confidence in its answer (also when it refused)
     )
+    result: object | None = None  # forestalign's PairResult (also when it refused), else None
 
 
 @dataclass
@@ -72,6 +76,8 @@ class PairInput:
     target: PointCloud
     source_kind: str = "tls"
     target_kind: str = "tls"
+    # forestalign: the target prepared once for many trials (a suite's case); None prepares it per call
+    target_prepared: object | None = None
 
 
 def available(name: str) -> str | None:
@@ -82,7 +88,7 @@ def available(name: str) -> str | None:
         try:
             import probreg  # noqa: F401
         except ImportError:
-            return "probreg is not installed"
+            return "probreg is not installed (pip install 'plotmosaic[bench]'; it builds with a C++ compiler)"
     if name == "forestalign":
         try:
             from plotmosaic.align.pipeline import align_clouds  # noqa: F401
@@ -97,15 +103,21 @@ def run_method(name: str, pair: PairInput, config: MethodsConfig, seed: int) -> 
     start = time.perf_counter()
     try:
         out = _RUNNERS[name](pair, config, seed)
-        T, confidence = out if isinstance(out, tuple) else (out, None)
-        return MethodOutput(T, time.perf_counter() - start, confidence=confidence)
+        if isinstance(out, np.ndarray):
+            return MethodOutput(out, time.perf_counter() - start)
+        return MethodOutput(
+            np.asarray(out.transform, dtype=np.float64),
+            time.perf_counter() - start,
+            confidence=out.confidence,
+            result=out,
+        )
     except RegistrationFailed as exc:
         # the pipeline refused its own answer (quality gate): score the transform it had, flag the refusal
         result = getattr(exc, "result", None)
         T = np.asarray(result.transform, dtype=np.float64) if result is not None else np.eye(4)
         confidence = getattr(result, "confidence", None)
         return MethodOutput(
-            T, time.perf_counter() - start, True, str(exc).splitlines()[0][:200], confidence
+            T, time.perf_counter() - start, True, str(exc).splitlines()[0][:200], confidence, result
         )
     except RuntimeError as exc:  # Open3D / probreg numerical trouble counts as a failed trial
         return MethodOutput(
@@ -116,27 +128,39 @@ def run_method(name: str, pair: PairInput, config: MethodsConfig, seed: int) -> 
 # ---------------------------------------------------------------- forestalign
 
 
-def _forestalign(
-    pair: PairInput, config: MethodsConfig, seed: int
-) -> tuple[np.ndarray, float | None]:
-    from plotmosaic.align.config import AlignConfig
-    from plotmosaic.align.pipeline import align_clouds
+def _forestalign(pair: PairInput, config: MethodsConfig, seed: int):
+    """plotmosaic's PairResult (RegistrationFailed when it refuses)."""
+    from plotmosaic.align.config import AlignConfig, default_levels
+    from plotmosaic.align.pipeline import align_clouds, register_prepared
+    from plotmosaic.align.prepare import prepare_cloud
 
     cfg = AlignConfig()
     init = None
     if config.no_coarse:
         cfg = cfg.model_copy(update={"coarse": cfg.coarse.model_copy(update={"enabled": False})})
         init = np.eye(4)
-    result = align_clouds(
-        pair.source,
-        pair.target,
-        source_kind=pair.source_kind,
-        target_kind=pair.target_kind,
-        config=cfg,
-        init=init,
-        seed=seed,
-    )
-    return np.asarray(result.transform, dtype=np.float64), result.confidence
+    if pair.target_prepared is None:
+        return align_clouds(
+            pair.source,
+            pair.target,
+            source_kind=pair.source_kind,
+            target_kind=pair.target_kind,
+            config=cfg,
+            init=init,
+            seed=seed,
+        )
+    kind = pair.source_kind.lower()
+    src = prepare_cloud(pair.source, kind, default_levels(kind), cfg, seed, "source")
+    return register_prepared(src, pair.target_prepared, cfg, init, seed)
+
+
+def prepare_target(pair: PairInput, seed: int):
+    """The target as forestalign prepares it (default settings), to share over a case's trials."""
+    from plotmosaic.align.config import AlignConfig, default_levels
+    from plotmosaic.align.prepare import prepare_cloud
+
+    kind = pair.target_kind.lower()
+    return prepare_cloud(pair.target, kind, default_levels(kind), AlignConfig(), seed + 1, "target")
 
 
 # ---------------------------------------------------------------- Open3D baselines
@@ -222,9 +246,42 @@ def _fpfh_ransac(pair: PairInput, config: MethodsConfig, seed: int) -> np.ndarra
 # ---------------------------------------------------------------- probreg CPD
 
 
-def _cpd(pair: PairInput, config: MethodsConfig, seed: int) -> np.ndarray:
-    from probreg import cpd
+def _rigid_cpd(source: np.ndarray, target: np.ndarray, cfg: CpdConfig) -> np.ndarray:
+    """Rigid CPD (scale fixed at 1) of `source` onto `target`: 4x4.
 
+    probreg 0.3.8's RigidCPD with update_scale=False updates sigma^2 with -tr(A'R) where the fixed-scale
+    M-step has -2 tr(A'R) (Myronenko and Song 2010, Fig. 2 with s = 1), so sigma^2 stays near the
+    clouds' spread and CPD stops at the coarse, centroid-matching pose, even from the true pose.
+    This M-step is probreg's with that term corrected; the E-step is probreg's.
+    """
+    from probreg import cpd, transformation
+
+    class FixedScaleRigidCPD(cpd.RigidCPD):
+        def maximization_step(self, target, estep_res, sigma2_p=None):
+            pt1, p1, px, n_p = estep_res
+            y, x = self._source[:, :3], target[:, :3]
+            mu_x, mu_y = px.sum(axis=0) / n_p, y.T @ p1 / n_p
+            y_hat, x_hat = y - mu_y, x - mu_x
+            a = px.T @ y_hat - np.outer(mu_x, p1 @ y_hat)
+            u, _, vh = np.linalg.svd(a)
+            rot = (u * [1.0, 1.0, np.linalg.det(u @ vh)]) @ vh
+            tr_atr = float(np.trace(a.T @ rot))
+            tr_xx = float(np.sum(pt1 * np.sum(x_hat**2, axis=1)))
+            tr_yy = float(np.sum(p1 * np.sum(y_hat**2, axis=1)))
+            sigma2 = max((tr_xx + tr_yy - 2.0 * tr_atr) / (3.0 * n_p), np.finfo(np.float32).eps)
+            q = (tr_xx - 2.0 * tr_atr + tr_yy) / (2.0 * sigma2) + 1.5 * n_p * np.log(sigma2)
+            tf = transformation.RigidTransformation(rot, mu_x - rot @ mu_y, 1.0)
+            return cpd.MstepResult(tf, sigma2, q)
+
+    solver = FixedScaleRigidCPD(source, update_scale=False)
+    tf = solver.registration(target, w=cfg.w, maxiter=cfg.maxiter, tol=cfg.tol).transformation
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(tf.rot)
+    T[:3, 3] = np.asarray(tf.t)
+    return T
+
+
+def _cpd(pair: PairInput, config: MethodsConfig, seed: int) -> np.ndarray:
     cfg = config.cpd
     frame, src, tgt = _local(pair, cfg.voxel)
     rng = np.random.default_rng(seed)
@@ -234,14 +291,14 @@ def _cpd(pair: PairInput, config: MethodsConfig, seed: int) -> np.ndarray:
         if len(pts) > cfg.points:
             pts = pts[np.sort(rng.choice(len(pts), cfg.points, replace=False))]
         xyz.append(pts)
-    solver = cpd.RigidCPD(xyz[0], update_scale=False)
-    result = solver.registration(xyz[1], w=cfg.w, maxiter=cfg.maxiter, tol=1e-4)
-    tf = result.transformation
-    T = np.eye(4)
-    T[:3, :3] = np.asarray(tf.rot)
-    T[:3, 3] = np.asarray(tf.t)
+    T = _rigid_cpd(xyz[0], xyz[1], cfg)
     if not np.isfinite(T).all():
         raise RegistrationFailed("CPD diverged")
+    if (
+        config.cpd.refine
+    ):  # CPD on a few thousand points stops at decimetres: the same ICP as fpfh-ransac
+        _, src_fine, tgt_fine = _local(pair, config.icp.voxel)
+        T = _icp_refine(src_fine, tgt_fine, T, config.icp)
     return to_global_transform(T, frame, frame)
 
 

@@ -14,6 +14,7 @@ Cases (issue 15's suite):
   uas-als          the whole UAS clip onto the ALS clip (refined truth)
   mls-uas          the whole MLS clip onto the UAS clip (refined truth, MLS placement is approximate)
   sim-understorey  the simulator's `understorey` preset, scan 1 onto scan 0 7 m away (exact truth)
+  sim-small        (on request) the simulator's `small` preset, scan 1 onto scan 0 (exact truth)
 
 Refined truth: the clips' own co-registration refined by three independent fine methods (point-to-point ICP,
 point-to-plane ICP, generalised ICP, each the sparser cloud onto the denser: ALS onto UAS, i.e. the reverse
@@ -49,6 +50,10 @@ CASES = (
     "mls-uas",
     "sim-understorey",
 )
+EXTRA_CASES = (
+    "sim-small",
+)  # on request: the simulator's `small` preset, a TLS pair (the old coarse suite)
+ALL_CASES = CASES + EXTRA_CASES
 STRIP_WIDTH = 5.0  # metres: a narrow drone strip (<= 6 m)
 TREELS_SPACING = 7.0
 MLS_SPACING = 8.0
@@ -325,21 +330,22 @@ def mls_uas(root: Path, seed: int = 0) -> RealCase:
     return _airborne_case("mls-uas", root, "MLS", "UAS", seed, ("mls", "uls"))
 
 
-def sim_understorey(
-    root: Path | None = None, seed: int = 0, points_per_scan: int = UNDERSTOREY_POINTS
+def _sim_case(
+    name: str, preset: str, seed: int, points_per_scan: int | None, pair=("P1-S1", "P1-S0")
 ) -> RealCase:
-    """The `understorey` preset simulated into a temporary folder (removed after reading), scan 1 onto scan 0."""
+    """A simulator preset into a temporary folder (removed after reading), scan pair[0] onto pair[1]."""
     from plotmosaic.poses import load_poses
     from plotmosaic.simulate import simulate
 
-    with tempfile.TemporaryDirectory(prefix="plotmosaic-understorey-") as tmp:
-        result = simulate(tmp, "understorey", seed=seed, points_per_scan=points_per_scan)
+    with tempfile.TemporaryDirectory(prefix=f"plotmosaic-{preset}-") as tmp:
+        kw = {} if points_per_scan is None else {"points_per_scan": points_per_scan}
+        result = simulate(tmp, preset, seed=seed, **kw)
         poses = load_poses(result.ground_truth_path)
-        src = read_cloud(result.scan_paths["P1-S1"], attributes=False)
-        tgt = read_cloud(result.scan_paths["P1-S0"], attributes=False)
-    truth = inverse(poses.transform("P1-S0")) @ poses.transform("P1-S1")
+        src = read_cloud(result.scan_paths[pair[0]], attributes=False)
+        tgt = read_cloud(result.scan_paths[pair[1]], attributes=False)
+    Ts, Tt = poses.transform(pair[0]), poses.transform(pair[1])
     within = [float(np.mean(np.linalg.norm(c.xyz, axis=1) <= 5.0)) for c in (src, tgt)]
-    dist = float(np.linalg.norm(poses.transform("P1-S1")[:2, 3] - poses.transform("P1-S0")[:2, 3]))
+    dist = float(np.linalg.norm(Ts[:2, 3] - Tt[:2, 3]))
     meta = {
         "distance_m": dist,
         "source_points": len(src),
@@ -347,11 +353,24 @@ def sim_understorey(
         "source_within_5m": within[0],
         "target_within_5m": within[1],
     }
+    pts = "" if points_per_scan is None else f", {points_per_scan:,} points a scan"
     note = (
-        f"simulated dense understorey (preset understorey, seed {seed}, {points_per_scan:,} points a scan), scans "
-        f"{dist:.2f} m apart, {100 * within[0]:.0f} % / {100 * within[1]:.0f} % of points within 5 m; exact truth"
+        f"simulated (preset {preset}, seed {seed}{pts}), scans {dist:.2f} m apart, "
+        f"{100 * within[0]:.0f} % / {100 * within[1]:.0f} % of points within 5 m; exact truth"
     )
-    return RealCase("sim-understorey", src, tgt, truth, "tls", "tls", note, meta)
+    return RealCase(name, src, tgt, inverse(Tt) @ Ts, "tls", "tls", note, meta)
+
+
+def sim_understorey(
+    root: Path | None = None, seed: int = 0, points_per_scan: int = UNDERSTOREY_POINTS
+) -> RealCase:
+    """The `understorey` preset (dense understorey), scan 1 onto scan 0 7 m away."""
+    return _sim_case("sim-understorey", "understorey", seed, points_per_scan)
+
+
+def sim_small(root: Path | None = None, seed: int = 0) -> RealCase:
+    """The `small` preset, scan 1 onto scan 0 (the old coarse suite's simulated TLS pair)."""
+    return _sim_case("sim-small", "small", seed, None)
 
 
 BUILDERS = {
@@ -362,13 +381,14 @@ BUILDERS = {
     "uas-als": uas_als,
     "mls-uas": mls_uas,
     "sim-understorey": sim_understorey,
+    "sim-small": sim_small,
 }
 
 
 def build_case(name: str, data: str | Path | None = None, seed: int = 0) -> RealCase:
     """One case of the suite by name (see the module docstring)."""
     if name not in BUILDERS:
-        raise InputError(f"--cases: unknown case {name!r} (choose from {', '.join(CASES)})")
-    if name == "sim-understorey":
-        return sim_understorey(None, seed)
+        raise InputError(f"--cases: unknown case {name!r} (choose from {', '.join(ALL_CASES)})")
+    if name.startswith("sim-"):
+        return BUILDERS[name](None, seed)
     return BUILDERS[name](data_dir(data), seed)

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from plotmosaic.bench.figures import pyplot, save_png
 from plotmosaic.bench.protocol import PARAMS
-from plotmosaic.io.atomic import atomic_output
 
 INITIAL = "initial"
 
@@ -110,10 +110,7 @@ def plot_errors(rows: list[dict], path: str | Path, title: str = "") -> Path:
     One panel per parameter; along x one group per (overlap, method). Symmetric-log y so the
     +-45 deg / +-15 m starts and the centimetre results are readable together.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     groups = [g for g in _groups(rows) if g[1] != INITIAL]
     fig, axes = plt.subplots(
@@ -173,8 +170,4 @@ def plot_errors(rows: list[dict], path: str | Path, title: str = "") -> Path:
         + "blue: initial error (the perturbation), orange: error after registration; symmetric-log axis"
     )
     fig.tight_layout()
-    path = Path(path)
-    with atomic_output(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-    return path
+    return save_png(fig, path, dpi=110)
