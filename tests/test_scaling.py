@@ -7,7 +7,7 @@ import numpy as np
 
 from plotmosaic.graph.posegraph import _edge_id, build_graph, optimise, pose_error, triangles
 from plotmosaic.graph.synthetic import grid_graph
-from tests.test_graph_posegraph import synthetic_plot
+from test_graph_posegraph import synthetic_plot
 
 
 def test_triangles_are_networkx_triangles():

@@ -5,7 +5,7 @@ pair whose scanners stood at most `max_distance` apart. A bigger plot with posit
 manifest or from placing each scan on the ALS) registers each scan with its nearest neighbours
 only: at most `max_per_scan` pairs a scan, so the pairs grow linearly with the scans, and the
 graph is kept connected (loops come from the neighbours: each scan has several). A scan without a
-position is paired with its neighbours in the manifest's order (the order of acquisition).
+position is paired with the scans its signature matches (graph/signature.py), else with its\nneighbours in the manifest's order (the order of acquisition).
 """
 
 from __future__ import annotations
@@ -101,33 +101,58 @@ def candidate_pairs(
     max_distance: float | None = None,
     positions: dict[str, np.ndarray] | None = None,
     selection: PairSelection | None = None,
+    linked: list[tuple[str, str]] | None = None,
 ) -> list[tuple[Scan, Scan]]:
     """(source, target) pairs; the later scan in the manifest is the source.
 
     `positions`: scan id -> position in one frame (default: the manifest's approximate positions).
+    `linked`: pairs of scans whose signatures match (graph/signature.py): in a big plot they pair
+    the scans that have no position.
     """
     selection = selection or PairSelection()
     scans = plot.scans
     positions = positions if positions is not None else manifest_positions(plot)
     known = positions is not None and all(s.id in positions for s in scans)
     placed = [s for s in scans if positions is not None and s.id in positions]
-    if len(scans) > selection.all_pairs_up_to and len(placed) >= 3:
-        xy = np.array([positions[s.id][:2] for s in placed])
-        chosen = {
-            (placed[i].id, placed[j].id)
-            for i, j in neighbour_pairs(
-                xy, selection.neighbours, selection.max_per_scan, max_distance
-            )
-        }
+    big = len(scans) > selection.all_pairs_up_to
+    if big and (len(placed) >= 3 or linked is not None):
         order = {s.id: k for k, s in enumerate(scans)}
-        # no position: paired with its neighbours in the manifest, which lists scans as they were
-        # taken (a walk through the plot), so pairs stay bounded; an unconfirmed scan is reported unplaced
+        chosen: set[tuple[str, str]] = set()
+        if len(placed) >= 3:
+            xy = np.array([positions[s.id][:2] for s in placed])
+            chosen = {
+                (placed[i].id, placed[j].id)
+                for i, j in neighbour_pairs(
+                    xy, selection.neighbours, selection.max_per_scan, max_distance
+                )
+            }
+        else:
+            placed = []
+        has_position = {s.id for s in placed}
         degree = {s.id: 0 for s in scans}
         for a, b in chosen:
             degree[a] += 1
             degree[b] += 1
+        matched: set[str] = set()
+        # no position: the scans its signature matches, best first (when there are signatures)
+        for a, b in linked or []:
+            if a in has_position and b in has_position:
+                continue
+            pair = (a, b) if order[a] < order[b] else (b, a)
+            if (
+                a in order
+                and b in order
+                and pair not in chosen
+                and max(degree[a], degree[b]) < selection.max_per_scan
+            ):
+                chosen.add(pair)
+                degree[a] += 1
+                degree[b] += 1
+                matched.update(pair)
+        # else its neighbours in the manifest, which lists scans as they were taken (a walk
+        # through the plot), so pairs stay bounded; an unconfirmed scan is reported unplaced
         for k, s in enumerate(scans):
-            if s.id in positions:
+            if s.id in has_position or s.id in matched:
                 continue
             reach = min(
                 len(scans), selection.max_per_scan + 1

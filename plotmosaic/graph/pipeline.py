@@ -29,10 +29,26 @@ from plotmosaic.graph.posegraph import (
     graph_to_json,
     optimise,
 )
-from plotmosaic.graph.prepared import PrepareJob, entry, points_reader, run_prepare_job
+from plotmosaic.graph.prepared import (
+    PrepareJob,
+    entry,
+    points_reader,
+    prepared_key,
+    run_prepare_job,
+)
+from plotmosaic.graph.signature import (
+    SignatureConfig,
+    SignatureJob,
+    from_record,
+    grow_candidates,
+    ranked_partners,
+    run_signature_job,
+    signature_pairs,
+    similarity,
+)
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.las import read_header_info
-from plotmosaic.manifest import Manifest, Plot, load_manifest
+from plotmosaic.manifest import Manifest, Plot, Scan, load_manifest
 from plotmosaic.poses import Poses, ScanPose
 
 # Figures of a pair result kept on the graph edge (the full result stays in DIR/pairs/).
@@ -81,44 +97,165 @@ class RegisterResult:
         return [s for p in self.plots for s in p.unplaced]
 
 
+def _pair_job(
+    manifest: Manifest,
+    source: Scan,
+    target: Scan,
+    config_json: str,
+    seed: int,
+    prepared: str | None,
+    placed: dict[str, np.ndarray],
+) -> PairJob:
+    sp, tp = manifest.resolve(source.path), manifest.resolve(target.path)
+    key = pair_key(
+        sp, tp, source.kind.value, target.kind.value, source.k, target.k, config_json, seed
+    )
+    return PairJob(
+        key,
+        source.id,
+        target.id,
+        str(sp),
+        str(tp),
+        source.kind.value,
+        target.kind.value,
+        source.k,
+        target.k,
+        config_json,
+        seed,
+        prepared,
+        prior(placed, source.id, target.id),
+    )
+
+
 def plan_jobs(
     manifest: Manifest,
     config: RegisterConfig,
     seed: int,
     prepared: str | Path | None = None,
     placed: dict[str, np.ndarray] | None = None,
+    linked: dict[str, list[tuple[str, str]]] | None = None,
 ) -> list[PairJob]:
     """The pair jobs of every plot; `prepared`: the prepared-cloud cache folder (DIR/prepared);
-    `placed`: scan poses from the ALS step (positions for the pair selection, priors for the coarse stage)."""
+    `placed`: scan poses from the ALS step (positions for the pair selection, priors for the coarse stage);
+    `linked`: plot id -> pairs of scans whose signatures match (pairs for scans without a position)."""
     config_json = config.align.model_dump_json()
     prepared = None if prepared is None else str(prepared)
     placed = placed or {}
+    linked = linked or {}
     jobs = []
     for plot in manifest.plots:
         positions = {s.id: placed[s.id][:3, 3] for s in plot.scans if s.id in placed} or None
-        for source, target in candidate_pairs(plot, config.max_distance, positions, config.pairs):
-            sp, tp = manifest.resolve(source.path), manifest.resolve(target.path)
-            key = pair_key(
-                sp, tp, source.kind.value, target.kind.value, source.k, target.k, config_json, seed
-            )
-            jobs.append(
-                PairJob(
-                    key,
-                    source.id,
-                    target.id,
-                    str(sp),
-                    str(tp),
-                    source.kind.value,
-                    target.kind.value,
-                    source.k,
-                    target.k,
-                    config_json,
-                    seed,
-                    prepared,
-                    prior(placed, source.id, target.id),
+        for source, target in candidate_pairs(
+            plot, config.max_distance, positions, config.pairs, linked.get(plot.id)
+        ):
+            jobs.append(_pair_job(manifest, source, target, config_json, seed, prepared, placed))
+    return jobs
+
+
+def _signature_config(config: RegisterConfig) -> SignatureConfig:
+    return getattr(config, "signature", None) or SignatureConfig()
+
+
+def match_signatures(
+    manifest: Manifest,
+    config: RegisterConfig,
+    seed: int,
+    out: Path,
+    placed: dict[str, np.ndarray],
+    executor: str = "local",
+    n_jobs: int | None = None,
+    scheduler: str | None = None,
+    progress: bool = True,
+) -> tuple[dict[str, list[tuple[str, str]]], dict[str, list[str]]]:
+    """Big plots where some scan has no position: every scan's stem-map signature (graph/signature.py).
+
+    Returns (plot id -> linked scan pairs, scan id -> other scans of its plot ranked by signature).
+    The scans are prepared here, into the cache their pairs load from (each still read once)."""
+    sig = _signature_config(config)
+    if not sig.enabled:
+        return {}, {}
+    plots = [
+        p
+        for p in manifest.plots
+        if len(p.scans) > config.pairs.all_pairs_up_to
+        and manifest_positions(p) is None
+        and not all(s.id in placed for s in p.scans)
+    ]
+    if not plots:
+        return {}, {}
+    settings = config.align.model_dump_json()
+    folder = str(out / "prepared")
+    jobs = {}
+    for plot in plots:
+        for scan in plot.scans:
+            path = str(manifest.resolve(scan.path))
+            key = prepared_key(path, scan.kind.value, scan.k, settings, seed)
+            pj = PrepareJob(key, scan.id, path, scan.kind.value, scan.k, settings, seed, folder)
+            jobs[scan.id] = SignatureJob(pj, sig.model_dump_json())
+    records = run_pairs(
+        list(jobs.values()),
+        None,
+        executor,
+        n_jobs,
+        scheduler,
+        progress,
+        worker=run_signature_job,
+        label="scan signatures",
+    )
+    by_key = {r["key"]: r for r in records}
+    linked, ranks = {}, {}
+    for plot in plots:
+        ids = [s.id for s in plot.scans]
+        sigs = [from_record(by_key.get(jobs[i].key, {})) for i in ids]
+        scores = similarity(sigs, sig)
+        pairs = signature_pairs(scores, len(ids), sig.partners, config.pairs.max_per_scan)
+        linked[plot.id] = [(ids[i], ids[j]) for i, j in pairs]
+        for i, row in enumerate(ranked_partners(scores, len(ids))):
+            ranks[ids[i]] = [ids[j] for j in row]
+    return linked, ranks
+
+
+def grow_jobs(
+    manifest: Manifest,
+    config: RegisterConfig,
+    seed: int,
+    prepared: str | Path,
+    placed: dict[str, np.ndarray],
+    ranks: dict[str, list[str]],
+    job_list: list[PairJob],
+    records: dict[str, dict],
+) -> list[PairJob]:
+    """Pairs to add where a plot's verified pairs leave it in pieces: the next signature-ranked partners."""
+    sig = _signature_config(config)
+    config_json = config.align.model_dump_json()
+    tried = {frozenset((j.source, j.target)) for j in job_list}
+    degree: dict[str, int] = {}
+    G = nx.Graph()
+    for j in job_list:
+        degree[j.source] = degree.get(j.source, 0) + 1
+        degree[j.target] = degree.get(j.target, 0) + 1
+        if records.get(j.key, {}).get("status") == "ok":
+            G.add_edge(j.source, j.target)
+    out = []
+    for plot in manifest.plots:
+        ids = [s.id for s in plot.scans]
+        if not any(i in ranks for i in ids):
+            continue
+        sub = G.subgraph(ids).copy()
+        sub.add_nodes_from(ids)
+        comps = [set(c) for c in nx.connected_components(sub)]
+        by_id = {s.id: s for s in plot.scans}
+        order = {s.id: k for k, s in enumerate(plot.scans)}
+        for a, b in grow_candidates(
+            ranks, tried, comps, degree, sig.grow_per_scan, config.pairs.max_per_scan
+        ):
+            target, source = sorted((a, b), key=order.get)  # the later scan is the source
+            out.append(
+                _pair_job(
+                    manifest, by_id[source], by_id[target], config_json, seed, str(prepared), placed
                 )
             )
-    return jobs
+    return out
 
 
 def place_scans(
@@ -274,10 +411,24 @@ def register_plot(
     for plot in manifest.plots:
         if not any(s.id in placed for s in plot.scans):
             placed.update({s.id: stored[s.id] for s in plot.scans if s.id in stored})
-    job_list = plan_jobs(manifest, config, seed, out / "prepared", placed)
+    linked, ranks = match_signatures(
+        manifest, config, seed, out, placed, executor, jobs, scheduler, progress
+    )
+    job_list = plan_jobs(manifest, config, seed, out / "prepared", placed, linked)
     records, computed = compute_pairs(
         job_list, cache, executor, jobs, scheduler, force, progress, on_result
     )
+    # the plan grows only where the verified pairs leave a plot in pieces (bounded rounds)
+    for _ in range(_signature_config(config).grow_rounds if ranks else 0):
+        more = grow_jobs(manifest, config, seed, out / "prepared", placed, ranks, job_list, records)
+        if not more:
+            break
+        job_list += more
+        extra_records, extra_computed = compute_pairs(
+            more, cache, executor, jobs, scheduler, force, progress, on_result
+        )
+        records.update(extra_records)
+        computed += extra_computed
 
     nodes = {}
     for plot in manifest.plots:
