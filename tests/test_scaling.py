@@ -4,10 +4,10 @@ import time
 
 import networkx as nx
 import numpy as np
+from test_graph_posegraph import synthetic_plot
 
 from plotmosaic.graph.posegraph import _edge_id, build_graph, optimise, pose_error, triangles
 from plotmosaic.graph.synthetic import grid_graph
-from test_graph_posegraph import synthetic_plot
 
 
 def test_triangles_are_networkx_triangles():
