@@ -10,6 +10,7 @@ confidence. Every transform here maps source-local to target-local coordinates.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -19,6 +20,7 @@ from plotmosaic.align.icp import nearest, point_to_plane_icp
 from plotmosaic.align.judge_config import JudgeConfig
 from plotmosaic.align.sampling import sample
 from plotmosaic.io.frame import inverse, rotation_deg
+from plotmosaic.parallel import in_two_threads
 
 
 @dataclass
@@ -27,6 +29,7 @@ class _Samples:
     structure: np.ndarray  # the non-flat part of it
     spacing: float  # median nearest-neighbour spacing of the delta0 points (m)
     fine: np.ndarray  # source points of a rival's refinement ICP
+    centre: np.ndarray  # centroid of the cloud's points: where pose separations are measured
 
 
 def _samples(cloud, config: JudgeConfig) -> _Samples:
@@ -48,7 +51,7 @@ def _samples(cloud, config: JudgeConfig) -> _Samples:
         d, _ = cloud.tree.query(probe, k=2)
         spacing = float(np.median(d[:, 1])) if len(probe) > 1 else config.reference_spacing
         fine = cloud.fine_points[sample(len(cloud.fine_points), config.rival_points, rng)]
-        memo[key] = _Samples(every, struct, spacing, fine)
+        memo[key] = _Samples(every, struct, spacing, fine, cloud.points.mean(axis=0))
     return memo[key]
 
 
@@ -102,21 +105,70 @@ def distinct(A: np.ndarray, B: np.ndarray, centre: np.ndarray, config: JudgeConf
     return m > config.distinct_m or deg > config.distinct_deg
 
 
-def refine(src, tgt, T: np.ndarray, config: JudgeConfig) -> np.ndarray:
-    """A rival's short robust point-to-plane ICP, the same for every rival (distances x the scale factor)."""
+def centre(cloud, config: JudgeConfig) -> np.ndarray:
+    """Centroid of a prepared cloud's points (remembered): pose separations are measured there."""
+    return _samples(cloud, config).centre
+
+
+def refine(
+    src, tgt, T: np.ndarray, config: JudgeConfig, into: np.ndarray | None = None
+) -> np.ndarray:
+    """A rival's short robust point-to-plane ICP, the same for every rival (distances x the scale
+    factor), one stage at a time (the same steps as all stages in one call). `into`: a pose this
+    rival would only duplicate; the refinement stops once it is within half the distinct radius
+    of it after a stage (the later, narrower stages move it centimetres)."""
     f = scale_factor(src, tgt, config)
-    stages = [IcpStage(max_distance=d * f, iterations=n) for d, n in config.rival_schedule]
-    res = point_to_plane_icp(
-        _samples(src, config).fine,
-        tgt.points,
-        tgt.target_normals,
-        T,
-        stages,
-        tree=tgt.tree,
-        kernel_floor=0.1 * f,
-        tol=1e-4,
-    )
-    return res.T
+    A = np.asarray(T, dtype=float)
+    for k, (d, n) in enumerate(config.rival_schedule):
+        res = point_to_plane_icp(
+            _samples(src, config).fine,
+            tgt.points,
+            tgt.target_normals,
+            A,
+            [IcpStage(max_distance=d * f, iterations=n)],
+            tree=tgt.tree,
+            kernel_floor=0.1 * f,
+            tol=1e-4,
+        )
+        A = res.T
+        if into is not None and k < len(config.rival_schedule) - 1:
+            deg, m = separation(A, into, centre(src, config))
+            if m <= 0.5 * config.distinct_m and deg <= 0.5 * config.distinct_deg:
+                break
+    return A
+
+
+def _rival_memo(src, tgt, config: JudgeConfig) -> dict:
+    """Refined rivals by start pose, remembered on the source for this target: every path of a pair
+    (and the second verdict after a better rival) refines and scores a hypothesis once."""
+    key = config.model_dump_json()
+    memo = src.__dict__.get("_judge_rivals")
+    if memo is None or memo[0]() is not tgt or memo[1] != key:
+        memo = (weakref.ref(tgt), key, {})  # the target by weak reference, as global_search does
+        src.__dict__["_judge_rivals"] = memo
+    return memo[2]
+
+
+def _refined(src, tgt, starts: list[np.ndarray], T: np.ndarray, config: JudgeConfig) -> list:
+    """(refined rival, its profile or None when it ran into T) for each start; the missing ones
+    refined two at a time (each its own ICP: the same result as one after the other)."""
+    table = _rival_memo(src, tgt, config)
+    c = centre(src, config)
+    todo = []
+    for A0 in starts:
+        key = np.asarray(A0, dtype=float).tobytes()
+        held = table.get(key)
+        # missing, or stopped early running into an earlier pose while this T is elsewhere
+        if held is None or (held[1] is None and distinct(held[0], T, c, config)):
+            todo.append((key, A0))
+
+    def run(job):
+        A = refine(src, tgt, job[1], config, into=T)
+        return A, None if not distinct(A, T, c, config) else profile(src, tgt, A, config)
+
+    for (key, _), done in zip(todo, in_two_threads(run, todo)):
+        table[key] = done
+    return [table[np.asarray(A0, dtype=float).tobytes()] for A0 in starts]
 
 
 @dataclass
@@ -179,25 +231,20 @@ def judge(
     T: np.ndarray,
     candidates: list[tuple[np.ndarray, str]],
     config: JudgeConfig,
-    memo: dict | None = None,
 ) -> Verdict:
     """Score pose T against the distinct rivals among `candidates` ((transform, where from), source local ->
     target local), each refined first; a rival that ends within the distinct radius of T is T itself.
-    `memo`: refined rivals and profiles by candidate name, shared by calls on the same pair."""
+    Refined rivals are remembered per pair (`_refined`)."""
     import time
 
     t0 = time.perf_counter()
-    centre = src.points.mean(axis=0)
+    c = centre(src, config)
     mine = profile(src, tgt, T, config)
     best, best_T, best_name, best_prof, n_distinct, table = 0.0, None, None, None, 0, []
-    shortlist = _shortlist(T, candidates, centre, config)
-    memo = {} if memo is None else memo
-    for A0, name in shortlist:
-        if name not in memo:
-            A = refine(src, tgt, A0, config)
-            memo[name] = (A, profile(src, tgt, A, config))
-        A, prof = memo[name]
-        deg, m = separation(A, T, centre)
+    shortlist = _shortlist(T, candidates, c, config)
+    refined = _refined(src, tgt, [A0 for A0, _ in shortlist], T, config)
+    for (_, name), (A, prof) in zip(shortlist, refined):
+        deg, m = separation(A, T, c)
         if m <= config.distinct_m and deg <= config.distinct_deg:
             table.append({"from": name, "distinct": False, "deg": deg, "m": m})
             continue
@@ -236,7 +283,7 @@ def verify_stored(src, tgt, T: np.ndarray, A: np.ndarray, config: JudgeConfig) -
     """Does the stored pose T (source local -> target local) hold? A, the fine ICP from it, must
     barely move it and fit sharply (`sharpness`) with at least `min_score`. Returns the figures and
     `verified`; `failed` names the checks that did not pass."""
-    deg, m = separation(A, T, src.points.mean(axis=0))
+    deg, m = separation(A, T, centre(src, config))
     prof = profile(src, tgt, A, config)
     sharp = sharpness(prof)
     checks = {

@@ -297,8 +297,7 @@ def register_prepared(
     if config.judge.enabled:
         say("judging the pose against its rivals")
         candidates = _candidates(hypotheses, T_start)
-        refined: dict = {}  # rivals refined once for both verdicts
-        verdict = judge_mod.judge(src, tgt, T, candidates, config.judge, refined)
+        verdict = judge_mod.judge(src, tgt, T, candidates, config.judge)
         if (
             verdict.rival_better
             and config.coarse.enabled
@@ -309,9 +308,7 @@ def register_prepared(
             # finish that one the same way and keep whichever the judge prefers
             say("final ICP from a better rival")
             T2, p2, q2, n2, it2, rev2 = final_icp(src, tgt, verdict.rival_transform, config)
-            second = judge_mod.judge(
-                src, tgt, T2, candidates + [(T, "first pose")], config.judge, refined
-            )
+            second = judge_mod.judge(src, tgt, T2, candidates + [(T, "first pose")], config.judge)
             if second.score > verdict.score:
                 T, p, q, n, iterations, reverse, verdict = T2, p2, q2, n2, it2, rev2, second
     t_judge = time.perf_counter()
