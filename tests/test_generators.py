@@ -161,3 +161,33 @@ def test_coarse_recovers_a_45_degree_tilted_source_and_is_deterministic(tilted_p
     again = coarse_align(Cloud(src.points.copy()), Cloud(tgt.points.copy()), c, seed=3)
     assert [h["generator"] for h in again.hypotheses] == [h["generator"] for h in result.hypotheses]
     np.testing.assert_allclose(again.transform, result.transform, atol=1e-9)
+
+
+def test_fpfh_voxel_is_shared_and_respects_both_caps():
+    """A small boxed view and a wide one get one voxel (descriptors compare only at one scale)."""
+    rng = np.random.default_rng(0)
+    small, wide = rng.uniform(0, 12, (20_000, 3)), rng.uniform(0, 36, (60_000, 3))
+    c = CoarseConfig(fpfh_max_points=2_000, fpfh_max_points_larger=8_000)
+    voxel = features3d.shared_voxel([small, wide], c)
+    n = sorted(len(voxel_centroids(p, voxel)) for p in (small, wide))
+    assert n[0] <= 2_000 and n[1] <= 8_000
+    # one step finer breaks a cap: the voxel is the finest that fits
+    n = sorted(len(voxel_centroids(p, voxel / 1.2)) for p in (small, wide))
+    assert n[0] > 2_000 or n[1] > 8_000
+
+
+def test_vertical_far_from_the_joint_estimate_is_dropped():
+    """Ground normals of a view boxed in by trunks can vote for a trunk's side: no such vertical is searched."""
+    rng = np.random.default_rng(2)
+    ground = np.column_stack([rng.normal(0, 0.05, (2, 800)).T, np.ones(800)])
+    wall = np.column_stack([np.ones(3000), rng.normal(0, 0.05, (2, 3000)).T])  # one huge trunk side
+    stems = np.column_stack(
+        [np.cos(a := rng.uniform(0, 2 * np.pi, 3000)), np.sin(a), np.zeros(3000)]
+    )
+    normals = np.vstack([ground, wall, stems])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    points = rng.uniform(0, 10, (len(normals), 3))
+    c = CoarseConfig(max_verticals=6)
+    verticals, _ = vertical_hypotheses(points, normals, c)
+    assert angle_deg(verticals[0].up, Z) < 3.0
+    assert all(angle_deg(v.up, Z) <= c.max_vertical_spread_deg for v in verticals)

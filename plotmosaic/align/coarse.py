@@ -370,9 +370,10 @@ def _vertical_pairs(
 
 def _fpfh_matches(src: _Base, tgt: _Base, config: CoarseConfig) -> tuple[np.ndarray, np.ndarray]:
     """Mutually matched FPFH points (source, target), local frames."""
+    voxel = features3d.shared_voxel([src.points, tgt.points], config)
     fs, ft = (
-        features3d.fpfh_features(src.points, config),
-        features3d.fpfh_features(tgt.points, config),
+        features3d.fpfh_features(src.points, config, voxel),
+        features3d.fpfh_features(tgt.points, config, voxel),
     )
     i, j = features3d.mutual_matches(fs, ft)
     return fs.points[i], ft.points[j]

@@ -78,6 +78,12 @@ class CoarseConfig(BaseModel):
     vertical_duplicate_deg: float = Field(
         2.0, gt=0, le=20, description="vertical hypotheses closer than this are one"
     )
+    max_vertical_spread_deg: float = Field(
+        35.0,
+        gt=0,
+        le=90,
+        description="estimates further than this from the joint (ground + stem) one are dropped",
+    )
     max_verticals: int = Field(
         3, ge=1, le=6, description="vertical hypotheses per cloud carried into the search"
     )
@@ -248,7 +254,13 @@ class CoarseConfig(BaseModel):
         4_000,
         ge=500,
         le=200_000,
-        description="cap on points FPFH is computed on (the voxel grows to respect it)",
+        description="cap on the smaller cloud's FPFH points (the shared voxel grows to respect it)",
+    )
+    fpfh_max_points_larger: int = Field(
+        16_000,
+        ge=500,
+        le=200_000,
+        description="cap on the larger cloud's FPFH points at the shared voxel",
     )
     fpfh_normal_radius: float = Field(0.75, gt=0, le=10, description="normal radius (m) for FPFH")
     fpfh_radius: float = Field(1.5, gt=0, le=20, description="FPFH feature radius (m)")

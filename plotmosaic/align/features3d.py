@@ -13,7 +13,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 
 from plotmosaic.align.coarse_config import CoarseConfig
 from plotmosaic.align.levelling import rotate
@@ -30,16 +29,32 @@ class Features:
     descriptors: np.ndarray  # (N, 33)
 
 
-def fpfh_features(points: np.ndarray, config: CoarseConfig) -> Features:
-    """FPFH of a voxel-thinned copy of `points` (local frame), the voxel grown to respect the cap."""
+def shared_voxel(clouds: list[np.ndarray], config: CoarseConfig) -> float:
+    """One FPFH voxel for both clouds: descriptors compare only at the same scale.
+
+    Grown from `fpfh_voxel` until the smaller cloud holds at most `fpfh_max_points` and the larger
+    at most `fpfh_max_points_larger` (a 6 m boxed view against a 30 m one: 2,600 and 11,000 points
+    at 0.3 m; each capped on its own, the larger grew to 0.5 m and no descriptor matched).
+    """
     c = config
-    # the voxel grows until the cap holds: a random subset would put the two clouds' points in
-    # different places and leave almost no repeatable descriptors (8 right matches of 1,900 on MLS views)
     voxel = c.fpfh_voxel
-    pts = voxel_centroids(points, voxel)
-    while len(pts) > c.fpfh_max_points:  # bounded: each step removes ~30 % of the points
+    for _ in range(64):  # bounded: each step removes ~30 % of the points
+        n = sorted(len(voxel_centroids(p, voxel)) for p in clouds)
+        if n[0] <= c.fpfh_max_points and n[-1] <= c.fpfh_max_points_larger:
+            break
         voxel *= 1.2
-        pts = voxel_centroids(points, voxel)
+    return voxel
+
+
+def fpfh_features(points: np.ndarray, config: CoarseConfig, voxel: float | None = None) -> Features:
+    """FPFH of a voxel-thinned copy of `points` (local frame) at `voxel` (default: `shared_voxel` of it alone)."""
+    import open3d as o3d  # here: its import (~1 s) is paid only when FPFH runs
+
+    c = config
+    # a common voxel, not a random subset: a subset would put the two clouds' points in different
+    # places and leave almost no repeatable descriptors (8 right matches of 1,900 on MLS views)
+    voxel = shared_voxel([points], c) if voxel is None else voxel
+    pts = voxel_centroids(points, voxel)
     scale = voxel / c.fpfh_voxel  # neighbourhoods keep their size in voxels
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
     pcd.estimate_normals(

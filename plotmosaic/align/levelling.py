@@ -187,14 +187,20 @@ def vertical_hypotheses(
     ordered += found[1:]
     out: list[Vertical] = []
     for v in ordered:
-        if all(angle_deg(v.up, o.up) > c.vertical_duplicate_deg for o in out):
+        # an estimate far from the joint one levels nothing: the ground-normals vote of a boxed 6 m
+        # view picked a trunk's side, 90 deg off, and took a search slot from a useful vertical
+        far = v.name != "z-up" and angle_deg(v.up, both) > c.max_vertical_spread_deg
+        if not far and all(angle_deg(v.up, o.up) > c.vertical_duplicate_deg for o in out):
             out.append(v)
     out = out[: limit or c.max_verticals]
     info = {
         "tilt_deg": angle_deg(out[0].up, Z),
         "stem_share": float(stem_share),
         "candidates": {v.name: round(angle_deg(v.up, Z), 2) for v in found},
-        "verticals": [{"name": v.name, "tilt_deg": round(angle_deg(v.up, Z), 3)} for v in out],
+        "verticals": [
+            {"name": v.name, "tilt_deg": round(angle_deg(v.up, Z), 3), "up": v.up.round(5).tolist()}
+            for v in out
+        ],
     }
     return out, info
 
