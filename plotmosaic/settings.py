@@ -65,7 +65,9 @@ class Settings(BaseModel):
     )
     tie_to_als: TieOptions = Field(default_factory=TieOptions, description="tie-to-als")
     merge: MergeConfig = Field(default_factory=MergeConfig, description="merge")
-    report: ReportConfig = Field(default_factory=ReportConfig, description="report pictures")
+    report: ReportConfig = Field(
+        default_factory=ReportConfig, description="report of register-plot and tie-to-als"
+    )
 
     def align_config(self) -> AlignConfig:
         return self.align.model_copy(deep=True)
@@ -81,6 +83,7 @@ class Settings(BaseModel):
             graph=self.posegraph.model_copy(deep=True),
             pairs=self.pairs.model_copy(deep=True),
             placement=self.align.model_copy(deep=True),
+            report=self.report.model_copy(deep=True),
         )
 
     def tie_config(self) -> TieConfig:
@@ -88,6 +91,7 @@ class Settings(BaseModel):
             **self.tie_to_als.model_dump(),
             align=self.align.model_copy(deep=True),
             graph=self.posegraph.model_copy(deep=True),
+            report=self.report.model_copy(deep=True),
         )
 
     def merge_config(self) -> MergeConfig:

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import json
 import tomllib
+import typing
 
 import numpy as np
 import pytest
+from pydantic import BaseModel
 
 from plotmosaic.align.config import MAX_LEVELS
 from plotmosaic.commands.common import run_settings
@@ -160,3 +162,53 @@ def test_one_levels_limit_for_manifest_and_cli(tmp_path):
         Scan(id="s", path="s.laz", levels=MAX_LEVELS + 1)
     res = invoke("align", "a.laz", "b.laz", "--levels-source", MAX_LEVELS + 1)
     assert_one_line_error(res, "--levels-source", f"1 to {MAX_LEVELS}", code=2)
+
+
+def _models(model: type[BaseModel], seen: dict[str, type[BaseModel]]) -> dict:
+    """Every settings model reachable from `model` (fields, lists of models)."""
+    if model.__name__ in seen:
+        return seen
+    seen[model.__name__] = model
+    for field in model.model_fields.values():
+        inner = field.annotation
+        while typing.get_origin(inner) is list:
+            (inner,) = typing.get_args(inner)
+        if isinstance(inner, type) and issubclass(inner, BaseModel):
+            _models(inner, seen)
+    return seen
+
+
+MODELS = _models(Settings, {})
+NOT_YET = {  # reported to the lead: align/judge_config.py is not ours to edit
+    "JudgeConfig": 'align/judge_config.py: JudgeConfig needs model_config = ConfigDict(extra="forbid")'
+}
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        pytest.param(n, marks=pytest.mark.xfail(reason=NOT_YET[n], strict=True))
+        if n in NOT_YET
+        else n
+        for n in sorted(MODELS)
+    ],
+)
+def test_every_model_forbids_extras_and_every_field_is_described_and_bounded(name):
+    model = MODELS[name]
+    assert model.model_config.get("extra") == "forbid", name
+    for key, field in model.model_fields.items():
+        assert field.description, f"{name}.{key}: no description"
+        numeric = field.annotation in (int, float) or field.annotation in (int | None, float | None)
+        bounded = any(type(m).__name__ in ("Gt", "Ge", "Lt", "Le") for m in field.metadata)
+        assert bounded or not numeric, f"{name}.{key}: no bounds"
+
+
+def test_merge_config_used_repeats_the_merge_byte_for_byte(small_sim, tmp_path):
+    m, poses = small_sim.manifest_path, small_sim.ground_truth_path
+    first = invoke("merge", m, "--poses", poses, "--out", tmp_path / "a.laz", "--voxel", "0.05")
+    assert first.exit_code == 0, first.output
+    used = tmp_path / "a.config-used.toml"  # beside the output, named after it
+    assert load_settings(used).merge.voxel == 0.05
+    again = invoke("merge", m, "--poses", poses, "--out", tmp_path / "b.laz", "--config", used)
+    assert again.exit_code == 0, again.output
+    assert (tmp_path / "a.laz").read_bytes() == (tmp_path / "b.laz").read_bytes()

@@ -83,7 +83,7 @@ def register_plot_command(
         "--place-on-als/--no-place-on-als",
         help=f"Plots of more than {_PAIRS['all_pairs_up_to'].default} scans without "
         "positions: register each scan to the ALS first, then only neighbours to each other "
-        "(default register_plot.place_on_als, on).",
+        f"(default register_plot.place_on_als, {'on' if _REGISTER['place_on_als'].default else 'off'}).",
     ),
     config: Path | None = typer.Option(None, "--config", help=CONFIG_HELP),
     seed: int = typer.Option(0, "--seed", help="Random seed (same inputs + seed = same result)."),

@@ -7,6 +7,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from plotmosaic.align.config import AlignConfig
+from plotmosaic.report.config import ReportConfig
 
 
 class PairSelection(BaseModel):
@@ -111,9 +112,6 @@ class RegisterOptions(BaseModel):
         description="a scan placed on the ALS less surely than "
         "this is paired with every scan instead (a wrong place would pick wrong pairs)",
     )
-    report_points: int = Field(
-        20_000, ge=1000, le=1_000_000, description="points per scan in the report's pictures"
-    )
 
 
 class RegisterConfig(RegisterOptions):
@@ -131,6 +129,7 @@ class RegisterConfig(RegisterOptions):
     placement: AlignConfig = Field(
         default_factory=AlignConfig, description="scan -> ALS: verified poses only"
     )
+    report: ReportConfig = Field(default_factory=ReportConfig, description="the report's pictures")
 
 
 class TieOptions(BaseModel):
@@ -150,9 +149,6 @@ class TieOptions(BaseModel):
         le=10,
         description="thinning (m) of the merged plot cloud: TLS is far denser than needed",
     )
-    report_points: int = Field(
-        20_000, ge=1000, le=1_000_000, description="points per scan in the report's pictures"
-    )
 
 
 class TieConfig(TieOptions):
@@ -164,3 +160,4 @@ class TieConfig(TieOptions):
     graph: PoseGraphConfig = Field(
         default_factory=PoseGraphConfig, description="the region's pose graph, ALS fixed"
     )
+    report: ReportConfig = Field(default_factory=ReportConfig, description="the report's pictures")
