@@ -20,9 +20,9 @@ from plotmosaic.graph.cache import PairCache, pair_key
 from plotmosaic.graph.config import (
     RegisterConfig,
 )
-from plotmosaic.graph.executor import PairJob, prepare_jobs_for, run_pairs
+from plotmosaic.graph.executor import PairJob, prepare_jobs_for, run_pairs, with_stored_poses
 from plotmosaic.graph.pairs import candidate_pairs, manifest_positions
-from plotmosaic.graph.placement import placed_poses, placement_jobs, prior
+from plotmosaic.graph.placement import placed_poses, placement_jobs, prior, sure_placements
 from plotmosaic.graph.posegraph import (
     Solution,
     build_graph,
@@ -36,8 +36,8 @@ from plotmosaic.graph.prepared import (
     prepared_key,
     run_prepare_job,
 )
+from plotmosaic.graph.scale_config import PlacedPriors, SignatureConfig
 from plotmosaic.graph.signature import (
-    SignatureConfig,
     SignatureJob,
     from_record,
     grow_candidates,
@@ -408,19 +408,31 @@ def register_plot(
     # poses stored in the scan files (E57 `use_pose = true`) are priors like the ALS step's, one
     # plot at a time so that frames never mix within a plot; the pairwise judge verifies them
     stored = manifest.stored_poses()
+    verify_first: set[str] = set()  # scans whose prior is checked before any search
     for plot in manifest.plots:
         if not any(s.id in placed for s in plot.scans):
             placed.update({s.id: stored[s.id] for s in plot.scans if s.id in stored})
+            verify_first |= {s.id for s in plot.scans if s.id in stored}
+    priors = getattr(config, "placed_priors", None) or PlacedPriors()
+    if (
+        priors.verify_first
+    ):  # two sure ALS placements: their relative pose is as good as a stored one
+        verify_first |= sure_placements(placement, placement_records, priors.min_confidence)
     linked, ranks = match_signatures(
         manifest, config, seed, out, placed, executor, jobs, scheduler, progress
     )
-    job_list = plan_jobs(manifest, config, seed, out / "prepared", placed, linked)
+    job_list = with_stored_poses(
+        plan_jobs(manifest, config, seed, out / "prepared", placed, linked), verify_first
+    )
     records, computed = compute_pairs(
         job_list, cache, executor, jobs, scheduler, force, progress, on_result
     )
     # the plan grows only where the verified pairs leave a plot in pieces (bounded rounds)
     for _ in range(_signature_config(config).grow_rounds if ranks else 0):
-        more = grow_jobs(manifest, config, seed, out / "prepared", placed, ranks, job_list, records)
+        more = with_stored_poses(
+            grow_jobs(manifest, config, seed, out / "prepared", placed, ranks, job_list, records),
+            verify_first,
+        )
         if not more:
             break
         job_list += more

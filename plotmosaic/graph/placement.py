@@ -80,3 +80,16 @@ def prior(poses: dict[str, np.ndarray], source: str, target: str) -> tuple | Non
         return None
     T = inverse(poses[target]) @ poses[source]
     return tuple(tuple(float(v) for v in row) for row in T)
+
+
+def sure_placements(
+    jobs: list[PairJob], records: dict[str, dict], min_confidence: float
+) -> set[str]:
+    """Scans placed on the ALS at least this surely: a pair of two of them starts from its prior
+    and is verified first (executor.with_stored_poses), the global search only when that fails."""
+    return {
+        j.source
+        for j in jobs
+        if (r := records.get(j.key, {})).get("status") == "ok"
+        and (r.get("confidence") is not None and r["confidence"] >= min_confidence)
+    }

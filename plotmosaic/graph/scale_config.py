@@ -1,0 +1,74 @@
+"""Settings of register-plot's scaling steps: stem-map signatures (graph/signature.py) and the use of
+ALS placements as verified-first priors (graph/placement.py). A leaf: imports nothing of the project.
+
+(To be folded into graph/config.py's RegisterConfig as `signature` and `placed_priors`.)
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class SignatureConfig(BaseModel):
+    """Per-scan stem-map signatures that rank candidate partners without positions."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(
+        True, description="big plots without positions: rank partners by signature"
+    )
+    voxel: float = Field(0.05, gt=0, le=1, description="voxel (m) the scan is thinned to first")
+    max_points: int = Field(
+        400_000, ge=1000, le=10_000_000, description="cap on the thinned points used"
+    )
+    normal_radius: float = Field(0.3, gt=0, le=5, description="normal neighbourhood (m)")
+    normal_neighbours: int = Field(30, ge=5, le=200, description="cap on normal neighbours")
+    min_side_m: float = Field(1.0, ge=0, le=20, description="shortest triangle side kept (m)")
+    max_side_m: float = Field(15.0, gt=0, le=50, description="longest triangle side kept (m)")
+    max_triangles: int = Field(
+        20_000, ge=10, le=1_000_000, description="cap on triangles per scan (most compact first)"
+    )
+    tolerance_m: float = Field(
+        0.3, gt=0, le=2, description="triangles within this (m, side lengths) match"
+    )
+    min_votes: int = Field(2, ge=1, le=1000, description="fewer matches than this: no candidate")
+    agree_deg: float = Field(3.0, gt=0, le=45, description="triangle poses this close agree (deg)")
+    agree_m: float = Field(0.5, gt=0, le=10, description="... and this close (m)")
+    footprint_m: float = Field(
+        3.0, gt=0, le=50, description="a moved stem this near the other map's stems is inside it"
+    )
+    min_share: float = Field(
+        0.3, ge=0, le=1, description="fewer of the stems inside the other map matched: chance"
+    )
+    stem_match_m: float = Field(
+        0.3, gt=0, le=5, description="a moved stem this near a stem matches"
+    )
+    min_stems: int = Field(4, ge=3, le=100, description="fewer stems matched: not a candidate")
+    max_matches: int = Field(
+        3000, ge=10, le=100_000, description="cap on triangle matches examined per scan pair"
+    )
+    grow_rounds: int = Field(
+        2, ge=0, le=10, description="rounds of extra pairs while a plot's graph is in pieces"
+    )
+    grow_per_scan: int = Field(
+        2, ge=1, le=8, description="extra ranked partners per disconnected scan and round"
+    )
+    partners: int = Field(
+        4, ge=1, le=16, description="best-ranked partners each scan is registered with"
+    )
+
+
+class PlacedPriors(BaseModel):
+    """Pairs of two scans placed on the ALS: their prior is checked first, the search run only if it fails."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    verify_first: bool = Field(
+        True, description="a prior from two sure placements is verified before any search"
+    )
+    min_confidence: float = Field(
+        0.9,
+        ge=0,
+        le=1,
+        description="both placements at least this sure (judge confidence) to verify first",
+    )
