@@ -212,3 +212,8 @@ def test_merge_config_used_repeats_the_merge_byte_for_byte(small_sim, tmp_path):
     again = invoke("merge", m, "--poses", poses, "--out", tmp_path / "b.laz", "--config", used)
     assert again.exit_code == 0, again.output
     assert (tmp_path / "a.laz").read_bytes() == (tmp_path / "b.laz").read_bytes()
+
+
+def test_config_needs_exactly_one_of_defaults_or_check(tmp_path):
+    assert_one_line_error(invoke("config"), "--defaults", "--check", code=2)
+    assert_one_line_error(invoke("config", "--defaults", "--check", tmp_path / "x.toml"), code=2)

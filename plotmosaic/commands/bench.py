@@ -8,6 +8,7 @@ from pathlib import Path
 
 import typer
 
+from plotmosaic.align.config import KINDS
 from plotmosaic.commands.common import handle_errors
 from plotmosaic.errors import InputError
 
@@ -49,8 +50,8 @@ def bench_command(
     target_id: str | None = typer.Option(
         None, "--target-id", help="Target scan id in a poses --gt (default: file stem)."
     ),
-    source_kind: str = typer.Option("tls", "--source-kind", help="tls | mls | uls | als"),
-    target_kind: str = typer.Option("tls", "--target-kind", help="tls | mls | uls | als"),
+    source_kind: str = typer.Option(KINDS[0], "--source-kind", help=" | ".join(KINDS)),
+    target_kind: str = typer.Option(KINDS[0], "--target-kind", help=" | ".join(KINDS)),
     trials: int = typer.Option(10, "--trials", min=1, help="Random perturbations per pair."),
     protocol: str = typer.Option(
         "paper",
