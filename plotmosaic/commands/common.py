@@ -194,9 +194,8 @@ def write_config_used(path, settings, command: str):
     from plotmosaic.io.atomic import write_text_atomic
     from plotmosaic.settings import dump_settings
 
-    argv = " ".join(shlex.quote(a) for a in sys.argv[1:])
-    header = (
-        f"Settings used by `plotmosaic {command}` (give back with --config to repeat the run).\n"
-        f"command line: plotmosaic {argv}"
-    )
+    header = f"Settings used by `plotmosaic {command}` (give back with --config to repeat the run)."
+    if sys.argv and sys.argv[0].endswith("plotmosaic"):  # not when called in-process (tests)
+        argv = " ".join(shlex.quote(a) for a in sys.argv[1:])
+        header += f"\ncommand line: plotmosaic {argv}"
     return write_text_atomic(path, dump_settings(settings, header))
