@@ -7,6 +7,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from plotmosaic.align.config import AlignConfig
+from plotmosaic.graph.scale_config import PlacedPriors, SignatureConfig
 from plotmosaic.report.config import ReportConfig
 
 
@@ -111,6 +112,14 @@ class RegisterOptions(BaseModel):
         le=1,
         description="a scan placed on the ALS less surely than "
         "this is paired with every scan instead (a wrong place would pick wrong pairs)",
+    )
+    signature: SignatureConfig = Field(
+        default_factory=SignatureConfig,
+        description="stem-map signatures: partners of the scans without a position",
+    )
+    placed_priors: PlacedPriors = Field(
+        default_factory=PlacedPriors,
+        description="priors from two ALS placements, verified before any search",
     )
 
 
