@@ -90,13 +90,6 @@ def test_scan_finds_the_imports_it_must():
     assert not G.has_edge("plotmosaic.graph.config", "plotmosaic.graph.pipeline")
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="reported to the lead: report/build.py:18, report/views.py:19, report/figures.py:19 "
-    "import graph/report.py (plot_scans, _savefig), which imports report.build in its functions "
-    "(graph/report.py:234, 249, 369); moving plot_scans and _savefig into plotmosaic/report/ "
-    "ends the cycles (then drop this mark)",
-)
 def test_import_graph_is_acyclic():
     G = _graph()
     cycles = sorted(nx.simple_cycles(G), key=lambda c: (len(c), c))

@@ -12,15 +12,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import networkx as nx  # noqa: E402
 import numpy as np  # noqa: E402
 
-from plotmosaic.io.atomic import atomic_output, write_text_atomic  # noqa: E402
+from plotmosaic.io.atomic import write_text_atomic  # noqa: E402
 from plotmosaic.io.frame import apply_transform  # noqa: E402
-
-
-def _savefig(fig, path: Path) -> Path:
-    with atomic_output(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return path
+from plotmosaic.report.pictures import savefig  # noqa: E402
 
 
 def _fmt(value, scale=1.0, digits=1) -> str:
@@ -29,32 +23,6 @@ def _fmt(value, scale=1.0, digits=1) -> str:
 
 def yaw_deg(T: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(T[1, 0], T[0, 0])))
-
-
-def plot_scans(
-    path: Path, clouds: dict[str, np.ndarray], title: str, origin: np.ndarray | None = None
-) -> Path:
-    """Top and side view of every placed scan (points already in the common frame), one colour per scan."""
-    origin = np.zeros(3) if origin is None else origin
-    fig, (top, side) = plt.subplots(1, 2, figsize=(13, 5.5), gridspec_kw={"width_ratios": [1, 1.3]})
-    cmap = plt.get_cmap("tab10" if len(clouds) <= 10 else "tab20")
-    for n, (name, xyz) in enumerate(clouds.items()):
-        xyz = xyz - origin
-        colour = (
-            "lightgrey" if name == "ALS" else cmap(n % cmap.N)
-        )  # the reference stays in the background
-        top.scatter(xyz[:, 0], xyz[:, 1], s=0.3, color=colour, label=name, rasterized=True)
-        side.scatter(xyz[:, 0], xyz[:, 2], s=0.3, color=colour, rasterized=True)
-    top.set_aspect("equal")
-    top.set_title("top view (x, y)")
-    side.set_title("side view (x, z)")
-    for ax in (top, side):
-        ax.set_xlabel("x (m)" if not origin.any() else f"x - {origin[0]:.0f} (m)")
-    top.set_ylabel("y (m)" if not origin.any() else f"y - {origin[1]:.0f} (m)")
-    side.set_ylabel("z (m)" if not origin.any() else f"z - {origin[2]:.0f} (m)")
-    top.legend(markerscale=12, fontsize=8, loc="best")
-    fig.suptitle(title)
-    return _savefig(fig, path)
 
 
 def plot_graph(
@@ -123,7 +91,7 @@ def plot_graph(
     ax.set_title(title)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    return _savefig(fig, path)
+    return savefig(fig, path)
 
 
 def edge_table(G: nx.Graph) -> list[str]:

@@ -15,13 +15,13 @@ from pathlib import Path
 import networkx as nx
 import numpy as np
 
-from plotmosaic.graph.report import plot_scans as scans_picture
 from plotmosaic.io.frame import apply_transform
 from plotmosaic.report import html as H
 from plotmosaic.report import views
 from plotmosaic.report.config import ReportConfig
 from plotmosaic.report.distance import edge_distances, scan_medians, thin
 from plotmosaic.report.figures import origin_of
+from plotmosaic.report.pictures import plot_scans as scans_picture
 from plotmosaic.report.slice import (
     Ground,
     Stem,

@@ -16,7 +16,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from plotmosaic.graph.report import _savefig  # noqa: E402
+from plotmosaic.report.pictures import savefig  # noqa: E402
 
 
 def subsample(xyz: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -61,7 +61,7 @@ def plot_slice(
     ax.set_ylabel(f"z - {origin[2]:.0f} (m)" if origin.any() else "z (m)")
     ax.set_title(f"{title}\nslice |y - {yc - origin[1]:.1f} m| <= {width / 2:g} m")
     ax.legend(markerscale=10, fontsize=8, loc="upper right")
-    return _savefig(fig, path)
+    return savefig(fig, path)
 
 
 def plot_levels(
@@ -114,4 +114,4 @@ def plot_levels(
         side.set_ylabel("z (m, local)")
         top.legend(markerscale=12, fontsize=8, loc="best")
     fig.suptitle(title)
-    return _savefig(fig, path)
+    return savefig(fig, path)

@@ -23,6 +23,7 @@ from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.frame import apply_transform
 from plotmosaic.io.las import read_cloud
 from plotmosaic.report.figures import origin_of, plot_levels, plot_slice, subsample
+from plotmosaic.report.pictures import plot_scans
 
 
 @dataclass
@@ -112,13 +113,11 @@ def report_pair(
     figs = [
         (
             "Before: the two clouds as they lie in their files",
-            graph_report.plot_scans(
-                out / "before.png", before, "before alignment", origin_of(before)
-            ),
+            plot_scans(out / "before.png", before, "before alignment", origin_of(before)),
         ),
         (
             "After: the source moved by the estimated transform",
-            graph_report.plot_scans(out / "after.png", after, "after alignment", origin),
+            plot_scans(out / "after.png", after, "after alignment", origin),
         ),
         (
             "After, a 2 m slice: stems and ground should not be doubled",
@@ -300,7 +299,7 @@ def report_dir(
         figs = [
             (
                 f"Plot {plot}, before: each scan in its own file coordinates",
-                graph_report.plot_scans(
+                plot_scans(
                     out / f"{plot}_before.png",
                     raw,
                     f"plot {plot}: before (file coordinates)",
@@ -313,7 +312,7 @@ def report_dir(
             figs.append(
                 (
                     f"Plot {plot}, after: scans placed by poses.json",
-                    graph_report.plot_scans(
+                    plot_scans(
                         out / f"{plot}_after.png",
                         placed,
                         f"plot {plot}: after ({poses.frame} frame)",

@@ -16,7 +16,7 @@ import networkx as nx  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import Circle, Rectangle  # noqa: E402
 
-from plotmosaic.graph.report import _savefig  # noqa: E402
+from plotmosaic.report.pictures import savefig  # noqa: E402
 from plotmosaic.report.slice import Ground, Stem  # noqa: E402
 
 
@@ -66,7 +66,7 @@ def plot_breast_slice(
     for k, st in enumerate(chosen):
         sub = fig.add_subplot(gs[k // cols, 2 + k % cols])
         _stem_inset(sub, st, colours, origin, k + 1)
-    return _savefig(fig, path)
+    return savefig(fig, path)
 
 
 def _stem_inset(ax, st: Stem, colours: dict, origin: np.ndarray, number: int) -> None:
@@ -140,7 +140,7 @@ def plot_edge_distances(
         fig.colorbar(sc, ax=top, label="cm", shrink=0.85)
     if not edges:
         axes[0, 0].text(0.5, 0.5, "no kept edge", ha="center")
-    return _savefig(fig, path)
+    return savefig(fig, path)
 
 
 def _distance_raster(xy: np.ndarray, d: np.ndarray, cell: float) -> tuple[np.ndarray, tuple]:
@@ -179,7 +179,7 @@ def plot_scan_distances(path: Path, medians: dict[str, float], spreads: dict[str
     ax.set_title("per scan, after the joint solve")
     ax.legend(fontsize=8)
     ax.grid(axis="y", lw=0.3)
-    return _savefig(fig, path)
+    return savefig(fig, path)
 
 
 def plot_map(
@@ -246,7 +246,7 @@ def plot_map(
     ax.set_title(title + (f"\nbackground: {background[2]}" if background is not None else ""))
     ax.set_xlabel(f"x - {origin[0]:.0f} (m)" if origin.any() else "x (m)")
     ax.set_ylabel(f"y - {origin[1]:.0f} (m)" if origin.any() else "y (m)")
-    return _savefig(fig, path)
+    return savefig(fig, path)
 
 
 def hillshade_background(ground: Ground) -> tuple[np.ndarray, tuple, str]:

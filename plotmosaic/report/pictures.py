@@ -1,0 +1,47 @@
+"""Picture helpers shared by the reports: atomic PNG saving and the scans' top / side view."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from plotmosaic.io.atomic import atomic_output  # noqa: E402
+
+
+def savefig(fig, path: Path) -> Path:
+    """PNG written atomically, the figure closed (pictures of long runs must not pile up)."""
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def plot_scans(
+    path: Path, clouds: dict[str, np.ndarray], title: str, origin: np.ndarray | None = None
+) -> Path:
+    """Top and side view of every placed scan (points already in the common frame), one colour per scan."""
+    origin = np.zeros(3) if origin is None else origin
+    fig, (top, side) = plt.subplots(1, 2, figsize=(13, 5.5), gridspec_kw={"width_ratios": [1, 1.3]})
+    cmap = plt.get_cmap("tab10" if len(clouds) <= 10 else "tab20")
+    for n, (name, xyz) in enumerate(clouds.items()):
+        xyz = xyz - origin
+        colour = (
+            "lightgrey" if name == "ALS" else cmap(n % cmap.N)
+        )  # the reference stays in the background
+        top.scatter(xyz[:, 0], xyz[:, 1], s=0.3, color=colour, label=name, rasterized=True)
+        side.scatter(xyz[:, 0], xyz[:, 2], s=0.3, color=colour, rasterized=True)
+    top.set_aspect("equal")
+    top.set_title("top view (x, y)")
+    side.set_title("side view (x, z)")
+    for ax in (top, side):
+        ax.set_xlabel("x (m)" if not origin.any() else f"x - {origin[0]:.0f} (m)")
+    top.set_ylabel("y (m)" if not origin.any() else f"y - {origin[1]:.0f} (m)")
+    side.set_ylabel("z (m)" if not origin.any() else f"z - {origin[2]:.0f} (m)")
+    top.legend(markerscale=12, fontsize=8, loc="best")
+    fig.suptitle(title)
+    return savefig(fig, path)
