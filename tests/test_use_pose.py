@@ -1,7 +1,5 @@
 """Stored poses (E57 `use_pose = true`): a right one skips the coarse search, a wrong one never wins."""
 
-import inspect
-
 import numpy as np
 import pytest
 from helpers import invoke, write_e57
@@ -81,18 +79,9 @@ def test_wrong_stored_pose_runs_the_search(pair, deg, metres):
     assert trans < 0.02 and rot < 0.1, (trans, rot)
 
 
-def _wired() -> bool:
-    """graph/pipeline.register_plot marks the pairs whose priors are stored poses (executor.with_stored_poses)."""
-    from plotmosaic.graph import pipeline
-
-    return "with_stored_poses" in inspect.getsource(pipeline)
-
-
 @pytest.mark.slow
 def test_register_plot_use_pose(scans, tmp_path):
     """A 3-scan E57 with stored poses, S3's deliberately wrong: S0-S2 skips the search, every scan right."""
-    if not _wired():
-        pytest.skip("graph/pipeline.register_plot does not pass stored poses to the pairs yet")
     clouds, poses = scans
     stored = dict(poses)
     stored["P1-S3"] = _off(poses["P1-S3"], 30.0, 5.0)
