@@ -587,13 +587,18 @@ def coarse_align(
             (prior, {"generator": "prior", "vertical": "prior", "prior": True})
         )  # never merged away
     starts = _unique_starts(starts, config)
-    t = time.perf_counter()
-    results, confidence = verify(starts)
-    clock("verify", t)
-    settled = config.settle_early and _settled(results, confidence, config)
-    if len(pairs) > 1 and not settled:
-        more, _ = generate(1, pairs[1:])
-        starts = _unique_starts(starts + more, config)
+    settled = False
+    if config.settle_early and len(pairs) > 1:
+        t = time.perf_counter()
+        # refined only when two generators' screened poses already agree: otherwise it cannot settle
+        if verify.agreed(starts):
+            results, confidence = verify(starts)
+            settled = _settled(results, confidence, config)
+        clock("verify", t)
+    if not settled:
+        if len(pairs) > 1:
+            more, _ = generate(1, pairs[1:])
+            starts = _unique_starts(starts + more, config)
         t = time.perf_counter()
         results, confidence = verify(starts)
         clock("verify", t)
@@ -694,11 +699,26 @@ class _Verifier:
         )
         return A, _score(self.structure, self.tgt_v, A, d)
 
-    def __call__(self, starts: list[tuple]) -> tuple[list[dict], float]:
-        config = self.config
+    def _screen_all(self, starts: list[tuple]) -> None:
         new = [s for s in starts if id(s[1]) not in self.screened]
         for s, r in zip(new, in_two_threads(self._screen, new)):
             self.screened[id(s[1])] = r
+
+    def agreed(self, starts: list[tuple]) -> bool:
+        """Whether the best screened pose was reached by `settled_generators` generators."""
+        self._screen_all(starts)
+        screened = sorted((self.screened[id(s[1])] for s in starts), key=lambda r: -r[0])
+        if not screened:
+            return False
+        rows = [
+            {"T": A, "generator": h["generator"], "agree": h.get("agree", [])}
+            for _, A, h in screened
+        ]
+        return len(_support(rows, rows[0], self.config)) >= self.config.settled_generators
+
+    def __call__(self, starts: list[tuple]) -> tuple[list[dict], float]:
+        config = self.config
+        self._screen_all(starts)
         # independent ICPs, two at a time (KD-tree queries release the GIL); refined: the best screened
         # of each generator first (so no generator's best is lost to another's near-duplicates), then by score
         screened = sorted((self.screened[id(s[1])] for s in starts), key=lambda r: -r[0])
@@ -723,8 +743,9 @@ class _Verifier:
         for i, r in zip(todo, in_two_threads(self._refine, [screened[i][1] for i in todo])):
             self.refined[id(screened[i][2])] = r
         results = []
-        for rank, (pre, A, h) in enumerate(screened):
-            refined = rank in chosen
+        for pre, A, h in screened:
+            # every refined pose competes, also one refined before more starts came (more rivals)
+            refined = id(h) in self.refined
             A, score = self.refined[id(h)] if refined else (A, None)
             results.append(
                 {
