@@ -137,7 +137,7 @@ def bench_sim(simdir: Path, n: int, modes: list[str]) -> dict:
     from plotmosaic.poses import load_poses
 
     if not (simdir / "ground_truth.json").exists():
-        from plotmosaic.simulate import simulate
+        from plotmosaic.simulate.run import simulate
 
         simulate(simdir, "small", seed=0)
     truth = load_poses(simdir / "ground_truth.json")

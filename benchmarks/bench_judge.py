@@ -75,7 +75,7 @@ def view_pair(points: np.ndarray, a_xy, b_xy, range_a: float, range_b: float, se
 
 def cases(quick: bool, sim_root: Path):
     """(name, source xyz, target xyz, source kind, target kind, truth source -> target, related)."""
-    from plotmosaic.simulate import simulate
+    from plotmosaic.simulate.run import simulate
 
     sims = {}
     for seed in (0, 1):

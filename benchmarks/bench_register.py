@@ -25,7 +25,7 @@ from plotmosaic.graph.anchors import tie_to_als
 from plotmosaic.graph.pipeline import register_plot
 from plotmosaic.graph.posegraph import graph_from_json, inverse, optimise, pose_error
 from plotmosaic.poses import load_poses
-from plotmosaic.simulate import simulate
+from plotmosaic.simulate.run import simulate
 
 
 def errors_in_plot_frame(poses, truth, plots) -> list[tuple]:

@@ -22,8 +22,7 @@ import numpy as np
 
 from plotmosaic.io.las import write_cloud
 from plotmosaic.poses import load_poses
-from plotmosaic.simulate import make_config, simulate
-from plotmosaic.simulate.run import scanner_pose
+from plotmosaic.simulate.run import make_config, scanner_pose, simulate
 from plotmosaic.simulate.scene import Scene, build_world
 from plotmosaic.simulate.stats import overlap_fraction, scan_in_world
 from plotmosaic.simulate.tls import scan_tls

@@ -26,6 +26,6 @@ def spanner_dir() -> Path:
 @pytest.fixture(scope="session")
 def small_sim(tmp_path_factory):
     """The `small` simulated plot (5 TLS scans in the paper layout + an ALS tile), seed 0, shared by all tests."""
-    from plotmosaic.simulate import simulate
+    from plotmosaic.simulate.run import simulate
 
     return simulate(tmp_path_factory.mktemp("sim"), "small", seed=0)

@@ -17,7 +17,7 @@ from plotmosaic.poses import load_poses
 @pytest.fixture(scope="module")
 def dense_sim(tmp_path_factory):
     """The `small` plot with 250k points a scan: at 50k a 10 cm slice holds too few points per stem."""
-    from plotmosaic.simulate import simulate
+    from plotmosaic.simulate.run import simulate
 
     return simulate(tmp_path_factory.mktemp("dense"), "small", seed=0, points_per_scan=250_000)
 

@@ -13,9 +13,9 @@ from plotmosaic.io.frame import apply_transform
 from plotmosaic.io.las import read_cloud, read_header_info
 from plotmosaic.manifest import load_manifest
 from plotmosaic.poses import load_poses
-from plotmosaic.simulate import PRESETS, make_config, simulate
+from plotmosaic.simulate.config import PRESETS
 from plotmosaic.simulate.mesh import FOLIAGE, GROUND, UNDERSTORY, WOODY
-from plotmosaic.simulate.run import expected_scans
+from plotmosaic.simulate.run import expected_scans, make_config, simulate
 from plotmosaic.simulate.scene import Scene, build_world
 from plotmosaic.simulate.stats import density, overlap_fraction
 

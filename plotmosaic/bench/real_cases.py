@@ -335,7 +335,7 @@ def _sim_case(
 ) -> RealCase:
     """A simulator preset into a temporary folder (removed after reading), scan pair[0] onto pair[1]."""
     from plotmosaic.poses import load_poses
-    from plotmosaic.simulate import simulate
+    from plotmosaic.simulate.run import simulate
 
     with tempfile.TemporaryDirectory(prefix=f"plotmosaic-{preset}-") as tmp:
         kw = {} if points_per_scan is None else {"points_per_scan": points_per_scan}

@@ -88,8 +88,8 @@ def simulate_command(
     ),
 ) -> None:
     """Simulate a forest plot: terrain, trees, understory; TLS scans, an ALS tile, ground truth and a manifest."""
-    from plotmosaic.simulate import make_config, simulate
     from plotmosaic.simulate.config import grid_layout
+    from plotmosaic.simulate.run import make_config, simulate
 
     if outdir.exists() and not outdir.is_dir():
         raise InputError(f"{outdir}: exists and is not a folder")

@@ -1,6 +1,9 @@
-"""Forest plot simulator: terrain, trees, understory; TLS and ALS scans by ray casting; ground truth."""
+"""Forest plot simulator: terrain, trees, understory; TLS and ALS scans by ray casting; ground truth.
 
-from plotmosaic.simulate.config import PRESETS, SimulationConfig, make_config
-from plotmosaic.simulate.run import SimulationResult, simulate
+The package imports only its settings, so `plotmosaic.simulate.config` stays a leaf; the ray caster
+is `plotmosaic.simulate.run` (`simulate`, `make_config`, `SimulationResult`).
+"""
 
-__all__ = ["PRESETS", "SimulationConfig", "SimulationResult", "make_config", "simulate"]
+from plotmosaic.simulate.config import PRESETS, SimulationConfig
+
+__all__ = ["PRESETS", "SimulationConfig"]

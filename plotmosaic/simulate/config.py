@@ -274,36 +274,3 @@ ALIASES = {
     "flat_terrain": "terrain.flat",
     "slope": "terrain.slope_deg",
 }
-
-
-def make_config(preset: str = "small", **overrides) -> SimulationConfig:
-    """A preset with overrides (`points_per_scan=...`, dotted `tls.max_range_m=...` via a dict, or top-level fields).
-
-    `None` values are ignored so a CLI can pass every option through.
-    """
-    from plotmosaic.errors import InputError
-
-    if preset not in PRESETS:
-        raise InputError(f"unknown preset {preset!r} (choose from {', '.join(PRESETS)})")
-    data = PRESETS[preset].model_dump()
-    for key, value in overrides.items():
-        if value is None:
-            continue
-        path = ALIASES.get(key, key).split(".")
-        node = data
-        for p in path[:-1]:
-            if p not in node or not isinstance(node[p], dict):
-                raise InputError(f"unknown simulation setting {key!r}")
-            node = node[p]
-        if path[-1] not in node:
-            raise InputError(f"unknown simulation setting {key!r}")
-        node[path[-1]] = value
-    from pydantic import ValidationError
-
-    try:
-        return SimulationConfig.model_validate(data)
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        raise InputError(
-            f"simulation setting {'.'.join(map(str, err['loc']))}: {err['msg']}"
-        ) from None

@@ -18,17 +18,49 @@ from pathlib import Path
 import numpy as np
 from pyproj import CRS
 
+from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.frame import translation
 from plotmosaic.io.las import PointCloud, write_cloud
 from plotmosaic.manifest import AlsTile, Manifest, Plot, Scan, dump_manifest
 from plotmosaic.poses import Poses, ScanPose
 from plotmosaic.simulate.als import scan_als
-from plotmosaic.simulate.config import CRS_EPSG, SimulationConfig, make_config
+from plotmosaic.simulate.config import ALIASES, CRS_EPSG, PRESETS, SimulationConfig
 from plotmosaic.simulate.scene import Scene, World, build_world, plot_ids, scan_id, square_extent
 from plotmosaic.simulate.tls import random_pose, scan_tls
 
 FIGURE_SAMPLE = 400_000  # points per scan kept in memory for the pictures
+
+
+def make_config(preset: str = "small", **overrides) -> SimulationConfig:
+    """A preset with overrides (`points_per_scan=...`, dotted `tls.max_range_m=...` via a dict, or top-level fields).
+
+    `None` values are ignored so a CLI can pass every option through.
+    """
+    if preset not in PRESETS:
+        raise InputError(f"unknown preset {preset!r} (choose from {', '.join(PRESETS)})")
+    data = PRESETS[preset].model_dump()
+    for key, value in overrides.items():
+        if value is None:
+            continue
+        path = ALIASES.get(key, key).split(".")
+        node = data
+        for p in path[:-1]:
+            if p not in node or not isinstance(node[p], dict):
+                raise InputError(f"unknown simulation setting {key!r}")
+            node = node[p]
+        if path[-1] not in node:
+            raise InputError(f"unknown simulation setting {key!r}")
+        node[path[-1]] = value
+    from pydantic import ValidationError
+
+    try:
+        return SimulationConfig.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        raise InputError(
+            f"simulation setting {'.'.join(map(str, err['loc']))}: {err['msg']}"
+        ) from None
 
 
 @dataclass
