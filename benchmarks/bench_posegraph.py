@@ -2,9 +2,12 @@
 
     python benchmarks/bench_posegraph.py --scans 500 --wrong 0.05 --seed 0
     python benchmarks/bench_posegraph.py --pairs 9 25 49 100
+    python benchmarks/bench_posegraph.py --signature-pairs 9 25 49 100 400
 
 The second form prints how many pairs register-plot's selection runs for plots of that many scans
-(on an 18 m grid with 1 m jitter, positions known or from the ALS step), against all pairs.
+(on an 18 m grid with 1 m jitter, positions known or from the ALS step), against all pairs; the
+third for plots without any position, paired by stem-map signatures (synthetic stem maps:
+graph/synthetic.stem_map_grid, 300 stems / ha seen to 20 m, 20 % occluded, 5 cm noise).
 
 Prints the number of edges, wrong edges, how many of them were dropped (and why), good edges
 dropped, the optimise time and the worst pose error against the synthetic truth.
@@ -55,6 +58,49 @@ def pair_counts(sizes: list[int]) -> None:
         )
 
 
+def signature_counts(sizes: list[int]) -> None:
+    import networkx as nx
+    import numpy as np
+
+    from plotmosaic.graph.scale_config import SignatureConfig
+    from plotmosaic.graph.signature import Signature, signature_pairs, similarity, stem_triangles
+    from plotmosaic.graph.synthetic import stem_map_grid
+
+    config = SignatureConfig()
+    print(
+        "| scans | pairs planned | pairs per scan | max pairs of one scan | grid links found "
+        "| pairs > 26 m apart | all pairs | connected | signatures + ranking (s) |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    for n in sizes:
+        side = int(round(np.sqrt(n)))
+        positions, maps = stem_map_grid(side, seed=side)
+        start = time.perf_counter()
+        sigs = []
+        for xy in maps:
+            sides, corners = stem_triangles(
+                xy, config.min_side_m, config.max_side_m, config.max_triangles
+            )
+            sigs.append(Signature(xy, np.zeros(len(xy)), sides, corners))
+        pairs = signature_pairs(similarity(sigs, config), len(maps), config.partners, 8)
+        seconds = time.perf_counter() - start
+        m = len(maps)
+        grid = {
+            (i, j)
+            for i in range(m)
+            for j in range(i + 1, m)
+            if np.linalg.norm(positions[i] - positions[j]) < 19
+        }
+        far = sum(np.linalg.norm(positions[i] - positions[j]) > 26 for i, j in pairs)
+        G = nx.Graph(pairs)
+        G.add_nodes_from(range(m))
+        print(
+            f"| {m} | {len(pairs)} | {len(pairs) / m:.2f} | {max(d for _, d in G.degree())} "
+            f"| {len(grid & set(pairs))}/{len(grid)} | {far} | {m * (m - 1) // 2} "
+            f"| {nx.is_connected(G)} | {seconds:.2f} |"
+        )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scans", type=int, nargs="+", default=[500])
@@ -66,7 +112,16 @@ def main() -> None:
         nargs="+",
         help="print the pair counts for plots of these sizes instead",
     )
+    ap.add_argument(
+        "--signature-pairs",
+        type=int,
+        nargs="+",
+        help="print the signature-planned pair counts for plots of these sizes (no positions)",
+    )
     args = ap.parse_args()
+    if args.signature_pairs:
+        signature_counts(args.signature_pairs)
+        return
     if args.pairs:
         pair_counts(args.pairs)
         return

@@ -17,26 +17,17 @@ from plotmosaic.graph.signature import (
     similarity,
     stem_triangles,
 )
+from plotmosaic.graph.synthetic import stem_map_grid
 
 GRID = 15.0  # m between scan positions of the simulated 3 x 3 grid
 
 
-def _synthetic_plot(side: int, seed: int, spacing: float = 18.0, seen: float = 20.0):
-    """Stem maps of `side` x `side` scans of one random forest: each scan sees the stems within
-    `seen` m, 5 cm noise, in its own rotated and shifted frame, with 20 % of its stems occluded."""
-    rng = np.random.default_rng(seed)
-    extent = (side - 1) * spacing + 2 * seen
-    forest = rng.uniform(-seen, extent - seen, size=(int(extent**2 * 0.03), 2))  # 300 stems/ha
-    positions = np.array([(i * spacing, j * spacing) for j in range(side) for i in range(side)])
+def _synthetic_plot(side: int, seed: int):
+    """Stem maps of a `side` x `side` grid 18 m apart in one random forest (graph/synthetic.py)."""
+    positions, maps = stem_map_grid(side, seed)
     config = SignatureConfig()
     sigs = []
-    for p in positions:
-        xy = forest[np.linalg.norm(forest - p, axis=1) < seen]
-        xy = xy[rng.random(len(xy)) > 0.2] - p
-        xy = xy + rng.normal(0, 0.05, xy.shape)
-        a = rng.uniform(0, 2 * np.pi)
-        R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-        xy = xy @ R.T + rng.uniform(-50, 50, 2)
+    for xy in maps:
         sides, corners = stem_triangles(
             xy, config.min_side_m, config.max_side_m, config.max_triangles
         )
@@ -90,8 +81,8 @@ def test_growth_only_where_the_graph_is_apart():
 @pytest.fixture(scope="module")
 def grid9(tmp_path_factory):
     """A 3 x 3 simulated grid (`small` scene, 50k points a scan) with no positions and no ALS."""
-    from plotmosaic.simulate import simulate
-    from plotmosaic.simulate.config import grid_layout, make_config
+    from plotmosaic.simulate.config import grid_layout
+    from plotmosaic.simulate.run import make_config, simulate
 
     root = tmp_path_factory.mktemp("grid9")
     cfg = make_config("small").model_copy(update={"scan_layout": grid_layout(3, GRID)})

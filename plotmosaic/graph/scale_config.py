@@ -44,6 +44,9 @@ class SignatureConfig(BaseModel):
         0.3, gt=0, le=5, description="a moved stem this near a stem matches"
     )
     min_stems: int = Field(4, ge=3, le=100, description="fewer stems matched: not a candidate")
+    shortlist: int = Field(
+        12, ge=1, le=200, description="scans per scan whose shared triangles get the pose check"
+    )
     max_matches: int = Field(
         3000, ge=10, le=100_000, description="cap on triangle matches examined per scan pair"
     )

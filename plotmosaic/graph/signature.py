@@ -119,10 +119,22 @@ def _best_pose(
 ) -> tuple[int, float, np.ndarray]:
     """(stems matched, soft count, share of the stems inside the other map matched) under the
     triangle-match pose that the most other matches agree with."""
-    dyaw = np.abs(np.angle(np.exp(1j * (yaw[:, None] - yaw[None, :]))))
-    dt = np.linalg.norm(t[:, None] - t[None, :], axis=2)
-    agree = ((dyaw <= np.radians(config.agree_deg)) & (dt <= config.agree_m)).sum(axis=1)
-    k = int(np.argmax(agree))
+    # votes in (yaw, x, y) cells of the agreement size, on two grids half a cell apart (a cluster
+    # cut by a cell border is whole in the other): O(m log m) in the triangle matches
+    cells = np.column_stack(
+        [np.mod(yaw, 2 * np.pi) / np.radians(config.agree_deg), t / config.agree_m]
+    )
+    best, k = -1, 0
+    for shift in (0.0, 0.5):
+        keys = np.floor(cells + shift).astype(np.int64)
+        _, inverse, votes = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+        top = int(np.argmax(votes))
+        if votes[top] > best:
+            members = np.flatnonzero(inverse.ravel() == top)
+            best, k = (
+                int(votes[top]),
+                int(members[np.argmin(np.abs(yaw[members] - np.median(yaw[members])))]),
+            )
     c, s = np.cos(yaw[k]), np.sin(yaw[k])
     moved = src @ np.array([[c, -s], [s, c]]).T + t[k]
     d, _ = cKDTree(dst).query(moved, distance_upper_bound=config.footprint_m)
@@ -161,9 +173,21 @@ def similarity(
     a, b, code = a[order], b[order], code[order]
     groups, first = np.unique(code, return_index=True)
     bounds = np.append(first, len(code))
+    votes = np.diff(bounds)
+    # only each scan's `shortlist` scans with the most shared triangles (over chance: the geometric
+    # mean of the two triangle counts) get the pose check: O(N shortlist), not one per voted pair
+    gi, gj = np.divmod(groups, n)
+    rate = votes / np.sqrt(np.maximum(counts[gi], 1) * np.maximum(counts[gj], 1))
+    keep = np.zeros(len(groups), bool)
+    for side in (gi, gj):
+        order = np.lexsort((-rate, side))  # by scan, best rate first
+        rank = np.arange(len(order)) - np.searchsorted(side[order], side[order])
+        keep[order[rank < config.shortlist]] = True
     out = {}
-    for g, lo, hi in zip(groups.tolist(), bounds[:-1].tolist(), bounds[1:].tolist()):
-        if hi - lo < config.min_votes:
+    for g, lo, hi, kept in zip(
+        groups.tolist(), bounds[:-1].tolist(), bounds[1:].tolist(), keep.tolist()
+    ):
+        if hi - lo < config.min_votes or not kept:
             continue
         i, j = divmod(g, n)
         ga, gb = a[lo:hi][: config.max_matches], b[lo:hi][: config.max_matches]

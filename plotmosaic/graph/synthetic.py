@@ -87,3 +87,32 @@ def grid_graph(
         )
     nodes = {n: {"kind": "tls", "plot": "P1"} for n in names}
     return truth, nodes, edges, sorted(wrong)
+
+
+def stem_map_grid(
+    side: int,
+    seed: int = 0,
+    spacing: float = 18.0,
+    seen: float = 20.0,
+    density: float = 0.03,
+    occluded: float = 0.2,
+    noise: float = 0.05,
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """(scan positions, per-scan stem maps) of `side` x `side` scans in one random forest.
+
+    Each scan sees the stems within `seen` m (`density` stems per m2; 0.03 = 300 / ha) less an
+    `occluded` share, with `noise` m of centre error, in its own rotated and shifted frame: what
+    the stem-map signature of a scan without position gets (graph/signature.py)."""
+    rng = np.random.default_rng(seed)
+    extent = (side - 1) * spacing + 2 * seen
+    forest = rng.uniform(-seen, extent - seen, size=(int(extent**2 * density), 2))
+    positions = np.array([(i * spacing, j * spacing) for j in range(side) for i in range(side)])
+    maps = []
+    for p in positions:
+        xy = forest[np.linalg.norm(forest - p, axis=1) < seen]
+        xy = xy[rng.random(len(xy)) > occluded] - p
+        xy = xy + rng.normal(0, noise, xy.shape)
+        a = rng.uniform(0, 2 * np.pi)
+        R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        maps.append(xy @ R.T + rng.uniform(-50, 50, 2))
+    return positions, maps
