@@ -177,6 +177,7 @@ class Verdict:
     rival_score: float  # of the best distinct rival (0 when none)
     margin: float  # 1 - rival_score / score (negative: a rival fits better)
     confidence: float  # margin / full_margin clipped to 0-1
+    sharpness: float  # of the pose (`sharpness`): near 1 when the clouds coincide, low by chance
     profile: dict
     rival_profile: dict | None
     rival_transform: np.ndarray | None  # source local -> target local
@@ -196,6 +197,7 @@ class Verdict:
             "rival_score": self.rival_score,
             "margin": self.margin,
             "confidence": self.confidence,
+            "sharpness": self.sharpness,
             "profile": self.profile,
             "rival_profile": self.rival_profile,
             "rival_transform": None
@@ -260,6 +262,7 @@ def judge(
         rival_score=best,
         margin=float(margin),
         confidence=confidence,
+        sharpness=sharpness(mine),
         profile=mine,
         rival_profile=best_prof,
         rival_transform=best_T,

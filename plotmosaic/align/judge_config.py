@@ -55,6 +55,15 @@ class JudgeConfig(BaseModel):
         le=1,
         description="relative margin over the best rival that counts as confidence 1",
     )
+    # bench_real.py mls-2views: a pose 175 deg / 7.6 m off won with confidence 0.27 among wrong rivals
+    # (the truth was not among them) at sharpness 0.025; right poses: >= 0.046 (weak sim pairs),
+    # >= 0.081 in bench_judge.py's 12 cases
+    min_sharpness: float = Field(
+        0.04,
+        ge=0,
+        le=1,
+        description="least sharpness (see stored_min_sharpness) of an accepted pose: blunt fits are chance",
+    )
     # a stored pose (E57 `use_pose = true`) that verifies skips the global search; these decide it
     stored_max_correction_deg: float = Field(
         0.5,

@@ -468,6 +468,12 @@ def check_quality(result: PairResult, config: AlignConfig, local: bool = False) 
             problems.append(
                 f"judge score {j['score']:.3f} < {config.judge.min_score} (the clouds hardly fit anywhere)"
             )
+        sharp = j.get("sharpness")  # absent from results cached before it
+        if sharp is not None and sharp < config.judge.min_sharpness:
+            problems.append(
+                f"blunt fit: sharpness {sharp:.3f} < {config.judge.min_sharpness} (points come close"
+                " to the other cloud only by chance at this pose)"
+            )
         if (
             j["margin"] <= 0
         ):  # also with min_confidence 0 (register-plot): this pose is not the best one found
