@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -509,3 +510,24 @@ def test_accuracy_table_gives_rmse_per_angle_of_the_found():
     assert float(cells[3]) == pytest.approx(np.sqrt((0.03**2 + 0.01**2) / 2), abs=1e-4)
     assert float(cells[5]) == pytest.approx(np.sqrt((0.02**2 + 0.06**2) / 2), abs=1e-4)
     assert float(cells[7]) == pytest.approx(1000 * np.sqrt((0.004**2 + 0.003**2) / 2), abs=0.1)
+
+
+def test_cpd_without_probreg_is_skipped_with_one_line(monkeypatch, tmp_path, capsys):
+    import sys
+
+    from plotmosaic.bench.methods import available
+
+    monkeypatch.setitem(sys.modules, "probreg", None)  # import probreg -> ImportError
+    why = available("cpd")
+    assert why and "probreg" in why and "\n" not in why
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    try:
+        import bench_real
+    finally:
+        sys.path.pop(0)
+    assert (
+        bench_real.main(["--methods", "cpd", "--cases", "treels-2views", "--out", str(tmp_path)])
+        == 2
+    )
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[0].startswith("cpd: skipped, probreg is not installed") and len(err) == 2
