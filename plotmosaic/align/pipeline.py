@@ -20,7 +20,7 @@ from plotmosaic import __version__
 from plotmosaic.align import judge as judge_mod
 from plotmosaic.align.coarse import coarse_align
 from plotmosaic.align.complexity import match_levels
-from plotmosaic.align.config import KINDS, AlignConfig, default_levels
+from plotmosaic.align.config import KINDS, AlignConfig, IcpStage, default_levels
 from plotmosaic.align.icp import evaluate, information_matrix, point_to_plane_icp
 from plotmosaic.align.prepare import PreparedCloud, prepare_cloud
 from plotmosaic.align.sampling import sample
@@ -178,10 +178,25 @@ def _candidates(hypotheses: list[dict], start: np.ndarray) -> list[tuple[np.ndar
     return out + [(start, "start")]
 
 
+def _fine_schedule(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig):
+    """(stages, Tukey floor) of the final ICP: `final_schedule`, and where both clouds are dense
+    enough a tight polish stage (judge.polish_*, x the judge's scale factor) with a narrower kernel:
+    a 10 cm last stage with a 10 cm kernel leaves TLS pairs 0.03 deg off in yaw."""
+    jc = config.judge
+    f = judge_mod.scale_factor(src, tgt, jc)
+    d = jc.polish_distance * f
+    stages = list(config.final_schedule)
+    if jc.polish_iterations == 0 or not stages or d >= stages[-1].max_distance:
+        return stages, config.robust_kernel
+    stages.append(IcpStage(max_distance=d, iterations=jc.polish_iterations))
+    return stages, min(config.robust_kernel, jc.polish_kernel * f)
+
+
 def final_icp(src: PreparedCloud, tgt: PreparedCloud, T: np.ndarray, config: AlignConfig):
     """Final point-to-plane ICP with the planes of the denser cloud; (T, p, q, n) with the last
     correspondences in local coordinates: source points p, target points q, target-side normals n."""
     s_sp, t_sp = judge_mod.spacing(src, config.judge), judge_mod.spacing(tgt, config.judge)
+    schedule, kernel = _fine_schedule(src, tgt, config)
     if t_sp > config.final_reverse_ratio * s_sp:
         # sparse target (ALS under a drone or ground scan): register it onto the dense source's planes
         res = point_to_plane_icp(
@@ -189,9 +204,9 @@ def final_icp(src: PreparedCloud, tgt: PreparedCloud, T: np.ndarray, config: Ali
             src.points,
             src.target_normals,
             inverse(T),
-            config.final_schedule,
+            schedule,
             tree=src.tree,
-            kernel_floor=config.robust_kernel,
+            kernel_floor=kernel,
             tol=config.final_tol,
         )
         T = inverse(res.T)
@@ -205,9 +220,9 @@ def final_icp(src: PreparedCloud, tgt: PreparedCloud, T: np.ndarray, config: Ali
         tgt.points,
         tgt.target_normals,
         T,
-        config.final_schedule,
+        schedule,
         tree=tgt.tree,
-        kernel_floor=config.robust_kernel,
+        kernel_floor=kernel,
         tol=config.final_tol,
     )
     return (
