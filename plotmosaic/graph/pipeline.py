@@ -190,8 +190,17 @@ def match_signatures(
         for scan in plot.scans:
             path = str(manifest.resolve(scan.path))
             key = prepared_key(path, scan.kind.value, scan.k, settings, seed)
-            pj = PrepareJob(key, scan.id, path, scan.kind.value, scan.k, settings, seed, folder)
-            jobs[scan.id] = SignatureJob(pj, sig.model_dump_json())
+            jobs[scan.id] = SignatureJob(
+                key,
+                scan.id,
+                path,
+                scan.kind.value,
+                scan.k,
+                settings,
+                seed,
+                folder,
+                sig.model_dump_json(),
+            )
     records = run_pairs(
         list(jobs.values()),
         None,

@@ -287,15 +287,24 @@ def grow_candidates(
 
 
 @dataclass(frozen=True)
-class SignatureJob:
-    """One scan's signature, from its prepared cloud (prepared here when not cached yet)."""
+class SignatureJob(PrepareJob):
+    """One scan's signature, from its prepared cloud (prepared here when not cached yet): a prepare
+    job with the signature settings, so every executor handles it as one."""
 
-    prepare: PrepareJob
-    config_json: str
+    signature_json: str = "{}"
 
     @property
-    def key(self) -> str:
-        return self.prepare.key
+    def prepare(self) -> PrepareJob:
+        return PrepareJob(
+            self.key,
+            self.scan,
+            self.path,
+            self.kind,
+            self.levels,
+            self.config_json,
+            self.seed,
+            self.folder,
+        )
 
 
 def run_signature_job(job: SignatureJob) -> dict:
@@ -305,7 +314,7 @@ def run_signature_job(job: SignatureJob) -> dict:
     if record["status"] != "ok":
         return record
     try:
-        config = SignatureConfig.model_validate_json(job.config_json)
+        config = SignatureConfig.model_validate_json(job.signature_json)
         points = load_points(entry(job.prepare.folder, job.prepare.key))
         sig = scan_signature(points - points.mean(axis=0), config, job.prepare.seed)
         record.update(
