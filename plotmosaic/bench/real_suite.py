@@ -434,6 +434,7 @@ def markdown(summary: list[dict]) -> str:
         "t RMSE (cm)",
         "s/trial",
         "wrong poses (deg / m)",
+        "commit",
     ]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for s in summary:
@@ -459,6 +460,7 @@ def markdown(summary: list[dict]) -> str:
             _fmt(cm(s["t_rmse_m"]), 1),
             _fmt(s["seconds"], 1),
             wrong or "—",
+            ", ".join(s.get("commits", [])),
         ]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
