@@ -251,7 +251,7 @@ class CoarseConfig(BaseModel):
         0.3, gt=0.05, le=3, description="voxel (m) of the clouds FPFH is computed on (forest scale)"
     )
     fpfh_max_points: int = Field(
-        4_000,
+        8_000,
         ge=500,
         le=200_000,
         description="cap on the smaller cloud's FPFH points (the shared voxel grows to respect it)",

@@ -147,8 +147,12 @@ def _nearest_both(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     best_b = np.full(len(b), np.inf, np.float32)
     ba = np.zeros(len(b), np.int64)
     for s in range(0, len(a), CHUNK * 8):
-        d = na[s : s + CHUNK * 8, None] + nb[None, :] - 2 * (a[s : s + CHUNK * 8] @ b.T)
-        ab[s : s + CHUNK * 8] = d.argmin(axis=1)
+        # in place: the temporaries of |a|^2 + |b|^2 - 2ab cost more than the product itself
+        d = a[s : s + CHUNK * 8] @ b.T
+        d *= -2.0
+        d += nb
+        ab[s : s + CHUNK * 8] = d.argmin(axis=1)  # |a|^2 is the same along a row
+        d += na[s : s + CHUNK * 8, None]
         k = d.argmin(axis=0)
         m = d[k, np.arange(len(b))]
         better = m < best_b
