@@ -69,6 +69,23 @@ def test_profile_separates_truth_from_a_distinct_pose(pair):
     assert judge.scale_factor(ps, pt, cfg.judge) >= 1.0
 
 
+def test_sharpness_floor_refuses_a_blunt_fit(pair):
+    """A pose the ICP settles at by chance fits bluntly: below min_sharpness, refused with the figure."""
+    ps, pt, T_true, _, cfg = pair
+    T = to_local_transform(T_true, ps.frame, pt.frame)
+    off = T.copy()
+    off[:3, 3] += [2.0, -1.0, 0.0]
+    right = judge.sharpness(judge.profile(ps, pt, T, cfg.judge))
+    wrong = judge.sharpness(judge.profile(ps, pt, off, cfg.judge))
+    assert wrong < cfg.judge.min_sharpness < right, (wrong, right)
+    res = register_prepared(ps, pt, cfg, T_true, seed=0)  # accepted: a sharp fit
+    assert res.judge["sharpness"] >= cfg.judge.min_sharpness
+    strict = cfg.model_copy(deep=True)
+    strict.judge.min_sharpness = min(1.0, res.judge["sharpness"] + 0.01)
+    with pytest.raises(RegistrationFailed, match="blunt fit: sharpness"):
+        register_prepared(ps, pt, strict, T_true, seed=0)
+
+
 def test_right_pair_accepted_with_high_confidence(pair):
     ps, pt, T_true, centre, cfg = pair
     result = register_prepared(ps, pt, cfg, None, seed=0)
