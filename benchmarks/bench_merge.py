@@ -123,7 +123,7 @@ import sys
 from pathlib import Path
 from plotmosaic.manifest import load_manifest
 from plotmosaic.merge import read_records
-from plotmosaic.io.las import CHUNK_SIZE
+from plotmosaic.merge_config import CHUNK_SIZE
 m = load_manifest(sys.argv[1])
 n = sum(len(c) for s in m.scans for c in read_records(m.resolve(s.path), CHUNK_SIZE))
 print(n)

@@ -25,6 +25,8 @@ from scipy.spatial import cKDTree
 
 from plotmosaic.align import features3d, stemmap
 from plotmosaic.align.coarse_config import CoarseConfig
+from plotmosaic.align.config import IcpStage
+from plotmosaic.align.icp import point_to_plane_icp
 from plotmosaic.align.levelling import Vertical, rotate, vertical_hypotheses
 from plotmosaic.align.normals import local_shape
 from plotmosaic.align.rasters import (
@@ -322,9 +324,6 @@ def _refine(
     src_pts: np.ndarray, tgt: tuple, T0: np.ndarray, distances: tuple[float, ...], iterations: int
 ) -> np.ndarray:
     """Quick robust point-to-plane ICP over shrinking correspondence distances (Tukey width = distance)."""
-    from plotmosaic.align.config import IcpStage  # here: align.config imports this module
-    from plotmosaic.align.icp import point_to_plane_icp
-
     points, normals, tree = tgt
     stages = [IcpStage(max_distance=d, iterations=iterations) for d in distances]
     return point_to_plane_icp(

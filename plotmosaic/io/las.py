@@ -20,8 +20,7 @@ from pyproj import CRS
 from plotmosaic.errors import InputError
 from plotmosaic.io import e57, ply
 from plotmosaic.io.atomic import atomic_output
-
-CHUNK_SIZE = 2_000_000
+from plotmosaic.merge_config import CHUNK_SIZE
 
 # Standard attributes carried through the tool (LAS dimension name -> dtype).
 STANDARD_ATTRIBUTES: dict[str, np.dtype] = {
