@@ -183,6 +183,18 @@ class AlignConfig(BaseModel):
     final_schedule: list[IcpStage] = Field(
         default_factory=_final_schedule, min_length=1, description="stages of the final ICP"
     )
+    # the fine stage's last, tight stage where both clouds are dense (align/pipeline.final_icp), x the
+    # judge's scale factor: TreeLS views 7 m apart from the truth, yaw 0.033 -> 0.004 deg; on the sparse
+    # small preset (factor ~5) it would be looser than the last stage and is left out
+    final_polish_distance: float = Field(
+        0.05, gt=0, le=1, description="correspondence distance (m) of the fine stage's polish stage"
+    )
+    final_polish_iterations: int = Field(
+        20, ge=0, le=100, description="iterations of the polish stage"
+    )
+    final_polish_kernel: float = Field(
+        0.03, gt=0, le=1, description="least Tukey width (m) of the fine stage when it polishes"
+    )
     final_max_source_points: int = Field(
         40_000,
         ge=100,
@@ -215,7 +227,8 @@ class AlignConfig(BaseModel):
     # (benchmarks/bench_judge.py, 12 real and simulated cases: right poses 0.29-1.0, wrong ones
     # 0.00-0.10; but a leaf-on UAS strip -> ALS pose 10.6 deg / 1.6 m off reached 0.21 in
     # bench_coarse_real.py, so the floor sits between that and the lowest right pose;
-    # register-plot sets 0 and lets its loops decide)
+    # register-plot sets 0 and lets its loops decide); with judge.min_sharpness 0.04: confidence
+    # alone let an FPFH pose 165 deg off through at 0.37 (benchmarks/results/judge.md)
     min_confidence: float = Field(
         0.25, ge=0, le=1, description="least judge confidence (margin over the best distinct rival)"
     )

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 
 class JudgeConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
     enabled: bool = Field(True, description="verify every pairwise result against distinct rivals")
     scales: list[float] = Field(
         [0.02, 0.05, 0.10, 0.25],
@@ -63,16 +65,6 @@ class JudgeConfig(BaseModel):
         ge=0,
         le=1,
         description="least sharpness (see stored_min_sharpness) of an accepted pose: blunt fits are chance",
-    )
-    # the fine stage's last, tight stage where both clouds are dense (align/pipeline.final_icp), at the
-    # scale factor above: TreeLS views 7 m apart from the truth, yaw 0.033 -> 0.004 deg; on the sparse
-    # small preset (factor ~5) it would be looser than the last stage and is left out
-    polish_distance: float = Field(
-        0.05, gt=0, le=1, description="correspondence distance (m) of the fine stage's polish stage"
-    )
-    polish_iterations: int = Field(20, ge=0, le=100, description="iterations of the polish stage")
-    polish_kernel: float = Field(
-        0.03, gt=0, le=1, description="least Tukey width (m) of the fine stage when it polishes"
     )
     # a stored pose (E57 `use_pose = true`) that verifies skips the global search; these decide it
     stored_max_correction_deg: float = Field(

@@ -180,16 +180,16 @@ def _candidates(hypotheses: list[dict], start: np.ndarray) -> list[tuple[np.ndar
 
 def _fine_schedule(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig):
     """(stages, Tukey floor) of the final ICP: `final_schedule`, and where both clouds are dense
-    enough a tight polish stage (judge.polish_*, x the judge's scale factor) with a narrower kernel:
+    enough a tight polish stage (final_polish_*, x the judge's scale factor) with a narrower kernel:
     a 10 cm last stage with a 10 cm kernel leaves TLS pairs 0.03 deg off in yaw."""
     jc = config.judge
     f = judge_mod.scale_factor(src, tgt, jc)
-    d = jc.polish_distance * f
+    d = config.final_polish_distance * f
     stages = list(config.final_schedule)
-    if jc.polish_iterations == 0 or not stages or d >= stages[-1].max_distance:
+    if config.final_polish_iterations == 0 or not stages or d >= stages[-1].max_distance:
         return stages, config.robust_kernel
-    stages.append(IcpStage(max_distance=d, iterations=jc.polish_iterations))
-    return stages, min(config.robust_kernel, jc.polish_kernel * f)
+    stages.append(IcpStage(max_distance=d, iterations=config.final_polish_iterations))
+    return stages, min(config.robust_kernel, config.final_polish_kernel * f)
 
 
 def final_icp(src: PreparedCloud, tgt: PreparedCloud, T: np.ndarray, config: AlignConfig):
