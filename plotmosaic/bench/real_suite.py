@@ -359,8 +359,19 @@ def summarise(rows: list[dict]) -> list[dict]:
     groups: dict[tuple, list[dict]] = {}
     for r in rows:
         groups.setdefault((r["case"], r["protocol"], r["method"]), []).append(r)
+    cases = list(dict.fromkeys(k[0] for k in groups))
+    methods = ["forestalign", "icp", "fpfh-ransac", "cpd"]
+    order = sorted(
+        groups,
+        key=lambda k: (
+            cases.index(k[0]),
+            list(SUITE_PROTOCOLS).index(k[1]) if k[1] in SUITE_PROTOCOLS else 99,
+            methods.index(k[2]) if k[2] in methods else 99,
+        ),
+    )
     out = []
-    for (case, proto, method), sub in groups.items():
+    for case, proto, method in order:
+        sub = groups[(case, proto, method)]
         found = [r for r in sub if r["outcome"] == "found"]
         rmse = {
             p: float(np.sqrt(np.mean([r[p] ** 2 for r in found]))) if found else None
@@ -588,6 +599,7 @@ def plot_reliability(
             for r in with_conf
             if bool(r["failed"]) == refused
             and (r["outcome"] == kind or (kind == "found" and r["success"]))
+            and not (kind == "refused" and r["success"])
         ]
         if pts:
             err = [max(_angles(r)[0], 1e-3) for r in pts]
