@@ -226,7 +226,7 @@ class AlignConfig(BaseModel):
     # judge confidence below this => ambiguous => exit 3: a distinct rival pose fits almost as well
     # (benchmarks/bench_judge.py, 12 real and simulated cases: right poses 0.29-1.0, wrong ones
     # 0.00-0.10; but a leaf-on UAS strip -> ALS pose 10.6 deg / 1.6 m off reached 0.21 in
-    # bench_coarse_real.py, so the floor sits between that and the lowest right pose;
+    # benchmarks/bench_real.py, so the floor sits between that and the lowest right pose;
     # register-plot sets 0 and lets its loops decide); with judge.min_sharpness 0.04: confidence
     # alone let an FPFH pose 165 deg off through at 0.37 (benchmarks/results/judge.md)
     min_confidence: float = Field(

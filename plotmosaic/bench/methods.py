@@ -15,45 +15,13 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from pydantic import BaseModel
 
+from plotmosaic.bench.config import CpdConfig, IcpConfig, MethodsConfig
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.io.frame import Frame, to_global_transform
 from plotmosaic.io.las import PointCloud
 
 METHODS = ("forestalign", "icp", "fpfh-ransac", "cpd")
-
-
-class IcpConfig(BaseModel):
-    voxel: float = 0.15  # metres
-    # a wide first pass to pull in metre-scale offsets, then a tight one (the paper refines at 0.25 m)
-    distances: tuple[float, ...] = (1.0, 0.25)
-    iterations: int = 30
-
-
-class FpfhConfig(BaseModel):
-    voxel: float = 0.5  # forest scale: features over 2.5 m neighbourhoods
-    max_points: int = 8000  # RANSAC scores every hypothesis on all points: cap them (seeded subset)
-    max_nn_normal: int = 30
-    max_nn_feature: int = 100
-    ransac_iterations: int = 50_000
-    ransac_confidence: float = 0.999
-
-
-class CpdConfig(BaseModel):
-    points: int = 2000  # CPD is O(N*M): subsample hard
-    voxel: float = 0.3
-    maxiter: int = 50
-    w: float = 0.1  # outlier weight: forests never overlap fully
-    tol: float = 1e-4
-    refine: bool = True  # then the ICP of fpfh-ransac (IcpConfig), as a global method is used
-
-
-class MethodsConfig(BaseModel):
-    icp: IcpConfig = IcpConfig()
-    fpfh: FpfhConfig = FpfhConfig()
-    cpd: CpdConfig = CpdConfig()
-    no_coarse: bool = False  # forestalign from identity, the paper's local setting
 
 
 @dataclass

@@ -15,37 +15,13 @@ kilometre-sized translation error when the cloud sits at UTM coordinates.
 from __future__ import annotations
 
 import numpy as np
-from pydantic import BaseModel, Field
 from scipy.spatial.transform import Rotation
 
+from plotmosaic.bench.config import PROTOCOLS, Protocol
 from plotmosaic.io.frame import translation
 
 PARAMS = ("roll", "pitch", "yaw", "tx", "ty", "tz")
 UNITS = ("deg", "deg", "deg", "m", "m", "m")
-
-
-class Protocol(BaseModel):
-    """Half-widths of the uniform perturbation ranges (degrees, metres)."""
-
-    name: str = "paper"
-    roll: float = Field(45.0, ge=0, le=180)
-    pitch: float = Field(45.0, ge=0, le=90)
-    yaw: float = Field(45.0, ge=0, le=180)
-    tx: float = Field(15.0, ge=0)
-    ty: float = Field(15.0, ge=0)
-    tz: float = Field(15.0, ge=0)
-
-    @property
-    def ranges(self) -> np.ndarray:
-        return np.array([self.roll, self.pitch, self.yaw, self.tx, self.ty, self.tz])
-
-
-PROTOCOLS = {
-    # Section 4 of the paper: all six parameters at once, uniform +-45 deg / +-15 m
-    "paper": Protocol(name="paper"),
-    # beyond the paper: any heading, a tilted-tripod roll/pitch, larger offsets
-    "beyond": Protocol(name="beyond", roll=10, pitch=10, yaw=180, tx=25, ty=25, tz=25),
-}
 
 
 def get_protocol(

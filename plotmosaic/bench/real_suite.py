@@ -22,8 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
+from plotmosaic.bench.config import PROTOCOLS, Protocol
 from plotmosaic.bench.figures import pyplot, save_png
-from plotmosaic.bench.protocol import PARAMS, PROTOCOLS, Protocol, rotation_angle
+from plotmosaic.bench.protocol import PARAMS, rotation_angle
 from plotmosaic.io.atomic import write_text_atomic
 
 # paper: +-45 deg all three angles, +-15 m, all six at once; beyond: any heading, +-20 m (tilts as the paper);
@@ -201,7 +202,8 @@ def _near(result, truth: np.ndarray) -> tuple[list[str], str | None]:
 
 def run_trial(job: Trial) -> tuple[dict, list[dict]]:
     """Every method of `job` on its draw: (the case's info, one row a method)."""
-    from plotmosaic.bench.methods import MethodsConfig, PairInput, run_method
+    from plotmosaic.bench.config import MethodsConfig
+    from plotmosaic.bench.methods import PairInput, run_method
     from plotmosaic.bench.protocol import is_success, params_to_matrix, pose_error
     from plotmosaic.io.frame import apply_transform
     from plotmosaic.io.las import PointCloud

@@ -17,14 +17,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, Field
 
-from plotmosaic.bench.methods import MethodsConfig, PairInput, available, run_method
+from plotmosaic.bench.config import BenchConfig
+from plotmosaic.bench.methods import PairInput, available, run_method
 from plotmosaic.bench.overlap import crop_to_overlap, overlap_fraction
 from plotmosaic.bench.protocol import (
     PARAMS,
-    PROTOCOLS,
-    Protocol,
     is_success,
     params_to_matrix,
     pose_error,
@@ -36,17 +34,6 @@ from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import atomic_output, write_text_atomic
 from plotmosaic.io.frame import apply_transform
 from plotmosaic.io.las import PointCloud
-
-
-class BenchConfig(BaseModel):
-    protocol: Protocol = PROTOCOLS["paper"]
-    trials: int = Field(10, ge=1)
-    seed: int = 0
-    methods: list[str] = ["forestalign", "icp", "fpfh-ransac", "cpd"]
-    overlaps: list[float] | None = None  # percent, e.g. [28, 15, 5, 1]
-    success_rotation_deg: float = 1.0
-    success_translation_m: float = 0.10
-    methods_config: MethodsConfig = MethodsConfig()
 
 
 @dataclass

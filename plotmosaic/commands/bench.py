@@ -92,10 +92,11 @@ def bench_command(
     ),
 ) -> None:
     """Paper-style benchmark: per-parameter RMSE, success rate and time over seeded random trials."""
-    from plotmosaic.bench.methods import METHODS, MethodsConfig
+    from plotmosaic.bench.config import BenchConfig, MethodsConfig
+    from plotmosaic.bench.methods import METHODS
     from plotmosaic.bench.pairs import load_truth, manifest_pairs
     from plotmosaic.bench.protocol import get_protocol
-    from plotmosaic.bench.run import BenchConfig, BenchPair, run_bench, write_outputs
+    from plotmosaic.bench.run import BenchPair, run_bench, write_outputs
     from plotmosaic.io.las import read_cloud
     from plotmosaic.manifest import load_manifest
     from plotmosaic.poses import load_poses

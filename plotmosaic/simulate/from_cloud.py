@@ -29,11 +29,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import ValidationError
 from scipy.spatial import cKDTree
 
 from plotmosaic.errors import InputError
 from plotmosaic.io.frame import translation
+from plotmosaic.simulate.config import CutConfig
 
 RING_RADII = (
     0.25,
@@ -43,92 +44,6 @@ RING_RADII = (
     1.25,
     1.5,
 )  # where a scanner standing in a trunk or a bush is moved to
-
-
-class CutConfig(BaseModel):
-    """How virtual scans are cut out of a real cloud (metres, degrees)."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    voxel: float = Field(
-        0.1,
-        gt=0.005,
-        le=2.0,
-        description="occupancy voxel edge: finer than stems, coarser than the point spacing",
-    )
-    height_above_ground: float = Field(
-        1.5, ge=0, le=100, description="tripod height over the local ground for (x, y) positions"
-    )
-    ground_radius: float = Field(
-        2.0,
-        gt=0,
-        le=50,
-        description="horizontal radius around a position where the local ground is read",
-    )
-    ground_percentile: float = Field(
-        2.0,
-        ge=0,
-        le=50,
-        description="low z percentile near the position taken as ground (robust to a few low outliers)",
-    )
-    min_range: float = Field(
-        0.5,
-        ge=0,
-        le=10,
-        description="nothing nearer is seen (the tripod) and occupancy nearer does not block",
-    )
-    max_range: float | None = Field(
-        None, gt=0, description="nothing farther is seen (None: no limit)"
-    )
-    full_density_range: float = Field(
-        5.0,
-        gt=0,
-        description="r0: beyond it a point is kept with probability (r0/r)^2, as a fixed angular step gives",
-    )
-    tolerance: float = Field(
-        0.05,
-        ge=0,
-        le=5,
-        description="occupied voxels this much (+ a voxel / cos incidence) in front of a point never hide it",
-    )
-    max_tolerance: float = Field(
-        1.5,
-        ge=0,
-        le=10,
-        description="cap of the grazing-incidence tolerance (a far ground patch is not hidden by itself)",
-    )
-    normal_neighbours: int = Field(
-        12, ge=4, le=100, description="neighbours of the local plane that gives the incidence angle"
-    )
-    range_noise: float = Field(
-        0.0,
-        ge=0,
-        le=0.5,
-        description="std of the noise added along each ray (0: points exactly as in the cloud)",
-    )
-    max_tilt_deg: float = Field(
-        2.0,
-        ge=0,
-        le=90,
-        description="tilt of each view's random frame (a levelled tripod), heading uniform",
-    )
-    clearance: float = Field(
-        0.3,
-        ge=0,
-        le=5,
-        description="a scanner needs this much free space (and no trunk around it); otherwise it is moved up to 1.5 m",
-    )
-    max_grid_cells: int = Field(
-        200_000_000,
-        ge=1_000_000,
-        description="bytes of the dense occupancy grid of one view: the voxel grows to fit",
-    )
-    chunk_samples: int = Field(
-        4_000_000, ge=10_000, description="ray samples tested at once (memory ~ 30 bytes each)"
-    )
-    min_points: int = Field(
-        100, ge=1, description="a view with fewer points is an error (a position outside the cloud)"
-    )
 
 
 @dataclass
