@@ -172,6 +172,7 @@ def test_tie_to_als_georeferences_every_scan(runs, tmp_path):
     (anchor,) = result.anchors
     assert anchor.status == "ok" and anchor.fitness > 0.2 and anchor.residual is not None
     assert "Anchors" in (tmp_path / "geo" / "report.md").read_text()
+    assert "not recorded" not in (tmp_path / "geo" / "report.html").read_text()  # stage times
 
 
 def test_cli_rerun_uses_the_cache(runs):

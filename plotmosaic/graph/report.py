@@ -400,10 +400,8 @@ def write_tie_report(
         ),
         Stage(
             "tie-to-als until this report",
-            result.seconds or None,
-            ""
-            if result.seconds
-            else "tie-to-als does not record its time before the report is written",
+            result.seconds,
+            "ALS crop, plot -> ALS pairs, region pose graph, poses.json",
         ),
         *_recorded(result),
     ]
