@@ -549,9 +549,16 @@ def big_site(tmp_path_factory):
 
 
 @pytest.mark.parametrize(
-    "options, temporary", [([], ".m.laz.tmp-"), (["--voxel", "0.01"], ".m.laz.spill.tmp-")]
+    "options, temporary, sig",
+    [
+        ([], ".m.laz.tmp-", signal.SIGINT),
+        (["--voxel", "0.01"], ".m.laz.spill.tmp-", signal.SIGINT),
+        ([], ".m.laz.tmp-", signal.SIGTERM),  # a killed batch job
+    ],
 )
-def test_sigint_mid_merge_exits_130_and_leaves_nothing(big_site, tmp_path, options, temporary):
+def test_interrupt_mid_merge_exits_130_and_leaves_nothing(
+    big_site, tmp_path, options, temporary, sig
+):
     out = tmp_path / "out"
     out.mkdir()
     cmd = [
@@ -578,7 +585,7 @@ def test_sigint_mid_merge_exits_130_and_leaves_nothing(big_site, tmp_path, optio
         )
         time.sleep(0.005)
     time.sleep(0.2)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(sig)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
     assert err.strip() == "interrupted"

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
-import signal
 from pathlib import Path
 
 import typer
@@ -97,31 +95,13 @@ def merge_command(
     else:
         check_output_file(out, force=True)
         check_output_file(used, force=True)
-    with _terminate_as_interrupt():
-        summary = merge_scans(
-            load_manifest(manifest), load_poses(poses), out, merge, progress=True, poses_path=poses
-        )
-        write_config_used(used, settings, "merge")
+    # SIGINT / SIGTERM are the command wrapper's (commands/common.py): they unwind as KeyboardInterrupt
+    summary = merge_scans(
+        load_manifest(manifest), load_poses(poses), out, merge, progress=True, poses_path=poses
+    )
+    write_config_used(used, settings, "merge")
     print_summary(summary)
     typer.echo(f"settings used: {used}")
-
-
-@contextlib.contextmanager
-def _terminate_as_interrupt():
-    """SIGTERM (a killed batch job) unwinds like Ctrl-C, so the atomic output removes its temp file."""
-
-    def interrupt(signum, frame):
-        raise KeyboardInterrupt
-
-    try:
-        previous = signal.signal(signal.SIGTERM, interrupt)
-    except ValueError:  # not the main thread: leave signals alone
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def print_summary(summary: MergeSummary) -> None:
