@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 
 from plotmosaic.align.prepare import PreparedCloud
-from plotmosaic.io.atomic import atomic_output
 from plotmosaic.io.las import PointCloud, write_cloud
+from plotmosaic.report.pictures import savefig
 
 COLOURS = ["#8c6d31", "#2b8cbe", "#31a354", "#de2d26", "#756bb1"]  # level 0 (least complex) first
 
@@ -55,10 +55,7 @@ def plot_levels(
             ax.set_title(f"{name} ({p.kind}, K={p.k}) {label}")
             ax.legend(loc="upper right", markerscale=20, fontsize=8)
     fig.tight_layout()
-    with atomic_output(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-    return path
+    return savefig(fig, path, dpi=110, tight=False)
 
 
 def save_levels(

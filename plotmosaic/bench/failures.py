@@ -6,8 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from plotmosaic.bench.figures import pyplot, save_png
+from plotmosaic.bench.figures import pyplot
 from plotmosaic.io.frame import apply_transform
+from plotmosaic.report.pictures import savefig
 
 
 def _thin(xyz: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -48,4 +49,4 @@ def plot_failure(
         ax.legend(loc="upper right", markerscale=25, fontsize=8)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    return save_png(fig, path, dpi=100)
+    return savefig(fig, path, dpi=100, tight=False)

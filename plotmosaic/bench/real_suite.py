@@ -23,9 +23,10 @@ from pathlib import Path
 import numpy as np
 
 from plotmosaic.bench.config import PROTOCOLS, Protocol
-from plotmosaic.bench.figures import pyplot, save_png
+from plotmosaic.bench.figures import pyplot
 from plotmosaic.bench.protocol import PARAMS, rotation_angle
 from plotmosaic.io.atomic import write_text_atomic
+from plotmosaic.report.pictures import savefig
 
 # paper: +-45 deg all three angles, +-15 m, all six at once; beyond: any heading, +-20 m (tilts as the paper);
 # true: the source handed over in its true pose (the control)
@@ -631,7 +632,7 @@ def plot_reliability(
         title or f"{method} on the real-data suite: confidence against correctness", fontsize=10
     )
     fig.tight_layout()
-    return save_png(fig, path, dpi=100)
+    return savefig(fig, path, dpi=100, tight=False)
 
 
 def write_outputs(

@@ -10,8 +10,9 @@ from pathlib import Path
 
 import numpy as np
 
-from plotmosaic.bench.figures import pyplot, save_png
+from plotmosaic.bench.figures import pyplot
 from plotmosaic.bench.protocol import PARAMS
+from plotmosaic.report.pictures import savefig
 
 INITIAL = "initial"
 
@@ -170,4 +171,4 @@ def plot_errors(rows: list[dict], path: str | Path, title: str = "") -> Path:
         + "blue: initial error (the perturbation), orange: error after registration; symmetric-log axis"
     )
     fig.tight_layout()
-    return save_png(fig, path, dpi=110)
+    return savefig(fig, path, dpi=110, tight=False)

@@ -13,10 +13,12 @@ import numpy as np  # noqa: E402
 from plotmosaic.io.atomic import atomic_output  # noqa: E402
 
 
-def savefig(fig, path: Path) -> Path:
-    """PNG written atomically, the figure closed (pictures of long runs must not pile up)."""
+def savefig(fig, path: str | Path, dpi: int = 110, tight: bool = True) -> Path:
+    """PNG written atomically (an interrupted run leaves the old picture), the figure closed
+    (pictures of long runs must not pile up); `tight` crops the margins."""
+    path = Path(path)
     with atomic_output(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+        fig.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight" if tight else None)
     plt.close(fig)
     return path
 

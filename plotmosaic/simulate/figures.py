@@ -11,10 +11,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 
-from plotmosaic.io.atomic import atomic_output  # noqa: E402
 from plotmosaic.io.frame import apply_transform  # noqa: E402
 from plotmosaic.io.las import PointCloud  # noqa: E402
 from plotmosaic.poses import ScanPose  # noqa: E402
+from plotmosaic.report.pictures import savefig  # noqa: E402
 from plotmosaic.simulate.mesh import LABEL_NAMES  # noqa: E402
 from plotmosaic.simulate.scene import World  # noqa: E402
 
@@ -36,10 +36,7 @@ def _scatter(ax, x, y, labels, size=0.05, order=None) -> None:
 
 
 def _save(fig, path: Path) -> Path:
-    with atomic_output(path) as tmp:
-        fig.savefig(tmp, dpi=150, bbox_inches="tight", format="png")
-    plt.close(fig)
-    return path
+    return savefig(fig, path, dpi=150)
 
 
 def _world_points(
