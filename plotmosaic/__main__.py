@@ -1,3 +1,3 @@
-from plotmosaic.cli import main
+from plotmosaic.entry import main
 
 main()

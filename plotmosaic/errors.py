@@ -15,3 +15,6 @@ class RegistrationFailed(PlotmosaicError):
     """A pair could not be registered; the message carries the figures that show why (exit 3)."""
 
     exit_code = 3
+
+
+INTERRUPTED = 130  # exit code of an interrupted run (Ctrl-C or SIGTERM), the shell's 128 + SIGINT

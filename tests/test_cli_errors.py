@@ -1,5 +1,6 @@
 """Bad input gets a one-line error naming the culprit and exit code 2, never a traceback."""
 
+import signal
 import struct
 import subprocess
 import sys
@@ -92,3 +93,23 @@ def test_console_script_entry_point_reports_version():
         check=True,
     )
     assert out.stdout.startswith("plotmosaic ")
+
+
+def test_sigterm_while_the_command_layer_imports_is_an_interrupt():
+    """A batch scheduler's SIGTERM in the first second (typer, numpy, Open3D still importing)
+    exits 130 with one line, like one mid-run, not 143. `-X importtime` reports each import as
+    it finishes, so the signal lands inside the import chain the console script starts."""
+    proc = subprocess.Popen(
+        [sys.executable, "-X", "importtime", "-m", "plotmosaic", "--version"],
+        stderr=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    for line in proc.stderr:  # wait until numpy (imported by the command layer) is in
+        if line.split("|")[-1].strip() == "numpy":
+            break
+    proc.send_signal(signal.SIGTERM)
+    rest = proc.stderr.read()
+    proc.wait(timeout=60)
+    assert proc.returncode == 130, rest[-500:]
+    assert rest.rstrip().splitlines()[-1] == "interrupted"

@@ -16,9 +16,8 @@ from collections.abc import Callable, Iterator
 
 import typer
 
-from plotmosaic.errors import PlotmosaicError
+from plotmosaic.errors import INTERRUPTED, PlotmosaicError
 
-INTERRUPTED = 130
 # OS errors that describe the user's files or disk, not a bug: reported as bad input (exit 2)
 _USER_ERRNOS = {
     errno.ENOENT,
