@@ -91,7 +91,7 @@ def test_right_pair_accepted_with_high_confidence(pair):
     result = register_prepared(ps, pt, cfg, None, seed=0)
     deg, m = error(result.transform, T_true, centre)
     assert deg < 0.1 and m < 0.02, (deg, m)
-    assert result.confidence > 0.6 and result.judge["margin"] > 0.3 * cfg.judge.full_margin
+    assert result.confidence > 0.6 and result.judge["fine_margin"] > cfg.judge.chance_margin
     assert result.judge["distinct_rivals"] >= 1 and result.judge["rival_profile"] is not None
     # the figures round-trip, and results cached before the judge still load
     again = PairResult.from_dict(json.loads(json.dumps(result.to_dict())))
@@ -174,3 +174,70 @@ def test_cli_no_coarse_exits_3_or_right(small_sim, tmp_path):
     centre = read_cloud(small_sim.scan_paths["P1-S1"], attributes=False).xyz.mean(axis=0)
     deg, m = error(np.asarray(json.loads(out.read_text())["transform"]), T_true, centre)
     assert deg < 0.1 and m < 0.02, (deg, m)
+
+
+def _profile(fine: float, wide: float) -> dict:
+    """A residual profile with share `fine` at the smallest scale and `wide` at the others."""
+    shares = [fine, wide, wide, wide]
+    return {"structure_st": shares, "structure_ts": shares, "score": float(np.mean(shares))}
+
+
+def test_fine_margin_accepts_a_clear_winner_refuses_a_close_rival():
+    """The confidence follows the finest scale: 6x the rival's share there is sure even when the wide
+    scales rank the rival level; 1.2x is not, and a rival sharper than the pose gives 0."""
+    jc, floor = AlignConfig().judge, AlignConfig().min_confidence
+    pose = _profile(0.09, 0.40)
+    assert judge.confidence(pose, [_profile(0.015, 0.41)], jc) >= floor
+    assert judge.confidence(pose, [_profile(0.075, 0.30)], jc) < floor
+    assert judge.confidence(pose, [_profile(0.10, 0.30)], jc) == 0.0
+    # every rival counts, not only the best by score: the sharp one decides
+    assert judge.confidence(pose, [_profile(0.01, 0.45), _profile(0.08, 0.2)], jc) < floor
+    assert judge.confidence(pose, [], jc) == 1.0  # nothing distinct to compare with
+
+
+@pytest.fixture(scope="module")
+def boxed(spanner_dir):
+    """bench_real.py's mls-boxed6m: a ground view cut to 6 m range against a view 8 m away (real MLS)."""
+    from plotmosaic.align.config import default_levels
+    from plotmosaic.bench.real_cases import build_case
+
+    case = build_case("mls-boxed6m", spanner_dir.parent)
+    cfg = AlignConfig()
+    ps, pt = prepare_pair(
+        case.source, case.target, "tls", "tls", default_levels("tls"), default_levels("tls"), cfg
+    )
+    return ps, pt, case, cfg
+
+
+def test_boxed_view_truth_accepted_by_its_fine_margin(boxed):
+    """The true-pose control of the boxed view: the wide scales rank the global search's wrong poses
+    close (score margin far below what the old score-margin confidence needed), the 5 cm scale does
+    not; the truth comes back, accepted."""
+    ps, pt, case, cfg = boxed
+    result, accepted = outcome(ps, pt, cfg, case.truth)
+    j = result.judge
+    assert j["distinct_rivals"] >= 1
+    assert j["margin"] < 0.25 * 0.5, j["margin"]  # old rule: confidence = margin / 0.5 < 0.25
+    assert j["fine_margin"] > 0.6, (j["fine_margin"], j["fine_share"], j["fine_rival_share"])
+    assert accepted, (result.confidence, j["score"], j["rival_score"], j["sharpness"])
+    deg, m = error(result.transform, case.truth, case.source.xyz.mean(axis=0))
+    assert deg < 0.1 and m < 0.01, (deg, m)
+
+
+def test_boxed_view_refused_when_a_copy_fits_as_well(boxed):
+    """The same forest twice in the target, 60 m apart: the pose on the copy is a distinct rival as
+    sharp as the truth, so the truth is refused (confidence 0), whichever of the two is judged."""
+    ps, _, case, cfg = boxed
+    from plotmosaic.align.config import default_levels
+
+    shift = np.eye(4)
+    shift[0, 3] = 60.0
+    xyz = case.target.xyz
+    twice = PointCloud(np.vstack([xyz, xyz + shift[:3, 3]]))
+    pt2 = prepare_cloud(twice, "tls", default_levels("tls"), cfg, 1, "target")
+    T = to_local_transform(case.truth, ps.frame, pt2.frame)
+    copy = to_local_transform(shift @ case.truth, ps.frame, pt2.frame)
+    for pose, rival in ((T, copy), (copy, T)):
+        v = judge.judge(ps, pt2, pose, [(rival, "copy")], cfg.judge)
+        assert v.distinct_rivals == 1 and abs(v.fine_margin) < 0.3, v.fine_margin
+        assert v.confidence < cfg.min_confidence, v.confidence

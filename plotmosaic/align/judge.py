@@ -3,9 +3,10 @@
 A pose is scored by a residual profile: the share of sample points within several distances
 (2-25 cm at the delta0 spacing, stretched for sparse clouds) of the other cloud, on non-flat points
 (stems, branches, crowns: flat ground fits anywhere) and on all points, in both directions.
-The pose must beat the best *distinct* rival (other hypotheses of the global search, the start as
-handed over), each refined by a short ICP and scored the same way; the relative margin is the
-confidence. Every transform here maps source-local to target-local coordinates.
+The pose must beat every *distinct* rival (other hypotheses of the global search, the start as
+handed over), each refined by a short ICP and profiled the same way: the confidence comes from the
+relative margin at the finest scale (`fine_margin`), where a right pose stands out; the wide scales
+gather points by chance in a forest and rank wrong rivals close to a right pose. Every transform here maps source-local to target-local coordinates.
 """
 
 from __future__ import annotations
@@ -127,7 +128,7 @@ def refine(
             A,
             [IcpStage(max_distance=d * f, iterations=n)],
             tree=tgt.tree,
-            kernel_floor=0.1 * f,
+            kernel_floor=min(config.rival_kernel, d) * f,  # a tight stage needs a tight kernel
             tol=1e-4,
         )
         A = res.T
@@ -176,7 +177,11 @@ class Verdict:
     score: float  # judge score of the pose
     rival_score: float  # of the best distinct rival (0 when none)
     margin: float  # 1 - rival_score / score (negative: a rival fits better)
-    confidence: float  # margin / full_margin clipped to 0-1
+    confidence: float  # from the fine margin (`confidence`), 0-1
+    fine_share: float  # of the pose (`fine_share`)
+    fine_rival_share: float  # the highest of the distinct rivals' (0 when none)
+    fine_margin: float  # 1 - fine_rival_share / fine_share
+    fine_rival_source: str | None
     sharpness: float  # of the pose (`sharpness`): near 1 when the clouds coincide, low by chance
     profile: dict
     rival_profile: dict | None
@@ -197,6 +202,10 @@ class Verdict:
             "rival_score": self.rival_score,
             "margin": self.margin,
             "confidence": self.confidence,
+            "fine_share": self.fine_share,
+            "fine_rival_share": self.fine_rival_share,
+            "fine_margin": self.fine_margin,
+            "fine_rival_source": self.fine_rival_source,
             "sharpness": self.sharpness,
             "profile": self.profile,
             "rival_profile": self.rival_profile,
@@ -242,7 +251,8 @@ def judge(
     t0 = time.perf_counter()
     c = centre(src, config)
     mine = profile(src, tgt, T, config)
-    best, best_T, best_name, best_prof, n_distinct, table = 0.0, None, None, None, 0, []
+    best, best_T, best_name, best_prof, table, profs = 0.0, None, None, None, [], []
+    fine_best, fine_name = 0.0, None
     shortlist = _shortlist(T, candidates, c, config)
     refined = _refined(src, tgt, [A0 for A0, _ in shortlist], T, config)
     for (_, name), (A, prof) in zip(shortlist, refined):
@@ -250,27 +260,65 @@ def judge(
         if m <= config.distinct_m and deg <= config.distinct_deg:
             table.append({"from": name, "distinct": False, "deg": deg, "m": m})
             continue
-        n_distinct += 1
-        table.append({"from": name, "distinct": True, "deg": deg, "m": m, "score": prof["score"]})
+        fine = fine_share(prof, config)
+        profs.append(prof)
+        table.append(
+            {
+                "from": name,
+                "distinct": True,
+                "deg": deg,
+                "m": m,
+                "score": prof["score"],
+                "fine": fine,
+            }
+        )
         if prof["score"] > best:
             best, best_T, best_name, best_prof = prof["score"], A, name, prof
+        if fine > fine_best:
+            fine_best, fine_name = fine, name
     score = mine["score"]
     margin = 1.0 - best / score if score > 0 else -1.0
-    confidence = float(np.clip(margin / config.full_margin, 0.0, 1.0))
     return Verdict(
         score=score,
         rival_score=best,
         margin=float(margin),
-        confidence=confidence,
+        confidence=confidence(mine, profs, config),
+        fine_share=fine_share(mine, config),
+        fine_rival_share=fine_best,
+        fine_margin=fine_margin(mine, profs, config),
+        fine_rival_source=fine_name,
         sharpness=sharpness(mine),
         profile=mine,
         rival_profile=best_prof,
         rival_transform=best_T,
         rival_source=best_name,
         candidates=len(shortlist),
-        distinct_rivals=n_distinct,
+        distinct_rivals=len(profs),
         seconds=time.perf_counter() - t0,
         rivals=table,
+    )
+
+
+def fine_share(prof: dict, config: JudgeConfig) -> float:
+    """Mean share of structure points within the `fine_scales` smallest scales, both directions:
+    where a right pose stands out (chance alignments gather points only at the wide scales)."""
+    k = config.fine_scales
+    return float(np.mean(prof["structure_st"][:k] + prof["structure_ts"][:k]))
+
+
+def fine_margin(prof: dict, rivals: list[dict], config: JudgeConfig) -> float:
+    """1 - the best rival's fine share / the pose's (1 without rivals, -1 when the pose has none)."""
+    mine = fine_share(prof, config)
+    best = max((fine_share(r, config) for r in rivals), default=0.0)
+    return 1.0 - best / mine if mine > 0 else -1.0
+
+
+def confidence(prof: dict, rivals: list[dict], config: JudgeConfig) -> float:
+    """The judge's confidence in pose `prof` over the distinct `rivals` (profiles), 0-1: its fine
+    margin, from the margin chance alignments reach (0) to `full_margin` (1)."""
+    m = fine_margin(prof, rivals, config)
+    return float(
+        np.clip((m - config.chance_margin) / (config.full_margin - config.chance_margin), 0, 1)
     )
 
 
