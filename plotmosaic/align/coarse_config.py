@@ -74,6 +74,43 @@ class CoarseConfig(BaseModel):
     min_ground_normals: int = Field(
         50, ge=10, description="least ground-like normals to refine the vertical on the ground"
     )
+    # --- trunk axes (levelling.trunk_axes_up)
+    trunk_hag: tuple[float, float] = Field(
+        (0.5, 4.0),
+        description="band (m above the rough DTM) trunk axes are fitted in: below the crowns",
+    )
+    trunk_normal_deg: float = Field(
+        30.0,
+        gt=0,
+        le=60,
+        description="a normal within this of the rough horizontal may be a trunk's (the rough level may be off)",
+    )
+    trunk_min_points: int = Field(
+        12,
+        ge=5,
+        description="least points of a trunk group (an 8M scan: 166 trunks at 12, 52 at 30)",
+    )
+    trunk_min_span: float = Field(
+        1.5, gt=0, le=10, description="least height (m) a trunk group spans: an axis needs a lever"
+    )
+    trunk_elongation: float = Field(
+        8.0, ge=1, le=1000, description="least ratio of a trunk group's main to second variance"
+    )
+    trunk_max_lean_deg: float = Field(
+        30.0,
+        gt=0,
+        le=60,
+        description="groups leaning more than this from the rough level are no trunks",
+    )
+    trunk_min_count: int = Field(
+        4,
+        ge=1,
+        le=100,
+        description="least trunks for the median axis (fewer: one leaning stem decides)",
+    )
+    trunk_passes: int = Field(
+        2, ge=1, le=5, description="level, fit the axes, level again: the band follows the estimate"
+    )
     # --- vertical hypotheses (several, verification decides)
     vertical_duplicate_deg: float = Field(
         2.0, gt=0, le=20, description="vertical hypotheses closer than this are one"
@@ -88,7 +125,10 @@ class CoarseConfig(BaseModel):
         3, ge=1, le=6, description="vertical hypotheses per cloud carried into the search"
     )
     max_target_verticals: int = Field(
-        2, ge=1, le=6, description="of those, for the target (its own frame: rarely far off)"
+        3,
+        ge=1,
+        le=6,
+        description="of those, for the target: its own frame is rarely far off, but like-with-like pairs need its kinds",
     )
     max_vertical_pairs: int = Field(
         3, ge=1, le=36, description="(source, target) vertical pairs searched"
@@ -272,10 +312,19 @@ class CoarseConfig(BaseModel):
         200_000,
         ge=1000,
         le=5_000_000,
-        description="random match pairs drawn (x2 triples for 6-DoF), cheaply pre-filtered",
+        description="random match triples drawn x 1/2 for the 6-DoF RANSAC, cheaply pre-filtered",
     )
     fpfh_iterations: int = Field(
-        3000, ge=100, le=200_000, description="consistent samples scored (4-DoF and 6-DoF each)"
+        3000, ge=100, le=200_000, description="consistent 6-DoF samples scored"
+    )
+    fpfh_vote_yaw_deg: float = Field(
+        1.5,
+        gt=0,
+        le=10,
+        description="heading step of the 4-DoF vote: 0.75 deg off at most, 0.4 m at 30 m from the centre",
+    )
+    fpfh_vote_cells: int = Field(
+        2, ge=1, le=20, description="fullest translation bins per heading (and grid) kept as poses"
     )
     fpfh_min_inliers: int = Field(
         8, ge=3, le=10_000, description="least inlier matches of an FPFH pose (fewer: chance)"

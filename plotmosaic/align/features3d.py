@@ -3,8 +3,8 @@
 Independent of rasters: FPFH (Rusu et al. 2009; Open3D's definition, in numpy) describes each thinned point's neighbourhood
 (~2 m: a trunk and its base, a crown edge); mutual nearest neighbours in descriptor space give
 putative correspondences, mostly wrong in a forest. With a vertical hypothesis per cloud only
-4 DoF remain (yaw + xyz), fixed by 2 correspondences, so a seeded RANSAC over pairs finds the
-consistent set cheaply; a 6-DoF variant (3 correspondences, Kabsch) trusts no vertical at all.
+4 DoF remain (yaw + xyz): an exhaustive heading sweep bins every correspondence's translation and
+the fullest bins are the poses; a 6-DoF RANSAC (3 correspondences, Kabsch) trusts no vertical at all.
 Everything is seeded and bounded (points, samples), so the same inputs give the same hypotheses.
 """
 
@@ -196,32 +196,50 @@ def _sample_sets(n: int, k: int, draws: int, rng: np.random.Generator) -> np.nda
     return idx[distinct]
 
 
-def ransac_4dof(
-    p: np.ndarray, q: np.ndarray, config: CoarseConfig, rng: np.random.Generator
-) -> list[tuple[np.ndarray, int]]:
-    """Poses (4x4, levelled p -> levelled q) from 2-correspondence samples (yaw + xyz), best first, with inlier counts."""
+def vote_4dof(p: np.ndarray, q: np.ndarray, config: CoarseConfig) -> list[tuple[np.ndarray, int]]:
+    """Poses (4x4, levelled p -> levelled q) of an exhaustive heading sweep, best first, with inlier counts.
+
+    With the vertical known, a heading fixes every correspondence's translation q - R p; the right
+    ones agree within the inlier distance. Each heading's translations are binned (two grids half a
+    bin apart, so a cluster cut by one grid's border is whole in the other) and the fullest bins
+    become poses. Exhaustive and seeded by nothing: random pair sampling scored ~2 right samples of
+    3,000 when 13 of 1,400 mutual matches were right (MLS views 8 m apart) and found the pose by luck.
+    """
     c = config
     if len(p) < 2:
         return []
-    ij = _sample_sets(len(p), 2, c.fpfh_draws, rng)
-    dp, dq = p[ij[:, 1]] - p[ij[:, 0]], q[ij[:, 1]] - q[ij[:, 0]]
-    # a rigid motion about z keeps horizontal lengths and height differences: of many cheap draws,
-    # only consistent ones are scored (2 % right matches leave few all-right pairs among random ones)
-    hp, hq = np.hypot(dp[:, 0], dp[:, 1]), np.hypot(dq[:, 0], dq[:, 1])
-    ok = (
-        (np.abs(hp - hq) < c.fpfh_inlier_m)
-        & (np.abs(dp[:, 2] - dq[:, 2]) < c.fpfh_inlier_m)
-        & (hp > 2 * c.fpfh_inlier_m)
-    )
-    keep = np.flatnonzero(ok)[: c.fpfh_iterations]
-    ij, dp, dq = ij[keep], dp[keep], dq[keep]
-    if not len(ij):
+    centre = p.mean(axis=0)
+    rel = p - centre
+    yaws = np.radians(np.arange(0.0, 360.0, c.fpfh_vote_yaw_deg))
+    cell = c.fpfh_inlier_m
+    best_R, best_t, best_n = [], [], []
+    for yaw in yaws:
+        cs, sn = np.cos(yaw), np.sin(yaw)
+        t = q - np.column_stack(
+            [cs * rel[:, 0] - sn * rel[:, 1], sn * rel[:, 0] + cs * rel[:, 1], rel[:, 2]]
+        )
+        for shift in (0.0, 0.5):
+            ijk = np.floor(t / cell + shift).astype(np.int64)
+            lo = ijk.min(axis=0)
+            span = ijk.max(axis=0) - lo + 1
+            key = ((ijk[:, 0] - lo[0]) * span[1] + (ijk[:, 1] - lo[1])) * span[2] + (
+                ijk[:, 2] - lo[2]
+            )
+            u, inv, n = np.unique(key, return_inverse=True, return_counts=True)
+            for k in np.argsort(-n, kind="stable")[: c.fpfh_vote_cells]:
+                if n[k] < 2:
+                    break
+                best_R.append(yaw)
+                best_t.append(t[inv.ravel() == k].mean(axis=0))
+                best_n.append(n[k])
+    if not best_n:
         return []
-    yaw = np.arctan2(dq[:, 1], dq[:, 0]) - np.arctan2(dp[:, 1], dp[:, 0])
-    R = _rz(yaw)
-    mid_p, mid_q = (p[ij[:, 0]] + p[ij[:, 1]]) / 2, (q[ij[:, 0]] + q[ij[:, 1]]) / 2
-    t = mid_q - np.einsum("kij,kj->ki", R, mid_p)
-    return _best(R, t, p, q, c, four_dof=True)
+    # ranked by their bins' counts: a pre-count on a subset of the matches holds ~4 of 24 right ones
+    # and lost the pose among hundreds of chance bins
+    order = np.argsort(-np.asarray(best_n), kind="stable")[:PRE_KEEP]
+    R = _rz(np.asarray(best_R)[order])
+    t = np.asarray(best_t)[order] - np.einsum("kij,j->ki", R, centre)
+    return _best(R, t, p, q, c, four_dof=True, ranked=True)
 
 
 def ransac_6dof(
@@ -252,14 +270,21 @@ def ransac_6dof(
 
 
 def _best(
-    R: np.ndarray, t: np.ndarray, p: np.ndarray, q: np.ndarray, c: CoarseConfig, four_dof: bool
+    R: np.ndarray,
+    t: np.ndarray,
+    p: np.ndarray,
+    q: np.ndarray,
+    c: CoarseConfig,
+    four_dof: bool,
+    ranked: bool = False,
 ) -> list[tuple[np.ndarray, int]]:
-    """The `fpfh_hypotheses` best distinct sample poses, each re-fitted on its inliers."""
-    # a first count on a seeded subset of the correspondences, the full count for the best only
-    sub = np.linspace(0, len(p) - 1, min(len(p), PRE_COUNT)).astype(np.int64)
-    pre = _count(R, t, p[sub], q[sub], c.fpfh_inlier_m)
-    top = np.argsort(-pre, kind="stable")[:PRE_KEEP]
-    R, t = R[top], t[top]
+    """The `fpfh_hypotheses` best distinct sample poses, each re-fitted on its inliers (`ranked`: the
+    poses come best first, counted already; else a first count on a subset of the matches ranks them)."""
+    if not ranked:
+        sub = np.linspace(0, len(p) - 1, min(len(p), PRE_COUNT)).astype(np.int64)
+        pre = _count(R, t, p[sub], q[sub], c.fpfh_inlier_m)
+        top = np.argsort(-pre, kind="stable")[:PRE_KEEP]
+        R, t = R[top], t[top]
     counts = _count(R, t, p, q, c.fpfh_inlier_m)
     out: list[tuple[np.ndarray, int]] = []
     for k in np.argsort(-counts, kind="stable"):
