@@ -156,12 +156,23 @@ def test_dask_executor_gives_the_same_edge(runs, tmp_path):
         assert np.allclose(here.poses.transform(sid), result.poses.transform(sid), atol=1e-6)
 
 
-def test_tie_to_als_georeferences_every_scan(runs, tmp_path):
+def test_tie_to_als_georeferences_every_scan(runs, tmp_path, monkeypatch):
+    import plotmosaic.io.las as las
     from plotmosaic.graph.anchors import tie_to_als
 
-    result = tie_to_als(
-        runs["manifest"], runs["out"] / "poses.json", tmp_path / "geo", progress=False
+    read, inner = [], las.read_cloud
+
+    def counted(path, *args, **kwargs):  # the real reader, the paths noted
+        read.append(str(path))
+        return inner(path, *args, **kwargs)
+
+    monkeypatch.setattr(las, "read_cloud", counted)
+    result = tie_to_als(  # one job: every read happens in this process, where it is counted
+        runs["manifest"], runs["out"] / "poses.json", tmp_path / "geo", jobs=1, progress=False
     )
+    # the plot cloud and the ALS crop are written once and registered from memory, not read back
+    assert (tmp_path / "geo" / "plots" / "P1.laz").is_file()
+    assert not [p for p in read if "plots" in p], read
     truth = load_poses(runs["sim"].ground_truth_path)
     poses = load_poses(tmp_path / "geo" / "poses.json")
     assert poses.frame == "crs" and CRS.from_user_input(poses.crs).to_epsg() == 26912

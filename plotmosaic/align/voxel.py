@@ -58,8 +58,10 @@ def cube_keys(points: np.ndarray, size: float, offset=(0.0, 0.0, 0.0)) -> np.nda
     return cols[0].astype(np.int64)
 
 
-def _groups(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(order that sorts the keys stably, start of each run of equal keys in that order)."""
+def groups(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(order that sorts the keys stably, start of each run of equal keys in that order).
+
+    Equal keys keep their input order, so `order[starts]` is each key's first occurrence."""
     n = len(keys)
     bits = max(1, (n - 1).bit_length())
     if n and int(keys.max()) < 2 ** (62 - bits):
@@ -100,7 +102,7 @@ def voxelize(points: np.ndarray, size: float, offset=(0.0, 0.0, 0.0)) -> VoxelGr
     points = np.asarray(points, dtype=np.float64)
     if len(points) == 0:
         return VoxelGrid(points.reshape(0, 3), np.zeros(0, np.int64), np.zeros(0, np.int64))
-    order, starts = _groups(cube_keys(points, size, offset))
+    order, starts = groups(cube_keys(points, size, offset))
     counts = np.diff(np.append(starts, len(order)))
     out = np.empty((len(starts), 3))
     for i in range(3):  # per column: three 1-D gathers beat one gather of rows here
@@ -127,7 +129,7 @@ def thin_with_counts(points: np.ndarray, cell: float) -> tuple[np.ndarray, np.nd
     """`thin`, and how many input points share each kept point's cube."""
     if len(points) == 0:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    order, starts = _groups(cube_keys(points, cell))
+    order, starts = groups(cube_keys(points, cell))
     first, counts = order[starts], np.diff(np.append(starts, len(order)))
     by_index = np.argsort(first)
     return first[by_index], counts[by_index]

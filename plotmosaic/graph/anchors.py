@@ -23,7 +23,7 @@ from plotmosaic.align.voxel import voxel_centroids
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.graph.cache import PairCache, pair_key
 from plotmosaic.graph.config import TieConfig
-from plotmosaic.graph.executor import PairJob
+from plotmosaic.graph.executor import PairJob, prepare_jobs_for
 from plotmosaic.graph.pipeline import EDGE_FIELDS, compute_pairs
 from plotmosaic.graph.posegraph import (
     Solution,
@@ -33,14 +33,15 @@ from plotmosaic.graph.posegraph import (
     inverse,
     optimise,
 )
-from plotmosaic.graph.prepared import load_points, points_reader
+from plotmosaic.graph.prepared import load_points, points_reader, prepare_held
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.frame import Frame, apply_transform, translation
-from plotmosaic.io.las import PointCloud, read_cloud, write_cloud
+from plotmosaic.io.las import PointCloud, las_offsets, read_cloud, write_cloud
 from plotmosaic.manifest import Manifest, Plot, load_manifest
 from plotmosaic.poses import Poses, ScanPose, load_poses
 
 ALS_NODE = "ALS"
+LAS_SCALE = 0.001  # write_cloud's default: the plot and ALS clouds are written at 1 mm
 
 
 @dataclass
@@ -77,15 +78,16 @@ def _voxel(xyz: np.ndarray, size: float) -> np.ndarray:
     return frame.to_global(voxel_centroids(frame.to_local(xyz), size))
 
 
-def _scan_points(manifest: Manifest, scan, prepared: dict[str, Path]) -> np.ndarray:
-    """The scan's points: register-plot's prepared (delta0-thinned) cloud when it is still there, else the file."""
+def _scan_points(manifest: Manifest, scan, prepared: dict[str, Path]) -> tuple[np.ndarray, bool]:
+    """(the scan's points, whether they are thinned already): register-plot's prepared (delta0-thinned)
+    cloud when it is still there, else the file."""
     entry = prepared.get(scan.id)
     if entry is not None and entry.is_file():
         try:
-            return load_points(entry)
+            return load_points(entry), True
         except Exception:  # damaged entry: read the scan itself
             pass
-    return read_cloud(manifest.resolve(scan.path), attributes=False).xyz
+    return read_cloud(manifest.resolve(scan.path), attributes=False).xyz, False
 
 
 def plot_cloud(
@@ -95,15 +97,32 @@ def plot_cloud(
     voxel: float,
     prepared: dict[str, Path] | None = None,
 ) -> PointCloud:
-    """All placed scans of the plot in the plot frame, voxel-thinned."""
+    """All placed scans of the plot in the plot frame, voxel-thinned.
+
+    A scan read from its file is thinned on its own first (memory: its 8M points are not kept);
+    a prepared cloud is thinned already (delta0 cubes), so it joins the one pass over the plot."""
     parts = []
     for scan in plot.scans:
         if scan.id in poses.scans:
-            xyz = _scan_points(manifest, scan, prepared or {})
-            parts.append(_voxel(apply_transform(poses.transform(scan.id), xyz), voxel))
+            xyz, thinned = _scan_points(manifest, scan, prepared or {})
+            xyz = apply_transform(poses.transform(scan.id), xyz)
+            parts.append(xyz if thinned else _voxel(xyz, voxel))
     if not parts:
         raise InputError(f"plot {plot.id!r}: none of its scans has a pose in the poses file")
     return PointCloud(_voxel(np.concatenate(parts), voxel))
+
+
+def as_stored(cloud: PointCloud, scale: float = LAS_SCALE) -> PointCloud:
+    """The cloud as `write_cloud(path, cloud, scale=scale)` stores it and `read_cloud` gives it back
+    (coordinates rounded to `scale` around the writer's offsets): registering this in memory is
+    registering the written file, without reading it back."""
+    offsets = las_offsets(cloud.xyz.min(axis=0)) if len(cloud) else np.zeros(3)
+    xyz = np.empty_like(cloud.xyz)
+    for i in range(3):  # the writer's rounding (laspy) and the reader's scaling (io.las.read_cloud)
+        raw = np.round((cloud.xyz[:, i] - offsets[i]) / scale).astype(np.int32)
+        np.multiply(raw, scale, out=xyz[:, i])
+        xyz[:, i] += offsets[i]
+    return PointCloud(xyz, crs=cloud.crs)
 
 
 def load_als(manifest: Manifest) -> tuple[PointCloud, object]:
@@ -221,9 +240,11 @@ def tie_to_als(
     als_frame = Frame.around(als.xyz)  # the region is solved in ALS CRS - offset
     als_k = manifest.als[0].k
 
-    # 1. plot clouds and ALS crops as files, so the plot -> ALS pairs run (and are cached) like any pair
+    # 1. plot clouds and ALS crops, written once as outputs; their pairs run (and are cached) like any
+    # pair, prepared here from the points in memory (exactly what the files hold): nothing is read back
     jobs_list, anchors, refs = [], {}, {}
     config_json = config.align.model_dump_json()
+    cache = PairCache(out / "pairs")
     # register-plot's prepared clouds (voxel grids of every scan): no scan is read again to build the plots
     recorded = poses.extra.get("prepared") or {}
     prepared_scans = {
@@ -238,30 +259,32 @@ def tie_to_als(
         ref = refs[plot.id] = _plot_reference(plot, poses, G_plot)
         cloud = plot_cloud(manifest, plot, poses, config.plot_voxel, prepared_scans)
         crop, how = crop_als(als, plot, cloud, config.buffer)
-        src = write_cloud(out / "plots" / f"{plot.id}.laz", cloud)
-        tgt = write_cloud(out / "plots" / f"{plot.id}_als.laz", crop, crs=crs)
+        src = write_cloud(out / "plots" / f"{plot.id}.laz", cloud, scale=LAS_SCALE)
+        tgt = write_cloud(out / "plots" / f"{plot.id}_als.laz", crop, crs=crs, scale=LAS_SCALE)
         kind = plot.reference.kind.value
         key = pair_key(src, tgt, kind, "als", plot.reference.k, als_k, config_json, seed)
-        jobs_list.append(
-            PairJob(
-                key,
-                plot.id,
-                ALS_NODE,
-                str(src),
-                str(tgt),
-                kind,
-                "als",
-                plot.reference.k,
-                als_k,
-                config_json,
-                seed,
-                str(out / "prepared"),
-            )
+        job = PairJob(
+            key,
+            plot.id,
+            ALS_NODE,
+            str(src),
+            str(tgt),
+            kind,
+            "als",
+            plot.reference.k,
+            als_k,
+            config_json,
+            seed,
+            str(out / "prepared"),
         )
+        if not cache.path(key).is_file():  # a cached result needs neither cloud prepared
+            held = (as_stored(cloud), as_stored(crop))
+            for pj, points in zip(prepare_jobs_for(job), held):
+                prepare_held(pj, points)
+        del cloud, crop
+        jobs_list.append(job)
         anchors[plot.id] = Anchor(plot.id, ref, "pending", crop=how)
-    records, computed = compute_pairs(
-        jobs_list, PairCache(out / "pairs"), executor, jobs, scheduler, False, progress
-    )
+    records, computed = compute_pairs(jobs_list, cache, executor, jobs, scheduler, False, progress)
 
     # 2. one graph: every plot's pairwise edges + an anchor edge per plot to the fixed ALS node
     nodes, edges = {ALS_NODE: {"kind": "als", "plot": None}}, []

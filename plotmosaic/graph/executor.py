@@ -7,6 +7,7 @@ a crash of the whole run. The scheduling itself is concurrent.futures' or Dask's
 
 from __future__ import annotations
 
+import atexit
 import dataclasses
 import hashlib
 import json
@@ -258,19 +259,49 @@ def run_pairs(
     return records
 
 
+# The run's process pool, kept for its next stage with the same shape: preparing the scans and then
+# registering their pairs use one spawn of the workers (each spawn imports numpy, scipy, ... anew)
+# instead of two, and a worker's memo of the clouds it prepared or loaded serves its later pairs.
+_POOL: dict[tuple[int, int], ProcessPoolExecutor] = {}
+
+
+def _pool(workers: int, per_worker: int) -> ProcessPoolExecutor:
+    shape = (workers, per_worker)
+    pool = _POOL.get(shape)
+    if pool is not None and not getattr(pool, "_broken", False):
+        return pool
+    close_pool()
+    # spawn: Open3D and BLAS thread pools do not survive fork reliably
+    _POOL[shape] = pool = ProcessPoolExecutor(
+        workers,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=_limit_threads,
+        initargs=(per_worker,),
+    )
+    return pool
+
+
+def close_pool(kill: bool = False) -> None:
+    """Shut the kept pool down (at exit, on a new shape, or killed after an interruption)."""
+    for pool in _POOL.values():
+        procs = list((getattr(pool, "_processes", None) or {}).values())
+        pool.shutdown(wait=not kill, cancel_futures=kill)
+        if kill:
+            for proc in procs:
+                proc.terminate()  # a pair already running would otherwise finish after Ctrl-C
+    _POOL.clear()
+
+
+atexit.register(close_pool)
+
+
 def _run_local(jobs, tick, n_jobs, worker) -> None:
     workers, per_worker = split(n_jobs, len(jobs))
     if workers == 1:  # in this process, with the whole budget
         for job in jobs:
             tick(call_with_threads(budget(n_jobs), worker, job))
         return
-    # spawn: Open3D and BLAS thread pools do not survive fork reliably
-    pool = ProcessPoolExecutor(
-        workers,
-        mp_context=multiprocessing.get_context("spawn"),
-        initializer=_limit_threads,
-        initargs=(per_worker,),
-    )
+    pool = _pool(workers, per_worker)
     try:
         pending = {pool.submit(worker, job): job for job in jobs}
         while pending:
@@ -283,11 +314,8 @@ def _run_local(jobs, tick, n_jobs, worker) -> None:
                     record = _failed(job, exc)
                 tick(record)
     except BaseException:
-        pool.shutdown(wait=False, cancel_futures=True)
-        for proc in list((getattr(pool, "_processes", None) or {}).values()):
-            proc.terminate()  # a pair already running would otherwise finish after Ctrl-C
+        close_pool(kill=True)
         raise
-    pool.shutdown(wait=True)
 
 
 def _kind(job) -> str:

@@ -149,18 +149,41 @@ _LOADED_MAX = 4
 reads = 0  # scans read and prepared by this process (tests and benchmarks count them)
 
 
-def _compute(job: PrepareJob) -> PreparedCloud:
+def _compute(job: PrepareJob, cloud=None) -> PreparedCloud:
+    """Prepare the job's scan: `cloud` when the caller holds its points already, else read from job.path."""
     global reads
     from plotmosaic.align.config import AlignConfig, default_levels
     from plotmosaic.align.prepare import prepare_cloud
     from plotmosaic.io.las import read_cloud
 
     config = AlignConfig.model_validate_json(job.config_json)
-    cloud = read_cloud(job.path, attributes=False)
-    reads += 1
+    if cloud is None:
+        cloud = read_cloud(job.path, attributes=False)
+        reads += 1
     return prepare_cloud(
         cloud, job.kind, job.levels or default_levels(job.kind), config, job.seed, job.scan
     )
+
+
+def _remember(key: str, cloud: PreparedCloud) -> None:
+    _LOADED[key] = cloud
+    _LOADED.move_to_end(key)
+    while len(_LOADED) > _LOADED_MAX:
+        _LOADED.popitem(last=False)
+
+
+def prepare_held(job: PrepareJob, cloud) -> PreparedCloud:
+    """The job's prepared cloud from points this process holds (exactly job.path's points, e.g. a
+    cloud it has just written there): into the cache and this process's memo, the file not read."""
+    if job.key in _LOADED:
+        return _LOADED[job.key]
+    path = entry(job.folder, job.key)
+    prepared = _load_or_warn(path, job.scan)
+    if prepared is None:
+        prepared = _compute(job, cloud)
+        save_prepared(path, prepared)
+    _remember(job.key, prepared)
+    return prepared
 
 
 def _load_or_warn(path: Path, scan: str) -> PreparedCloud | None:
@@ -190,9 +213,7 @@ def get_prepared(job: PrepareJob) -> tuple[PreparedCloud, float]:
         cloud = _compute(job)
         seconds = time.perf_counter() - start
         save_prepared(path, cloud)
-    _LOADED[job.key] = cloud
-    while len(_LOADED) > _LOADED_MAX:
-        _LOADED.popitem(last=False)
+    _remember(job.key, cloud)
     return cloud, seconds
 
 
@@ -202,8 +223,13 @@ def run_prepare_job(job: PrepareJob) -> dict:
     record = {"key": job.key, "scan": job.scan, "kind": "prepare", "computed": False}
     try:
         path = entry(job.folder, job.key)
-        if _load_or_warn(path, job.scan) is None:
-            save_prepared(path, _compute(job))
+        held = _LOADED.get(job.key)
+        if held is not None and not path.is_file():
+            save_prepared(path, held)
+        elif held is None and _load_or_warn(path, job.scan) is None:
+            cloud = _compute(job)
+            save_prepared(path, cloud)
+            _remember(job.key, cloud)  # a worker kept for the pairs may register this scan next
             record["computed"] = True
         record["status"] = "ok"
     except (

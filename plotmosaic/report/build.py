@@ -26,7 +26,7 @@ from plotmosaic.report.slice import (
     Ground,
     Stem,
     breast_height_slice,
-    cell_minima,
+    cell_floor,
     find_stems,
     ground_model,
     low_stratum,
@@ -78,10 +78,14 @@ def collect(
         if sid not in poses or sid not in paths:
             continue
         xyz = apply_transform(poses[sid], reader(paths[sid]))
-        minima = merge_minima(minima, cell_minima(xyz, cfg.slice.dtm_cell))
+        floor = cell_floor(
+            xyz, cfg.slice.dtm_cell
+        )  # one cell pass: the ground model and the stratum
+        minima = merge_minima(minima, floor[:2])
         low[sid] = thin(
-            low_stratum(xyz, cfg.slice), cfg.slice.stratum_voxel, len(xyz), rng
+            low_stratum(xyz, cfg.slice, floor), cfg.slice.stratum_voxel, len(xyz), rng
         )  # memory: area, not points
+        del floor
         view.thinned[sid] = thin(xyz, cfg.distance.voxel, cfg.distance.max_points, rng)
         del xyz
     if not low:

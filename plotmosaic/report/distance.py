@@ -5,18 +5,24 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from plotmosaic.align.voxel import groups
 from plotmosaic.report.config import DistanceConfig
 from plotmosaic.report.slice import flat_keys
 
 
 def thin(xyz: np.ndarray, voxel: float, cap: int, rng: np.random.Generator) -> np.ndarray:
-    """One random point per `voxel` cube (not a centroid, which would smooth a surface), at most `cap`."""
+    """One random point per `voxel` cube (not a centroid, which would smooth a surface), at most `cap`.
+
+    The random point is the cube's first in a seeded permutation: the cube keys are computed once on
+    the points as they are and permuted as integers, then one plain sort groups them."""
     if not len(xyz):
         return xyz
     perm = rng.permutation(len(xyz))
-    keys = np.floor((xyz[perm] - xyz.min(axis=0)) / voxel).astype(np.int64)
-    _, first = np.unique(flat_keys(keys), return_index=True)
-    idx = np.sort(perm[first])
+    ij = np.empty((len(xyz), 3), np.int64)
+    for k in range(3):
+        ij[:, k] = np.floor((xyz[:, k] - xyz[:, k].min()) / voxel)
+    order, starts = groups(flat_keys(ij)[perm])
+    idx = np.sort(perm[order[starts]])
     if len(idx) > cap:
         idx = np.sort(rng.choice(idx, cap, replace=False))
     return xyz[idx]

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from plotmosaic.align.voxel import groups
 from plotmosaic.report.config import SliceConfig
 
 # ---------------------------------------------------------------- ground
@@ -20,23 +21,48 @@ from plotmosaic.report.config import SliceConfig
 
 def flat_keys(ij: np.ndarray) -> np.ndarray:
     """One int64 per integer cell row (any number of columns): np.unique on it is far faster than axis=0."""
-    ij = ij - ij.min(axis=0)
-    span = ij.max(axis=0) + 1
     key = np.zeros(len(ij), np.int64)
-    for k in range(ij.shape[1]):
-        key = key * int(span[k]) + ij[:, k]
+    for k in range(
+        ij.shape[1]
+    ):  # column by column: axis-0 reductions over (N, k) are several times slower
+        col = ij[:, k] - ij[:, k].min() if len(ij) else ij[:, k]
+        key *= int(col.max()) + 1 if len(col) else 1
+        key += col
     return key
+
+
+def cell_keys(xy: np.ndarray, cell: float) -> np.ndarray:
+    """(N, 2) integer cells of side `cell` under the points (floor of x / cell, y / cell)."""
+    out = np.empty((len(xy), 2), np.int64)
+    for k in range(2):
+        out[:, k] = np.floor(xy[:, k] / cell)
+    return out
+
+
+def _runs(flat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(order, run starts, inverse) of flat keys: np.unique(return_index, return_inverse) by one plain sort."""
+    order, starts = groups(flat)
+    inverse = np.empty(len(flat), np.int64)
+    run = np.zeros(len(flat), np.int64)
+    run[starts[1:]] = 1
+    inverse[order] = np.cumsum(run)
+    return order, starts, inverse
+
+
+def cell_floor(xyz: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(unique integer cells (n, 2) in flat-key order, lowest z per cell, each point's cell index)."""
+    keys = cell_keys(xyz, cell)
+    if not len(keys):
+        return np.zeros((0, 2), np.int64), np.zeros(0), np.zeros(0, np.int64)
+    order, starts, inverse = _runs(flat_keys(keys))
+    zmin = np.minimum.reduceat(xyz[:, 2][order], starts)
+    return keys[order[starts]], zmin, inverse
 
 
 def cell_minima(xyz: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
     """(unique integer cells (n, 2), lowest z per cell) of the points."""
-    keys = np.floor(xyz[:, :2] / cell).astype(np.int64)
-    if not len(keys):
-        return np.zeros((0, 2), np.int64), np.zeros(0)
-    _, first, inv = np.unique(flat_keys(keys), return_index=True, return_inverse=True)
-    zmin = np.full(len(first), np.inf)
-    np.minimum.at(zmin, inv, xyz[:, 2])
-    return keys[first], zmin
+    cells, zmin, _ = cell_floor(xyz, cell)
+    return cells, zmin
 
 
 def merge_minima(
@@ -46,10 +72,8 @@ def merge_minima(
     keys, z = np.vstack([a[0], b[0]]), np.concatenate([a[1], b[1]])
     if not len(keys):
         return keys, z
-    _, first, inv = np.unique(flat_keys(keys), return_index=True, return_inverse=True)
-    zmin = np.full(len(first), np.inf)
-    np.minimum.at(zmin, inv, z)
-    return keys[first], zmin
+    order, starts, _ = _runs(flat_keys(keys))
+    return keys[order[starts]], np.minimum.reduceat(z[order], starts)
 
 
 @dataclass
@@ -118,19 +142,21 @@ def _fill_nearest(grid: np.ndarray) -> np.ndarray:
     return grid[tuple(idx)]
 
 
-def low_stratum(xyz: np.ndarray, cfg: SliceConfig) -> np.ndarray:
+def low_stratum(
+    xyz: np.ndarray,
+    cfg: SliceConfig,
+    floor: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
     """Points of one scan that can lie in the slice, whatever the other scans say about the ground.
 
     A slice point is at most height + half_width above the plot's ground, which is at or below this
     scan's own lowest point in the cell; points just above that minimum are this scan's ground.
+    `floor`: `cell_floor(xyz, cfg.dtm_cell)` when the caller has it already.
     """
     if not len(xyz):
         return xyz
-    keys = np.floor(xyz[:, :2] / cfg.dtm_cell).astype(np.int64)
-    _, inv = np.unique(flat_keys(keys), return_inverse=True)
-    zmin = np.full(inv.max() + 1, np.inf)
-    np.minimum.at(zmin, inv, xyz[:, 2])
-    dz = xyz[:, 2] - zmin[inv]
+    _, zmin, inverse = floor if floor is not None else cell_floor(xyz, cfg.dtm_cell)
+    dz = xyz[:, 2] - zmin[inverse]
     return xyz[(dz >= cfg.keep_low) & (dz <= cfg.keep_high)]
 
 
@@ -148,25 +174,52 @@ def breast_height_slice(
 # ---------------------------------------------------------------- stems
 
 
+def _solve3(M: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """3x3 normal equations by Cramer's rule (a general solver's call overhead is most of a small
+    fit's time); least squares when singular (collinear points)."""
+    (a, b_, c), (d, e, f), (g, h, i) = M.tolist()
+    det = a * (e * i - f * h) - b_ * (d * i - f * g) + c * (d * h - e * g)
+    scale = max(abs(a), abs(e), abs(i), 1e-300)
+    if abs(det) <= 1e-12 * scale**3:
+        return np.linalg.lstsq(M, b, rcond=None)[0]
+    inv = np.array(
+        [
+            [e * i - f * h, c * h - b_ * i, b_ * f - c * e],
+            [f * g - d * i, a * i - c * g, c * d - a * f],
+            [d * h - e * g, b_ * g - a * h, a * e - b_ * d],
+        ]
+    )
+    return inv @ b / det
+
+
 def fit_circle(xy: np.ndarray, iterations: int = 10) -> tuple[np.ndarray, float, float]:
-    """(centre, radius, RMS residual) of a circle: algebraic (Kasa) start, then geometric Gauss-Newton."""
+    """(centre, radius, RMS residual) of a circle: algebraic (Kasa) start, then geometric Gauss-Newton.
+
+    Both solved through their 3x3 normal equations (sums over the points): the thousands of small
+    fits of a report cost a fraction of a general least-squares call each."""
     mean = xy.mean(axis=0)
     p = xy - mean
-    A = np.column_stack([p, np.ones(len(p))])
-    sol, *_ = np.linalg.lstsq(A, (p**2).sum(axis=1), rcond=None)
+    x, y = p[:, 0], p[:, 1]
+    n = float(len(p))
+    sq = x * x + y * y
+    sxx, sxy, syy, sx, sy = x @ x, x @ y, y @ y, x.sum(), y.sum()
+    M = np.array([[sxx, sxy, sx], [sxy, syy, sy], [sx, sy, n]])
+    sol = _solve3(M, np.array([x @ sq, y @ sq, sq.sum()]))
     c = sol[:2] / 2
     r = float(np.sqrt(max(sol[2] + c @ c, 1e-12)))
     for _ in range(
         iterations
     ):  # the algebraic fit is biased on a half arc; the geometric one is not
-        d = p - c
-        dist = np.maximum(np.linalg.norm(d, axis=1), 1e-12)
-        J = np.column_stack([-d / dist[:, None], -np.ones(len(p))])
-        step, *_ = np.linalg.lstsq(J, -(dist - r), rcond=None)
+        dx, dy = x - c[0], y - c[1]
+        dist = np.maximum(np.sqrt(dx * dx + dy * dy), 1e-12)
+        ux, uy, f = dx / dist, dy / dist, dist - r
+        sux, suy = ux.sum(), uy.sum()
+        M = np.array([[ux @ ux, ux @ uy, sux], [ux @ uy, uy @ uy, suy], [sux, suy, n]])
+        step = _solve3(M, np.array([ux @ f, uy @ f, f.sum()]))  # J = -[ux, uy, 1]: J'J s = -J'f
         c, r = c + step[:2], r + float(step[2])
         if np.abs(step).max() < 1e-7:
             break
-    res = np.linalg.norm(p - c, axis=1) - r
+    res = np.sqrt(((p - c) ** 2).sum(axis=1)) - r
     return c + mean, abs(r), float(np.sqrt(np.mean(res**2)))
 
 

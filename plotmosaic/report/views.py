@@ -104,19 +104,26 @@ def _stem_inset(ax, st: Stem, colours: dict, origin: np.ndarray, number: int) ->
 def plot_edge_distances(
     path: Path, edges: list[dict], origin: np.ndarray, colour_max: float, cell: float = 0.25
 ) -> Path:
-    """Per edge: histogram of distances to the other scan's local surface in the overlap, and a map of them from above."""
+    """Per edge: histogram of distances to the other scan's local surface in the overlap, and a map of them from above.
+
+    Drawn cheaply for many edges: each histogram one filled step line (not a bar per bin), one colour
+    bar for all maps (they share the 0 - colour_max scale), fixed margins instead of a tight-box pass."""
     n = max(1, len(edges))
+    height = 4.3 * n
     fig, axes = plt.subplots(
         n,
         2,
-        figsize=(12, 4.3 * n),
+        figsize=(12, height),
         squeeze=False,
         gridspec_kw={"width_ratios": [1, 1.25], "hspace": 0.45},
     )
+    fig.subplots_adjust(left=0.07, right=0.86, top=1 - 0.45 / height, bottom=0.55 / height)
     cmap = plt.get_cmap("turbo")
+    sc = None
     for (hist, top), e in zip(axes, edges):
         d = e["distances"]
-        hist.hist(d * 100, bins=np.linspace(0, e["max_distance"] * 100, 61), color="tab:blue")
+        bins = np.linspace(0, e["max_distance"] * 100, 61)
+        hist.stairs(np.histogram(d * 100, bins)[0], bins, fill=True, color="tab:blue")
         hist.axvline(e["median"] * 100, color="black", ls="--", lw=1)
         hist.set_xlabel("distance to the other scan's local surface (cm)")
         hist.set_ylabel("points")
@@ -137,10 +144,14 @@ def plot_edge_distances(
         )
         top.set_aspect("equal")
         top.set_title(f"overlap from above, mean distance per {cell * 100:.0f} cm cell", fontsize=9)
-        fig.colorbar(sc, ax=top, label="cm", shrink=0.85)
-    if not edges:
+    if sc is not None:
+        bar = fig.add_axes(
+            (0.9, 1 - 0.45 / height - min(0.3, 4.0 / height), 0.015, min(0.3, 4.0 / height))
+        )
+        fig.colorbar(sc, cax=bar, label="mean distance per cell (cm), every map")
+    else:
         axes[0, 0].text(0.5, 0.5, "no kept edge", ha="center")
-    return savefig(fig, path)
+    return savefig(fig, path, tight=False)
 
 
 def _distance_raster(xy: np.ndarray, d: np.ndarray, cell: float) -> tuple[np.ndarray, tuple]:
