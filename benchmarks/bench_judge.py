@@ -201,6 +201,14 @@ def suite_cases(trials):
         yield label, ps, pt, np.linalg.inv(P), cfg, extra
 
 
+def label_of(A: np.ndarray, truth_local: np.ndarray | None, centre: np.ndarray) -> str:
+    """right: in the truth's basin (the final ICP polishes it); wrong: a distinct pose; near: neither."""
+    if truth_local is None:
+        return "wrong"
+    deg, m = judge.separation(A, truth_local, centre)
+    return "wrong" if deg > 3.0 or m > 1.0 else ("right" if deg < 2.0 and m < 0.3 else "near")
+
+
 def right(T: np.ndarray, truth_local: np.ndarray | None, centre: np.ndarray) -> bool:
     if truth_local is None:
         return False
@@ -255,6 +263,7 @@ def run_case(
         A = judge.refine(ps, pt, to_local_transform(E, ps.frame, pt.frame), jc)
         poses.append((A, judge.profile(ps, pt, A, jc)["score"], "known wrong"))
     profiles = [judge.profile(ps, pt, A, jc) for A, _, _ in poses]
+    labels = [label_of(A, truth_local, centre) for A, _, _ in poses]
     for i, (A, score, gen) in enumerate(poses):
         rivals = [
             s for j, (B, s, _) in enumerate(poses) if j != i and judge.distinct(A, B, centre, jc)
@@ -270,12 +279,9 @@ def run_case(
         fm = judge.fine_margin(fin, [profiles[j] for j in others], jc)
         margin = 1.0 - best / score if score > 0 else -1.0
         deg, m = (None, None) if truth_local is None else judge.separation(A, truth_local, centre)
-        # right: in the truth's basin (the final ICP polishes it); wrong: a distinct pose; in between: neither
-        label = (
-            "wrong"
-            if deg is None or deg > 3.0 or m > 1.0
-            else ("right" if deg < 2.0 and m < 0.3 else "near")
-        )
+        label = labels[i]
+        # the generators missed the truth (or left it too far off for the rival refinement)
+        wrong_others = [profiles[j] for j in others if labels[j] == "wrong"]
         rows.append(
             {
                 "case": name,
@@ -296,6 +302,7 @@ def run_case(
                 else -1.0,
                 "final_sharpness": judge.sharpness(fin),
                 "fine_margin": fm,
+                "fine_margin_wrong_rivals": judge.fine_margin(fin, wrong_others, jc),
                 # what the judge would say of it (its confidence: the fine margin)
                 "confidence": judge.confidence(fin, [profiles[j] for j in others], jc),
                 "final_profile": fin,
@@ -450,6 +457,15 @@ def report(rows: list, outcomes: list, cfg: AlignConfig) -> str:
             f" lowest of a right pose: {min(x['fine_margin'] for x in r):.3f}"
             if r
             else ""
+        )
+    alone = max(w, key=lambda x: x.get("fine_margin_wrong_rivals", -1.0), default=None)
+    if alone is not None and "fine_margin_wrong_rivals" in alone:
+        lines.append(
+            f"against wrong rivals alone (the truth missed): highest fine margin of a wrong pose"
+            f" {alone['fine_margin_wrong_rivals']:.3f} ({alone['case']}, {alone['generator']},"
+            f" sharpness {alone['final_sharpness']:.3f}); a fine margin of"
+            f" {jc.chance_margin + cfg.min_confidence * (jc.full_margin - jc.chance_margin):.2f}"
+            f" is confidence {cfg.min_confidence}"
         )
     lines.append(
         f"wrong poses passing the judge (confidence >= {cfg.min_confidence}, score >="
