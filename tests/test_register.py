@@ -182,7 +182,13 @@ def test_tie_to_als_georeferences_every_scan(runs, tmp_path, monkeypatch):
         assert rot < 0.2 and trans < 0.05, (sid, rot, trans)
     (anchor,) = result.anchors
     assert anchor.status == "ok" and anchor.fitness > 0.2 and anchor.residual is not None
-    assert "Anchors" in (tmp_path / "geo" / "report.md").read_text()
+    md = (tmp_path / "geo" / "report.md").read_text()
+    assert "Anchors" in md
+    # one anchor moves the plot as one piece: its within-plot checks are register-plot's, linked
+    assert "as one piece" in md and "report.html" in md
+    assert (tmp_path / "geo" / "P1_scans.png").is_file() and (
+        tmp_path / "geo" / "P1_map.png"
+    ).is_file()
     assert "not recorded" not in (tmp_path / "geo" / "report.html").read_text()  # stage times
 
 

@@ -102,3 +102,40 @@ def test_one_pool_serves_the_stages_of_a_run():
     finally:
         close_pool()
     assert not _POOL
+
+
+def _rigid_case(tmp_path, nudge):
+    """register-plot's poses of a 3-scan plot, the same moved as one piece into a CRS, one scan nudged."""
+    from types import SimpleNamespace
+
+    from plotmosaic.graph.anchors import Anchor
+    from plotmosaic.io.frame import translation
+    from plotmosaic.poses import Poses, ScanPose
+
+    rot = np.array([[0.0, -1, 0, 0], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+    plot = {"S0": np.eye(4), "S1": translation([10.0, 2, 0]), "S2": rot @ translation([-5.0, 8, 1])}
+    earlier = Poses({k: ScanPose(T, "P1") for k, T in plot.items()}, frame="plot")
+    M = translation([470000.0, 3810000, 2100]) @ rot
+    moved = {k: M @ T for k, T in plot.items()}
+    moved["S2"] = moved["S2"] @ translation([nudge, 0, 0])
+    (tmp_path / "reg").mkdir(parents=True)
+    (tmp_path / "reg" / "report.html").write_text("<html></html>")
+    result = SimpleNamespace(
+        out=tmp_path / "geo",
+        poses=Poses({k: ScanPose(T, "P1") for k, T in moved.items()}, frame="crs"),
+        anchors=[Anchor("P1", "S0", "ok")],
+    )
+    return result, earlier, tmp_path / "reg" / "report.html"
+
+
+def test_a_plot_moved_as_one_piece_is_judged_in_register_plots_report(tmp_path):
+    from plotmosaic.graph.report import rigid_plots
+    from plotmosaic.report.config import ReportConfig
+
+    cfg = ReportConfig()
+    result, earlier, page = _rigid_case(tmp_path, 0.0)
+    judged = rigid_plots(result, earlier, page, cfg)
+    assert judged["P1"][0] == "../reg/report.html" and "one piece" in judged["P1"][1]
+    result, earlier, page = _rigid_case(tmp_path / "b", 2 * cfg.rigid_translation)
+    assert rigid_plots(result, earlier, page, cfg) == {}  # moved within the plot: judged anew
+    assert rigid_plots(result, earlier, tmp_path / "missing.html", cfg) == {}

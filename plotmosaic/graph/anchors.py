@@ -356,7 +356,16 @@ def tie_to_als(
         if s.id in prepared_scans
     }
     result.seconds = time.perf_counter() - start  # the report shows the work before it
-    write_tie_report(result, manifest, als, config, seed, reader=points_reader(entries))
+    write_tie_report(
+        result,
+        manifest,
+        als,
+        config,
+        seed,
+        reader=points_reader(entries),
+        earlier=poses,
+        earlier_report=poses_path.parent / "report.html",
+    )
     result.seconds = time.perf_counter() - start
     return result
 

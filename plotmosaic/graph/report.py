@@ -329,10 +329,55 @@ def write_register_report(
     return write_text_atomic(out / "report.md", "\n".join(lines))
 
 
+def rigid_plots(result, earlier, earlier_report: Path | None, cfg) -> dict[str, tuple[str, str]]:
+    """Plots the region solve moved as one piece (each scan's pose relative to the plot's reference
+    as register-plot left it, within the report's rigid tolerance): judged in register-plot's report."""
+    import os
+
+    from plotmosaic.io.frame import inverse, pose_error
+
+    if earlier is None or earlier_report is None or not Path(earlier_report).is_file():
+        return {}
+    after = result.poses
+    out = {}
+    for a in result.anchors:
+        ref = a.reference
+        scans = [s for s in after.scans if after.scans[s].plot == a.plot]
+        if (
+            a.status != "ok"
+            or ref not in earlier.scans
+            or any(s not in earlier.scans for s in scans)
+        ):
+            continue
+        worst_t = worst_r = 0.0
+        for s in scans:
+            before = inverse(earlier.transform(ref)) @ earlier.transform(s)
+            now = inverse(after.transform(ref)) @ after.transform(s)
+            r, t = pose_error(now, before)
+            worst_t, worst_r = max(worst_t, t), max(worst_r, r)
+        if worst_t <= cfg.rigid_translation and worst_r <= cfg.rigid_rotation_deg:
+            out[a.plot] = (
+                os.path.relpath(earlier_report, result.out),
+                f"The region solve moved plot {a.plot} as one piece (its scans relative to {ref} "
+                f"changed by at most {worst_t * 1000:.2f} mm / {worst_r:.4f} deg)",
+            )
+    return out
+
+
 def write_tie_report(
-    result, manifest, als, config, seed: int, reader: Callable[[Path], np.ndarray] | None = None
+    result,
+    manifest,
+    als,
+    config,
+    seed: int,
+    reader: Callable[[Path], np.ndarray] | None = None,
+    earlier=None,
+    earlier_report: Path | None = None,
 ) -> Path:
-    """report.md and report.html of tie-to-als: anchors, poses in the ALS CRS, slice and distances, map over the ALS CHM."""
+    """report.md and report.html of tie-to-als: anchors, poses in the ALS CRS, slice and distances, map over the ALS CHM.
+
+    `earlier` (register-plot's poses) and `earlier_report` (its report.html): a plot the region solve
+    moved rigidly is shown over the ALS, its within-plot checks are linked, not recomputed."""
     from plotmosaic.graph.config import PoseGraphConfig
     from plotmosaic.report.build import ReportInput, Stage, build_report
     from plotmosaic.report.config import ReportConfig
@@ -406,6 +451,8 @@ def write_tie_report(
         *_recorded(result),
     ]
     als_xyz = _als_near(als.xyz, poses, 40.0)
+    cfg = getattr(config, "report", None) or ReportConfig()
+    judged = rigid_plots(result, earlier, earlier_report, cfg)
     inp = ReportInput(
         title="tie-to-als report (georeferenced)",
         out=out,
@@ -424,14 +471,17 @@ def write_tie_report(
         facts=[f"manifest: {manifest.source}", "frame: the ALS CRS"]
         + [_anchor_fact(a) for a in result.anchors],
         als_xyz=als_xyz,
+        judged_in=judged,
         min_confidence=getattr(
             getattr(config, "graph", None), "min_confidence", PoseGraphConfig().min_confidence
         ),
         bundle=residual_summary(G),
     )
-    cfg = ReportConfig(picture_points=getattr(config, "report_points", 20_000))
     _, figures = build_report(inp, cfg, seed, overview=True)
     for p in plots:
+        if p in judged:
+            href, why = judged[p]
+            lines += [f"{why}: its within-plot checks are in [{href}]({href}).", ""]
         lines += _md_figures(figures, p)
     return write_text_atomic(out / "report.md", "\n".join(lines))
 

@@ -96,6 +96,26 @@ def collect(
     return view
 
 
+def glance(
+    plot: str,
+    scans: list[str],
+    paths: dict[str, Path],
+    poses: dict[str, np.ndarray],
+    reader: Callable[[Path], np.ndarray],
+    cfg: ReportConfig,
+    seed: int,
+) -> PlotView:
+    """A plot judged in an earlier report: only a seeded sample of each scan, for the pictures."""
+    view = PlotView(plot, scans)
+    rng = np.random.default_rng(seed)
+    for sid in scans:
+        if sid in poses and sid in paths:
+            xyz = reader(paths[sid])
+            pick = np.sort(rng.choice(len(xyz), min(len(xyz), cfg.picture_points), replace=False))
+            view.thinned[sid] = apply_transform(poses[sid], xyz[pick])
+    return view
+
+
 def kept_edges(G: nx.Graph, scans: list[str]) -> list[tuple[str, str]]:
     return sorted(
         (e["source"], e["target"])
@@ -332,6 +352,9 @@ class ReportInput:
         default_factory=list
     )  # PNGs already drawn (report.md's)
     als_xyz: np.ndarray | None = None
+    # plot id -> (link to the report that judged its scans, why): plots that moved rigidly since
+    # (tie-to-als after register-plot), so their slice, stems and distances are that report's
+    judged_in: dict[str, tuple[str, str]] = field(default_factory=dict)
     min_confidence: float = 0.25
     bundle: dict | None = None  # residual summary of the kept edges
 
@@ -349,6 +372,9 @@ def build_report(
     out, G = inp.out, inp.graph
     views_ = []
     for plot, scans in inp.plots.items():
+        if plot in inp.judged_in:
+            views_.append(glance(plot, scans, inp.paths, inp.poses, inp.reader, cfg, seed))
+            continue
         v = collect(plot, scans, inp.paths, inp.poses, inp.reader, cfg, seed)
         add_distances(v, G, cfg)
         views_.append(v)
@@ -360,36 +386,40 @@ def build_report(
             continue
         origin = origin_of(v.thinned)
         colours = views.scan_colours(v.scans)
-        figs.append(
-            (
-                v.plot,
+        if v.ground is not None:
+            figs.append(
                 (
-                    f"Plot {v.plot}: breast-height slice ({cfg.slice.height:g} m +- {cfg.slice.half_width * 100:.0f} cm "
-                    "above the ground from the scans), one colour per scan; right: stems most scans see, 1 cm grid"
-                ),
-                views.plot_breast_slice(
-                    out / f"{v.plot}_breast_slice.png",
-                    v.slices,
-                    v.stems,
-                    f"plot {v.plot}: breast-height slice",
-                    origin,
-                    cfg.slice.insets,
-                    colours,
-                ),
+                    v.plot,
+                    (
+                        f"Plot {v.plot}: breast-height slice ({cfg.slice.height:g} m +- {cfg.slice.half_width * 100:.0f} cm "
+                        "above the ground from the scans), one colour per scan; right: stems most scans see, 1 cm grid"
+                    ),
+                    views.plot_breast_slice(
+                        out / f"{v.plot}_breast_slice.png",
+                        v.slices,
+                        v.stems,
+                        f"plot {v.plot}: breast-height slice",
+                        origin,
+                        cfg.slice.insets,
+                        colours,
+                    ),
+                )
             )
-        )
         positions = {
             s: scan_position(inp.poses[s], v.thinned.get(s)) for s in v.scans if s in inp.poses
         }
         bg = (
             views.canopy_height(inp.als_xyz)
             if inp.als_xyz is not None
+            else None
+            if v.ground is None
             else views.hillshade_background(v.ground)
         )
         figs.append(
             (
                 v.plot,
-                f"Plot {v.plot}: map of scans and edges over the {bg[2]}",
+                f"Plot {v.plot}: map of scans and edges"
+                + (f" over the {bg[2]}" if bg is not None else ""),
                 views.plot_map(
                     out / f"{v.plot}_map.png",
                     G.subgraph(v.scans),
@@ -433,10 +463,18 @@ def build_report(
                 else p[np.sort(rng.choice(len(p), cfg.picture_points, replace=False))]
                 for s, p in v.thinned.items()
             }
+            als = _als_under(inp.als_xyz, small) if v.ground is None else None
+            if als is not None:  # the ALS the plot was placed on, in grey over the scans
+                small = {**small, "ALS": als}
             figs.append(
                 (
                     v.plot,
-                    f"Plot {v.plot}: placed scans from above and from the side, one colour per scan",
+                    f"Plot {v.plot}: placed scans from above and from the side, one colour per scan"
+                    + (
+                        ", the ALS it was placed on drawn over them (grey)"
+                        if als is not None
+                        else ""
+                    ),
                     scans_picture(
                         out / f"{v.plot}_scans.png", small, f"plot {v.plot}: placed scans", origin
                     ),
@@ -451,6 +489,16 @@ def build_report(
         )
     )
     return _write_page(inp, views_, figs, warnings, view3d, cfg), figs
+
+
+def _als_under(als_xyz: np.ndarray | None, clouds: dict[str, np.ndarray]) -> np.ndarray | None:
+    """ALS points over the scans' extent (x, y), for the overview behind them."""
+    if als_xyz is None or not clouds:
+        return None
+    xyz = np.vstack(list(clouds.values()))
+    lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
+    keep = np.all((als_xyz[:, :2] >= lo) & (als_xyz[:, :2] <= hi), axis=1)
+    return als_xyz[keep] if keep.any() else None
 
 
 def _write_page(
@@ -528,9 +576,18 @@ def _write_page(
     page.raw(stage_table(inp.stages))
     for v in views_:
         page.heading(f"Plot {v.plot}")
+        if v.plot in inp.judged_in:
+            href, why = inp.judged_in[v.plot]
+            page.paragraph(
+                f"{why}: its breast-height slice, stems and cloud-to-cloud distances are those of the "
+                "report that placed its scans, moved with the plot:"
+            )
+            page.link(href, href)
         for plot, caption, png in figs:
             if plot == v.plot:
                 page.raw(H.image(png, caption))
+        if v.plot in inp.judged_in:
+            continue
         origin = origin_of(v.thinned) if v.thinned else np.zeros(3)
         page.raw(stem_table(v, origin))
         rows = [

@@ -152,6 +152,18 @@ class ReportConfig(BaseModel):
         le=1,
         description="a median ring spread above this (m) is flagged as doubled stems",
     )
+    rigid_translation: float = Field(
+        0.0005,
+        ge=0,
+        le=0.1,
+        description="a plot whose within-plot poses a later solve moved less than this (m) is judged in the earlier report",
+    )
+    rigid_rotation_deg: float = Field(
+        0.001,
+        ge=0,
+        le=1,
+        description="the same in rotation (deg): its slice and distances would be the earlier ones, moved",
+    )
     weak_distance: float = Field(
         0.03,
         gt=0,
