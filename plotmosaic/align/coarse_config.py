@@ -122,13 +122,14 @@ class CoarseConfig(BaseModel):
         description="estimates further than this from the joint (ground + stem) one are dropped",
     )
     max_verticals: int = Field(
-        3, ge=1, le=6, description="vertical hypotheses per cloud carried into the search"
+        3, ge=1, le=6, description="vertical hypotheses of the source carried into the search"
     )
     max_target_verticals: int = Field(
-        3,
+        5,
         ge=1,
         le=6,
-        description="of those, for the target: its own frame is rarely far off, but like-with-like pairs need its kinds",
+        description="vertical hypotheses kept for the target: every kind, so each source kind finds its like "
+        "(kept ones cost nothing until a pair uses them)",
     )
     max_vertical_pairs: int = Field(
         3, ge=1, le=36, description="(source, target) vertical pairs searched"
