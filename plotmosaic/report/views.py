@@ -66,7 +66,8 @@ def plot_breast_slice(
     for k, st in enumerate(chosen):
         sub = fig.add_subplot(gs[k // cols, 2 + k % cols])
         _stem_inset(sub, st, colours, origin, k + 1)
-    return savefig(fig, path)
+    fig.subplots_adjust(left=0.05, right=0.98, top=0.95, bottom=0.06, wspace=0.3, hspace=0.3)
+    return savefig(fig, path, tight=False)  # fixed margins: a tight box is a second layout pass
 
 
 def _stem_inset(ax, st: Stem, colours: dict, origin: np.ndarray, number: int) -> None:
