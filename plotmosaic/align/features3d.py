@@ -202,8 +202,9 @@ def vote_4dof(p: np.ndarray, q: np.ndarray, config: CoarseConfig) -> list[tuple[
     With the vertical known, a heading fixes every correspondence's translation q - R p; the right
     ones agree within the inlier distance. Each heading's translations are binned (two grids half a
     bin apart, so a cluster cut by one grid's border is whole in the other) and the fullest bins
-    become poses. Exhaustive and seeded by nothing: random pair sampling scored ~2 right samples of
-    3,000 when 13 of 1,400 mutual matches were right (MLS views 8 m apart) and found the pose by luck.
+    become poses. Exhaustive and seeded by nothing: random pair sampling scored the first 3,000
+    consistent of 200,000 draws, a handful of right samples when 13 of 1,400 matches are right
+    (MLS views 8 m apart).
     """
     c = config
     if len(p) < 2:
