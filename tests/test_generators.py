@@ -227,7 +227,8 @@ def test_trunk_axes_level_a_tilted_slope_where_the_ground_fit_does_not():
     moved = move(T, pts)
     true_up = T[:3, :3] @ Z
     c = CoarseConfig()
-    verticals, info = vertical_hypotheses(moved, normals_of(moved), c)
+    nrm = normals_of(moved)
+    verticals, info = vertical_hypotheses(moved, nrm, c, dense=(moved, nrm))
     by_name = {v.name: v for v in verticals}
     assert verticals[0].name == "trunks", info
     assert angle_deg(by_name["trunks"].up, true_up) < 1.5, info
