@@ -195,6 +195,14 @@ class AlignConfig(BaseModel):
     final_polish_kernel: float = Field(
         0.03, gt=0, le=1, description="least Tukey width (m) of the fine stage when it polishes"
     )
+    # two scans of these kinds polish at final_polish_* unscaled, however sparse: their plane
+    # residuals are range noise (mm); unpolished, stems seen from opposite sides pull 18 m pairs of the
+    # `large` preset at 60k points ~0.9 cm short (10 pairs from the truth: -0.88 -> -0.16 cm mean
+    # along the baseline, 1.44 -> 0.59 cm mean error, benchmarks/results/graph.md)
+    final_polish_fixed_kinds: list[Literal["tls", "mls", "uls", "als"]] = Field(
+        default_factory=lambda: ["tls"],
+        description="pairs of these sensor kinds polish unscaled (others x the judge's scale factor)",
+    )
     final_max_source_points: int = Field(
         40_000,
         ge=100,

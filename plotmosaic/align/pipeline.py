@@ -179,11 +179,18 @@ def _candidates(hypotheses: list[dict], start: np.ndarray) -> list[tuple[np.ndar
 
 
 def _fine_schedule(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig):
-    """(stages, Tukey floor) of the final ICP: `final_schedule`, and where both clouds are dense
-    enough a tight polish stage (final_polish_*, x the judge's scale factor) with a narrower kernel:
-    a 10 cm last stage with a 10 cm kernel leaves TLS pairs 0.03 deg off in yaw."""
-    jc = config.judge
-    f = judge_mod.scale_factor(src, tgt, jc)
+    """(stages, Tukey floor) of the final ICP: `final_schedule`, then a tight polish stage
+    (final_polish_*) with a narrower kernel: a 10 cm last stage with a 10 cm kernel leaves TLS pairs
+    0.03 deg off in yaw, and pairs the near half of a stem or branch seen by one scanner with the
+    other half seen by the other scanner, which pulls every baseline short (~1 cm per 18 m pair on
+    the `large` preset). Between two terrestrial scans (`final_polish_fixed_kinds`) the polish is
+    the same however sparse they are (their plane residuals are range noise, millimetres); with an
+    airborne or mobile cloud it is stretched by the judge's scale factor and left out where it would
+    be looser than the last stage."""
+    fixed = (
+        src.kind in config.final_polish_fixed_kinds and tgt.kind in config.final_polish_fixed_kinds
+    )
+    f = 1.0 if fixed else judge_mod.scale_factor(src, tgt, config.judge)
     d = config.final_polish_distance * f
     stages = list(config.final_schedule)
     if config.final_polish_iterations == 0 or not stages or d >= stages[-1].max_distance:
