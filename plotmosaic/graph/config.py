@@ -113,6 +113,12 @@ class RegisterOptions(BaseModel):
         description="a scan placed on the ALS less surely than "
         "this is paired with every scan instead (a wrong place would pick wrong pairs)",
     )
+    # the ALS placements (those kept by placement_min_confidence) as edges to one ALS node per plot:
+    # they do not depend on the scan-to-scan edges, so they hold the far corners of a big plot
+    # where a chain of pairs drifts (`large` preset: placements within 1.5 cm of the truth)
+    als_anchors: bool = Field(
+        True, description="ALS placements of a plot's scans are edges of its pose graph"
+    )
     signature: SignatureConfig = Field(
         default_factory=SignatureConfig,
         description="stem-map signatures: partners of the scans without a position",

@@ -25,6 +25,7 @@ from plotmosaic.graph.pairs import candidate_pairs, manifest_positions
 from plotmosaic.graph.placement import placed_poses, placement_jobs, prior, sure_placements
 from plotmosaic.graph.posegraph import (
     Solution,
+    add_edges,
     build_graph,
     graph_to_json,
     optimise,
@@ -47,6 +48,7 @@ from plotmosaic.graph.signature import (
     similarity,
 )
 from plotmosaic.io.atomic import write_text_atomic
+from plotmosaic.io.frame import translation
 from plotmosaic.io.las import read_header_info
 from plotmosaic.manifest import Manifest, Plot, Scan, load_manifest
 from plotmosaic.poses import Poses, ScanPose
@@ -383,6 +385,54 @@ def compute_pairs(
     return records, computed
 
 
+def anchor_id(plot: Plot) -> str:
+    """The ALS node of a plot's pose graph (never a scan: ids with '@' are not written to poses)."""
+    return f"ALS@{plot.id}"
+
+
+def als_anchor_edges(
+    plot: Plot, placement: list[PairJob], records: dict[str, dict], placed: set[str]
+) -> list[dict]:
+    """Edges scan -> the plot's ALS node from its kept ALS placements, in a local ALS frame (the ALS
+    file coordinates less the placements' mean position, rounded to 1 m: UTM-sized translations
+    would make the ALS node's rotation ill-conditioned)."""
+    ids = {s.id for s in plot.scans}
+    use = [j for j in placement if j.source in ids and j.source in placed]
+    if not use:
+        return []
+    Ts = [np.asarray(records[j.key]["transform"], dtype=float) for j in use]
+    shift = translation(-np.round(np.mean([T[:3, 3] for T in Ts], axis=0)))
+    out = []
+    for j, T in zip(use, Ts, strict=True):
+        e = {k: records[j.key].get(k) for k in EDGE_FIELDS}
+        e.update(source=j.source, target=anchor_id(plot), transform=shift @ T)
+        out.append(e)
+    return out
+
+
+def solve_plot(
+    G: nx.Graph, plot: Plot, anchors: list[dict], config: RegisterConfig
+) -> tuple[str, Solution]:
+    """(reference, solution) of one plot: its scans' subgraph, plus the ALS node when there are anchors.
+
+    The ALS node and its edges live only in the solve; what the solve marks on the scan-to-scan
+    edges (dropped, residuals) is written back to G, and the ALS node is no pose of the result."""
+    ids = [s.id for s in plot.scans]
+    sub = G.subgraph(ids)
+    ref = _choose_reference(sub, plot)
+    if not anchors:
+        return ref, optimise(sub, ref, config.graph)
+    H = add_edges(sub.copy(), anchors)
+    sol = optimise(H, ref, config.graph)
+    for u, v in sub.edges():
+        G.edges[u, v].update(H.edges[u, v])
+    node = anchor_id(plot)
+    sol.poses.pop(node, None)
+    sol.sigmas.pop(node, None)
+    sol.unplaced = [n for n in sol.unplaced if n != node]
+    return ref, sol
+
+
 def _choose_reference(G: nx.Graph, plot: Plot) -> str:
     """The manifest's reference, unless it has no successful pair: then the best-connected scan."""
     ref = plot.reference.id
@@ -466,10 +516,14 @@ def register_plot(
     failed = G.graph["failed"]
 
     results, scans = [], {}
+    from_als = set(placed) - set(stored)  # the ALS step's placements (not stored E57 poses)
     for plot in manifest.plots:
-        sub = G.subgraph([s.id for s in plot.scans])
-        ref = _choose_reference(sub, plot)
-        sol = optimise(sub, ref, config.graph)
+        anchors = (
+            als_anchor_edges(plot, placement, placement_records, from_als)
+            if config.als_anchors
+            else []
+        )
+        ref, sol = solve_plot(G, plot, anchors, config)
         results.append(PlotResult(plot.id, ref, sol, [s.id for s in plot.scans]))
         for name, T in sol.poses.items():
             scans[name] = ScanPose(T, plot.id, sol.sigmas[name])

@@ -40,9 +40,15 @@ def build_graph(nodes: dict[str, dict], edges: list[dict]) -> nx.Graph:
     G.graph["failed"] = []
     for name, attrs in nodes.items():
         G.add_node(name, **attrs)
+    add_edges(G, edges)
+    return G
+
+
+def add_edges(G: nx.Graph, edges: list[dict]) -> nx.Graph:
+    """Add successful pair results as edges (arrays made numpy); failed ones go to G.graph["failed"]."""
     for e in edges:
         if e.get("status", "ok") != "ok":
-            G.graph["failed"].append(
+            G.graph.setdefault("failed", []).append(
                 {k: v for k, v in e.items() if k in ("source", "target", "error", "key")}
             )
             continue
