@@ -63,9 +63,9 @@ class JudgeConfig(BaseModel):
     fine_scales: int = Field(
         1, ge=1, le=8, description="smallest profile scales whose share makes the fine margin"
     )
-    # bench_judge.py (judge.md), 20 cases: right poses' fine margins 0.685-1.0 (the UAS strip lowest;
-    # the boxed view 0.805, its score margin only 0.053); wrong ones <= 0.155, <= 0.554 against wrong
-    # rivals alone (the truth missed). Confidence 0.25 (min_confidence) = a fine margin of 0.6
+    # bench_judge.py (judge.md), 36 cases at 73eca96: right poses' fine margins 0.735-1.0 (the UAS strip
+    # lowest; the boxed view 0.794, its score margin 0.053); wrong ones <= 0.532, a near miss. Confidence
+    # 0.25 (min_confidence) = a fine margin of 0.6
     chance_margin: float = Field(
         0.5,
         ge=0,
