@@ -505,9 +505,16 @@ def check_quality(result: PairResult, config: AlignConfig, local: bool = False) 
                 f" against {j['score']:.3f}, from {j['rival_source']}){hint}"
             )
         elif result.confidence is not None and result.confidence < config.min_confidence:
+            fine = ""
+            if "fine_share" in j:  # results cached before the fine margin lack it
+                fine = (
+                    f"; share within {j['profile']['scales'][0]:.2f} m {j['fine_share']:.3f},"
+                    f" rival {j['fine_rival_share']:.3f} from {j.get('fine_rival_source')}"
+                )
             problems.append(
-                f"ambiguous: a distinct pose fits almost as well (confidence {result.confidence:.2f} <"
-                f" {config.min_confidence}; judge score {j['score']:.3f}, rival {j['rival_score']:.3f})"
+                f"ambiguous: a distinct pose fits almost as well at the finest scale (confidence"
+                f" {result.confidence:.2f} < {config.min_confidence}{fine}; judge score"
+                f" {j['score']:.3f}, rival {j['rival_score']:.3f})"
             )
     if problems:
         err = RegistrationFailed(
