@@ -7,6 +7,7 @@ import json
 import laspy
 import numpy as np
 import pytest
+from helpers import SIM_PAIR_MAX_DEG
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
@@ -65,7 +66,7 @@ def test_align_writes_result_and_levels(pair, tmp_path):
         assert key in data
     T = np.asarray(data["transform"])
     D = np.linalg.inv(T_true) @ T
-    assert np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))) < 0.1
+    assert np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))) < SIM_PAIR_MAX_DEG
     assert np.linalg.norm(D[:3, 3]) < 0.03
     assert np.asarray(data["information"]).shape == (6, 6)
     assert len(data["levels"]["source"]) == 3 and len(data["levels"]["target"]) == 3

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from helpers import SIM_PAIR_MAX_DEG, SIM_PAIR_MAX_M
 from typer.testing import CliRunner
 
 from plotmosaic.align import judge
@@ -90,7 +91,7 @@ def test_right_pair_accepted_with_high_confidence(pair):
     ps, pt, T_true, centre, cfg = pair
     result = register_prepared(ps, pt, cfg, None, seed=0)
     deg, m = error(result.transform, T_true, centre)
-    assert deg < 0.1 and m < 0.02, (deg, m)
+    assert deg < SIM_PAIR_MAX_DEG and m < SIM_PAIR_MAX_M, (deg, m)
     assert result.confidence > 0.6 and result.judge["fine_margin"] > cfg.judge.chance_margin
     assert result.judge["distinct_rivals"] >= 1 and result.judge["rival_profile"] is not None
     # the figures round-trip, and results cached before the judge still load

@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from helpers import invoke, write_e57
+from helpers import SIM_PAIR_MAX_DEG, SIM_PAIR_MAX_M, invoke, write_e57
 from scipy.spatial.transform import Rotation
 
 from plotmosaic.align.config import AlignConfig
@@ -57,7 +57,7 @@ def test_right_stored_pose_skips_the_search(pair):
     assert res.coarse["skipped"] == "stored pose verified" and res.coarse["stored_pose"]["verified"]
     assert "hypotheses" not in res.coarse  # no search ran
     rot, trans = pose_error(res.transform, T)
-    assert trans < 0.02 and rot < 0.1, (trans, rot)
+    assert trans < SIM_PAIR_MAX_M and rot < SIM_PAIR_MAX_DEG, (trans, rot)
     # the same pose as a plain prior (not stored): the search runs
     plain = register_prepared(src, tgt, cfg, T)
     assert "coarse_skipped" not in plain.timings and "hypotheses" in plain.coarse
@@ -76,7 +76,7 @@ def test_wrong_stored_pose_runs_the_search(pair, deg, metres):
     assert "coarse_skipped" not in res.timings
     assert res.coarse["stored_pose"]["verified"] is False and res.coarse["stored_pose"]["failed"]
     rot, trans = pose_error(res.transform, T)
-    assert trans < 0.02 and rot < 0.1, (trans, rot)
+    assert trans < SIM_PAIR_MAX_M and rot < SIM_PAIR_MAX_DEG, (trans, rot)
 
 
 @pytest.mark.slow

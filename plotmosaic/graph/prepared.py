@@ -143,7 +143,9 @@ def entry(folder: str | Path, key: str) -> Path:
     return Path(folder) / f"{key}.npz"
 
 
-# Loaded clouds of this process: a scan in several pairs is loaded once per worker while it is used.
+# Loaded clouds of this process, by cache entry (folder + key: another cache folder is another cache,
+# its entry is written even when this process holds the same cloud): a scan in several pairs is
+# loaded once per worker while it is used.
 _LOADED: OrderedDict[str, PreparedCloud] = OrderedDict()
 _LOADED_MAX = 4
 reads = 0  # scans read and prepared by this process (tests and benchmarks count them)
@@ -175,14 +177,14 @@ def _remember(key: str, cloud: PreparedCloud) -> None:
 def prepare_held(job: PrepareJob, cloud) -> PreparedCloud:
     """The job's prepared cloud from points this process holds (exactly job.path's points, e.g. a
     cloud it has just written there): into the cache and this process's memo, the file not read."""
-    if job.key in _LOADED:
-        return _LOADED[job.key]
     path = entry(job.folder, job.key)
+    if str(path) in _LOADED:
+        return _LOADED[str(path)]
     prepared = _load_or_warn(path, job.scan)
     if prepared is None:
         prepared = _compute(job, cloud)
         save_prepared(path, prepared)
-    _remember(job.key, prepared)
+    _remember(str(path), prepared)
     return prepared
 
 
@@ -202,10 +204,10 @@ def _load_or_warn(path: Path, scan: str) -> PreparedCloud | None:
 
 def get_prepared(job: PrepareJob) -> tuple[PreparedCloud, float]:
     """(prepared cloud, seconds spent reading and preparing it here): from memory, the cache, or computed and cached."""
-    if job.key in _LOADED:
-        _LOADED.move_to_end(job.key)
-        return _LOADED[job.key], 0.0
     path = entry(job.folder, job.key)
+    if str(path) in _LOADED:
+        _LOADED.move_to_end(str(path))
+        return _LOADED[str(path)], 0.0
     cloud = _load_or_warn(path, job.scan)
     seconds = 0.0
     if cloud is None:
@@ -213,7 +215,7 @@ def get_prepared(job: PrepareJob) -> tuple[PreparedCloud, float]:
         cloud = _compute(job)
         seconds = time.perf_counter() - start
         save_prepared(path, cloud)
-    _remember(job.key, cloud)
+    _remember(str(path), cloud)
     return cloud, seconds
 
 
@@ -223,13 +225,13 @@ def run_prepare_job(job: PrepareJob) -> dict:
     record = {"key": job.key, "scan": job.scan, "kind": "prepare", "computed": False}
     try:
         path = entry(job.folder, job.key)
-        held = _LOADED.get(job.key)
+        held = _LOADED.get(str(path))
         if held is not None and not path.is_file():
             save_prepared(path, held)
         elif held is None and _load_or_warn(path, job.scan) is None:
             cloud = _compute(job)
             save_prepared(path, cloud)
-            _remember(job.key, cloud)  # a worker kept for the pairs may register this scan next
+            _remember(str(path), cloud)  # a worker kept for the pairs may register this scan next
             record["computed"] = True
         record["status"] = "ok"
     except (
