@@ -16,6 +16,7 @@ import numpy as np
 
 from plotmosaic.align.coarse_config import CoarseConfig
 from plotmosaic.align.rasters import height_above_ground
+from plotmosaic.align.stemmap import grid_groups
 
 Z = np.array([0.0, 0.0, 1.0])
 
@@ -145,20 +146,6 @@ def ground_fit_up(points: np.ndarray, c: CoarseConfig) -> np.ndarray | None:
     return normal if angle_deg(normal, Z) <= c.ground_fit_max_deg else None
 
 
-def _clusters(xy: np.ndarray, cell: float) -> list[np.ndarray]:
-    """Indices of the connected groups of a `cell` occupancy grid over `xy` (linear, deterministic)."""
-    from scipy import ndimage
-
-    ij = np.floor((xy - xy.min(axis=0)) / cell).astype(np.int64) + 1
-    grid = np.zeros(tuple(ij.max(axis=0) + 2), bool)
-    grid[ij[:, 0], ij[:, 1]] = True
-    labels, n = ndimage.label(grid, structure=np.ones((3, 3)))
-    lab = labels[ij[:, 0], ij[:, 1]] - 1
-    order = np.argsort(lab, kind="stable")
-    bounds = np.searchsorted(lab[order], np.arange(n + 1))
-    return [order[bounds[k] : bounds[k + 1]] for k in range(n)]
-
-
 def trunk_axes_up(
     points: np.ndarray, normals: np.ndarray, up: np.ndarray, c: CoarseConfig
 ) -> tuple[np.ndarray | None, dict]:
@@ -179,7 +166,7 @@ def trunk_axes_up(
         if len(q) < c.trunk_min_points:
             return None, info
         slopes = []
-        for idx in _clusters(q[:, :2], c.stem_cluster_m):
+        for idx in grid_groups(q[:, :2], c.stem_cluster_m):
             if len(idx) < c.trunk_min_points or np.ptp(q[idx, 2]) < c.trunk_min_span:
                 continue
             w, V = np.linalg.eigh(np.cov(q[idx].T))

@@ -38,6 +38,19 @@ def _circle(xy: np.ndarray) -> tuple[np.ndarray, float, float]:
     return centre, r, res
 
 
+def grid_groups(xy: np.ndarray, cell: float) -> list[np.ndarray]:
+    """Indices of the connected groups of a `cell` occupancy grid over `xy` (8-connected): linear in
+    the points and deterministic, no all-pairs clustering."""
+    ij = np.floor((xy - xy.min(axis=0)) / cell).astype(np.int64) + 1
+    grid = np.zeros(tuple(ij.max(axis=0) + 2), bool)
+    grid[ij[:, 0], ij[:, 1]] = True
+    labels, n = ndimage.label(grid, structure=np.ones((3, 3)))
+    lab = labels[ij[:, 0], ij[:, 1]] - 1
+    order = np.argsort(lab, kind="stable")
+    bounds = np.searchsorted(lab[order], np.arange(n + 1))
+    return [order[bounds[k] : bounds[k + 1]] for k in range(n)]
+
+
 def stem_map(
     points: np.ndarray, normals: np.ndarray, hag: np.ndarray, config: CoarseConfig
 ) -> StemMap:
@@ -49,19 +62,8 @@ def stem_map(
     empty = StemMap(np.zeros((0, 2)), np.zeros(0), np.zeros(0, np.int64))
     if len(xy) < c.stem_min_points:
         return empty
-    # connected cells of a fine occupancy grid: linear in the points, no all-pairs clustering
-    cell = c.stem_cluster_m
-    origin = xy.min(axis=0) - cell
-    ij = np.floor((xy - origin) / cell).astype(np.int64)
-    grid = np.zeros(tuple(ij.max(axis=0) + 2), bool)
-    grid[ij[:, 0], ij[:, 1]] = True
-    labels, n = ndimage.label(grid, structure=np.ones((3, 3)))
-    lab = labels[ij[:, 0], ij[:, 1]] - 1
-    order = np.argsort(lab, kind="stable")
-    bounds = np.searchsorted(lab[order], np.arange(n + 1))
     centres, diam, support = [], [], []
-    for k in range(n):
-        idx = order[bounds[k] : bounds[k + 1]]
+    for idx in grid_groups(xy, c.stem_cluster_m):
         if len(idx) < c.stem_min_points:
             continue
         pts = xy[idx]
