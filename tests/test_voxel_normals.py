@@ -6,7 +6,15 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from plotmosaic.align.normals import LazyNormals, level_shape, local_shape
-from plotmosaic.align.voxel import FACE_PHASE, cube_keys, thin, voxel_centroids, voxelize
+from plotmosaic.align.voxel import (
+    FACE_PHASE,
+    KEY_BLOCK,
+    cube_keys,
+    thin,
+    voxel_centroids,
+    voxelize,
+)
+from plotmosaic.io.frame import column_bounds
 
 
 def test_voxel_centroids_match_a_plain_group_by_and_come_in_cube_order():
@@ -34,6 +42,24 @@ def test_grid_of_quantised_coordinates_does_not_change_under_a_utm_offset():
     base, shifted = voxelize(local, 0.05), voxelize(local + offset, 0.05, offset)
     assert len(base.centroids) == len(shifted.centroids)
     np.testing.assert_allclose(shifted.centroids, base.centroids, rtol=0, atol=1e-8)
+
+
+def test_cube_keys_by_blocks_equal_whole_column_arithmetic():
+    """Keys are computed in cache-sized blocks from the columns' bounds: the same float operations as
+    on whole columns, so every key is identical (across block edges, with an offset, given bounds)."""
+    rng = np.random.default_rng(5)
+    offset = np.array([470_123.0, 3_810_456.0, 2_100.0])
+    pts = rng.normal(0, 20, (3 * KEY_BLOCK + 17, 3)) + offset
+    for size in (0.05, 0.3):
+        cols = []
+        for i in range(3):  # the plain definition: floor((x - offset) / size - phase) - its minimum
+            c = np.floor((pts[:, i] - offset[i]) * (1.0 / size) - FACE_PHASE)
+            cols.append(c - c.min())
+        dims = [c.max() + 1.0 for c in cols]
+        want = ((cols[0] * dims[1] + cols[1]) * dims[2] + cols[2]).astype(np.int64)
+        np.testing.assert_array_equal(cube_keys(pts, size, offset), want)
+        np.testing.assert_array_equal(cube_keys(pts, size, offset, column_bounds(pts)), want)
+    assert len(cube_keys(np.zeros((0, 3)), 0.1)) == 0
 
 
 def test_members_lists_every_point_of_the_chosen_cubes():

@@ -16,14 +16,18 @@ import numpy as np
 from plotmosaic.align.config import StrayConfig
 
 
-def _axis_strays(v: np.ndarray, keep: np.ndarray, config: StrayConfig) -> None:
-    """Clear `keep` for the detached tails of one coordinate column (a strided view: no copy of N)."""
+def _axis_strays(
+    v: np.ndarray, keep: np.ndarray, config: StrayConfig, lo_hi: tuple[float, float] | None = None
+) -> None:
+    """Clear `keep` for the detached tails of one coordinate column (a strided view: no copy of N);
+    `lo_hi`: the column's (min, max) when already known."""
     step = max(1, len(v) // config.sample_points)
     sample = v[::step][keep[::step]]
     lo, hi = np.quantile(sample, [config.core_quantile, 1.0 - config.core_quantile])
     margin = max(config.core_margin * (hi - lo), config.min_margin_m)
+    vmin, vmax = lo_hi if lo_hi is not None else (v.min(), v.max())
     for sign, edge in ((1.0, hi + margin), (-1.0, lo - margin)):
-        if (v.max() <= edge) if sign > 0 else (v.min() >= edge):
+        if (vmax <= edge) if sign > 0 else (vmin >= edge):
             continue  # the usual case: nothing beyond the bulk's margin, one cheap pass
         outside = np.flatnonzero((v > edge if sign > 0 else v < edge) & keep)
         if len(outside) == 0:
@@ -38,12 +42,15 @@ def _axis_strays(v: np.ndarray, keep: np.ndarray, config: StrayConfig) -> None:
             keep[outside[d >= ds[int(small[0])]]] = False
 
 
-def stray_mask(xyz: np.ndarray, config: StrayConfig | None = None) -> np.ndarray:
-    """Boolean mask of the points to keep (all True when nothing is detached)."""
+def stray_mask(
+    xyz: np.ndarray, config: StrayConfig | None = None, bounds: np.ndarray | None = None
+) -> np.ndarray:
+    """Boolean mask of the points to keep (all True when nothing is detached); `bounds`: the
+    columns' (min, max) as a (3, 2) array when already known (checked once per axis, not recomputed)."""
     config = config or StrayConfig()
     keep = np.ones(len(xyz), dtype=bool)
     if not config.enabled or len(xyz) < 2:
         return keep
     for i in range(3):
-        _axis_strays(xyz[:, i], keep, config)
+        _axis_strays(xyz[:, i], keep, config, None if bounds is None else tuple(bounds[i]))
     return keep

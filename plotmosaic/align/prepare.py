@@ -15,7 +15,7 @@ from plotmosaic.align.outliers import stray_mask
 from plotmosaic.align.sampling import sample
 from plotmosaic.align.voxel import thin, thin_with_counts, voxel_centroids, voxelize
 from plotmosaic.errors import InputError
-from plotmosaic.io.frame import Frame
+from plotmosaic.io.frame import Frame, column_bounds
 from plotmosaic.io.las import PointCloud
 
 MIN_POINTS = 50
@@ -75,10 +75,12 @@ def prepare_cloud(
     if levels < 1:
         raise InputError(f"{name}: levels must be >= 1, got {levels}")
     rng = np.random.default_rng(seed)
-    xyz, strays = robust_points(cloud.xyz, getattr(config, "stray", None) or StrayConfig(), name)
-    frame = Frame.around(xyz)
+    xyz, strays, bounds = robust_points(
+        cloud.xyz, getattr(config, "stray", None) or StrayConfig(), name
+    )
+    frame = Frame.of_bounds(bounds)
     grid = voxelize(
-        xyz, config.voxel, frame.offset
+        xyz, config.voxel, frame.offset, bounds
     )  # local coordinates, no shifted copy of 8M points
     points = grid.centroids
     if len(points) < MIN_POINTS:
@@ -147,20 +149,26 @@ def prepare_cloud(
     )
 
 
-def robust_points(xyz: np.ndarray, stray: StrayConfig, name: str) -> tuple[np.ndarray, int]:
-    """The cloud without its detached stray points, and how many were dropped; refuses an extent no grid can hold."""
-    keep = stray_mask(xyz, stray)
+def robust_points(
+    xyz: np.ndarray, stray: StrayConfig, name: str
+) -> tuple[np.ndarray, int, np.ndarray]:
+    """The cloud without its detached stray points, how many were dropped and its columns' (min, max)
+    (3, 2: computed once, shared by the stray check, the frame and the voxel grid); refuses an
+    extent no grid can hold."""
+    bounds = column_bounds(xyz)
+    keep = stray_mask(xyz, stray, bounds)
     dropped = int(len(keep) - keep.sum())
     if dropped:
         xyz = xyz[keep]
+        bounds = column_bounds(xyz) if len(xyz) else bounds
     if len(xyz) < MIN_POINTS:
         raise InputError(
             f"{name}: only {len(xyz)} points left after dropping {dropped} stray points"
         )
-    span = np.array([xyz[:, i].max() - xyz[:, i].min() for i in range(3)])
+    span = bounds[:, 1] - bounds[:, 0]
     if span.max() > MAX_EXTENT_M:
         raise InputError(
             f"{name}: the cloud spans {span.round(0).tolist()} m (after dropping {dropped} stray "
             f"points), more than {MAX_EXTENT_M:.0f} m; crop it or remove the far points"
         )
-    return xyz, dropped
+    return xyz, dropped, bounds

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from plotmosaic.errors import InputError
+from plotmosaic.io.frame import column_bounds
 
 # Cube faces sit this fraction of a cube off the coordinate grid: LAS coordinates are quantised (to
 # 1 mm, 0.1 mm, ...), and faces exactly on multiples of the scale would leave many points on a face,
@@ -20,6 +21,8 @@ FACE_PHASE = 0.00246
 # Cells of any dense grid (raster, occupancy image) built from a cloud's extent: 2e8 float64 cells are
 # 1.6 GB. A cloud whose extent needs more is stretched by far points or is too large to register whole.
 MAX_DENSE_CELLS = 200_000_000
+# points whose cube keys are computed at once (a few L2-sized float buffers)
+KEY_BLOCK = 1 << 16
 
 
 def check_dense_grid(shape, cell: float, what: str = "grid") -> tuple[int, ...]:
@@ -35,27 +38,50 @@ def check_dense_grid(shape, cell: float, what: str = "grid") -> tuple[int, ...]:
     return shape
 
 
-def cube_keys(points: np.ndarray, size: float, offset=(0.0, 0.0, 0.0)) -> np.ndarray:
-    """One int64 per point naming its cube of side `size` in `points - offset` (lexicographic in x, y, z)."""
+def cube_keys(
+    points: np.ndarray, size: float, offset=(0.0, 0.0, 0.0), bounds: np.ndarray | None = None
+) -> np.ndarray:
+    """One int64 per point naming its cube of side `size` in `points - offset` (lexicographic in x, y, z).
+
+    `bounds`: the columns' (min, max) as a (3, 2) array when already known (io.frame.column_bounds)."""
     points = np.asarray(points, dtype=np.float64)
-    cols, dims = [], []
-    for i in range(3):  # column by column: axis-0 reductions over (N, 3) are ~5x slower
-        c = points[:, i] - offset[i]
-        c *= 1.0 / size
-        c -= FACE_PHASE
-        np.floor(c, out=c)
-        c -= c.min()
-        cols.append(c)
-        dims.append(c.max() + 1.0)
+    inv = 1.0 / size
+    # every step of a cube index is monotonic in the coordinate, so the lowest index is the index of the
+    # lowest coordinate: two reductions per column instead of a min over a full column of indices
+    if bounds is not None:
+        ends = np.array(bounds, dtype=np.float64).reshape(3, 2)
+    else:
+        ends = column_bounds(points) if len(points) else np.zeros((3, 2))
+    ends -= np.asarray(offset, dtype=np.float64)[:, None]
+    ends *= inv
+    ends -= FACE_PHASE
+    np.floor(ends, out=ends)
+    lo, dims = ends[:, 0], ends[:, 1] - ends[:, 0] + 1.0
     if float(np.prod(dims)) >= 2.0**53:  # beyond exact float64 integers (a continent at 1 cm)
         raise InputError(
             f"cloud extent {np.ptp(points, axis=0).round(0)} m is too large for {size} m voxels"
         )
-    cols[0] *= dims[1]
-    cols[0] += cols[1]
-    cols[0] *= dims[2]
-    cols[0] += cols[2]
-    return cols[0].astype(np.int64)
+    out = np.empty(len(points), dtype=np.int64)
+    # by blocks that stay in cache: the same operations as whole columns (identical keys), no N-sized
+    # float temporaries (3 x 64 MB on 8M points) and a third less time
+    block = min(len(points), KEY_BLOCK)
+    acc, col = np.empty(block), np.empty(block)
+    for s in range(0, len(points), KEY_BLOCK):
+        m = min(len(points) - s, KEY_BLOCK)
+        a, c = acc[:m], col[:m]
+        for i in range(3):
+            np.subtract(points[s : s + m, i], offset[i], out=c)
+            c *= inv
+            c -= FACE_PHASE
+            np.floor(c, out=c)
+            c -= lo[i]
+            if i == 0:
+                a[:] = c
+            else:
+                a *= dims[i]
+                a += c
+        out[s : s + m] = a
+    return out
 
 
 def groups(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -97,12 +123,15 @@ class VoxelGrid:
         return self.order[offset + np.arange(int(count.sum()))]
 
 
-def voxelize(points: np.ndarray, size: float, offset=(0.0, 0.0, 0.0)) -> VoxelGrid:
-    """The grid of `points - offset` (centroids in those coordinates), without a shifted copy of all points."""
+def voxelize(
+    points: np.ndarray, size: float, offset=(0.0, 0.0, 0.0), bounds: np.ndarray | None = None
+) -> VoxelGrid:
+    """The grid of `points - offset` (centroids in those coordinates), without a shifted copy of all
+    points; `bounds` as in `cube_keys`."""
     points = np.asarray(points, dtype=np.float64)
     if len(points) == 0:
         return VoxelGrid(points.reshape(0, 3), np.zeros(0, np.int64), np.zeros(0, np.int64))
-    order, starts = groups(cube_keys(points, size, offset))
+    order, starts = groups(cube_keys(points, size, offset, bounds))
     counts = np.diff(np.append(starts, len(order)))
     out = np.empty((len(starts), 3))
     for i in range(3):  # per column: three 1-D gathers beat one gather of rows here

@@ -11,6 +11,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
+def column_bounds(xyz: np.ndarray) -> np.ndarray:
+    """(3, 2): each column's (min, max), column by column (axis-0 reductions over (N, 3) are slower)."""
+    return np.array([[xyz[:, i].min(), xyz[:, i].max()] for i in range(3)], dtype=np.float64)
+
+
 def translation(t) -> np.ndarray:
     T = np.eye(4)
     T[:3, 3] = np.asarray(t, dtype=np.float64)
@@ -30,7 +35,12 @@ class Frame:
         if len(xyz) == 0:
             return cls(np.zeros(3))
         # column by column: axis-0 reductions over (N, 3) are several times slower on large clouds
-        centre = np.array([(xyz[:, i].min() + xyz[:, i].max()) / 2.0 for i in range(3)])
+        return cls.of_bounds(column_bounds(xyz), step)
+
+    @classmethod
+    def of_bounds(cls, bounds: np.ndarray, step: float = 1.0) -> Frame:
+        """`around` a cloud whose columns' (min, max) are the rows of `bounds` (3, 2)."""
+        centre = np.array([(lo + hi) / 2.0 for lo, hi in np.asarray(bounds, dtype=np.float64)])
         return cls(np.round(centre / step) * step)
 
     def to_local(self, xyz: np.ndarray) -> np.ndarray:
