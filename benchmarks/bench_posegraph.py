@@ -2,10 +2,13 @@
 
     python benchmarks/bench_posegraph.py --scans 500 --wrong 0.05 --seed 0
     python benchmarks/bench_posegraph.py --pairs 9 25 49 100
+    python benchmarks/bench_posegraph.py --pairs 9 25 49 100 --placed
     python benchmarks/bench_posegraph.py --signature-pairs 9 25 49 100 400
 
 The second form prints how many pairs register-plot's selection runs for plots of that many scans
-(on an 18 m grid with 1 m jitter, positions known or from the ALS step), against all pairs; the
+(on an 18 m grid with 1 m jitter, approximate positions in the manifest; with --placed, positions
+to 1 cm as from the ALS step or the verified graph, paired within `PlacedPriors.reach` x the
+spacing), against all pairs; the
 third for plots without any position, paired by stem-map signatures (synthetic stem maps:
 graph/synthetic.stem_map_grid, 300 stems / ha seen to 20 m, 20 % occluded, 5 cm noise).
 
@@ -23,12 +26,15 @@ from plotmosaic.graph.posegraph import _edge_id, build_graph, optimise, pose_err
 from plotmosaic.graph.synthetic import grid_graph
 
 
-def pair_counts(sizes: list[int]) -> None:
+def pair_counts(sizes: list[int], placed: bool = False) -> None:
     import networkx as nx
     import numpy as np
 
     from plotmosaic.graph.pairs import candidate_pairs
+    from plotmosaic.graph.scale_config import PlacedPriors
     from plotmosaic.manifest import Plot, Scan
+
+    jitter = 0.01 if placed else 1.0
 
     print(
         "| scans | pairs run | pairs per scan | max pairs of one scan | all pairs | connected | scans in no triangle |"
@@ -38,17 +44,26 @@ def pair_counts(sizes: list[int]) -> None:
         rng = np.random.default_rng(0)
         side = int(np.ceil(np.sqrt(n)))
         pos = [
-            ((k % side) * 18.0 + rng.normal(0, 1), (k // side) * 18.0 + rng.normal(0, 1), 0.0)
+            (
+                (k % side) * 18.0 + rng.normal(0, jitter),
+                (k // side) * 18.0 + rng.normal(0, jitter),
+                0.0,
+            )
             for k in range(n)
         ]
         plot = Plot(
             id="P",
             scans=[
-                Scan(id=f"s{k}", path=f"s{k}.laz", approx_position=p) for k, p in enumerate(pos)
+                Scan(id=f"s{k}", path=f"s{k}.laz", approx_position=None if placed else p)
+                for k, p in enumerate(pos)
             ],
         )
         start = time.perf_counter()
-        pairs = candidate_pairs(plot, 60.0)
+        if placed:
+            known = {f"s{k}": np.asarray(p) for k, p in enumerate(pos)}
+            pairs = candidate_pairs(plot, 60.0, known, reach=PlacedPriors().reach)
+        else:
+            pairs = candidate_pairs(plot, 60.0)
         seconds = time.perf_counter() - start
         G = nx.Graph([(s.id, t.id) for s, t in pairs])
         lonely = sum(1 for v in nx.triangles(G).values() if v == 0)
@@ -118,12 +133,15 @@ def main() -> None:
         nargs="+",
         help="print the signature-planned pair counts for plots of these sizes (no positions)",
     )
+    ap.add_argument(
+        "--placed", action="store_true", help="--pairs with positions to 1 cm (ALS / graph)"
+    )
     args = ap.parse_args()
     if args.signature_pairs:
         signature_counts(args.signature_pairs)
         return
     if args.pairs:
-        pair_counts(args.pairs)
+        pair_counts(args.pairs, args.placed)
         return
     print(
         "| scans | edges | wrong | wrong dropped | good dropped | reasons | optimise wall (s) | CPU (s) | worst error (cm / deg) |"

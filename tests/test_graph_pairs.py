@@ -211,3 +211,86 @@ def test_positions_from_the_als_step_select_pairs_and_give_priors():
     assert len(ids) < 66 and all(plot.scans.index(s) > plot.scans.index(t) for s, t in pairs)
     P = np.asarray(prior(poses, "s3", "s1"))
     assert np.allclose(poses["s1"] @ P, poses["s3"]) and prior(poses, lost, "s1") is None
+
+
+def _exact_grid(side, spacing=18.0):
+    """Scan id -> 4x4 pose on a `side` x `side` grid (as from the ALS step: exact positions)."""
+    poses = {}
+    for k in range(side * side):
+        T = np.eye(4)
+        c, s = np.cos(0.3 * k), np.sin(0.3 * k)
+        T[:2, :2] = [[c, -s], [s, c]]
+        T[:3, 3] = [(k % side) * spacing + 470000.0, (k // side) * spacing + 3810000.0, 0.1 * k]
+        poses[f"s{k}"] = T
+    return poses
+
+
+def test_placed_scans_are_paired_within_reach_of_their_spacing():
+    from plotmosaic.graph.pairs import reach_distance, scan_spacing
+
+    poses = _exact_grid(6)
+    plot = _plot([None] * 36)
+    holes = {"s14", "s22", "s23", "s28"}  # not placed on the ALS
+    placed = {k: T[:3, 3] for k, T in poses.items() if k not in holes}
+    xy = np.array(list(placed.values()))
+    assert scan_spacing(xy) == pytest.approx(18.0)
+    assert reach_distance(xy, 1.25, 60.0) == pytest.approx(22.5)
+    assert reach_distance(xy, 1.25, 20.0) == 20.0 and reach_distance(xy, None, 60.0) == 60.0
+    pairs = candidate_pairs(plot, 60.0, placed, reach=1.25)
+    both = [(s.id, t.id) for s, t in pairs if s.id in placed and t.id in placed]
+    d = [np.linalg.norm((placed[a] - placed[b])[:2]) for a, b in both]
+    assert max(d) <= 22.5  # no diagonal, none across a hole
+    grid = {
+        frozenset((a, b))
+        for a in placed
+        for b in placed
+        if a < b and np.linalg.norm((placed[a] - placed[b])[:2]) < 19
+    }
+    assert grid == {frozenset(p) for p in both}  # every grid neighbour of two placed scans
+    # without the reach (manifest positions, approximate), the holes are bridged by farther pairs
+    far = candidate_pairs(plot, 60.0, placed)
+    assert (
+        max(
+            np.linalg.norm((placed[s.id] - placed[t.id])[:2])
+            for s, t in far
+            if s.id in placed and t.id in placed
+        )
+        > 30
+    )
+
+
+def test_graph_placed_scans_get_their_neighbours_verified_first(tmp_path):
+    import networkx as nx
+
+    from plotmosaic.graph.config import RegisterConfig
+    from plotmosaic.graph.pipeline import _pair_job, position_jobs
+    from plotmosaic.manifest import Manifest
+
+    for k in range(16):
+        (tmp_path / f"s{k}.laz").write_bytes(bytes([k]) * 10)
+    plot = Plot(id="P", scans=[Scan(id=f"s{k}", path=f"s{k}.laz") for k in range(16)])
+    manifest = Manifest(plots=[plot], source=tmp_path / "m.toml")
+    config = RegisterConfig()
+    poses = _exact_grid(4)
+    poses.pop("s15")  # the graph has not placed it
+    by_id = {s.id: s for s in plot.scans}
+    cj = config.align.model_dump_json()
+    done = [_pair_job(manifest, by_id["s1"], by_id["s0"], cj, 0, str(tmp_path), {})]
+    done += [
+        _pair_job(manifest, by_id[f"s{k}"], by_id["s5"], cj, 0, str(tmp_path), {})
+        for k in range(6, 13)
+    ]
+    jobs = position_jobs(manifest, config, 0, tmp_path, poses, done)
+    got = {frozenset((j.source, j.target)) for j in jobs}
+    assert frozenset(("s1", "s0")) not in got  # tried already
+    assert all(j.stored and j.init is not None for j in jobs)  # a prior, verified first
+    for j in jobs:
+        assert "s15" not in (j.source, j.target)
+        d = np.linalg.norm((poses[j.source] - poses[j.target])[:2, 3])
+        assert d < 19  # neighbours only
+        T = np.asarray(j.init)
+        assert np.allclose(poses[j.target] @ T, poses[j.source])  # the graph's relative pose
+    degree = nx.Graph([(j.source, j.target) for j in done + jobs]).degree()
+    assert max(d for _, d in degree) <= config.pairs.max_per_scan
+    assert degree["s5"] == 8  # capped: s5 had 7 pairs, one more neighbour at most
+    assert frozenset(("s14", "s13")) in got and frozenset(("s11", "s7")) in got

@@ -5,7 +5,10 @@ pair whose scanners stood at most `max_distance` apart. A bigger plot with posit
 manifest or from placing each scan on the ALS) registers each scan with its nearest neighbours
 only: at most `max_per_scan` pairs a scan, so the pairs grow linearly with the scans, and the
 graph is kept connected (loops come from the neighbours: each scan has several). A scan without a
-position is paired with the scans its signature matches (graph/signature.py), else with its\nneighbours in the manifest's order (the order of acquisition).
+position is paired with the scans its signature matches (graph/signature.py), else with its
+neighbours in the manifest's order (the order of acquisition). Positions known to centimetres (ALS
+placements, or the pose graph of verified pairs) pair scans at most `reach` times the plot's scan
+spacing apart: farther pairs share too little to verify, and each costs a full search.
 """
 
 from __future__ import annotations
@@ -43,6 +46,24 @@ class _Components:
             return False
         self.parent[max(a, b)] = min(a, b)
         return True
+
+
+def scan_spacing(xy: np.ndarray) -> float:
+    """The plot's scan spacing: the median distance (m, in plan) from a scan to its nearest other scan."""
+    xy = np.asarray(xy, dtype=np.float64)[:, :2]
+    if len(xy) < 2:
+        return float("inf")
+    d, _ = cKDTree(xy).query(xy, k=2)
+    return float(np.median(d[:, 1]))
+
+
+def reach_distance(xy: np.ndarray, reach: float | None, max_distance: float | None) -> float | None:
+    """The farthest pair to plan between scans at these exact positions: `reach` x their spacing,
+    never beyond `max_distance`."""
+    if reach is None:
+        return max_distance
+    d = reach * scan_spacing(xy)
+    return d if max_distance is None else min(d, max_distance)
 
 
 def neighbour_pairs(
@@ -102,12 +123,14 @@ def candidate_pairs(
     positions: dict[str, np.ndarray] | None = None,
     selection: PairSelection | None = None,
     linked: list[tuple[str, str]] | None = None,
+    reach: float | None = None,
 ) -> list[tuple[Scan, Scan]]:
     """(source, target) pairs; the later scan in the manifest is the source.
 
     `positions`: scan id -> position in one frame (default: the manifest's approximate positions).
     `linked`: pairs of scans whose signatures match (graph/signature.py): in a big plot they pair
-    the scans that have no position.
+    the scans that have no position. `reach`: `positions` are exact (ALS placements): a big plot's
+    placed scans are paired at most `reach` x their spacing apart (reach_distance).
     """
     selection = selection or PairSelection()
     scans = plot.scans
@@ -120,11 +143,10 @@ def candidate_pairs(
         chosen: set[tuple[str, str]] = set()
         if len(placed) >= 3:
             xy = np.array([positions[s.id][:2] for s in placed])
+            far = reach_distance(xy, reach, max_distance)
             chosen = {
                 (placed[i].id, placed[j].id)
-                for i, j in neighbour_pairs(
-                    xy, selection.neighbours, selection.max_per_scan, max_distance
-                )
+                for i, j in neighbour_pairs(xy, selection.neighbours, selection.max_per_scan, far)
             }
         else:
             placed = []
@@ -154,10 +176,10 @@ def candidate_pairs(
         for k, s in enumerate(scans):
             if s.id in has_position or s.id in matched:
                 continue
-            reach = min(
+            span = min(
                 len(scans), selection.max_per_scan + 1
             )  # not beyond the scans taken around it
-            near = (m for d in range(1, reach) for m in (k - d, k + d) if 0 <= m < len(scans))
+            near = (m for d in range(1, span) for m in (k - d, k + d) if 0 <= m < len(scans))
             for m in near:  # nearest in the list first
                 if degree[s.id] >= selection.max_per_scan:
                     break

@@ -21,7 +21,12 @@ from plotmosaic.graph.config import (
     RegisterConfig,
 )
 from plotmosaic.graph.executor import PairJob, prepare_jobs_for, run_pairs, with_stored_poses
-from plotmosaic.graph.pairs import candidate_pairs, manifest_positions
+from plotmosaic.graph.pairs import (
+    candidate_pairs,
+    manifest_positions,
+    neighbour_pairs,
+    reach_distance,
+)
 from plotmosaic.graph.placement import placed_poses, placement_jobs, prior, sure_placements
 from plotmosaic.graph.posegraph import (
     Solution,
@@ -144,11 +149,12 @@ def plan_jobs(
     prepared = None if prepared is None else str(prepared)
     placed = placed or {}
     linked = linked or {}
+    reach = _priors(config).reach
     jobs = []
     for plot in manifest.plots:
         positions = {s.id: placed[s.id][:3, 3] for s in plot.scans if s.id in placed} or None
         for source, target in candidate_pairs(
-            plot, config.max_distance, positions, config.pairs, linked.get(plot.id)
+            plot, config.max_distance, positions, config.pairs, linked.get(plot.id), reach
         ):
             jobs.append(_pair_job(manifest, source, target, config_json, seed, prepared, placed))
     return jobs
@@ -156,6 +162,78 @@ def plan_jobs(
 
 def _signature_config(config: RegisterConfig) -> SignatureConfig:
     return getattr(config, "signature", None) or SignatureConfig()
+
+
+def _priors(config: RegisterConfig) -> PlacedPriors:
+    return getattr(config, "placed_priors", None) or PlacedPriors()
+
+
+def _degrees(job_list: list[PairJob]) -> dict[str, int]:
+    degree: dict[str, int] = {}
+    for j in job_list:
+        degree[j.source] = degree.get(j.source, 0) + 1
+        degree[j.target] = degree.get(j.target, 0) + 1
+    return degree
+
+
+def graph_poses(
+    manifest: Manifest,
+    config: RegisterConfig,
+    job_list: list[PairJob],
+    records: dict[str, dict],
+    anchors: dict[str, list[dict]],
+) -> dict[str, np.ndarray]:
+    """scan id -> its pose in its plot's frame, from the pose graph of the pairs so far (and the ALS
+    anchors): what the verified pairs place, after the graph's own outlier checks."""
+    edges = [{k: records[j.key].get(k) for k in EDGE_FIELDS} for j in job_list if j.key in records]
+    G = build_graph({s.id: {} for s in manifest.scans}, edges)
+    poses: dict[str, np.ndarray] = {}
+    for plot in manifest.plots:
+        poses.update(solve_plot(G, plot, anchors.get(plot.id, []), config)[1].poses)
+    return poses
+
+
+def position_jobs(
+    manifest: Manifest,
+    config: RegisterConfig,
+    seed: int,
+    prepared: str | Path,
+    poses: dict[str, np.ndarray],
+    job_list: list[PairJob],
+) -> list[PairJob]:
+    """Neighbour pairs of a big plot's scans that the pose graph places (graph_poses), not tried yet:
+    at most `reach` x the scan spacing apart, their prior from the graph and verified first (a chain
+    of verified pairs is as good a prior as two ALS placements), at most `max_per_scan` pairs a scan."""
+    reach = _priors(config).reach
+    config_json = config.align.model_dump_json()
+    tried = {frozenset((j.source, j.target)) for j in job_list}
+    degree = _degrees(job_list)
+    cap = config.pairs.max_per_scan
+    out = []
+    for plot in manifest.plots:
+        if len(plot.scans) <= config.pairs.all_pairs_up_to:
+            continue  # every pair is tried already
+        ids = [s.id for s in plot.scans if s.id in poses]
+        if len(ids) < 2:
+            continue
+        xy = np.array([poses[i][:2, 3] for i in ids])
+        far = reach_distance(xy, reach, config.max_distance)
+        by_id = {s.id: s for s in plot.scans}
+        order = {s.id: k for k, s in enumerate(plot.scans)}
+        for i, j in neighbour_pairs(xy, config.pairs.neighbours, cap, far):
+            a, b = ids[i], ids[j]
+            if frozenset((a, b)) in tried or max(degree.get(a, 0), degree.get(b, 0)) >= cap:
+                continue
+            target, source = sorted((a, b), key=order.get)  # the later scan is the source
+            out.append(
+                _pair_job(
+                    manifest, by_id[source], by_id[target], config_json, seed, str(prepared), poses
+                )
+            )
+            tried.add(frozenset((a, b)))
+            degree[a] = degree.get(a, 0) + 1
+            degree[b] = degree.get(b, 0) + 1
+    return with_stored_poses(out, set(poses))
 
 
 def match_signatures(
@@ -219,7 +297,10 @@ def match_signatures(
         ids = [s.id for s in plot.scans]
         sigs = [from_record(by_key.get(jobs[i].key, {})) for i in ids]
         scores = similarity(sigs, sig)
-        pairs = signature_pairs(scores, len(ids), sig.partners, config.pairs.max_per_scan)
+        # with ALS placements a scan needs one verified partner: the graph places it, and its
+        # neighbours follow by position (position_jobs), not by further, costlier signature guesses
+        partners = sig.placed_partners if sum(i in placed for i in ids) >= 3 else sig.partners
+        pairs = signature_pairs(scores, len(ids), partners, config.pairs.max_per_scan)
         linked[plot.id] = [(ids[i], ids[j]) for i, j in pairs]
         for i, row in enumerate(ranked_partners(scores, len(ids))):
             ranks[ids[i]] = [ids[j] for j in row]
@@ -235,16 +316,17 @@ def grow_jobs(
     ranks: dict[str, list[str]],
     job_list: list[PairJob],
     records: dict[str, dict],
+    anchored: set[str] | None = None,
 ) -> list[PairJob]:
-    """Pairs to add where a plot's verified pairs leave it in pieces: the next signature-ranked partners."""
+    """Pairs to add where a plot's verified pairs leave it in pieces: the next signature-ranked partners.
+
+    `anchored`: scans held by an ALS anchor (one piece with each other through the plot's ALS node)."""
     sig = _signature_config(config)
     config_json = config.align.model_dump_json()
     tried = {frozenset((j.source, j.target)) for j in job_list}
-    degree: dict[str, int] = {}
+    degree = _degrees(job_list)
     G = nx.Graph()
     for j in job_list:
-        degree[j.source] = degree.get(j.source, 0) + 1
-        degree[j.target] = degree.get(j.target, 0) + 1
         if records.get(j.key, {}).get("status") == "ok":
             G.add_edge(j.source, j.target)
     out = []
@@ -254,7 +336,8 @@ def grow_jobs(
             continue
         sub = G.subgraph(ids).copy()
         sub.add_nodes_from(ids)
-        comps = [set(c) for c in nx.connected_components(sub)]
+        sub.add_edges_from((i, anchor_id(plot)) for i in ids if i in (anchored or ()))
+        comps = [set(c) - {anchor_id(plot)} for c in nx.connected_components(sub)]
         by_id = {s.id: s for s in plot.scans}
         order = {s.id: k for k, s in enumerate(plot.scans)}
         for a, b in grow_candidates(
@@ -472,7 +555,7 @@ def register_plot(
         if not any(s.id in placed for s in plot.scans):
             placed.update({s.id: stored[s.id] for s in plot.scans if s.id in stored})
             verify_first |= {s.id for s in plot.scans if s.id in stored}
-    priors = getattr(config, "placed_priors", None) or PlacedPriors()
+    priors = _priors(config)
     if (
         priors.verify_first
     ):  # two sure ALS placements: their relative pose is as good as a stored one
@@ -486,12 +569,40 @@ def register_plot(
     records, computed = compute_pairs(
         job_list, cache, executor, jobs, scheduler, force, progress, on_result
     )
-    # the plan grows only where the verified pairs leave a plot in pieces (bounded rounds)
-    for _ in range(_signature_config(config).grow_rounds if ranks else 0):
-        more = with_stored_poses(
-            grow_jobs(manifest, config, seed, out / "prepared", placed, ranks, job_list, records),
-            verify_first,
-        )
+    from_als = set(placed) - set(stored)  # the ALS step's placements (not stored E57 poses)
+    anchors = {
+        plot.id: als_anchor_edges(plot, placement, placement_records, from_als)
+        if config.als_anchors
+        else []
+        for plot in manifest.plots
+    }
+    # the plan grows in bounded rounds: neighbour pairs of the scans the verified graph places
+    # (priors verified first), else, where a plot is still in pieces, the next signature partners
+    grows = _signature_config(config).grow_rounds if ranks else 0
+    positions = priors.position_rounds
+    while True:
+        more = []
+        if positions:
+            poses = graph_poses(manifest, config, job_list, records, anchors)
+            more = position_jobs(manifest, config, seed, out / "prepared", poses, job_list)
+            positions -= bool(more)
+        if not more and grows:
+            grows -= 1
+            anchored = from_als if config.als_anchors else set()
+            more = with_stored_poses(
+                grow_jobs(
+                    manifest,
+                    config,
+                    seed,
+                    out / "prepared",
+                    placed,
+                    ranks,
+                    job_list,
+                    records,
+                    anchored,
+                ),
+                verify_first,
+            )
         if not more:
             break
         job_list += more
@@ -516,14 +627,8 @@ def register_plot(
     failed = G.graph["failed"]
 
     results, scans = [], {}
-    from_als = set(placed) - set(stored)  # the ALS step's placements (not stored E57 poses)
     for plot in manifest.plots:
-        anchors = (
-            als_anchor_edges(plot, placement, placement_records, from_als)
-            if config.als_anchors
-            else []
-        )
-        ref, sol = solve_plot(G, plot, anchors, config)
+        ref, sol = solve_plot(G, plot, anchors[plot.id], config)
         results.append(PlotResult(plot.id, ref, sol, [s.id for s in plot.scans]))
         for name, T in sol.poses.items():
             scans[name] = ScanPose(T, plot.id, sol.sigmas[name])
