@@ -23,6 +23,12 @@ def savefig(fig, path: str | Path, dpi: int = 110, tight: bool = True) -> Path:
     return path
 
 
+def dots(ax, x, y, s: float, color, **kwargs):
+    """`ax.scatter(x, y, s=s, color=color)` drawn as one line's markers: Agg stamps one cached marker per
+    point instead of a path each (the same picture; ~2x cheaper on the overview's ~150,000 points)."""
+    return ax.plot(x, y, "o", ms=float(np.sqrt(s)), color=color, ls="none", **kwargs)
+
+
 def plot_scans(
     path: Path, clouds: dict[str, np.ndarray], title: str, origin: np.ndarray | None = None
 ) -> Path:
@@ -35,8 +41,8 @@ def plot_scans(
         colour = (
             "lightgrey" if name == "ALS" else cmap(n % cmap.N)
         )  # the reference stays in the background
-        top.scatter(xyz[:, 0], xyz[:, 1], s=0.3, color=colour, label=name, rasterized=True)
-        side.scatter(xyz[:, 0], xyz[:, 2], s=0.3, color=colour, rasterized=True)
+        dots(top, xyz[:, 0], xyz[:, 1], 0.3, colour, label=name, rasterized=True)
+        dots(side, xyz[:, 0], xyz[:, 2], 0.3, colour, rasterized=True)
     top.set_aspect("equal")
     top.set_title("top view (x, y)")
     side.set_title("side view (x, z)")
