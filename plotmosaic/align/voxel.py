@@ -93,9 +93,8 @@ def groups(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if n and int(keys.max()) < 2 ** (62 - bits):
         # the index packed under the key: a plain sort is ~3x faster than argsort, and just as stable
         packed = keys << bits
-        for s in range(
-            0, n, KEY_BLOCK
-        ):  # by blocks: an N-sized arange is 64 MB of fresh pages on 8M
+        # by blocks: an N-sized arange is 64 MB of fresh pages on 8M points
+        for s in range(0, n, KEY_BLOCK):
             packed[s : s + KEY_BLOCK] |= np.arange(s, min(n, s + KEY_BLOCK))
         packed.sort()
         order = packed & ((1 << bits) - 1)
