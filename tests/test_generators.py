@@ -260,3 +260,25 @@ def test_4dof_vote_finds_a_pose_held_by_one_percent_of_the_matches():
     found = features3d.vote_4dof(p, q, CoarseConfig())
     deg, m = pose_error(found[0][0], T)
     assert deg < 1.0 and m < 0.2 and found[0][1] >= 12, found[:2]
+
+
+def test_slice_search_finds_heading_and_shift_of_a_levelled_view(views):
+    """Height-slice occupancy (slices.py) puts the truth first on two levelled views turned 130 deg apart."""
+    from plotmosaic.align import slices
+
+    c = CoarseConfig()
+    src, tgt = voxel_centroids(views[0], 0.1), voxel_centroids(views[1], 0.1)
+    T = rigid([0, 0, 130], [4.0, -3.0, 0.5], src.mean(axis=0))
+    moved = move(T, src)
+    hag_s, hag_t = height_above_ground(moved, 1.0, c), height_above_ground(tgt, 1.0, c)
+    found = slices.slice_search(moved, hag_s, tgt, hag_t, c)
+    assert 1 <= len(found) <= c.slice_hypotheses
+    truth = np.linalg.inv(T)  # moved -> target
+    best = found[0]
+    A = np.eye(4)
+    ca, sa = np.cos(best["yaw"]), np.sin(best["yaw"])
+    A[:2, :2] = [[ca, -sa], [sa, ca]]
+    A[:2, 3] = best["centre"] - A[:2, :2] @ best["centre"] + best["t_xy"]
+    A[2, 3] = truth[2, 3]  # the height comes from the ground, not from this search
+    deg, m = pose_error(A, truth)
+    assert deg < 3.0 and m < 1.0, (deg, m, [round(h["score"], 3) for h in found])

@@ -4,7 +4,9 @@
      z-up when airborne or already near vertical: levelling.py), each carried into the search,
   2. generators, under every vertical pair: heading searched exhaustively and the horizontal shift
      by masked FFT correlation of forest rasters (stems, canopy, terrain); stem maps matched as
-     point patterns (stemmap.py); FPFH matches with a 4-DoF and a 6-DoF RANSAC (features3d.py),
+     point patterns (stemmap.py); FPFH matches with a 4-DoF vote and a 6-DoF RANSAC (features3d.py);
+     when the first vertical pair has not settled, fine height-slice occupancy correlated over
+     heading x shift (slices.py: sparse ground views the 1 m rasters miss),
   3. the vertical offset of raster and stem hypotheses from the ground,
   4. screen every hypothesis with a short ICP, refine the best of each generator and the best
      overall with a quick robust ICP, and keep the best by how many non-flat points with a quick robust ICP and keep the best by how many non-flat points
@@ -23,7 +25,7 @@ import numpy as np
 from scipy import fft
 from scipy.spatial import cKDTree
 
-from plotmosaic.align import features3d, stemmap
+from plotmosaic.align import features3d, slices, stemmap
 from plotmosaic.align.coarse_config import CoarseConfig
 from plotmosaic.align.config import IcpStage
 from plotmosaic.align.icp import point_to_plane_icp
@@ -440,6 +442,32 @@ def _stem_starts(
     return out
 
 
+def _slice_starts(src: _Base, tgt: _Base, pairs, config: CoarseConfig) -> list[tuple]:
+    """(local 4x4, hypothesis dict) of the height-slice occupancy search per vertical pair."""
+    out = []
+    for vs, vt in pairs:
+        ls, lt = _level(src, vs, config), _level(tgt, vt, config)
+        ground_xy = lt.feats.xy[lt.feats.ground]
+        ground_tree = cKDTree(ground_xy) if len(ground_xy) >= config.tz_min_ground else None
+        for h in slices.slice_search(ls.points, ls.hag, lt.points, lt.hag, config):
+            A = _hypothesis_transform(h, ls, lt, ground_tree, config)
+            T = _homogeneous(lt.R.T) @ A @ _homogeneous(ls.R)
+            out.append(
+                (
+                    T,
+                    {
+                        "generator": "slices",
+                        "vertical": f"{vs.name}/{vt.name}",
+                        "slice_score": h["score"],
+                        "yaw": h["yaw"],
+                        "overlap": h["overlap"],
+                        "cell": h["cell"],
+                    },
+                )
+            )
+    return out
+
+
 def _raster_starts(
     src: _Base,
     tgt: _Base,
@@ -607,12 +635,18 @@ def coarse_align(
         if len(pairs) > 1:
             more, _ = generate(1, pairs[1:])
             starts = _unique_starts(starts + more, config)
+        if config.slices:  # only now: a settled pair needs no finer search
+            t = time.perf_counter()
+            more = _slice_starts(src, tgt, pairs[: config.slice_vertical_pairs], config)
+            starts = _unique_starts(starts + more, config)
+            clock("slices", t)
         t = time.perf_counter()
         results, confidence = verify(starts)
         clock("verify", t)
     best = results[0]
     counts = {
-        g: sum(r["generator"] == g for r in results) for g in ("raster", "fpfh", "stems", "prior")
+        g: sum(r["generator"] == g for r in results)
+        for g in ("raster", "fpfh", "stems", "slices", "prior")
     }
     searched = pairs if len(pairs) == 1 or not settled else pairs[:1]
     return CoarseResult(
@@ -739,7 +773,7 @@ class _Verifier:
             k
             for k in (
                 next((i for i in distinct if screened[i][2]["generator"] == gen), None)
-                for gen in ("raster", "fpfh", "stems", "prior")
+                for gen in ("raster", "fpfh", "stems", "slices", "prior")
             )
             if k is not None and screened[k][0] > 0
         ]
@@ -770,7 +804,7 @@ class _Verifier:
                     "generator": h["generator"],
                     "vertical": h["vertical"],
                 }
-                | {k: h[k] for k in ("votes", "agree") if k in h}
+                | {k: h[k] for k in ("votes", "agree", "slice_score") if k in h}
             )
         if not results:
             results.append(

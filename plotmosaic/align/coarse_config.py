@@ -339,6 +339,53 @@ class CoarseConfig(BaseModel):
     fpfh_six_dof: bool = Field(
         True, description="also a 6-DoF RANSAC that trusts no vertical hypothesis"
     )
+    # --- height-slice occupancy generator (slices.py): sparse ground views the 1 m rasters miss
+    slices: bool = Field(
+        True,
+        description="generate hypotheses by correlating fine height-slice occupancy (when not settled)",
+    )
+    slice_cell: float = Field(
+        0.3,
+        gt=0.05,
+        le=5,
+        description="occupancy cell (m): a stem is one or two cells (0.5 m lost the truth on sparse MLS views)",
+    )
+    slice_edges: tuple[float, ...] = Field(
+        (0.3, 1.0, 2.0, 4.0, 8.0, 30.0),
+        min_length=2,
+        description="slice edges (m above the rough DTM): understorey, stems, crown base, crowns; ground left out",
+    )
+    slice_yaw_deg: float = Field(
+        2.0, gt=0, le=10, description="heading step: 1 m at the edge of a 30 m view"
+    )
+    slice_max_fft: int = Field(
+        512, ge=64, le=8192, description="largest padded FFT side; the cell grows to respect it"
+    )
+    slice_min_cells: int = Field(
+        20, ge=1, description="least shared slice cells for a pose to score (fewer: chance)"
+    )
+    slice_peaks_per_yaw: int = Field(2, ge=1, le=10, description="peaks kept per heading")
+    slice_suppression_m: float = Field(
+        2.0, gt=0, le=50, description="radius (m) cleared around a peak before the next one"
+    )
+    slice_hypotheses: int = Field(
+        6,
+        ge=1,
+        le=64,
+        description="distinct poses handed to verification (the truth ranked 0-4 on the sparse MLS views)",
+    )
+    slice_distinct_yaw_deg: float = Field(
+        3.0, gt=0, le=90, description="poses closer than this in heading and ..."
+    )
+    slice_distinct_m: float = Field(
+        1.5,
+        gt=0,
+        le=50,
+        description="... closer than this in shift are one (the screening ICP's basin)",
+    )
+    slice_vertical_pairs: int = Field(
+        1, ge=0, le=36, description="vertical pairs the slice search runs under (the first ones)"
+    )
     # --- stem map generator (stemmap.py)
     stems: bool = Field(True, description="generate hypotheses by matching stem maps")
     stem_slab: tuple[float, float] = Field(

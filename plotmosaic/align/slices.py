@@ -1,0 +1,151 @@
+"""Height-slice occupancy search: heading x horizontal shift scored on fine cells of the points.
+
+Under a vertical hypothesis only heading and shift remain (the height comes from the ground). The
+1 m forest rasters blur a sparse ground view into a few stem blobs, and their terrain channel
+correlates with itself at wrong poses on a slope. Here each levelled cloud is cut into slices of
+height above its own rough DTM (de-trended: a slope no longer matches itself) and each slice is a
+binary occupancy image at a fine cell. For every heading, FFT correlation gives for every shift
+
+    score = hits / sqrt(n_s * n_t) * (n_s / S) ** overlap_exponent
+
+hits: source slice cells on target cells of the same slice; n_s: source slice cells over columns the
+target saw; n_t: target slice cells over columns the source saw; S: all source slice cells. So a pose
+is scored only on what both views observed (partial overlap), and small overlaps score lower.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import fft
+
+from plotmosaic.align.coarse_config import CoarseConfig
+from plotmosaic.parallel import in_two_threads
+
+
+def _angle_diff(a: float, b: float) -> float:
+    return abs((a - b + np.pi) % (2 * np.pi) - np.pi)
+
+
+def _images(
+    xy: np.ndarray, layer: np.ndarray, n_layers: int, origin, shape, cell
+) -> tuple[np.ndarray, np.ndarray]:
+    """(slice occupancy images (n_layers, *shape), columns seen at all) of points with slice `layer` (-1: none)."""
+    ij = np.floor((xy - origin) / cell).astype(np.int64)
+    ok = (ij >= 0).all(axis=1) & (ij[:, 0] < shape[0]) & (ij[:, 1] < shape[1])
+    flat = ij[ok, 0] * shape[1] + ij[ok, 1]
+    seen = np.zeros(shape[0] * shape[1], np.float32)
+    seen[flat] = 1.0
+    occ = np.zeros((n_layers, shape[0] * shape[1]), np.float32)
+    lay = layer[ok]
+    keep = lay >= 0
+    occ[lay[keep], flat[keep]] = 1.0
+    return occ.reshape(n_layers, *shape), seen.reshape(shape)
+
+
+def slice_search(
+    src_points: np.ndarray,
+    src_hag: np.ndarray,
+    tgt_points: np.ndarray,
+    tgt_hag: np.ndarray,
+    config: CoarseConfig,
+) -> list[dict]:
+    """Best distinct (yaw, t_xy about `centre`) poses of the levelled source on the levelled target.
+
+    Returns dicts with score, yaw, t_xy, centre, overlap, cell (the raster search's convention:
+    source xy rotated by yaw about centre, then shifted by t_xy).
+    """
+    edges = np.asarray(config.slice_edges, float)
+    n_layers = len(edges) - 1
+
+    def layers(hag):
+        k = np.searchsorted(edges, hag, side="right") - 1
+        return np.where((k >= 0) & (k < n_layers), k, -1)
+
+    lay_s, lay_t = layers(src_hag), layers(tgt_hag)
+    sxy, txy = src_points[:, :2], tgt_points[:, :2]
+    centre = sxy.mean(axis=0)
+    radius = float(np.linalg.norm(sxy - centre, axis=1).max())
+    cell = config.slice_cell
+    while True:
+        t_min = txy.min(axis=0) - cell
+        t_shape = tuple(np.ceil((txy.max(axis=0) + cell - t_min) / cell).astype(int) + 1)
+        s_side = int(np.ceil(2 * (radius + cell) / cell)) + 1
+        shape = tuple(fft.next_fast_len(t + s_side, real=True) for t in t_shape)
+        if max(shape) <= config.slice_max_fft:
+            break
+        cell *= config.cell_growth
+    s_origin = centre - radius - cell
+    T, t_seen = _images(txy, lay_t, n_layers, t_min, t_shape, cell)
+
+    def f(a):
+        return fft.rfft2(
+            a, s=shape, axes=(-2, -1), workers=1
+        )  # headings run in two threads instead
+
+    FT, FT_seen, FT_any = f(T), f(t_seen), f(T.sum(axis=0))
+    rel = sxy - centre
+    min_cells = config.slice_min_cells
+    r_sup = max(1, int(round(config.slice_suppression_m / cell)))
+
+    def to_t(k) -> np.ndarray:
+        s = np.array([k[i] if k[i] < shape[i] // 2 else k[i] - shape[i] for i in range(2)])
+        return t_min - s_origin + s * cell
+
+    def peaks(yaw: float) -> list[dict]:
+        c, s_ = np.cos(yaw), np.sin(yaw)
+        xy = np.column_stack([c * rel[:, 0] - s_ * rel[:, 1], s_ * rel[:, 0] + c * rel[:, 1]])
+        S, s_seen = _images(xy + centre, lay_s, n_layers, s_origin, (s_side, s_side), cell)
+        total = float(S.sum())
+        if total < min_cells:
+            return []
+        FS = np.conj(f(S))
+        # sum_x a(x) b(x + t) for every shift t is irfft(conj(A) B) (padded: no wrap-around)
+        hits, n_s, n_t = fft.irfft2(
+            np.stack(
+                [(FS * FT).sum(axis=0), FS.sum(axis=0) * FT_seen, np.conj(f(s_seen)) * FT_any]
+            ),
+            s=shape,
+            axes=(-2, -1),
+            workers=1,
+        )
+        with np.errstate(divide="ignore", invalid="ignore"):
+            score = np.where(
+                (n_s >= min_cells) & (n_t >= min_cells),
+                hits
+                / np.sqrt(np.maximum(n_s, 1.0) * np.maximum(n_t, 1.0))
+                * np.clip(n_s / total, 0.0, 1.0) ** config.overlap_exponent,
+                0.0,
+            )
+        found = []
+        for _ in range(config.slice_peaks_per_yaw):
+            k = np.unravel_index(int(np.argmax(score)), score.shape)
+            if score[k] <= 0:
+                break
+            found.append(
+                {
+                    "score": float(score[k]),
+                    "yaw": yaw,
+                    "t_xy": to_t(k),
+                    "overlap": float(min(n_s[k] / total, 1.0)),
+                }
+            )
+            rows = np.arange(k[0] - r_sup, k[0] + r_sup + 1) % shape[0]
+            cols = np.arange(k[1] - r_sup, k[1] + r_sup + 1) % shape[1]
+            score[np.ix_(rows, cols)] = -1.0
+        return found
+
+    yaws = [float(y) for y in np.arange(0.0, 2 * np.pi, np.radians(config.slice_yaw_deg))]
+    candidates = sorted(
+        (c for found in in_two_threads(peaks, yaws) for c in found), key=lambda c: -c["score"]
+    )
+    chosen: list[dict] = []
+    for c in candidates:
+        if all(
+            _angle_diff(c["yaw"], o["yaw"]) > np.radians(config.slice_distinct_yaw_deg)
+            or np.linalg.norm(c["t_xy"] - o["t_xy"]) > config.slice_distinct_m
+            for o in chosen
+        ):
+            chosen.append({**c, "centre": centre, "cell": cell})
+        if len(chosen) >= config.slice_hypotheses:
+            break
+    return chosen
