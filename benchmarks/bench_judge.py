@@ -276,7 +276,16 @@ def run_case(
             j for j, (B, _, _) in enumerate(poses) if j != i and judge.distinct(F, B, centre, jc)
         ]
         fin = judge.profile(ps, pt, F, jc)
-        fm = judge.fine_margin(fin, [profiles[j] for j in others], jc)
+        # its own basin (judge.basin): starts around F, refined; the sharper ones are rivals
+        near = [q for _, q in judge.basin(ps, pt, F, jc)] if jc.basin_neighbours else []
+        sharper = judge.sharper_neighbours(fin, near, jc)
+        mine_fine = judge.fine_share(fin, jc)
+        basin_ratio = (
+            max((judge.fine_share(q, jc) for q in near), default=0.0) / mine_fine
+            if mine_fine > 0
+            else float("inf")
+        )
+        fm = judge.fine_margin(fin, [profiles[j] for j in others] + sharper, jc)
         margin = 1.0 - best / score if score > 0 else -1.0
         deg, m = (None, None) if truth_local is None else judge.separation(A, truth_local, centre)
         label = labels[i]
@@ -302,9 +311,18 @@ def run_case(
                 else -1.0,
                 "final_sharpness": judge.sharpness(fin),
                 "fine_margin": fm,
-                "fine_margin_wrong_rivals": judge.fine_margin(fin, wrong_others, jc),
+                "basin_ratio": basin_ratio,
+                "basin_sharper": len(sharper),
+                "fine_margin_wrong_rivals": judge.fine_margin(fin, wrong_others + sharper, jc),
+                "fine_margin_wrong_rivals_no_basin": judge.fine_margin(fin, wrong_others, jc),
+                "confidence_wrong_rivals": judge.confidence(fin, wrong_others + sharper, jc),
+                "confidence_wrong_rivals_no_basin": judge.confidence(fin, wrong_others, jc),
+                "final_margin_wrong_rivals": 1.0
+                - max((p["score"] for p in wrong_others), default=0.0) / fin["score"]
+                if fin["score"] > 0
+                else -1.0,
                 # what the judge would say of it (its confidence: the fine margin)
-                "confidence": judge.confidence(fin, [profiles[j] for j in others], jc),
+                "confidence": judge.confidence(fin, [profiles[j] for j in others] + sharper, jc),
                 "final_profile": fin,
                 "rival_profiles": [profiles[j] for j in others],
             }
@@ -466,6 +484,38 @@ def report(rows: list, outcomes: list, cfg: AlignConfig) -> str:
             f" sharpness {alone['final_sharpness']:.3f}); a fine margin of"
             f" {jc.chance_margin + cfg.min_confidence * (jc.full_margin - jc.chance_margin):.2f}"
             f" is confidence {cfg.min_confidence}"
+        )
+
+    def passes_alone(x: dict, key: str) -> bool:  # the same against wrong rivals alone
+        return (
+            x[key] >= cfg.min_confidence
+            and x["final_score"] >= jc.min_score
+            and x["final_sharpness"] >= jc.min_sharpness
+            and x["final_margin_wrong_rivals"] > 0
+        )
+
+    if w and "confidence_wrong_rivals" in w[0]:
+        with_b = [x for x in w if passes_alone(x, "confidence_wrong_rivals")]
+        without = [x for x in w if passes_alone(x, "confidence_wrong_rivals_no_basin")]
+        lines.append(
+            f"against wrong rivals alone, wrong poses passing: {len(with_b)} / {len(w)} with the basin"
+            f" check, {len(without)} / {len(w)} without"
+            + "".join(
+                f"; {x['case']} {x['generator']} {x['deg']:.1f} deg / {x['m']:.2f} m: fine margin"
+                f" {x['fine_margin_wrong_rivals_no_basin']:.3f} -> {x['fine_margin_wrong_rivals']:.3f}"
+                f" (basin {x['basin_ratio']:.2f}x)"
+                for x in without
+            )
+        )
+        ratios = sorted(x["basin_ratio"] for x in r)
+        lines.append(
+            f"basin ({jc.basin_neighbours} starts, {jc.basin_deg} deg / {jc.basin_m} m x the factor):"
+            f" right poses' best start ends at {ratios[0]:.3f}-{ratios[-1]:.3f}x their fine share"
+            f" ({sum(x['basin_sharper'] > 0 for x in r)} of {len(r)} beyond the {1 + jc.basin_tolerance:.2f}x"
+            f" tolerance); wrong poses: {sum(x['basin_sharper'] > 0 for x in w)} of {len(w)} have a sharper"
+            " start"
+            if r
+            else ""
         )
     lines.append(
         f"wrong poses passing the judge (confidence >= {cfg.min_confidence}, score >="

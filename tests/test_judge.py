@@ -196,6 +196,37 @@ def test_fine_margin_accepts_a_clear_winner_refuses_a_close_rival():
     assert judge.confidence(pose, [], jc) == 1.0  # nothing distinct to compare with
 
 
+def _turned(T: np.ndarray, centre: np.ndarray, deg: float, shift) -> np.ndarray:
+    """T turned by `deg` about the vertical through where T puts `centre`, then shifted."""
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    P = np.eye(4)
+    P[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+    p = T[:3, :3] @ centre + T[:3, 3]
+    P[:3, 3] = p - P[:3, :3] @ p + np.asarray(shift, dtype=float)
+    return P @ T
+
+
+def test_near_miss_refused_by_its_own_basin_when_the_truth_is_withheld(pair):
+    """A pose 2.5 deg / 0.3 m off is inside the distinct radius of the truth, so with the truth missing
+    from the candidates nothing distinct is sharper (confidence 1 without the basin check); its basin
+    starts reach the truth, a sharper pose beside it: confidence 0. The truth keeps its confidence."""
+    ps, pt, T_true, _, cfg = pair
+    jc = cfg.judge
+    T = to_local_transform(T_true, ps.frame, pt.frame)
+    near = _turned(T, judge.centre(ps, jc), 2.5, [0.2, -0.2, 0.0])
+    assert not judge.distinct(near, T, judge.centre(ps, jc), jc)
+    off = jc.model_copy(update={"basin_neighbours": 0})
+    assert judge.judge(ps, pt, near, [], off).confidence == 1.0  # the risk the basin closes
+    v = judge.judge(ps, pt, near, [], jc)
+    assert v.confidence == 0.0 and v.fine_rival_source.startswith("the pose's own basin"), v
+    assert v.basin_share > (1 + jc.basin_tolerance) * v.fine_share
+    deg, m = judge.separation(v.basin_transform, T, judge.centre(ps, jc))
+    assert deg < 1.0 and m < 0.10, (deg, m)  # the sharper pose is the truth (its basin)
+    right = judge.judge(ps, pt, T, [], jc)
+    assert right.confidence == 1.0 and right.basin_transform is None
+    assert right.basin_share <= (1 + jc.basin_tolerance) * right.fine_share
+
+
 @pytest.fixture(scope="module")
 def boxed(spanner_dir):
     """bench_real.py's mls-boxed6m: a ground view cut to 6 m range against a view 8 m away (real MLS)."""

@@ -6,7 +6,11 @@ A pose is scored by a residual profile: the share of sample points within severa
 The pose must beat every *distinct* rival (other hypotheses of the global search, the start as
 handed over), each refined by a short ICP and profiled the same way: the confidence comes from the
 relative margin at the finest scale (`fine_margin`), where a right pose stands out; the wide scales
-gather points by chance in a forest and rank wrong rivals close to a right pose. Every transform here maps source-local to target-local coordinates.
+gather points by chance in a forest and rank wrong rivals close to a right pose. A pose must also be
+the sharpest of its own basin: starts a few degrees / decimetres around it, refined the same way, must
+not end sharper (`basin`): a near miss (a pose the final ICP left 1-4 deg off, inside the distinct radius
+of the truth) has no distinct rival at the truth when the search missed it, but its neighbours reach it.
+Every transform here maps source-local to target-local coordinates.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from plotmosaic.align.config import IcpStage
 from plotmosaic.align.icp import nearest, point_to_plane_icp
@@ -172,6 +177,51 @@ def _refined(src, tgt, starts: list[np.ndarray], T: np.ndarray, config: JudgeCon
     return [table[np.asarray(A0, dtype=float).tobytes()] for A0 in starts]
 
 
+def neighbours(T: np.ndarray, centre: np.ndarray, factor: float, config: JudgeConfig) -> list:
+    """`basin_neighbours` starts around pose T: turned by +-basin_deg about an axis leaning off the
+    vertical (headings are what a search gets wrong most) through the source centre, and shifted
+    +-basin_m x the scale factor across it; a fixed set (deterministic)."""
+    axes = np.array([[0.5, 0.5, 1.0], [-0.5, 0.5, 1.0], [0.5, -0.5, 1.0], [-0.5, -0.5, 1.0]])
+    shifts = np.array([[1.0, -1.0, 0.5], [1.0, 1.0, -0.5], [-1.0, 1.0, 0.5], [-1.0, -1.0, -0.5]])
+    c = T[:3, :3] @ centre + T[:3, 3]  # the source centre where T puts it (target frame)
+    out = []
+    for k in range(config.basin_neighbours):
+        sign = 1.0 if k % 2 == 0 else -1.0
+        axis, shift = axes[(k // 2) % 4], shifts[(k // 2) % 4]
+        R = Rotation.from_rotvec(
+            sign * np.radians(config.basin_deg) * axis / np.linalg.norm(axis)
+        ).as_matrix()
+        P = np.eye(4)
+        P[:3, :3] = R
+        P[:3, 3] = c - R @ c + sign * config.basin_m * factor * shift / np.linalg.norm(shift)
+        out.append(P @ T)
+    return out
+
+
+def basin(src, tgt, T: np.ndarray, config: JudgeConfig) -> list:
+    """(refined start, its profile) for each of T's `neighbours`, refined like a rival (to the end:
+    where it lands is the point), remembered per pair with the rivals."""
+    table = _rival_memo(src, tgt, config)
+    starts = neighbours(T, centre(src, config), scale_factor(src, tgt, config), config)
+    keys = [b"basin" + np.asarray(A0, dtype=float).tobytes() for A0 in starts]
+    todo = [(k, A0) for k, A0 in zip(keys, starts) if k not in table]
+
+    def run(job):
+        A = refine(src, tgt, job[1], config)
+        return A, profile(src, tgt, A, config)
+
+    for (key, _), done in zip(todo, in_two_threads(run, todo)):
+        table[key] = done
+    return [table[k] for k in keys]
+
+
+def sharper_neighbours(prof: dict, near: list[dict], config: JudgeConfig) -> list[dict]:
+    """The basin profiles `near` that end with more than (1 + basin_tolerance) x the pose's fine share:
+    rivals of it (one that returns to the pose, or ends blunter, is none)."""
+    mine = fine_share(prof, config)
+    return [q for q in near if fine_share(q, config) > (1.0 + config.basin_tolerance) * mine]
+
+
 @dataclass
 class Verdict:
     score: float  # judge score of the pose
@@ -191,6 +241,8 @@ class Verdict:
     distinct_rivals: int
     seconds: float = 0.0
     rivals: list[dict] = field(default_factory=list)
+    basin_share: float = 0.0  # highest fine share a basin start ended with (0 when none ran)
+    basin_transform: np.ndarray | None = None  # that start, refined, when it is a rival (sharper)
 
     @property
     def rival_better(self) -> bool:
@@ -217,6 +269,10 @@ class Verdict:
             "distinct_rivals": self.distinct_rivals,
             "seconds": self.seconds,
             "rivals": self.rivals,
+            "basin_share": self.basin_share,
+            "basin_transform": None
+            if self.basin_transform is None
+            else np.asarray(self.basin_transform).tolist(),
         }
 
 
@@ -245,6 +301,7 @@ def judge(
 ) -> Verdict:
     """Score pose T against the distinct rivals among `candidates` ((transform, where from), source local ->
     target local), each refined first; a rival that ends within the distinct radius of T is T itself.
+    T's `basin` starts that end sharper than T (`sharper_neighbours`) are rivals of the fine margin too.
     Refined rivals are remembered per pair (`_refined`)."""
     import time
 
@@ -276,16 +333,28 @@ def judge(
             best, best_T, best_name, best_prof = prof["score"], A, name, prof
         if fine > fine_best:
             fine_best, fine_name = fine, name
+    near = basin(src, tgt, T, config) if config.basin_neighbours else []
+    sharper = sharper_neighbours(mine, [q for _, q in near], config)
+    basin_T, basin_best = None, 0.0
+    for k, (A, prof) in enumerate(near):
+        deg, m = separation(A, T, c)
+        fine, rival = fine_share(prof, config), any(prof is q for q in sharper)
+        table.append({"from": f"basin {k}", "distinct": rival, "deg": deg, "m": m, "fine": fine})
+        if rival and fine > basin_best:
+            basin_T, basin_best = A, fine
+        if rival and fine > fine_best:
+            fine_best, fine_name = fine, f"the pose's own basin (start {k})"
+    fine_rivals = profs + sharper
     score = mine["score"]
     margin = 1.0 - best / score if score > 0 else -1.0
     return Verdict(
         score=score,
         rival_score=best,
         margin=float(margin),
-        confidence=confidence(mine, profs, config),
+        confidence=confidence(mine, fine_rivals, config),
         fine_share=fine_share(mine, config),
         fine_rival_share=fine_best,
-        fine_margin=fine_margin(mine, profs, config),
+        fine_margin=fine_margin(mine, fine_rivals, config),
         fine_rival_source=fine_name,
         sharpness=sharpness(mine),
         profile=mine,
@@ -296,6 +365,8 @@ def judge(
         distinct_rivals=len(profs),
         seconds=time.perf_counter() - t0,
         rivals=table,
+        basin_share=max((fine_share(q, config) for _, q in near), default=0.0),
+        basin_transform=basin_T,
     )
 
 
