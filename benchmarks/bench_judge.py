@@ -517,6 +517,14 @@ def report(rows: list, outcomes: list, cfg: AlignConfig) -> str:
             if r
             else ""
         )
+    # labels are of the rival-refined pose; the pipeline judges it after the final ICP, which may reach the truth
+    ended_right = [x for x in w if passes(x) and x["stored_right"]]
+    if ended_right:
+        lines.append(
+            f"of the wrong poses passing, {len(ended_right)} end right after the final ICP (the pose the"
+            " judge sees; not wrong acceptances): "
+            + ", ".join(f"{x['case']} {x['generator']} {x['deg']:.1f} deg" for x in ended_right)
+        )
     lines.append(
         f"wrong poses passing the judge (confidence >= {cfg.min_confidence}, score >="
         f" {jc.min_score}, sharpness >= {jc.min_sharpness}, score margin > 0):"
