@@ -18,13 +18,19 @@ def test_triangles_are_networkx_triangles():
     assert ours == {frozenset(c) for c in nx.enumerate_all_cliques(G) if len(c) == 3}
 
 
+# a guard against blow-up, not a speed figure (those are benchmarks): the clique enumeration took
+# hours to a day at 30 scans, the neighbour-set triangles take about a second; 60 s tells them apart
+# on a loaded 2-core box (21 s seen niced at load 10)
+BLOWUP_SECONDS = 60
+
+
 def test_complete_graph_of_30_scans_optimises_in_seconds():
     # all pairs of 30 scans: the clique enumeration took about a day here
     truth, nodes, edges = synthetic_plot(30, seed=3, outlier=("s7", "s2"))
     G = build_graph(nodes, edges)
     start = time.perf_counter()
     sol = optimise(G, "s0")
-    assert time.perf_counter() - start < 10
+    assert time.perf_counter() - start < BLOWUP_SECONDS
     assert [(d["source"], d["target"]) for d in sol.dropped] == [("s7", "s2")]
     for name, T in truth.items():
         rot, trans = pose_error(sol.poses[name], T)
@@ -36,7 +42,7 @@ def test_grid_of_150_scans_with_wrong_edges_drops_every_wrong_edge():
     G = build_graph(nodes, edges)
     start = time.perf_counter()
     sol = optimise(G, "s0000")
-    assert time.perf_counter() - start < 10
+    assert time.perf_counter() - start < BLOWUP_SECONDS
     dropped = {_edge_id(d["source"], d["target"]) for d in sol.dropped}
     assert len(wrong) >= 20 and {_edge_id(*e) for e in wrong} <= dropped
     assert not sol.unplaced and set(sol.sigmas) == set(truth)
