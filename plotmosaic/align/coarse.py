@@ -31,6 +31,7 @@ from plotmosaic.align.config import IcpStage
 from plotmosaic.align.icp import point_to_plane_icp
 from plotmosaic.align.levelling import Vertical, rotate, vertical_hypotheses
 from plotmosaic.align.normals import local_shape
+from plotmosaic.align.peaks import angle_diff, distinct_peaks
 from plotmosaic.align.rasters import (
     CHANNELS,
     MaskedNCC,
@@ -259,14 +260,14 @@ def _search(
     step = np.radians(config.yaw_step_deg)
     yaws = np.arange(0.0, 2 * np.pi, step)
     if prior is not None:
-        yaws = [
-            y for y in yaws if _angle_diff(y, prior_yaw) <= np.radians(config.prior_yaw_deg)
-        ] + [prior_yaw % (2 * np.pi)]
+        yaws = [y for y in yaws if angle_diff(y, prior_yaw) <= np.radians(config.prior_yaw_deg)] + [
+            prior_yaw % (2 * np.pi)
+        ]
     # rasterising and FFTs release the GIL: headings two at a time
     candidates = [c for found in in_two_threads(peaks, [float(y) for y in yaws]) for c in found]
     best_yaws: list[float] = []
     for c in sorted(candidates, key=lambda c: -c["score"]):
-        if all(_angle_diff(c["yaw"], y) > 1.5 * step for y in best_yaws):
+        if all(angle_diff(c["yaw"], y) > 1.5 * step for y in best_yaws):
             best_yaws.append(c["yaw"])
         if len(best_yaws) >= config.refine_headings:
             break
@@ -275,21 +276,14 @@ def _search(
     ]
     candidates += [c for found in in_two_threads(peaks, refine) for c in found]
     candidates.sort(key=lambda c: -c["score"])
-    chosen: list[dict] = []
-    for c in candidates:
-        if all(
-            _angle_diff(c["yaw"], o["yaw"]) > np.radians(config.distinct_yaw_deg)
-            or np.linalg.norm(c["t_xy"] - o["t_xy"]) > config.distinct_shift_m
-            for o in chosen
-        ):
-            chosen.append({**c, "centre": centre, "cell": cell})
-        if len(chosen) >= config.hypotheses:
-            break
-    return chosen
-
-
-def _angle_diff(a: float, b: float) -> float:
-    return abs((a - b + np.pi) % (2 * np.pi) - np.pi)
+    return distinct_peaks(
+        candidates,
+        config.distinct_yaw_deg,
+        config.distinct_shift_m,
+        config.hypotheses,
+        centre=centre,
+        cell=cell,
+    )
 
 
 def _hypothesis_transform(

@@ -19,11 +19,8 @@ import numpy as np
 from scipy import fft
 
 from plotmosaic.align.coarse_config import CoarseConfig
+from plotmosaic.align.peaks import distinct_peaks
 from plotmosaic.parallel import in_two_threads
-
-
-def _angle_diff(a: float, b: float) -> float:
-    return abs((a - b + np.pi) % (2 * np.pi) - np.pi)
 
 
 def _images(
@@ -138,14 +135,11 @@ def slice_search(
     candidates = sorted(
         (c for found in in_two_threads(peaks, yaws) for c in found), key=lambda c: -c["score"]
     )
-    chosen: list[dict] = []
-    for c in candidates:
-        if all(
-            _angle_diff(c["yaw"], o["yaw"]) > np.radians(config.slice_distinct_yaw_deg)
-            or np.linalg.norm(c["t_xy"] - o["t_xy"]) > config.slice_distinct_m
-            for o in chosen
-        ):
-            chosen.append({**c, "centre": centre, "cell": cell})
-        if len(chosen) >= config.slice_hypotheses:
-            break
-    return chosen
+    return distinct_peaks(
+        candidates,
+        config.slice_distinct_yaw_deg,
+        config.slice_distinct_m,
+        config.slice_hypotheses,
+        centre=centre,
+        cell=cell,
+    )
