@@ -522,10 +522,16 @@ def _write_laz(target) -> None:
 
 
 def test_interrupt_inside_the_laz_codec_is_an_interrupt():
-    with pytest.raises(
-        Exception, match="Failed to call write"
-    ):  # what lazrs makes of a Ctrl-C on its own
-        _write_laz(_RingingFile())
+    # Python's own Ctrl-C handler, whatever an earlier test (a Dask cluster, a CLI run) left installed:
+    # the full suite once ran this with SIGINT not raising, and lazrs then had nothing to report
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(
+            Exception, match="Failed to call write"
+        ):  # what lazrs makes of a Ctrl-C on its own
+            _write_laz(_RingingFile())
+    finally:
+        signal.signal(signal.SIGINT, previous)
     with pytest.raises(KeyboardInterrupt), merge_module.interrupts_win():
         _write_laz(_RingingFile())
 
