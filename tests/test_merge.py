@@ -522,8 +522,8 @@ def _write_laz(target) -> None:
 
 
 def test_interrupt_inside_the_laz_codec_is_an_interrupt():
-    # Python's own Ctrl-C handler, whatever an earlier test (a Dask cluster, a CLI run) left installed:
-    # the full suite once ran this with SIGINT not raising, and lazrs then had nothing to report
+    # Python's own Ctrl-C handler, in case an earlier test left another installed: a full-suite run
+    # once saw SIGINT not raise here (cause not reproduced), and lazrs then had nothing to report
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         with pytest.raises(
