@@ -28,7 +28,13 @@ from scipy.spatial.transform import Rotation
 
 from plotmosaic.align import judge
 from plotmosaic.align.config import AlignConfig
-from plotmosaic.align.pipeline import final_icp, global_search, prepare_pair, register_prepared
+from plotmosaic.align.pipeline import (
+    blunt_fit,
+    final_icp,
+    global_search,
+    prepare_pair,
+    register_prepared,
+)
 from plotmosaic.errors import RegistrationFailed
 from plotmosaic.io.frame import to_local_transform
 from plotmosaic.io.las import PointCloud, read_cloud
@@ -463,7 +469,7 @@ def report(rows: list, outcomes: list, cfg: AlignConfig) -> str:
         return (
             x["confidence"] >= cfg.min_confidence
             and x["final_score"] >= jc.min_score
-            and x["final_sharpness"] >= jc.min_sharpness
+            and blunt_fit(x["final_sharpness"], x["confidence"], jc) is None
             and x["final_margin"] > 0
         )
 
@@ -490,7 +496,7 @@ def report(rows: list, outcomes: list, cfg: AlignConfig) -> str:
         return (
             x[key] >= cfg.min_confidence
             and x["final_score"] >= jc.min_score
-            and x["final_sharpness"] >= jc.min_sharpness
+            and blunt_fit(x["final_sharpness"], x[key], jc) is None
             and x["final_margin_wrong_rivals"] > 0
         )
 
@@ -527,7 +533,8 @@ def report(rows: list, outcomes: list, cfg: AlignConfig) -> str:
         )
     lines.append(
         f"wrong poses passing the judge (confidence >= {cfg.min_confidence}, score >="
-        f" {jc.min_score}, sharpness >= {jc.min_sharpness}, score margin > 0):"
+        f" {jc.min_score}, sharpness >= {jc.min_sharpness} or >= {jc.blunt_min_sharpness} with"
+        f" confidence >= {jc.blunt_min_confidence}, score margin > 0):"
         f" {sum(passes(x) for x in w)} / {len(w)}; right poses passing: {sum(passes(x) for x in r)}"
         f" / {len(r)}"
     )

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from plotmosaic.align import judge
 from plotmosaic.align.config import AlignConfig
-from plotmosaic.align.pipeline import PairResult, prepare_pair, register_prepared
+from plotmosaic.align.pipeline import PairResult, blunt_fit, prepare_pair, register_prepared
 from plotmosaic.align.prepare import prepare_cloud
 from plotmosaic.cli import app
 from plotmosaic.errors import RegistrationFailed
@@ -81,10 +81,22 @@ def test_sharpness_floor_refuses_a_blunt_fit(pair):
     assert wrong < cfg.judge.min_sharpness < right, (wrong, right)
     res = register_prepared(ps, pt, cfg, T_true, seed=0)  # accepted: a sharp fit
     assert res.judge["sharpness"] >= cfg.judge.min_sharpness
+    above = min(1.0, res.judge["sharpness"] + 0.01)
     strict = cfg.model_copy(deep=True)
-    strict.judge.min_sharpness = min(1.0, res.judge["sharpness"] + 0.01)
-    with pytest.raises(RegistrationFailed, match="blunt fit: sharpness"):
+    strict.judge.min_sharpness = strict.judge.blunt_min_sharpness = above
+    with pytest.raises(RegistrationFailed, match="only by chance"):
         register_prepared(ps, pt, strict, T_true, seed=0)
+    # between the two floors (a noisy sensor's right pose): accepted only as a clear winner
+    zone = cfg.model_copy(deep=True)
+    zone.judge.min_sharpness, zone.judge.blunt_min_sharpness = above, above - 0.02
+    zone.judge.blunt_min_confidence = res.confidence
+    assert register_prepared(ps, pt, zone, T_true, seed=0).confidence == res.confidence
+    jc = zone.judge
+    assert "must beat every distinct rival" in blunt_fit(
+        above - 0.01, jc.blunt_min_confidence - 0.01, jc
+    )
+    assert "only by chance" in blunt_fit(above - 0.03, 1.0, jc)
+    assert blunt_fit(None, None, jc) is None  # results cached before sharpness
 
 
 def test_right_pair_accepted_with_high_confidence(pair):
@@ -273,3 +285,30 @@ def test_boxed_view_refused_when_a_copy_fits_as_well(boxed):
         v = judge.judge(ps, pt2, pose, [(rival, "copy")], cfg.judge)
         assert v.distinct_rivals == 1 and abs(v.fine_margin) < 0.3, v.fine_margin
         assert v.confidence < cfg.min_confidence, v.confidence
+
+
+def test_retry_takes_the_sharper_basin_pose_and_never_a_wrong_one(pair):
+    """pipeline._recover: a near miss (2.5 deg / 0.3 m off, truth withheld) is refused by its basin;
+    the one retry from the basin's sharper pose lands on the truth with a higher confidence and is
+    kept. A wrong pose offered as the better one (40 deg / 3 m off) is finished and judged too, loses
+    to the first pose, and the first pose and its verdict stand."""
+    import dataclasses
+
+    from plotmosaic.align.pipeline import _recover
+
+    ps, pt, T_true, _, cfg = pair
+    jc, c = cfg.judge, judge.centre(ps, cfg.judge)
+    T = to_local_transform(T_true, ps.frame, pt.frame)
+    near = _turned(T, c, 2.5, [0.2, -0.2, 0.0])
+    v = judge.judge(ps, pt, near, [], jc)
+    assert v.basin_transform is not None and v.confidence < cfg.min_confidence
+    empty = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), 0, False)
+    T2, *_, v2 = _recover(ps, pt, cfg, [], (near, *empty), v, lambda msg: None)
+    deg, m = judge.separation(T2, T, c)
+    assert deg < SIM_PAIR_MAX_DEG and m < SIM_PAIR_MAX_M, (deg, m)  # recovered: the truth
+    assert v2.confidence >= cfg.min_confidence and v2.confidence > v.confidence, v2
+    right = judge.judge(ps, pt, T, [], jc)
+    wrong = _turned(T, c, 40.0, [3.0, 0.0, 0.0])
+    offered = dataclasses.replace(right, basin_transform=wrong)
+    T3, *_, v3 = _recover(ps, pt, cfg, [], (T, *empty), offered, lambda msg: None)
+    assert np.array_equal(T3, T) and v3 is offered  # the wrong pose is not taken

@@ -110,7 +110,23 @@ class JudgeConfig(BaseModel):
         0.04,
         ge=0,
         le=1,
-        description="least sharpness (see stored_min_sharpness) of an accepted pose: blunt fits are chance",
+        description="least sharpness (see stored_min_sharpness) of a pose accepted on its confidence alone",
+    )
+    # bench_real.py mls-uas at d742d0a (MLS clip onto the UAS drone clip): right poses at sharpness
+    # 0.039-0.040 with confidence 1.0, two sensors' noise spreads the finest share; no wrong pose of any
+    # calibration reached confidence 0.41 (truth withheld included), the blunt wrong ones sat at
+    # sharpness 0.025-0.026 with confidence 0.13-0.30 (judge.md)
+    blunt_min_sharpness: float = Field(
+        0.03,
+        ge=0,
+        le=1,
+        description="least sharpness of any accepted pose; below min_sharpness only with blunt_min_confidence",
+    )
+    blunt_min_confidence: float = Field(
+        0.9,
+        ge=0,
+        le=1,
+        description="confidence a pose between blunt_min_sharpness and min_sharpness needs: a clear winner",
     )
     # a stored pose (E57 `use_pose = true`) that verifies skips the global search; these decide it
     stored_max_correction_deg: float = Field(
@@ -137,6 +153,11 @@ class JudgeConfig(BaseModel):
 
     @model_validator(mode="after")
     def _margins_ordered(self) -> JudgeConfig:
+        if self.blunt_min_sharpness > self.min_sharpness:
+            raise ValueError(
+                f"judge.blunt_min_sharpness {self.blunt_min_sharpness} must not exceed"
+                f" min_sharpness {self.min_sharpness}"
+            )
         if self.chance_margin >= self.full_margin:
             raise ValueError(
                 f"judge.chance_margin {self.chance_margin} must be below full_margin {self.full_margin}"

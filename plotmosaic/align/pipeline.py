@@ -320,19 +320,10 @@ def register_prepared(
         say("judging the pose against its rivals")
         candidates = _candidates(hypotheses, T_start)
         verdict = judge_mod.judge(src, tgt, T, candidates, config.judge)
-        if (
-            verdict.rival_better
-            and config.coarse.enabled
-            and not skipped
-            and verdict.rival_transform is not None
-        ):
-            # the global search's pick lost to another of its hypotheses once both are refined:
-            # finish that one the same way and keep whichever the judge prefers
-            say("final ICP from a better rival")
-            T2, p2, q2, n2, it2, rev2 = final_icp(src, tgt, verdict.rival_transform, config)
-            second = judge_mod.judge(src, tgt, T2, candidates + [(T, "first pose")], config.judge)
-            if second.score > verdict.score:
-                T, p, q, n, iterations, reverse, verdict = T2, p2, q2, n2, it2, rev2, second
+        if not skipped:
+            T, p, q, n, iterations, reverse, verdict = _recover(
+                src, tgt, config, candidates, (T, p, q, n, iterations, reverse), verdict, say
+            )
     t_judge = time.perf_counter()
 
     say("quality")
@@ -392,6 +383,46 @@ def register_prepared(
     )
     check_quality(result, config, local=not config.coarse.enabled or init is not None)
     return result
+
+
+def _recover(src, tgt, config: AlignConfig, candidates, fine, verdict, say):
+    """At most one retry when the judge found a better pose than the final ICP's: a distinct rival
+    that scores better (only with the coarse stage on: after --no-coarse a distinct pose is not the
+    local result asked for, the refusal says so), or a sharper end of the pose's own basin (every
+    route: it lies within the basin radius, a local correction). The final ICP runs from it and the
+    judge again, the first pose among the candidates; the second pose is kept only if its verdict is
+    better (score when a rival won, confidence otherwise), else the first and its verdict stand.
+    Returns (T, p, q, n, iterations, reverse, verdict)."""
+    rival = verdict.rival_better and config.coarse.enabled
+    better = verdict.rival_transform if rival else verdict.basin_transform
+    if better is None:
+        return (*fine, verdict)
+    say("final ICP from a better rival" if rival else "final ICP from the pose's sharper basin")
+    second_fine = final_icp(src, tgt, better, config)
+    T2 = second_fine[0]
+    second = judge_mod.judge(src, tgt, T2, candidates + [(fine[0], "first pose")], config.judge)
+    keep = second.score > verdict.score if rival else second.confidence > verdict.confidence
+    return (*second_fine, second) if keep else (*fine, verdict)
+
+
+def blunt_fit(sharp: float | None, confidence: float | None, jc) -> str | None:
+    """Why a pose fits too bluntly to be accepted, or None. Sharp (>= min_sharpness): fine. Between
+    blunt_min_sharpness and min_sharpness (noisy sensors, e.g. MLS onto a drone cloud): only a clear
+    winner over every distinct rival. Below: chance. Results cached before sharpness: no figure."""
+    if sharp is None or sharp >= jc.min_sharpness:
+        return None
+    conf = -1.0 if confidence is None else confidence
+    if sharp >= jc.blunt_min_sharpness and conf >= jc.blunt_min_confidence:
+        return None
+    if sharp >= jc.blunt_min_sharpness:
+        return (
+            f"blunt fit: sharpness {sharp:.3f} < {jc.min_sharpness} and confidence {conf:.2f} <"
+            f" {jc.blunt_min_confidence} (a blunt fit must beat every distinct rival clearly)"
+        )
+    return (
+        f"blunt fit: sharpness {sharp:.3f} < {jc.blunt_min_sharpness} (points come close"
+        " to the other cloud only by chance at this pose)"
+    )
 
 
 def _stored_record(check: dict) -> dict:
@@ -490,12 +521,9 @@ def check_quality(result: PairResult, config: AlignConfig, local: bool = False) 
             problems.append(
                 f"judge score {j['score']:.3f} < {config.judge.min_score} (the clouds hardly fit anywhere)"
             )
-        sharp = j.get("sharpness")  # absent from results cached before it
-        if sharp is not None and sharp < config.judge.min_sharpness:
-            problems.append(
-                f"blunt fit: sharpness {sharp:.3f} < {config.judge.min_sharpness} (points come close"
-                " to the other cloud only by chance at this pose)"
-            )
+        blunt = blunt_fit(j.get("sharpness"), result.confidence, config.judge)
+        if blunt:
+            problems.append(blunt)
         if (
             j["margin"] <= 0
         ):  # also with min_confidence 0 (register-plot): this pose is not the best one found
