@@ -113,9 +113,9 @@ class JudgeConfig(BaseModel):
         description="least sharpness (see stored_min_sharpness) of a pose accepted on its confidence alone",
     )
     # bench_real.py mls-uas at d742d0a (MLS clip onto the UAS drone clip): right poses at sharpness
-    # 0.039-0.040 with confidence 1.0, two sensors' noise spreads the finest share; no wrong pose of any
-    # calibration reached confidence 0.41 (truth withheld included), the blunt wrong ones sat at
-    # sharpness 0.025-0.026 with confidence 0.13-0.30 (judge.md)
+    # 0.039-0.040 with confidence 1.0, two sensors' noise spreads the finest share. Calibration at
+    # 6077240 (judge.md): all 38 wrong poses within 0.03-0.04 have confidence 0; wrong ones reaching
+    # confidence 1.0 with the truth withheld sit at 0.026 (and score < min_score)
     blunt_min_sharpness: float = Field(
         0.03,
         ge=0,

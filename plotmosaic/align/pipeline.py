@@ -22,6 +22,7 @@ from plotmosaic.align.coarse import coarse_align
 from plotmosaic.align.complexity import match_levels
 from plotmosaic.align.config import KINDS, AlignConfig, IcpStage, default_levels
 from plotmosaic.align.icp import evaluate, information_matrix, point_to_plane_icp
+from plotmosaic.align.judge_config import JudgeConfig
 from plotmosaic.align.prepare import PreparedCloud, prepare_cloud
 from plotmosaic.align.sampling import sample
 from plotmosaic.errors import InputError, RegistrationFailed
@@ -405,16 +406,16 @@ def _recover(src, tgt, config: AlignConfig, candidates, fine, verdict, say):
     return (*second_fine, second) if keep else (*fine, verdict)
 
 
-def blunt_fit(sharp: float | None, confidence: float | None, jc) -> str | None:
+def blunt_fit(sharp: float | None, confidence: float | None, jc: JudgeConfig) -> str | None:
     """Why a pose fits too bluntly to be accepted, or None. Sharp (>= min_sharpness): fine. Between
     blunt_min_sharpness and min_sharpness (noisy sensors, e.g. MLS onto a drone cloud): only a clear
     winner over every distinct rival. Below: chance. Results cached before sharpness: no figure."""
     if sharp is None or sharp >= jc.min_sharpness:
         return None
     conf = -1.0 if confidence is None else confidence
-    if sharp >= jc.blunt_min_sharpness and conf >= jc.blunt_min_confidence:
-        return None
     if sharp >= jc.blunt_min_sharpness:
+        if conf >= jc.blunt_min_confidence:
+            return None
         return (
             f"blunt fit: sharpness {sharp:.3f} < {jc.min_sharpness} and confidence {conf:.2f} <"
             f" {jc.blunt_min_confidence} (a blunt fit must beat every distinct rival clearly)"
