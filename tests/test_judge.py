@@ -105,7 +105,16 @@ def test_right_pair_accepted_with_high_confidence(pair):
     deg, m = error(result.transform, T_true, centre)
     assert deg < SIM_PAIR_MAX_DEG and m < SIM_PAIR_MAX_M, (deg, m)
     assert result.confidence > 0.6 and result.judge["fine_margin"] > cfg.judge.chance_margin
-    assert result.judge["distinct_rivals"] >= 1 and result.judge["rival_profile"] is not None
+    assert result.judge["distinct_rivals"] >= 1
+    # the score rival is the best distinct rival sharp enough to be accepted itself, if any
+    sharp = [
+        r for r in result.judge["rivals"]
+        if r["distinct"] and "score" in r and r["sharpness"] >= cfg.judge.blunt_min_sharpness
+    ]  # fmt: skip
+    if sharp:
+        assert result.judge["rival_score"] == max(r["score"] for r in sharp)
+    else:
+        assert result.judge["rival_score"] == 0.0 and result.judge["rival_profile"] is None
     # the figures round-trip, and results cached before the judge still load
     again = PairResult.from_dict(json.loads(json.dumps(result.to_dict())))
     assert again.judge["score"] == result.judge["score"] and again.confidence == result.confidence
@@ -256,12 +265,17 @@ def boxed(spanner_dir):
 def test_boxed_view_truth_accepted_by_its_fine_margin(boxed):
     """The true-pose control of the boxed view: the wide scales rank the global search's wrong poses
     close (score margin far below what the old score-margin confidence needed), the 5 cm scale does
-    not; the truth comes back, accepted."""
+    not, and the closest is too blunt to outscore the truth; the truth comes back, accepted."""
     ps, pt, case, cfg = boxed
     result, accepted = outcome(ps, pt, cfg, case.truth)
     j = result.judge
     assert j["distinct_rivals"] >= 1
-    assert j["margin"] < 0.25 * 0.5, j["margin"]  # old rule: confidence = margin / 0.5 < 0.25
+    close = max((r for r in j["rivals"] if "score" in r), key=lambda r: r["score"])
+    margin = 1.0 - close["score"] / j["score"]
+    assert margin < 0.25 * 0.5, margin  # old rule: confidence = margin / 0.5 < 0.25
+    # the closest on score fits only by chance: too blunt to outscore the pose
+    assert close["sharpness"] < cfg.judge.blunt_min_sharpness <= j["sharpness"], close
+    assert j["rival_score"] < close["score"] and j["margin"] > margin
     assert j["fine_margin"] > 0.6, (j["fine_margin"], j["fine_share"], j["fine_rival_share"])
     assert accepted, (result.confidence, j["score"], j["rival_score"], j["sharpness"])
     deg, m = error(result.transform, case.truth, case.source.xyz.mean(axis=0))

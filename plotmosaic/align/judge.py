@@ -225,7 +225,9 @@ def sharper_neighbours(prof: dict, near: list[dict], config: JudgeConfig) -> lis
 @dataclass
 class Verdict:
     score: float  # judge score of the pose
-    rival_score: float  # of the best distinct rival (0 when none)
+    rival_score: (
+        float  # of the best distinct rival not blunter than blunt_min_sharpness (0 when none)
+    )
     margin: float  # 1 - rival_score / score (negative: a rival fits better)
     confidence: float  # from the fine margin (`confidence`), 0-1
     fine_share: float  # of the pose (`fine_share`)
@@ -301,7 +303,8 @@ def judge(
 ) -> Verdict:
     """Score pose T against the distinct rivals among `candidates` ((transform, where from), source local ->
     target local), each refined first; a rival that ends within the distinct radius of T is T itself.
-    T's `basin` starts that end sharper than T (`sharper_neighbours`) are rivals of the fine margin too.
+    T's `basin` starts that end sharper than T (`sharper_neighbours`) are rivals of the fine margin too;
+    rivals blunter than `blunt_min_sharpness` are rivals of the fine margin only, not of the score.
     Refined rivals are remembered per pair (`_refined`)."""
     import time
 
@@ -317,7 +320,7 @@ def judge(
         if m <= config.distinct_m and deg <= config.distinct_deg:
             table.append({"from": name, "distinct": False, "deg": deg, "m": m})
             continue
-        fine = fine_share(prof, config)
+        fine, sharp = fine_share(prof, config), sharpness(prof)
         profs.append(prof)
         table.append(
             {
@@ -327,9 +330,13 @@ def judge(
                 "m": m,
                 "score": prof["score"],
                 "fine": fine,
+                "sharpness": sharp,
             }
         )
-        if prof["score"] > best:
+        # a rival too blunt to be accepted itself fits only by chance: it may not outscore the pose
+        # (mls-boxed6m: right poses, sharpness 0.14, lost on score to chance fits at 0.027), but
+        # it stays a rival of the fine margin
+        if prof["score"] > best and sharp >= config.blunt_min_sharpness:
             best, best_T, best_name, best_prof = prof["score"], A, name, prof
         if fine > fine_best:
             fine_best, fine_name = fine, name

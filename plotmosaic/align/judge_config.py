@@ -120,7 +120,7 @@ class JudgeConfig(BaseModel):
         0.03,
         ge=0,
         le=1,
-        description="least sharpness of any accepted pose; below min_sharpness only with blunt_min_confidence",
+        description="least sharpness of any accepted pose (and of a rival that may outscore it); below min_sharpness only with blunt_min_confidence",
     )
     blunt_min_confidence: float = Field(
         0.9,
