@@ -225,9 +225,7 @@ def sharper_neighbours(prof: dict, near: list[dict], config: JudgeConfig) -> lis
 @dataclass
 class Verdict:
     score: float  # judge score of the pose
-    rival_score: (
-        float  # of the best distinct rival not blunter than blunt_min_sharpness (0 when none)
-    )
+    rival_score: float  # of the best distinct rival as sharp as blunt_min_sharpness (0: none)
     margin: float  # 1 - rival_score / score (negative: a rival fits better)
     confidence: float  # from the fine margin (`confidence`), 0-1
     fine_share: float  # of the pose (`fine_share`)
