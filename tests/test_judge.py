@@ -326,3 +326,45 @@ def test_retry_takes_the_sharper_basin_pose_and_never_a_wrong_one(pair):
     offered = dataclasses.replace(right, basin_transform=wrong)
     T3, *_, v3 = _recover(ps, pt, cfg, [], (T, *empty), offered, lambda msg: None)
     assert np.array_equal(T3, T) and v3 is offered  # the wrong pose is not taken
+
+
+def test_near_rival_still_sliding_into_the_pose_is_the_pose(pair):
+    """A rival start 5.5 deg / 0.3 m off the truth, refined by a schedule too short to settle, stops
+    outside the distinct radius: without more passes it stays a rival of the pose; with them it
+    slides into the pose and is no rival. A far rival is refined once, as before."""
+    ps, pt, T_true, _, cfg = pair
+    c = judge.centre(ps, cfg.judge)
+    T = to_local_transform(T_true, ps.frame, pt.frame)
+    start = _turned(T, c, 5.5, [0.3, 0.0, 0.0])
+    far = _turned(T, c, 40.0, [3.0, 0.0, 0.0])
+    short = cfg.judge.model_copy(update={"rival_schedule": [(0.25, 2)], "basin_neighbours": 0})
+    once = judge.judge(
+        ps,
+        pt,
+        T,
+        [(start, "near"), (far, "far")],
+        short.model_copy(update={"near_rival_passes": 0}),
+    )
+    stopped = next(r for r in once.rivals if r["from"] == "near")
+    assert stopped["distinct"] and stopped["deg"] <= 2 * short.distinct_deg, stopped
+    calls = []
+    refine = judge.refine
+
+    def counted(src, tgt, A, config, into=None):
+        calls.append(judge.separation(np.asarray(A), T, c)[0])
+        return refine(src, tgt, A, config, into)
+
+    judge.refine = counted
+    try:
+        more = judge.judge(
+            ps,
+            pt,
+            T,
+            [(start, "near"), (far, "far")],
+            short.model_copy(update={"near_rival_passes": 8}),
+        )
+    finally:
+        judge.refine = refine
+    assert not next(r for r in more.rivals if r["from"] == "near")["distinct"]
+    assert more.distinct_rivals == 1 and sum(deg > 2 * short.distinct_deg for deg in calls) == 1
+    assert more.confidence >= once.confidence

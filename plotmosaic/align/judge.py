@@ -111,6 +111,13 @@ def distinct(A: np.ndarray, B: np.ndarray, centre: np.ndarray, config: JudgeConf
     return m > config.distinct_m or deg > config.distinct_deg
 
 
+def near(A: np.ndarray, B: np.ndarray, centre: np.ndarray, config: JudgeConfig) -> bool:
+    """Within `near_rival_radii` distinct radii (both rotation and displacement): A may be B's basin."""
+    deg, m = separation(A, B, centre)
+    k = config.near_rival_radii
+    return m <= k * config.distinct_m and deg <= k * config.distinct_deg
+
+
 def centre(cloud, config: JudgeConfig) -> np.ndarray:
     """Centroid of a prepared cloud's points (remembered): pose separations are measured there."""
     return _samples(cloud, config).centre
@@ -157,7 +164,8 @@ def _rival_memo(src, tgt, config: JudgeConfig) -> dict:
 
 def _refined(src, tgt, starts: list[np.ndarray], T: np.ndarray, config: JudgeConfig) -> list:
     """(refined rival, its profile or None when it ran into T) for each start; the missing ones
-    refined two at a time (each its own ICP: the same result as one after the other)."""
+    refined two at a time (each its own ICP: the same result as one after the other). A rival that
+    ends distinct but `near` T is refined again: a weakly held direction can leave it sliding."""
     table = _rival_memo(src, tgt, config)
     c = centre(src, config)
     todo = []
@@ -170,6 +178,10 @@ def _refined(src, tgt, starts: list[np.ndarray], T: np.ndarray, config: JudgeCon
 
     def run(job):
         A = refine(src, tgt, job[1], config, into=T)
+        for _ in range(config.near_rival_passes):
+            if not distinct(A, T, c, config) or not near(A, T, c, config):
+                break
+            A = refine(src, tgt, A, config, into=T)  # still sliding into T, or settled beside it
         return A, None if not distinct(A, T, c, config) else profile(src, tgt, A, config)
 
     for (key, _), done in zip(todo, in_two_threads(run, todo)):
