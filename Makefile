@@ -2,6 +2,8 @@
 VENV ?= .venv
 PYTHON ?= python3
 BIN := $(VENV)/bin
+# test processes (pytest-xdist); each test file stays on one, so its fixtures are built once
+TEST_WORKERS ?= 2
 
 .PHONY: setup demo lint test bench clean
 
@@ -21,7 +23,7 @@ lint: setup
 	$(BIN)/ruff format --check plotmosaic tests benchmarks
 
 test: setup lint
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 clean:
 	rm -rf $(VENV) demo-output bench-output
