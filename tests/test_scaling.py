@@ -113,3 +113,44 @@ def test_prepared_cloud_round_trip_and_damaged_entry(small_sim, tmp_path, capsys
     err = capsys.readouterr().err
     assert err.count("warning:") == 1 and "damaged prepared cloud" in err and seconds > 0
     assert np.array_equal(cloud.points, direct.points) and store.load_prepared(entry).k == direct.k
+
+
+def test_large_accuracy_best_fit_takes_out_only_the_reference_gauge():
+    """benchmarks/large_accuracy.py: a plot whose every scan carries the same small rigid error beside a
+    reference held exact is off in the reference frame (growing with distance) but not after the best
+    fit; a right plot is right in both."""
+    import sys
+    from pathlib import Path
+
+    from scipy.spatial.transform import Rotation
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    try:
+        import large_accuracy
+    finally:
+        sys.path.pop(0)
+    rng = np.random.default_rng(0)
+    utm = np.array([470_000.0, 3_810_000.0, 2_100.0])
+    truth = {}
+    for i in range(16):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("z", rng.uniform(0, 360), degrees=True).as_matrix()
+        T[:3, 3] = utm + [18.0 * (i % 4), 18.0 * (i // 4), rng.uniform(-1, 1)]
+        truth[f"S{i}"] = {"transform": T.tolist()}
+    inv_ref = np.linalg.inv(np.asarray(truth["S0"]["transform"]))
+    rel = {k: inv_ref @ np.asarray(v["transform"]) for k, v in truth.items()}
+    _, rows, fitted = large_accuracy.scan_errors(
+        {"scans": {k: {"transform": T.tolist()} for k, T in rel.items()}}, {"scans": truth}
+    )
+    assert max(r["error_cm"] for r in rows + fitted) < 1e-6
+    G = np.eye(4)
+    G[:3, :3] = Rotation.from_euler("xy", [0.02, -0.015], degrees=True).as_matrix()
+    est = {k: (T if k == "S0" else G @ T) for k, T in rel.items()}
+    moved = {k: G @ T for k, T in rel.items()}
+    np.testing.assert_allclose(large_accuracy.best_fit(moved, rel) @ G, np.eye(4), atol=1e-9)
+    _, rows, fitted = large_accuracy.scan_errors(
+        {"scans": {k: {"transform": T.tolist()} for k, T in est.items()}}, {"scans": truth}
+    )
+    far = max(rows, key=lambda r: r["distance_m"])
+    assert far["error_cm"] > 1.5  # 0.025 deg over ~75 m
+    assert max(r["error_cm"] for r in fitted) < 0.2 * far["error_cm"]
