@@ -77,3 +77,43 @@ def test_airborne_pairs_keep_the_scaled_polish(sparse_pair):
         assert len(_fine_schedule(src, tgt, cfg)[0]) == len(cfg.final_schedule)
     finally:
         src.kind = "tls"
+
+
+def test_symmetric_fine_stage_uses_both_scans_planes(sparse_pair):
+    """One direction matches only the source's sample to the target's planes: on this sparse pair it
+    ends 0.4 cm across the baseline; each scan's sample on the other's planes, in one solve, 0.13 cm."""
+    src, tgt, truth = sparse_pair
+    one_way = _baseline_error_cm(src, tgt, truth, AlignConfig(final_symmetric_kinds=[]))
+    both = _baseline_error_cm(src, tgt, truth, AlignConfig())
+    assert np.linalg.norm(one_way) > 0.3
+    assert np.linalg.norm(both) < 0.2
+    # only pairs of the listed kinds: a TLS -> MLS pair stays one way
+    src.kind = "mls"
+    try:
+        mixed = _baseline_error_cm(src, tgt, truth, AlignConfig())
+        mixed_one_way = _baseline_error_cm(src, tgt, truth, AlignConfig(final_symmetric_kinds=[]))
+    finally:
+        src.kind = "tls"
+    np.testing.assert_allclose(mixed, mixed_one_way, atol=1e-12)
+
+
+def test_mirror_rows_are_the_reverse_matches_in_target_coordinates():
+    """Each reverse row is a source point moved by T, the target sample point matched to it, and the
+    source normal turned by T: zero residual where the two clouds coincide under T."""
+    from scipy.spatial import cKDTree
+
+    from plotmosaic.align.icp import Mirror
+
+    rng = np.random.default_rng(3)
+    source = rng.uniform(-5, 5, (500, 3))
+    normals = rng.normal(size=(500, 3))
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    c, s = np.cos(0.3), np.sin(0.3)
+    T = np.array([[c, -s, 0, 1.0], [s, c, 0, -2.0], [0, 0, 1, 0.5], [0, 0, 0, 1]])
+    target_sample = source[:50] @ T[:3, :3].T + T[:3, 3]
+    m = Mirror(target_sample, source, cKDTree(source), lambda j: normals[j])
+    empty = np.zeros((0, 3))
+    a, b, n = m.stacked(T, 0.01, empty, empty, empty)
+    assert len(a) == 50
+    np.testing.assert_allclose(a, b, atol=1e-9)
+    np.testing.assert_allclose(n, normals[:50] @ T[:3, :3].T, atol=1e-12)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,6 +68,30 @@ def _exp_se3(xi: np.ndarray) -> np.ndarray:
 
 
 @dataclass
+class Mirror:
+    """The reverse correspondences of a symmetric ICP: `points` (a target sample) matched to the
+    source cloud (`tree` over `source`, normals by row from `normals_of`)."""
+
+    points: np.ndarray
+    source: np.ndarray
+    tree: cKDTree
+    normals_of: Callable[[np.ndarray], np.ndarray]
+
+    def stacked(self, T: np.ndarray, distance: float, a, b, n):
+        """Forward (a = T p, b = q, n) with the reverse rows appended, all in target coordinates:
+        a source point under T, the target sample point it was matched from, its plane turned by T."""
+        R, t = T[:3, :3], T[:3, 3]
+        back = (self.points - t) @ R  # target sample in source coordinates
+        d, j = nearest(self.tree, back, distance)
+        ok = np.flatnonzero(np.isfinite(d))
+        if not len(ok):
+            return a, b, n
+        a2 = self.source[j[ok]] @ R.T + t
+        n2 = self.normals_of(j[ok]) @ R.T
+        return np.vstack([a, a2]), np.vstack([b, self.points[ok]]), np.vstack([n, n2])
+
+
+@dataclass
 class IcpResult:
     T: np.ndarray
     fitness: float  # share of source points with a correspondence in the last iteration
@@ -88,6 +113,7 @@ def point_to_plane_icp(
     kernel_floor: float = 0.05,
     kernel_ratio: float = 0.5,
     tol: float = 1e-5,
+    mirror: Mirror | None = None,
 ) -> IcpResult:
     """Point-to-plane ICP (Tukey-weighted Gauss-Newton) that moves only along well-constrained directions.
 
@@ -99,6 +125,11 @@ def point_to_plane_icp(
     `min_eig_ratio` x the largest are left for the next, richer level (degeneracy-aware ICP,
     Zhang et al. 2016); 0 moves along all six. Tukey's width is `kernel_ratio` x the stage's
     correspondence distance, never below `kernel_floor`. A stage ends when a step moves points by less than `tol` m.
+
+    `mirror`: the other direction too (symmetric ICP): a sample of the target matched to the
+    source's planes, its residuals stacked with the forward ones in one solve. One direction leaves
+    sparse scans' pairs biased by the side whose planes it uses; the result's correspondences
+    (and so the information matrix) stay the forward ones.
     """
     tree = tree if tree is not None else cKDTree(target)
     normals_of = target_normals if callable(target_normals) else (lambda j: target_normals[j])
@@ -119,11 +150,14 @@ def point_to_plane_icp(
             if len(ok) < 12:
                 return IcpResult(T, 0.0, float("nan"), 0, ok, j[ok], iterations)
             n = normals_of(j[ok])
-            r = np.einsum("ij,ij->i", n, moved[ok] - target[j[ok]])
+            a, b = moved[ok], target[j[ok]]
+            if mirror is not None:
+                a, b, n = mirror.stacked(T, st.max_distance, a, b, n)
+            r = np.einsum("ij,ij->i", n, a - b)
             wgt = np.where(np.abs(r) < k, (1 - (r / k) ** 2) ** 2, 0.0)  # Tukey
             # residual as a function of a left perturbation about the moved centroid
             c = T[:3, :3] @ centre + T[:3, 3]
-            J = np.hstack([np.cross(moved[ok] - c, n) / scale, n])
+            J = np.hstack([np.cross(a - c, n) / scale, n])
             Jw = J * wgt[:, None]
             H, g = Jw.T @ J, Jw.T @ r
             vals, vecs = np.linalg.eigh(H)

@@ -21,7 +21,7 @@ from plotmosaic.align import judge as judge_mod
 from plotmosaic.align.coarse import coarse_align
 from plotmosaic.align.complexity import match_levels
 from plotmosaic.align.config import KINDS, AlignConfig, IcpStage, default_levels
-from plotmosaic.align.icp import evaluate, information_matrix, point_to_plane_icp
+from plotmosaic.align.icp import Mirror, evaluate, information_matrix, point_to_plane_icp
 from plotmosaic.align.judge_config import JudgeConfig
 from plotmosaic.align.prepare import PreparedCloud, prepare_cloud
 from plotmosaic.align.sampling import sample
@@ -201,8 +201,9 @@ def _fine_schedule(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig):
 
 
 def final_icp(src: PreparedCloud, tgt: PreparedCloud, T: np.ndarray, config: AlignConfig):
-    """Final point-to-plane ICP with the planes of the denser cloud; (T, p, q, n) with the last
-    correspondences in local coordinates: source points p, target points q, target-side normals n."""
+    """Final point-to-plane ICP with the planes of the denser cloud, or of both for two clouds of
+    `final_symmetric_kinds`; (T, p, q, n) with the last forward correspondences in local coordinates:
+    source points p, target points q, target-side normals n."""
     s_sp, t_sp = judge_mod.spacing(src, config.judge), judge_mod.spacing(tgt, config.judge)
     schedule, kernel = _fine_schedule(src, tgt, config)
     if t_sp > config.final_reverse_ratio * s_sp:
@@ -223,6 +224,9 @@ def final_icp(src: PreparedCloud, tgt: PreparedCloud, T: np.ndarray, config: Ali
             src.target_normals(res.target_index) @ T[:3, :3].T
         )  # the same planes, in target coordinates
         return T, p, q, n, res.iterations, True
+    symmetric = (
+        src.kind in config.final_symmetric_kinds and tgt.kind in config.final_symmetric_kinds
+    )
     res = point_to_plane_icp(
         src.fine_points,
         tgt.points,
@@ -232,6 +236,9 @@ def final_icp(src: PreparedCloud, tgt: PreparedCloud, T: np.ndarray, config: Ali
         tree=tgt.tree,
         kernel_floor=kernel,
         tol=config.final_tol,
+        mirror=Mirror(tgt.fine_points, src.points, src.tree, src.target_normals)
+        if symmetric
+        else None,
     )
     return (
         res.T,
