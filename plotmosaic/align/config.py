@@ -206,7 +206,8 @@ class AlignConfig(BaseModel):
     # two scans of these kinds end with a symmetric ICP (each one's sample on the other's planes, one
     # solve): on the `large` preset at 60k points, 60 pairs from their poses, mean error 0.87 -> 0.48
     # cm and 0.033 -> 0.023 deg, worst 6.6 -> 1.3 cm and 0.24 -> 0.07 deg (benchmarks/results/graph.md);
-    # other kinds keep one direction (the denser cloud's planes: a sparse cloud's planes bias it)
+    # other kinds, and a pair whose target is `final_reverse_ratio` sparser, keep one direction (the
+    # denser cloud's planes: a sparse cloud's planes bias it)
     final_symmetric_kinds: list[Literal["tls", "mls", "uls", "als"]] = Field(
         default_factory=lambda: ["tls"],
         description="pairs of these sensor kinds end with a symmetric ICP (empty: one direction)",

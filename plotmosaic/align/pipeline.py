@@ -202,7 +202,7 @@ def _fine_schedule(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig):
 
 def final_icp(src: PreparedCloud, tgt: PreparedCloud, T: np.ndarray, config: AlignConfig):
     """Final point-to-plane ICP with the planes of the denser cloud, or of both for two clouds of
-    `final_symmetric_kinds`; (T, p, q, n) with the last forward correspondences in local coordinates:
+    `final_symmetric_kinds` of comparable density (neither side `final_reverse_ratio` sparser); (T, p, q, n) with the last forward correspondences in local coordinates:
     source points p, target points q, target-side normals n."""
     s_sp, t_sp = judge_mod.spacing(src, config.judge), judge_mod.spacing(tgt, config.judge)
     schedule, kernel = _fine_schedule(src, tgt, config)
