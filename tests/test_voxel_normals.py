@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from plotmosaic.align.normals import LazyNormals, level_shape, local_shape
+from plotmosaic.align.config import StemNormalConfig
+from plotmosaic.align.normals import LazyNormals, level_shape, local_shape, stem_normals
 from plotmosaic.align.voxel import (
     FACE_PHASE,
     KEY_BLOCK,
@@ -152,3 +153,48 @@ def test_closed_form_eigen_matches_lapack_on_planes_lines_and_scatter():
     # axial: compare up to sign, where the eigenvalue is well separated (planes' normals, lines' axes)
     assert np.all(np.abs(np.einsum("ij,ij->i", small[:100], vecs[:100, :, 0])) > 1 - 1e-6)
     assert np.all(np.abs(np.einsum("ij,ij->i", large[100:200], vecs[100:200, :, 2])) > 1 - 1e-6)
+
+
+def _sparse_stem_and_ground(rng: np.random.Generator):
+    """A 0.15 m stem 8 m from the scanner at the origin, seen over 5 columns of a 0.45 deg scan
+    (the 130 deg arc facing it), 2 mm noise; level ground around it at the same sparse spacing."""
+    cx, r = 8.0, 0.15
+    az = np.radians(np.arange(-0.9, 0.91, 0.45))  # the columns (deg) seen from the origin
+    z = np.arange(0.0, 3.0, 0.11)
+    pts = []
+    for a in az:  # the first hit of each ray on the circle
+        d = np.array([np.cos(a), np.sin(a)])
+        b = d @ [cx, 0.0]
+        t = b - np.sqrt(b**2 - (cx**2 - r**2))
+        pts += [np.column_stack([np.full_like(z, t * d[0]), np.full_like(z, t * d[1]), z])]
+    stem = np.vstack(pts)
+    stem += rng.normal(0, 0.002, stem.shape)
+    g = rng.uniform((3.0, -3.0), (7.0, 3.0), (600, 2))
+    ground = np.column_stack([g, rng.normal(0, 0.002, len(g))])
+    radial = np.column_stack([stem[:, :2] - [cx, 0.0], np.zeros(len(stem))])
+    return stem, ground, radial / np.linalg.norm(radial, axis=1, keepdims=True)
+
+
+def test_stem_normals_are_radial_where_a_sparse_plane_fit_sees_the_view_direction():
+    stem, ground, radial = _sparse_stem_and_ground(np.random.default_rng(3))
+    pts = np.vstack([stem, ground])
+    tree, cfg = cKDTree(pts), StemNormalConfig()
+    angle = lambda a, b: np.degrees(np.arccos(np.clip(np.abs((a * b).sum(axis=1)), 0, 1)))  # noqa: E731
+    plane = local_shape(pts, tree, stem, 1.0, 20)[0]
+    circle, fitted = stem_normals(pts, tree, stem, 1.0, cfg)
+    assert fitted.mean() > 0.9
+    # the outer columns are 50-60 deg off the view direction; the circle's normals follow the bark
+    assert np.percentile(angle(plane, radial), 90) > 30
+    assert np.percentile(angle(circle[fitted], radial[fitted]), 90) < 5
+    # the ground is a disc, not a stem: no circle
+    assert not stem_normals(pts, tree, ground, 1.0, cfg)[1].any()
+    # the lazy normals: circles where fitted, planes elsewhere, each computed once
+    lazy = LazyNormals(pts, tree, 1.0, 20, cfg)
+    idx = np.array([0, len(stem) + 5, 0])
+    got = lazy(idx)
+    assert angle(got[:1], radial[:1])[0] < 5
+    np.testing.assert_allclose(got[1], local_shape(pts, tree, pts[idx[1:2]], 1.0, 20)[0][0])
+    assert lazy.known.sum() == 2
+    # too few neighbours, a radius out of bounds: plane normals kept
+    assert not stem_normals(pts, tree, stem, 1.0, StemNormalConfig(min_points=1000))[1].any()
+    assert not stem_normals(pts, tree, stem, 1.0, StemNormalConfig(max_radius=0.05))[1].any()

@@ -109,6 +109,67 @@ def _final_schedule() -> list[IcpStage]:
     return [IcpStage(max_distance=0.25, iterations=30), IcpStage(max_distance=0.1, iterations=20)]
 
 
+class ViewpointConfig(BaseModel):
+    """Scanner positions of single-station scans (align/viewpoint.py), for the final ICP's side test."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    # a terrestrial scan in its scanner frame has the scanner at the origin; mobile and airborne
+    # clouds have a trajectory, not a point
+    kinds: list[Literal["tls", "mls", "uls", "als"]] = Field(
+        default_factory=lambda: ["tls"],
+        description="sensor kinds whose file origin may be the scanner (empty: no side test)",
+    )
+    radius: float = Field(
+        5.0,
+        gt=0,
+        le=100,
+        description="horizontal circle (m) about the origin whose density is compared",
+    )
+    cell: float = Field(1.0, gt=0, le=100, description="cell (m) of the density comparison")
+    # one scan of the `large` preset: 23-25; a merged TLS plot (TreeLS) about its centre: 0.9
+    min_crowding: float = Field(
+        4.0,
+        gt=1,
+        le=1000,
+        description="mean points per occupied cell near the origin over the cloud's, at least",
+    )
+    probe_points: int = Field(
+        50_000, ge=1000, le=10_000_000, description="seeded sample the density is counted on"
+    )
+
+
+class StemNormalConfig(BaseModel):
+    """Normals of round stems in sparse ground-based scans (align/normals.py stem_normals).
+
+    At the sparse radius (1 m) a stem's neighbourhood is its whole visible arc, and the plane fit's
+    normal is the view direction, tens of degrees off at the arc's edges; a circle fitted across the
+    stem's axis gives each point its own radial normal.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    # ground-based scans see stems from the side; airborne clouds hardly hit them
+    kinds: list[Literal["tls", "mls", "uls", "als"]] = Field(
+        default_factory=lambda: ["tls", "mls"],
+        description="sensor kinds whose sparse normals are refined on stems (empty: never)",
+    )
+    neighbours: int = Field(
+        40, ge=8, le=1000, description="neighbours (within the sparse radius) a circle is fitted to"
+    )
+    # a 1 m neighbourhood of a stem is a vertical band; of ground, a disc (linearity near 0)
+    min_linearity: float = Field(
+        0.3, ge=0, le=1, description="(l1 - l2) / l1 of the neighbourhood at least: stem-like"
+    )
+    min_points: int = Field(8, ge=4, le=1000, description="fewer neighbours: no circle")
+    # the `large` preset's bark is rough to ~1.5 cm; branches, foliage and stem bases fit worse
+    max_residual: float = Field(
+        0.02, gt=0, le=1, description="rms distance (m) of the neighbours from the circle at most"
+    )
+    min_radius: float = Field(0.02, gt=0, le=10, description="stem radius (m) at least")
+    max_radius: float = Field(1.0, gt=0, le=10, description="stem radius (m) at most")
+
+
 class AlignConfig(BaseModel):
     """Pairwise ForestAlign registration (defaults = the paper's Algorithm 1)."""
 
@@ -127,6 +188,12 @@ class AlignConfig(BaseModel):
     )
     sparse_min_neighbors: int = Field(
         6, ge=1, le=1000, description="median neighbours within normal_radius below this: sparse"
+    )
+    # the `large` preset at 60k points, 60 pairs from their poses: yaw noise a pair 0.018 -> 0.014 deg
+    # (benchmarks/results/graph.md, "Round stems")
+    stem_normals: StemNormalConfig = Field(
+        default_factory=StemNormalConfig,
+        description="circle-fitted normals on stems where a ground-based scan is sparse",
     )
     # level normals/features come from a support cloud of one delta0 point per (ratio x radius)
     # cube, so that `level_max_nn` neighbours span the 0.25 m (normal) and 0.5 m (feature) spheres
@@ -255,6 +322,14 @@ class AlignConfig(BaseModel):
         2.0,
         ge=1,
         description="target spacing / source spacing above which the final ICP runs target -> source",
+    )
+    # the final ICP keeps a match only where both scanners see the same side of its plane: a point on
+    # the far side of a thin stem or branch no longer pulls two scans together (the `large` preset at
+    # 60k points, 60 pairs from their poses: mean error along the baseline 0.19 -> 0.04 cm, worst
+    # 1.34 -> 0.99 cm; benchmarks/results/graph.md)
+    viewpoint: ViewpointConfig = Field(
+        default_factory=ViewpointConfig,
+        description="scanner positions for the final ICP's side test",
     )
     coarse: CoarseConfig = Field(
         default_factory=CoarseConfig, description="the global coarse search"

@@ -67,6 +67,12 @@ def _exp_se3(xi: np.ndarray) -> np.ndarray:
     return T
 
 
+def facing(n: np.ndarray, x: np.ndarray, view_a: np.ndarray, view_b: np.ndarray) -> np.ndarray:
+    """Rows whose plane (point x, normal n) has both viewpoints on the same side: two scanners can
+    only have seen the same side of a surface; opposite sides are the two faces of a stem or branch."""
+    return np.einsum("ij,ij->i", n, view_a - x) * np.einsum("ij,ij->i", n, view_b - x) > 0
+
+
 @dataclass
 class Mirror:
     """The reverse correspondences of a symmetric ICP: `points` (a target sample) matched to the
@@ -77,17 +83,21 @@ class Mirror:
     tree: cKDTree
     normals_of: Callable[[np.ndarray], np.ndarray]
 
-    def stacked(self, T: np.ndarray, distance: float, a, b, n):
+    def stacked(self, T: np.ndarray, distance: float, a, b, n, views=None):
         """Forward (a = T p, b = q, n) with the reverse rows appended, all in target coordinates:
-        a source point under T, the target sample point it was matched from, its plane turned by T."""
+        a source point under T, the target sample point it was matched from, its plane turned by T.
+        `views`: both scanners in target coordinates; reverse rows seen from opposite sides are left out."""
         R, t = T[:3, :3], T[:3, 3]
         back = (self.points - t) @ R  # target sample in source coordinates
         d, j = nearest(self.tree, back, distance)
         ok = np.flatnonzero(np.isfinite(d))
-        if not len(ok):
-            return a, b, n
         a2 = self.source[j[ok]] @ R.T + t
         n2 = self.normals_of(j[ok]) @ R.T
+        if views is not None:
+            seen = facing(n2, a2, *views)
+            ok, a2, n2 = ok[seen], a2[seen], n2[seen]
+        if not len(ok):
+            return a, b, n
         return np.vstack([a, a2]), np.vstack([b, self.points[ok]]), np.vstack([n, n2])
 
 
@@ -114,6 +124,7 @@ def point_to_plane_icp(
     kernel_ratio: float = 0.5,
     tol: float = 1e-5,
     mirror: Mirror | None = None,
+    viewpoints: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> IcpResult:
     """Point-to-plane ICP (Tukey-weighted Gauss-Newton) that moves only along well-constrained directions.
 
@@ -130,6 +141,9 @@ def point_to_plane_icp(
     source's planes, its residuals stacked with the forward ones in one solve. One direction leaves
     sparse scans' pairs biased by the side whose planes it uses; the result's correspondences
     (and so the information matrix) stay the forward ones.
+
+    `viewpoints`: (source scanner in source coordinates, target scanner in target coordinates);
+    a match whose plane has the two scanners on opposite sides is left out (see `facing`).
     """
     tree = tree if tree is not None else cKDTree(target)
     normals_of = target_normals if callable(target_normals) else (lambda j: target_normals[j])
@@ -151,8 +165,13 @@ def point_to_plane_icp(
                 return IcpResult(T, 0.0, float("nan"), 0, ok, j[ok], iterations)
             n = normals_of(j[ok])
             a, b = moved[ok], target[j[ok]]
+            views = None
+            if viewpoints is not None:
+                views = (T[:3, :3] @ viewpoints[0] + T[:3, 3], viewpoints[1])
+                seen = facing(n, b, *views)
+                ok, a, b, n = ok[seen], a[seen], b[seen], n[seen]
             if mirror is not None:
-                a, b, n = mirror.stacked(T, st.max_distance, a, b, n)
+                a, b, n = mirror.stacked(T, st.max_distance, a, b, n, views)
             r = np.einsum("ij,ij->i", n, a - b)
             wgt = np.where(np.abs(r) < k, (1 - (r / k) ** 2) ** 2, 0.0)  # Tukey
             # residual as a function of a left perturbation about the moved centroid

@@ -6,14 +6,23 @@ The neighbourhood of a query point is its `max_nn` nearest points of the (delta0
 (l2-l3)/l1 and scattering l3/l1 (Weinmann et al. 2015). Computing them only where they are used
 (a thinned sample for the levels, target points that become ICP correspondences) is what keeps
 an 8M-point scan within seconds.
+
+Where a ground-based scan is sparse, the neighbourhood (1 m) of a point on a stem is the stem's whole
+visible arc, and its plane normal is the view direction; `stem_normals` fits a circle across the
+neighbourhood's main axis instead (algebraic fit, Kasa 1976) and takes the radial direction.
 """
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from plotmosaic.parallel import in_two_threads
+
+if TYPE_CHECKING:
+    from plotmosaic.align.config import StemNormalConfig
 
 FEATURE_NAMES = ("linearity", "planarity", "scattering")
 # the complexity levels' features: the shape of the wider (2 r) neighbourhood and how vertical its main axis is
@@ -148,24 +157,97 @@ def level_shape(
     return normals, features, counts
 
 
+def _circle_chunk(
+    points: np.ndarray, query: np.ndarray, idx: np.ndarray, cfg: StemNormalConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """(radial normals, fitted) of the query points whose neighbours `idx` lie on a circle across
+    their main axis: a stem seen from one side, where the plane fit gives the view direction."""
+    ok = idx < len(points)
+    _, features, _, axis = _shape_chunk(points, query, idx, ok, main_axes=True)
+    rel = points[np.where(ok, idx, 0)] - query[:, None, :]
+    # two unit vectors across the axis (whichever of x, y is less parallel to it)
+    helper = np.where(np.abs(axis[:, :1]) < 0.7, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    e1 = np.cross(axis, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(axis, e1)
+    w = ok.astype(np.float64)
+    u, v = np.einsum("ijk,ik->ij", rel, e1), np.einsum("ijk,ik->ij", rel, e2)
+    # algebraic circle fit (Kasa): u D + v E + F = -(u^2 + v^2), least squares per query point
+    A = np.stack([u, v, np.ones_like(u)], axis=2) * w[..., None]
+    M = np.einsum("ijk,ijl->ikl", A, A) + 1e-12 * np.eye(3)
+    sol = np.linalg.solve(M, np.einsum("ijk,ij->ik", A, -(u**2 + v**2) * w)[..., None])[..., 0]
+    cu, cv = -sol[:, 0] / 2, -sol[:, 1] / 2
+    r2 = cu**2 + cv**2 - sol[:, 2]
+    r = np.sqrt(np.clip(r2, 0.0, None))
+    count = w.sum(axis=1)
+    off = np.hypot(u - cu[:, None], v - cv[:, None]) - r[:, None]
+    rms = np.sqrt((off**2 * w).sum(axis=1) / np.maximum(count, 1.0))
+    fitted = (
+        (features[:, 0] > cfg.min_linearity)
+        & (count >= cfg.min_points)
+        & (r2 > 0)
+        & (r >= cfg.min_radius)
+        & (r <= cfg.max_radius)
+        & (rms <= cfg.max_residual)
+    )
+    normal = -(cu[:, None] * e1 + cv[:, None] * e2)  # from the fitted axis to the query point
+    length = np.linalg.norm(normal, axis=1)
+    fitted &= length > 0
+    return normal / np.where(length > 0, length, 1.0)[:, None], fitted
+
+
+def stem_normals(
+    points: np.ndarray, tree: cKDTree, query: np.ndarray, radius: float, cfg: StemNormalConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """(normals (M, 3), fitted (M,)) from circles fitted to each query point's `cfg.neighbours`
+    nearest points within `radius`; a row is meaningful only where `fitted`."""
+    m = len(query)
+    normals, fitted = np.empty((m, 3)), np.zeros(m, dtype=bool)
+
+    def run(s: int) -> None:
+        q = query[s : s + CHUNK]
+        _, idx = tree.query(q, k=int(min(cfg.neighbours, len(points))), distance_upper_bound=radius)
+        normals[s : s + CHUNK], fitted[s : s + CHUNK] = _circle_chunk(
+            points, q, idx.reshape(len(q), -1), cfg
+        )
+
+    _in_chunks(run, m)
+    return normals, fitted
+
+
 def _in_chunks(run, m: int) -> None:
     """run(start) for every CHUNK of m rows, two at a time within the thread budget (KD-tree queries and numpy release the GIL)."""
     in_two_threads(run, range(0, m, CHUNK))
 
 
 class LazyNormals:
-    """Normals of a cloud's points, each computed the first time it is asked for (ICP targets)."""
+    """Normals of a cloud's points, each computed the first time it is asked for (ICP targets);
+    with `stems`, the plane normal of a point on a round stem is replaced by its circle's."""
 
-    def __init__(self, points: np.ndarray, tree: cKDTree, radius: float, max_nn: int):
+    def __init__(
+        self,
+        points: np.ndarray,
+        tree: cKDTree,
+        radius: float,
+        max_nn: int,
+        stems: StemNormalConfig | None = None,
+    ):
         self.points, self.tree, self.radius, self.max_nn = points, tree, radius, max_nn
+        self.stems = stems
         self.normals = np.zeros((len(points), 3))
         self.known = np.zeros(len(points), dtype=bool)
 
     def __call__(self, idx: np.ndarray) -> np.ndarray:
         missing = np.unique(idx[~self.known[idx]])
         if len(missing):
+            query = self.points[missing]
             self.normals[missing] = local_shape(
-                self.points, self.tree, self.points[missing], self.radius, self.max_nn
+                self.points, self.tree, query, self.radius, self.max_nn
             )[0]
+            if self.stems is not None:
+                round_, fitted = stem_normals(
+                    self.points, self.tree, query, self.radius, self.stems
+                )
+                self.normals[missing[fitted]] = round_[fitted]
             self.known[missing] = True
         return self.normals[idx]

@@ -202,10 +202,15 @@ def _fine_schedule(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig):
 
 def final_icp(src: PreparedCloud, tgt: PreparedCloud, T: np.ndarray, config: AlignConfig):
     """Final point-to-plane ICP with the planes of the denser cloud, or of both for two clouds of
-    `final_symmetric_kinds` of comparable density (neither side `final_reverse_ratio` sparser); (T, p, q, n) with the last forward correspondences in local coordinates:
-    source points p, target points q, target-side normals n."""
+    `final_symmetric_kinds` of comparable density (neither side `final_reverse_ratio` sparser), with
+    the side test where both scanners are known; (T, p, q, n) with the last forward correspondences
+    in local coordinates: source points p, target points q, target-side normals n."""
     s_sp, t_sp = judge_mod.spacing(src, config.judge), judge_mod.spacing(tgt, config.judge)
     schedule, kernel = _fine_schedule(src, tgt, config)
+    # both scanners known (align/viewpoint.py): matches between the two faces of a stem are left out
+    views = (
+        None if src.viewpoint is None or tgt.viewpoint is None else (src.viewpoint, tgt.viewpoint)
+    )
     if t_sp > config.final_reverse_ratio * s_sp:
         # sparse target (ALS under a drone or ground scan): register it onto the dense source's planes
         res = point_to_plane_icp(
@@ -217,6 +222,7 @@ def final_icp(src: PreparedCloud, tgt: PreparedCloud, T: np.ndarray, config: Ali
             tree=src.tree,
             kernel_floor=kernel,
             tol=config.final_tol,
+            viewpoints=None if views is None else views[::-1],
         )
         T = inverse(res.T)
         p, q = src.points[res.target_index], tgt.fine_points[res.source_index]
@@ -239,6 +245,7 @@ def final_icp(src: PreparedCloud, tgt: PreparedCloud, T: np.ndarray, config: Ali
         mirror=Mirror(tgt.fine_points, src.points, src.tree, src.target_normals)
         if symmetric
         else None,
+        viewpoints=views,
     )
     return (
         res.T,

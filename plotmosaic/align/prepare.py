@@ -13,6 +13,7 @@ from plotmosaic.align.config import AlignConfig, StrayConfig
 from plotmosaic.align.normals import LazyNormals, level_shape, local_shape
 from plotmosaic.align.outliers import stray_mask
 from plotmosaic.align.sampling import sample
+from plotmosaic.align.viewpoint import scanner_viewpoint
 from plotmosaic.align.voxel import thin, thin_with_counts, voxel_centroids, voxelize
 from plotmosaic.errors import InputError
 from plotmosaic.io.frame import Frame, column_bounds
@@ -48,6 +49,7 @@ class PreparedCloud:
     input_points: int
     seconds: dict = field(default_factory=dict)
     stray_points: int = 0  # input points dropped as detached from the cloud (see align.outliers)
+    viewpoint: np.ndarray | None = None  # the scanner, local coordinates (align/viewpoint.py)
 
     @property
     def k(self) -> int:
@@ -101,15 +103,17 @@ def prepare_cloud(
     keep, cube_sizes = thin_with_counts(points, config.level_cell)
     chosen = sample(len(keep), config.level_max_points, rng)
     level_points, cube_sizes = points[keep[chosen]], cube_sizes[chosen]
-    radius = config.normal_radius
     probe = level_points[sample(len(level_points), SPARSE_PROBE, rng)]
-    if (
-        np.median(local_shape(points, tree, probe, radius, config.normal_max_nn)[2])
+    # airborne or far-range: too few points for a plane within normal_radius
+    sparse = (
+        np.median(local_shape(points, tree, probe, config.normal_radius, config.normal_max_nn)[2])
         < config.sparse_min_neighbors
-    ):
-        radius = max(
-            radius, config.normal_radius_sparse
-        )  # airborne or far-range: too few points for a plane
+    )
+    radius = (
+        max(config.normal_radius, config.normal_radius_sparse) if sparse else config.normal_radius
+    )
+    # a sparse ground-based scan's stems get circle normals (a 1 m plane fit sees the whole arc)
+    stems = config.stem_normals if sparse and kind in config.stem_normals.kinds else None
     support = points[thin(points, config.level_support_ratio * radius)]
     support_tree = cKDTree(support, balanced_tree=False, compact_nodes=False)
     normals, features, counts = level_shape(
@@ -130,6 +134,8 @@ def prepare_cloud(
         weights=cube_sizes,
     )
     t3 = time.perf_counter()
+    # last of the seeded draws, so the samples above are the same whether a kind has a viewpoint or not
+    view = scanner_viewpoint(xyz, kind, config.viewpoint, rng)
     return PreparedCloud(
         frame=frame,
         kind=kind,
@@ -141,11 +147,12 @@ def prepare_cloud(
         levels=lv.labels,
         level_stats=lv.stats,
         fine_points=fine_points,
-        target_normals=LazyNormals(points, tree, radius, config.normal_max_nn),
+        target_normals=LazyNormals(points, tree, radius, config.normal_max_nn, stems),
         normal_radius=radius,
         input_points=len(cloud),
         seconds={"voxel": t1 - t0, "normals": t2 - t1, "levels": t3 - t2},
         stray_points=strays,
+        viewpoint=None if view is None else frame.to_local(view),
     )
 
 

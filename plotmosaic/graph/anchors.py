@@ -261,6 +261,8 @@ def tie_to_als(
         crop, how = crop_als(als, plot, cloud, config.buffer)
         src = write_cloud(out / "plots" / f"{plot.id}.laz", cloud, scale=LAS_SCALE)
         tgt = write_cloud(out / "plots" / f"{plot.id}_als.laz", crop, crs=crs, scale=LAS_SCALE)
+        # a merged plot may pass for one scan about the reference scanner (align/viewpoint.py); its only
+        # partner is the ALS, which has no scanner, so the final ICP's side test never runs on it
         kind = plot.reference.kind.value
         key = pair_key(src, tgt, kind, "als", plot.reference.k, als_k, config_json, seed)
         job = PairJob(

@@ -27,7 +27,7 @@ from plotmosaic.graph.cache import file_hash
 from plotmosaic.io.atomic import atomic_output
 from plotmosaic.io.frame import Frame
 
-FORMAT = 1
+FORMAT = 2  # 2: the stem-normal settings of target_normals
 _REBUILT = ("tree", "target_normals")  # derived from `points` on load
 _FIELDS = tuple(f.name for f in dataclasses.fields(PreparedCloud))
 
@@ -69,6 +69,8 @@ def save_prepared(path: str | Path, cloud: PreparedCloud) -> Path:
         else:
             meta[name] = value
     meta["normal_max_nn"] = cloud.target_normals.max_nn
+    stems = cloud.target_normals.stems
+    meta["stem_normals"] = None if stems is None else stems.model_dump()
     arrays["meta"] = np.frombuffer(json.dumps(meta, default=_plain).encode(), dtype=np.uint8)
     with atomic_output(path) as tmp:
         with open(
@@ -80,19 +82,22 @@ def save_prepared(path: str | Path, cloud: PreparedCloud) -> Path:
 
 def load_prepared(path: str | Path) -> PreparedCloud:
     """The cloud saved by `save_prepared`; raises ValueError (or OSError) when the file is damaged."""
+    from plotmosaic.align.config import StemNormalConfig
     from plotmosaic.align.normals import LazyNormals
 
     with np.load(path, allow_pickle=False) as data:
         arrays = {k: data[k] for k in data.files}
     meta = json.loads(arrays.pop("meta").tobytes().decode())
     max_nn = meta.pop("normal_max_nn")
+    stems = meta.pop("stem_normals", None)
+    stems = None if stems is None else StemNormalConfig(**stems)
     values = {**meta, **{k: v for k, v in arrays.items() if k != "frame_offset"}}
     values["frame"] = Frame(arrays["frame_offset"])
     points = values["points"]
     if points.ndim != 2 or points.shape[1] != 3 or not len(points):
         raise ValueError("points are not an (N, 3) array")
     values["tree"] = tree = cKDTree(points, balanced_tree=False, compact_nodes=False)
-    values["target_normals"] = LazyNormals(points, tree, values["normal_radius"], max_nn)
+    values["target_normals"] = LazyNormals(points, tree, values["normal_radius"], max_nn, stems)
     missing = [n for n in _FIELDS if n not in values]
     if missing:
         raise ValueError(f"missing {', '.join(missing)}")
