@@ -192,6 +192,32 @@ def test_tie_to_als_georeferences_every_scan(runs, tmp_path, monkeypatch):
     assert "not recorded" not in (tmp_path / "geo" / "report.html").read_text()  # stage times
 
 
+def test_tie_to_als_keeps_the_plot_as_register_plot_placed_it(runs, tmp_path):
+    """register-plot's solve may hold a plot by more than its pairs (ALS placements of a big plot):
+    tie-to-als must not re-solve the pairs alone and undo it. Here graph.json's pairs are made to
+    disagree with poses.json by 3 cm; the georeferenced plot keeps poses.json's shape."""
+    import shutil
+
+    from plotmosaic.graph.anchors import tie_to_als
+
+    src = tmp_path / "out"
+    shutil.copytree(runs["out"], src, ignore=shutil.ignore_patterns("pairs"))
+    graph = json.loads((src / "graph.json").read_text())
+    for e in graph["edges"]:
+        T = np.asarray(e["transform"])
+        T[:3, 3] += [0.03, -0.02, 0.0]
+        e["transform"] = T.tolist()
+    (src / "graph.json").write_text(json.dumps(graph))
+    tie_to_als(runs["manifest"], src / "poses.json", tmp_path / "geo", jobs=1, progress=False)
+    before, after = load_poses(src / "poses.json"), load_poses(tmp_path / "geo" / "poses.json")
+    ref = SUBSET[0]
+    for sid in SUBSET:
+        was = inverse(before.transform(ref)) @ before.transform(sid)
+        now = inverse(after.transform(ref)) @ after.transform(sid)
+        rot, trans = pose_error(now, was)
+        assert rot < 1e-6 and trans < 1e-6, (sid, rot, trans)
+
+
 def test_cli_rerun_uses_the_cache(runs):
     from typer.testing import CliRunner
 

@@ -154,3 +154,16 @@ def test_large_accuracy_best_fit_takes_out_only_the_reference_gauge():
     far = max(rows, key=lambda r: r["distance_m"])
     assert far["error_cm"] > 1.5  # 0.025 deg over ~75 m
     assert max(r["error_cm"] for r in fitted) < 0.2 * far["error_cm"]
+    # tie-to-als poses (frame "crs") are compared in UTM as they are: a plot 1 cm east is 1 cm off
+    # at every scan, whatever the reference, and the best fit takes the shift out
+    east = {
+        k: np.asarray(v["transform"]) + np.pad([[0.01], [0], [0]], ((0, 1), (3, 0)))
+        for k, v in truth.items()
+    }
+    ref, rows, fitted = large_accuracy.scan_errors(
+        {"frame": "crs", "scans": {k: {"transform": T.tolist()} for k, T in east.items()}},
+        {"scans": truth},
+    )
+    assert ref is None
+    np.testing.assert_allclose([r["error_cm"] for r in rows], 1.0, atol=1e-6)
+    assert max(r["error_cm"] for r in fitted) < 1e-6 and max(r["distance_m"] for r in rows) < 40
