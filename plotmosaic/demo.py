@@ -12,14 +12,18 @@ from plotmosaic.errors import InputError
 from plotmosaic.graph.anchors import tie_to_als
 from plotmosaic.graph.pipeline import register_plot
 from plotmosaic.graph.posegraph import inverse, pose_error
+from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed
 from plotmosaic.manifest import load_manifest
-from plotmosaic.merge import merge_scans
+from plotmosaic.merge import merge_scans, sidecar_path
 from plotmosaic.merge_config import MergeConfig
 from plotmosaic.poses import Poses, load_poses
 from plotmosaic.simulate.run import simulate
 
 DEMO_PRESET = "paper"
 DEMO_POINTS_PER_SCAN = 400_000  # the paper preset at a modest size: minutes, not hours, on 2 cores
+MERGED = "merged.laz"
+# what the demo writes in its folder: one sub-folder per stage, the merged cloud and its sidecar
+DEMO_NAMES = ("sim", "register", "georeferenced", MERGED, sidecar_path(Path(MERGED)).name)
 
 
 @dataclass
@@ -69,6 +73,12 @@ def run_demo(
     outdir = Path(outdir)
     if outdir.exists() and any(outdir.iterdir()) and not force:
         raise InputError(f"{outdir}: folder is not empty (use --force to reuse it)")
+    plan = check_outputs(OutputPlan("demo", folder=outdir, names=DEMO_NAMES, force=force))
+    with claimed(plan):
+        return _run(outdir, seed, points_per_scan, jobs, echo)
+
+
+def _run(outdir: Path, seed: int, points_per_scan: int, jobs: int | None, echo) -> DemoResult:
     seconds: dict[str, float] = {}
 
     def stage(name: str, start: float) -> None:
@@ -98,7 +108,7 @@ def run_demo(
 
     echo("4/4 merge: one georeferenced LAZ ...")
     t = time.perf_counter()
-    merged = outdir / "merged.laz"
+    merged = outdir / MERGED
     merge_scans(
         manifest,
         tie.poses,

@@ -17,7 +17,10 @@ from plotmosaic.commands.common import (
     write_config_used,
 )
 from plotmosaic.errors import InputError
+from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed, inputs_of
 from plotmosaic.poses import read_json, rigid_matrix
+
+LEVEL_NAMES = ("source_levels.laz", "target_levels.laz", "levels.png")  # what --save-levels writes
 
 
 def load_init(path: Path) -> np.ndarray:
@@ -48,6 +51,27 @@ def config_used_path(out: Path | None, save_levels: Path | None) -> Path | None:
     if out is not None:
         return out.with_name(f"{out.stem}.{CONFIG_USED}")
     return save_levels / CONFIG_USED if save_levels is not None else None
+
+
+def output_plan(source, target, init, config, out, save_levels, force) -> OutputPlan:
+    """What `align` writes (RESULT.json, its settings, the levels folder) and what it reads."""
+    used = config_used_path(out, save_levels)
+    names = LEVEL_NAMES + ((CONFIG_USED,) if out is None else ())
+    return OutputPlan(
+        "align",
+        inputs_of(
+            [
+                (source, "SOURCE"),
+                (target, "TARGET"),
+                (init, "--init file"),
+                (config, "--config file"),
+            ]
+        ),
+        files=tuple(p for p in (out, used if out is not None else None) if p is not None),
+        folder=save_levels,
+        names=names if save_levels is not None else (),
+        force=force,
+    )
 
 
 def summary_lines(result) -> list[str]:
@@ -109,6 +133,11 @@ def align_command(
     ),
     config: Path | None = typer.Option(None, "--config", help=CONFIG_HELP),
     seed: int = typer.Option(0, "--seed", help="Random seed (same seed, same result)."),
+    force: bool = typer.Option(
+        False,
+        "--force",
+        help="Write into a --save-levels folder that holds other files (they are left untouched).",
+    ),
 ) -> None:
     """Register SOURCE onto TARGET with ForestAlign; print the transform and its quality figures.
 
@@ -131,6 +160,7 @@ def align_command(
     used = config_used_path(out, save_levels)
     T0 = load_init(init) if init is not None else None
     check_point_counts([(source, "SOURCE"), (target, "TARGET")])
+    plan = check_outputs(output_plan(source, target, init, config, out, save_levels, force))
     if out is not None:
         check_output_file(out)
     if save_levels is not None:
@@ -139,7 +169,7 @@ def align_command(
         check_output_file(used)
 
     console = Console(stderr=True)
-    with console.status("aligning") as status:
+    with claimed(plan), console.status("aligning") as status:
         result = align_files(
             source,
             target,

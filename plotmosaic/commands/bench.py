@@ -11,6 +11,10 @@ import typer
 from plotmosaic.align.config import KINDS
 from plotmosaic.commands.common import handle_errors
 from plotmosaic.errors import InputError
+from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed, inputs_of, manifest_inputs
+
+# what bench/run.py writes in OUT
+BENCH_NAMES = ("trials.csv", "table.md", "errors.png", "summary.json", "failures")
 
 
 def _floats(text: str | None, option: str) -> list[float] | None:
@@ -90,6 +94,9 @@ def bench_command(
         "--failure-pictures",
         help="PNGs of forestalign's first N unsuccessful trials in OUT/failures.",
     ),
+    force: bool = typer.Option(
+        False, "--force", help="Write into an OUT holding other files (they are left untouched)."
+    ),
 ) -> None:
     """Paper-style benchmark: per-parameter RMSE, success rate and time over seeded random trials."""
     from plotmosaic.bench.config import BenchConfig, MethodsConfig
@@ -118,14 +125,23 @@ def bench_command(
         overlaps=overlaps,
         methods_config=MethodsConfig(no_coarse=no_coarse),
     )
+    gt_file = [] if gt.strip().lower() == "identity" else [(Path(gt), "--gt file")]
     if manifest is not None:
         if source or target:
             raise InputError("give either SOURCE TARGET or --manifest, not both")
         m = load_manifest(manifest)
+        inputs = manifest_inputs(m) + inputs_of(gt_file)
+        plan = check_outputs(
+            OutputPlan("bench", inputs, folder=out, names=BENCH_NAMES, force=force)
+        )
         bench_pairs = manifest_pairs(m, load_poses(gt), pairs, max_pairs)
     else:
         if source is None or target is None:
             raise InputError("give SOURCE and TARGET clouds (or --manifest)")
+        inputs = inputs_of([(source, "SOURCE"), (target, "TARGET"), *gt_file])
+        plan = check_outputs(
+            OutputPlan("bench", inputs, folder=out, names=BENCH_NAMES, force=force)
+        )
         T = load_truth(gt, source, target, source_id, target_id)
         src, tgt = read_cloud(source, attributes=False), read_cloud(target, attributes=False)
         bench_pairs = [
@@ -139,16 +155,17 @@ def bench_command(
             )
         ]
     tty = sys.stderr.isatty()
-    result = run_bench(
-        bench_pairs,
-        config,
-        progress=tty,
-        log=None if tty else (lambda msg: typer.echo(msg, err=True)),
-        failures=out / "failures",
-        max_failure_pictures=failure_pictures,
-    )
-    command = "plotmosaic " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-    paths = write_outputs(result, out, title, command)
+    with claimed(plan):
+        result = run_bench(
+            bench_pairs,
+            config,
+            progress=tty,
+            log=None if tty else (lambda msg: typer.echo(msg, err=True)),
+            failures=out / "failures",
+            max_failure_pictures=failure_pictures,
+        )
+        command = "plotmosaic " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        paths = write_outputs(result, out, title, command)
     typer.echo(result.table, nl=False)
     for m, why in result.skipped.items():
         typer.echo(f"{m}: not run ({why})")

@@ -17,7 +17,11 @@ def demo_command(
     seed: int = typer.Option(0, help="Seed of the simulation and of every random choice."),
     points_per_scan: int = typer.Option(400_000, help="TLS points per scan of the simulated plot."),
     jobs: int = typer.Option(None, help="Parallel pair jobs (default: number of cores)."),
-    force: bool = typer.Option(False, "--force", help="Reuse a non-empty output folder."),
+    force: bool = typer.Option(
+        False,
+        "--force",
+        help="Reuse a non-empty output folder (files no demo run wrote are left untouched).",
+    ),
 ) -> None:
     """Simulate a forest plot (5 TLS scans + ALS), run register-plot, tie-to-als and merge, report errors."""
     from plotmosaic.demo import run_demo

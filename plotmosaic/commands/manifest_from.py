@@ -11,6 +11,7 @@ from plotmosaic.commands.common import handle_errors
 from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import atomic_output, check_output_file
 from plotmosaic.io.e57 import E57Scan, is_e57, list_scans
+from plotmosaic.io.outputs import OutputPlan, check_outputs, inputs_of
 from plotmosaic.manifest import Manifest, Plot, Scan, ScanKind, check_id, dump_manifest, safe_id
 
 
@@ -67,7 +68,9 @@ def manifest_from_command(
         "--use-pose",
         help="Offer each scan's stored pose as the initial guess (verified, never trusted).",
     ),
-    force: bool = typer.Option(False, "--force", help="Overwrite an existing --out file."),
+    force: bool = typer.Option(
+        False, "--force", help="Overwrite an existing --out file (never the E57 file read)."
+    ),
 ) -> None:
     """Write a manifest for every scan of an E57 file (`plotmosaic manifest-from plot.e57 > plot.toml`)."""
     if not is_e57(path):
@@ -77,6 +80,7 @@ def manifest_from_command(
     except ValueError as exc:
         raise InputError(f"--plot-id: {exc}") from None
     if out is not None:
+        check_outputs(OutputPlan("manifest-from", inputs_of([(path, "E57 file")]), files=(out,)))
         check_output_file(out, force=force)
     manifest = manifest_for(path, out.parent if out is not None else None, plot_id, kind, use_pose)
     text = dump_manifest(manifest)

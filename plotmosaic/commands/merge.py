@@ -16,8 +16,9 @@ from plotmosaic.commands.common import (
 )
 from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import check_output_dir, check_output_file
+from plotmosaic.io.outputs import OutputPlan, check_outputs, inputs_of, manifest_inputs
 from plotmosaic.manifest import load_manifest
-from plotmosaic.merge import MergeSummary, merge_scans, parse_bbox
+from plotmosaic.merge import TILE_INDEX, MergeSummary, merge_scans, parse_bbox, sidecar_path
 from plotmosaic.merge_config import MergeConfig
 from plotmosaic.poses import load_poses
 
@@ -42,7 +43,11 @@ def merge_command(
     bbox: str | None = typer.Option(
         None, "--bbox", help="Crop to xmin,ymin,xmax,ymax[,zmin,zmax] in output coordinates."
     ),
-    force: bool | None = typer.Option(None, "--force", help="Overwrite an existing output."),
+    force: bool | None = typer.Option(
+        None,
+        "--force",
+        help="Overwrite an earlier merge output (never an input: scans, ALS, manifest, poses, config).",
+    ),
     skip_missing: bool | None = typer.Option(
         None, "--skip-missing", help="Leave out scans without a pose instead of failing."
     ),
@@ -90,18 +95,38 @@ def merge_command(
         raise InputError(f"--{name.replace('_', '-')}: {msg}") from None
     settings = settings.model_copy(update={"merge": merge})
     used = out / CONFIG_USED if merge.tiles else out.with_name(f"{out.stem}.{CONFIG_USED}")
+    loaded = load_manifest(manifest)
+    check_outputs(output_plan(loaded, poses, config, out, used, merge.tiles))
     if merge.tiles:  # the output location is checked (with a real write probe) before any work
         check_output_dir(out.parent if str(out.parent) else Path("."))
     else:
         check_output_file(out, force=True)
         check_output_file(used, force=True)
     # SIGINT / SIGTERM are the command wrapper's (commands/common.py): they unwind as KeyboardInterrupt
-    summary = merge_scans(
-        load_manifest(manifest), load_poses(poses), out, merge, progress=True, poses_path=poses
-    )
+    summary = merge_scans(loaded, load_poses(poses), out, merge, progress=True, poses_path=poses)
     write_config_used(used, settings, "merge")
     print_summary(summary)
     typer.echo(f"settings used: {used}")
+
+
+def output_plan(manifest, poses: Path, config: Path | None, out: Path, used: Path, tiles: bool):
+    """What `merge` writes (the cloud, its sidecar and settings; or a tile folder) and reads.
+
+    A tile folder is swapped whole for the new one, so it may hold nothing merge did not write."""
+    inputs = manifest_inputs(manifest) + inputs_of(
+        [(poses, "poses file"), (config, "--config file")]
+    )
+    if tiles:
+        names = ("tile_*.laz", TILE_INDEX, CONFIG_USED)
+        return OutputPlan(
+            "merge --tiles",
+            inputs,
+            folder=out,
+            names=names,
+            replaces_folder=True,
+            kind="tile folder",
+        )
+    return OutputPlan("merge", inputs, files=(out, sidecar_path(out), used))
 
 
 def print_summary(summary: MergeSummary) -> None:

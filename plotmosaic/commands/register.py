@@ -22,6 +22,14 @@ from plotmosaic.commands.common import (
 from plotmosaic.errors import InputError
 from plotmosaic.graph.config import PairSelection, RegisterOptions, TieOptions
 from plotmosaic.io.atomic import check_output_dir
+from plotmosaic.io.outputs import (
+    Input,
+    OutputPlan,
+    check_outputs,
+    claimed,
+    inputs_of,
+    manifest_inputs,
+)
 
 _REGISTER = RegisterOptions.model_fields
 _PAIRS = PairSelection.model_fields
@@ -41,6 +49,49 @@ def _recorded(out: Path, settings, command: str) -> Iterator[None]:
             write_config_used(out / CONFIG_USED, settings, command)
         raise
     write_config_used(out / CONFIG_USED, settings, command)
+
+
+REPORT_FIGURES = ("breast_slice", "map", "distances", "scan_distances", "scans")  # per plot
+# what both stages write into OUT besides the per-plot figures (report/build.py, graph/report.py)
+_COMMON = ("poses.json", "graph.json", "report.md", "report.html", "view3d.html", CONFIG_USED)
+_FORCE_HELP = "write into an OUT holding other files (they are left untouched; never an input)"
+
+
+def register_plan(manifest, config: Path | None, out: Path, force: bool) -> OutputPlan:
+    """What register-plot writes in OUT (graph/pipeline.py, graph/report.py) and what it reads."""
+    figures = [f"{p.id}_{f}.png" for p in manifest.plots for f in (*REPORT_FIGURES, "graph")]
+    return OutputPlan(
+        "register-plot",
+        manifest_inputs(manifest) + inputs_of([(config, "--config file")]),
+        folder=out,
+        names=(*_COMMON, "pairs", "prepared", "placement", *figures),
+        force=force,
+        legacy="pairs",  # a folder register-plot wrote before folders had a record
+    )
+
+
+def tie_plan(manifest, poses: Path, config: Path | None, out: Path, force: bool) -> OutputPlan:
+    """What tie-to-als writes in OUT (graph/anchors.py, graph/report.py) and what it reads: the
+    register-plot folder of --poses (its poses, graph, report and prepared clouds) included."""
+    figures = [f"{p.id}_{f}.png" for p in manifest.plots for f in REPORT_FIGURES]
+    earlier = poses.parent
+    inputs = manifest_inputs(manifest) + inputs_of(
+        [
+            (poses, "poses file"),
+            (earlier / "graph.json", "graph beside --poses"),
+            (earlier / "report.html", "report beside --poses"),
+            (config, "--config file"),
+        ]
+    )
+    inputs += (Input(earlier / "prepared", "prepared clouds beside --poses", folder=True),)
+    return OutputPlan(
+        "tie-to-als",
+        inputs,
+        folder=out,
+        names=(*_COMMON, "pairs", "prepared", "plots", *figures),
+        force=force,
+        legacy="plots",  # a folder tie-to-als wrote before folders had a record
+    )
 
 
 def _check_jobs(jobs: int | None) -> None:
@@ -88,7 +139,11 @@ def register_plot_command(
     config: Path | None = typer.Option(None, "--config", help=CONFIG_HELP),
     seed: int = typer.Option(0, "--seed", help="Random seed (same inputs + seed = same result)."),
     force: bool = typer.Option(
-        False, "--force", help="Register every pair again, ignoring the cache in OUT/pairs/."
+        False,
+        "--force",
+        help="Register every pair again, ignoring the cache in OUT/pairs/; and "
+        + _FORCE_HELP
+        + ".",
     ),
 ) -> None:
     """Register every overlapping pair of scans in each plot and place all scans with a pose graph."""
@@ -104,11 +159,10 @@ def register_plot_command(
     settings = run_settings(
         config, {"register_plot": {"max_distance": max_distance, "place_on_als": place_on_als}}
     )
-    manifest, _ = (
-        check_scan_files(manifest),
-        check_output_dir(out),
-    )  # bad input found before any work
-    with _recorded(out, settings, "register-plot"):
+    manifest = check_scan_files(manifest)  # bad input found before any work
+    plan = check_outputs(register_plan(manifest, config, out, force))
+    check_output_dir(out)
+    with _recorded(out, settings, "register-plot"), claimed(plan):
         result = register_plot(
             manifest, out, jobs, executor, scheduler, settings.register_config(), seed, force
         )
@@ -151,6 +205,9 @@ def tie_to_als_command(
     jobs: int | None = typer.Option(
         None, "--jobs", "-j", help="Plots registered to the ALS at once (default: cores)."
     ),
+    force: bool = typer.Option(
+        False, "--force", help=_FORCE_HELP[0].upper() + _FORCE_HELP[1:] + "."
+    ),
 ) -> None:
     """Register each plot to the ALS and optimise the whole region with the ALS frame fixed."""
     from plotmosaic.graph.anchors import tie_to_als
@@ -161,8 +218,9 @@ def tie_to_als_command(
     settings = run_settings(config, {"tie_to_als": {"buffer": buffer}})
     manifest = check_scan_files(manifest)  # bad input found before any work (and before OUT exists)
     check_poses_match(manifest, poses)
+    plan = check_outputs(tie_plan(manifest, poses, config, out, force))
     check_output_dir(out)
-    with no_empty_output(out), _recorded(out, settings, "tie-to-als"):
+    with no_empty_output(out), _recorded(out, settings, "tie-to-als"), claimed(plan):
         result = tie_to_als(manifest, poses, out, settings.tie_config(), seed, jobs)
     from rich.console import Console
     from rich.table import Table

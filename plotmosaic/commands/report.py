@@ -8,6 +8,16 @@ import typer
 
 from plotmosaic.commands.common import handle_errors
 from plotmosaic.errors import InputError
+from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed, inputs_of
+
+# what report/page.py and report/build.py write: two pages, a 3D view and figures named by plot
+_NAMES = ("index.md", "report.html", "view3d.html")
+_FIGURES = ("before", "after", "slice", "graph", "levels", "_map", "distances", "_scans")
+
+
+def report_plan(out: Path, inputs: list[tuple[Path | None, str]], force: bool) -> OutputPlan:
+    names = _NAMES + tuple(f"*{f}.png" for f in _FIGURES)
+    return OutputPlan("report", inputs_of(inputs), folder=out, names=names, force=force)
 
 
 @handle_errors
@@ -36,6 +46,11 @@ def report_command(
         help="Skip the structural-complexity figure (it re-runs the levelling).",
     ),
     seed: int = typer.Option(0, "--seed"),
+    force: bool = typer.Option(
+        False,
+        "--force",
+        help="Write into an output folder holding other files (they are left untouched).",
+    ),
 ) -> None:
     """Pictures of a registration (before/after, breast-height slice, distances, levels, pose graph): index.md and report.html."""
     from plotmosaic.report.page import pair_files, report_dir, report_pair
@@ -44,34 +59,36 @@ def report_command(
         if directory is not None:
             raise InputError("give either a folder or --pair RESULT.json SOURCE TARGET, not both")
         result, source, target = pair
-        rep = report_pair(
-            result,
-            source,
-            target,
-            out or result.with_name(f"report-{result.stem}"),
-            points=points,
-            seed=seed,
-            levels=not no_levels,
-        )
+        folder = out or result.with_name(f"report-{result.stem}")
+        inputs = [(result, "RESULT.json"), (source, "SOURCE"), (target, "TARGET")]
+        with claimed(check_outputs(report_plan(folder, inputs, force))):
+            rep = report_pair(
+                result, source, target, folder, points=points, seed=seed, levels=not no_levels
+            )
     elif (
         directory is not None and directory.is_file()
     ):  # an align RESULT.json that names its two clouds
         source, target = pair_files(directory)
-        rep = report_pair(
-            directory,
-            source,
-            target,
-            out or directory.with_name(f"report-{directory.stem}"),
-            points=points,
-            seed=seed,
-            levels=not no_levels,
-        )
+        folder = out or directory.with_name(f"report-{directory.stem}")
+        inputs = [(directory, "RESULT.json"), (source, "SOURCE"), (target, "TARGET")]
+        with claimed(check_outputs(report_plan(folder, inputs, force))):
+            rep = report_pair(
+                directory, source, target, folder, points=points, seed=seed, levels=not no_levels
+            )
     else:
         if directory is None:
             raise InputError(
                 "give a register-plot output folder, or --pair RESULT.json SOURCE TARGET"
             )
-        rep = report_dir(directory, out, manifest, points=points, seed=seed, levels=not no_levels)
+        if not directory.is_dir():
+            raise InputError(f"{directory}: not a folder")
+        folder = out or directory / "report"
+        inputs = [(directory / n, n) for n in ("poses.json", "graph.json", "report.md")]
+        inputs.append((manifest, "manifest"))
+        with claimed(check_outputs(report_plan(folder, inputs, force))):
+            rep = report_dir(
+                directory, folder, manifest, points=points, seed=seed, levels=not no_levels
+            )
     typer.echo(f"wrote {rep.index} and {len(rep.figures)} figures")
     if rep.html is not None:
         typer.echo(f"report: {rep.html}")

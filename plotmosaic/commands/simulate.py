@@ -9,6 +9,21 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from plotmosaic.commands.common import handle_errors
 from plotmosaic.errors import InputError
+from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed, inputs_of
+
+_WRITES = ("manifest.toml", "ground_truth.json")  # besides one folder per plot (simulate/run.py)
+
+
+def simulate_plan(outdir: Path, plots: list[str], force: bool, cloud: Path | None = None):
+    """What `simulate` writes in OUTDIR: manifest, ground truth, a folder per plot, als/, figures/."""
+    extra = ("als", "figures") if cloud is None else ()
+    return OutputPlan(
+        "simulate",
+        inputs_of([(cloud, "--from-cloud cloud")]),
+        folder=outdir,
+        names=(*_WRITES, *plots, *extra),
+        force=force,
+    )
 
 
 @handle_errors
@@ -55,7 +70,11 @@ def simulate_command(
     figures: bool = typer.Option(
         False, "--figures", help="Also write PNG pictures to OUTDIR/figures."
     ),
-    force: bool = typer.Option(False, "--force", help="Write into a non-empty OUTDIR."),
+    force: bool = typer.Option(
+        False,
+        "--force",
+        help="Write into a non-empty OUTDIR (files no simulate run wrote are left untouched).",
+    ),
     from_cloud: Path | None = typer.Option(
         None,
         "--from-cloud",
@@ -90,6 +109,7 @@ def simulate_command(
     """Simulate a forest plot: terrain, trees, understory; TLS scans, an ALS tile, ground truth and a manifest."""
     from plotmosaic.simulate.config import grid_layout
     from plotmosaic.simulate.run import make_config, simulate
+    from plotmosaic.simulate.scene import plot_ids
 
     if outdir.exists() and not outdir.is_dir():
         raise InputError(f"{outdir}: exists and is not a folder")
@@ -114,18 +134,20 @@ def simulate_command(
         clash = [name for name, value in given.items() if value is not None]
         if clash:
             raise InputError(f"--from-cloud: {clash[0]} applies to the simulator only")
-        _cut(
-            outdir,
-            from_cloud,
-            positions,
-            views,
-            spacing,
-            seed,
-            max_range=max_range,
-            full_density_range=full_density_range,
-            range_noise=range_noise,
-            voxel=occupancy_voxel,
-        )
+        plan = check_outputs(simulate_plan(outdir, ["P1"], force, from_cloud))
+        with claimed(plan):
+            _cut(
+                outdir,
+                from_cloud,
+                positions,
+                views,
+                spacing,
+                seed,
+                max_range=max_range,
+                full_density_range=full_density_range,
+                range_noise=range_noise,
+                voxel=occupancy_voxel,
+            )
         return
     if positions is not None or views is not None or spacing is not None:
         raise InputError("--positions/--views/--spacing need --from-cloud")
@@ -146,13 +168,14 @@ def simulate_command(
     config = make_config(
         preset or "small", **overrides
     )  # before the progress bar: a bad preset is one clean line
+    plan = check_outputs(simulate_plan(outdir, plot_ids(config), force))
     columns = [
         TextColumn("{task.description:<14}"),
         BarColumn(),
         TextColumn("{task.completed}/{task.total}"),
         TimeElapsedColumn(),
     ]
-    with Progress(*columns, transient=True) as bar:
+    with claimed(plan), Progress(*columns, transient=True) as bar:
         task = bar.add_task("building scene", total=None)
 
         def progress(what: str, done: int, total: int) -> None:
