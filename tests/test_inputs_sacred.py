@@ -210,6 +210,14 @@ def test_report_never_writes_into_the_registration_folder_it_reads(plot):
     refused(plot, ["report", reg, "--out", reg, "--force"], str(reg / "report.html"))
 
 
+def test_manifest_from_never_writes_over_the_e57(tmp_path):
+    from helpers import write_e57
+
+    xyz = np.random.default_rng(0).uniform(-5, 5, (500, 3))
+    e57 = write_e57(tmp_path / "scans.e57", [("s0", xyz, np.eye(4), {})])
+    refused(tmp_path, ["manifest-from", e57, "--out", e57, "--force"], str(e57), "E57 file")
+
+
 # ---------------------------------------------------------------- the folder record
 
 
@@ -248,3 +256,40 @@ def test_an_input_under_an_output_subfolder_is_caught(tmp_path):
     )
     with pytest.raises(InputError, match="would replace the scan"):
         check_outputs(plan)
+
+
+# ---------------------------------------------------------------- the names the plans list are real
+
+
+def _two_scans(plot: Path) -> Path:
+    """The plot's manifest with two of its scans: one pair to register."""
+    from plotmosaic.manifest import dump_manifest, load_manifest
+
+    m = load_manifest(plot / "manifest.toml")
+    keep = [s for s in m.plots[0].scans if s.id in ("P1-S0", "P1-S2")]
+    sub = m.model_copy(update={"plots": [m.plots[0].model_copy(update={"scans": keep})]})
+    path = plot / "two.toml"
+    path.write_text(dump_manifest(sub))
+    return path
+
+
+@pytest.mark.slow
+def test_register_and_tie_write_only_the_names_they_claim(plot):
+    from plotmosaic.commands.register import register_plan, tie_plan
+    from plotmosaic.io.outputs import read_record
+    from plotmosaic.manifest import load_manifest
+
+    manifest = _two_scans(plot)
+    m, reg, geo = load_manifest(manifest), plot / "reg", plot / "geo"
+    assert invoke("register-plot", manifest, "--out", reg, "-j", "1").exit_code == 0
+    names = register_plan(m, None, reg, False).names
+    assert {n for n in os.listdir(reg) if n != RECORD} <= set(names)
+    assert read_record(reg).names("register-plot") == tuple(sorted(names))
+    report = invoke("report", reg, "--points", "3000", "--no-levels")  # into reg/report
+    assert report.exit_code == 0, report.output
+    again = invoke("register-plot", manifest, "--out", reg, "-j", "1")  # the cache re-run
+    assert again.exit_code == 0 and "0 registered now" in again.output, again.output
+    tie = invoke("tie-to-als", manifest, "--poses", reg / "poses.json", "--out", geo, "-j", "1")
+    assert tie.exit_code == 0, tie.output
+    names = tie_plan(m, reg / "poses.json", None, geo, False).names
+    assert {n for n in os.listdir(geo) if n != RECORD} <= set(names)
