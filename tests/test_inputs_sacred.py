@@ -12,10 +12,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import assert_one_line_error, invoke
+from helpers import assert_one_line_error, invoke, write_e57
 
+from plotmosaic.commands.register import register_plan, tie_plan
 from plotmosaic.errors import InputError
-from plotmosaic.io.outputs import RECORD, OutputPlan, check_outputs, claimed, inputs_of
+from plotmosaic.io.outputs import (
+    RECORD,
+    OutputPlan,
+    check_outputs,
+    claimed,
+    inputs_of,
+    read_record,
+)
+from plotmosaic.manifest import dump_manifest, load_manifest
 
 
 def tree(root: Path) -> dict[str, str]:
@@ -211,8 +220,6 @@ def test_report_never_writes_into_the_registration_folder_it_reads(plot):
 
 
 def test_manifest_from_never_writes_over_the_e57(tmp_path):
-    from helpers import write_e57
-
     xyz = np.random.default_rng(0).uniform(-5, 5, (500, 3))
     e57 = write_e57(tmp_path / "scans.e57", [("s0", xyz, np.eye(4), {})])
     refused(tmp_path, ["manifest-from", e57, "--out", e57, "--force"], str(e57), "E57 file")
@@ -263,8 +270,6 @@ def test_an_input_under_an_output_subfolder_is_caught(tmp_path):
 
 def _two_scans(plot: Path) -> Path:
     """The plot's manifest with two of its scans: one pair to register."""
-    from plotmosaic.manifest import dump_manifest, load_manifest
-
     m = load_manifest(plot / "manifest.toml")
     keep = [s for s in m.plots[0].scans if s.id in ("P1-S0", "P1-S2")]
     sub = m.model_copy(update={"plots": [m.plots[0].model_copy(update={"scans": keep})]})
@@ -275,10 +280,6 @@ def _two_scans(plot: Path) -> Path:
 
 @pytest.mark.slow
 def test_register_and_tie_write_only_the_names_they_claim(plot):
-    from plotmosaic.commands.register import register_plan, tie_plan
-    from plotmosaic.io.outputs import read_record
-    from plotmosaic.manifest import load_manifest
-
     manifest = _two_scans(plot)
     m, reg, geo = load_manifest(manifest), plot / "reg", plot / "geo"
     assert invoke("register-plot", manifest, "--out", reg, "-j", "1").exit_code == 0
