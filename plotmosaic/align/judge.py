@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from plotmosaic.align import scene
 from plotmosaic.align.config import IcpStage
 from plotmosaic.align.icp import nearest, point_to_plane_icp
 from plotmosaic.align.judge_config import JudgeConfig
@@ -315,9 +316,11 @@ def judge(
     target local), each refined first; a rival that ends within the distinct radius of T is T itself.
     T's `basin` starts that end sharper than T (`sharper_neighbours`) are rivals of the fine margin too;
     rivals blunter than `blunt_min_sharpness` are rivals of the fine margin only, not of the score.
-    Refined rivals are remembered per pair (`_refined`)."""
+    Refined rivals are remembered per pair (`_refined`). A source or target that is not a forest
+    scene (`scene.check`) is refused first (RegistrationFailed): no pose between them is right."""
     import time
 
+    scene.check(src, tgt, config)
     t0 = time.perf_counter()
     c = centre(src, config)
     mine = profile(src, tgt, T, config)

@@ -5,6 +5,52 @@ from __future__ import annotations
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 
+class SceneConfig(BaseModel):
+    """Is each cloud a forest scene (align/scene.py)? Refused before any pose is weighed (exit 3).
+    Calibrated by benchmarks/bench_judge_scenes.py (benchmarks/results/judge.md, "Scenes that are not
+    a forest"): forest clouds of every sensor against industrial, indoor, urban and random scenes."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(
+        True, description="refuse a pair whose source or target is no forest scene"
+    )
+    # a plot's scan holds several trees, stems metres apart; an object or a machine is smaller
+    min_extent_m: float = Field(
+        6.0,
+        ge=0,
+        le=1000,
+        description="least span (m, along the cloud's widest principal axis) of a forest scene",
+    )
+    linearity: float = Field(
+        0.6,
+        gt=0,
+        le=1,
+        description="linearity from which a level point lies on a line (a stem, a branch)",
+    )
+    # the sparsest forest clouds on lines are ALS tiles; random clouds have none at all
+    min_linear_share: float = Field(
+        0.02,
+        ge=0,
+        le=1,
+        description="least share of a forest scene on lines: stems and branches are in every forest cloud",
+    )
+    crossing_max_cos: float = Field(
+        0.3,
+        gt=0,
+        lt=1,
+        description="a plane whose normal is within this cosine of perpendicular to the main planes'"
+        " crosses them (a wall on a floor)",
+    )
+    # forests' planes are their ground (stems' broad sides cross it a little); rooms, streets are walls
+    max_crossing_share: float = Field(
+        0.2,
+        ge=0,
+        le=1,
+        description="most share of a forest scene on planes across its main planes: built scenes are walls",
+    )
+
+
 class JudgeConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -87,6 +133,10 @@ class JudgeConfig(BaseModel):
         le=1,
         description="how much more share within the smallest scale a basin start may end with before"
         " it is a rival (a sharper pose beside this one: a near miss)",
+    )
+    scene: SceneConfig = Field(
+        default_factory=SceneConfig,
+        description="each cloud must be a forest scene (extent, stems, not all planes)",
     )
     global_rivals: bool = Field(
         True, description="after --no-coarse / --init also search the whole pair for rivals"
