@@ -189,6 +189,12 @@ class CoarseConfig(BaseModel):
         description="low quantile of a DTM cell's neighbourhood it is compared with",
     )
     dtm_window: int = Field(5, ge=3, le=25, description="neighbourhood (cells) of that comparison")
+    dtm_dense_cells: int = Field(
+        4_000_000,
+        ge=0,
+        le=100_000_000,
+        description="largest dense rough DTM (cells); a larger one is built on its occupied cells only, so memory follows the points",
+    )
     dtm_max_step: float = Field(
         1.0,
         gt=0,

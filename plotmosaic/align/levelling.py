@@ -16,7 +16,7 @@ import numpy as np
 
 from plotmosaic.align.coarse_config import CoarseConfig
 from plotmosaic.align.rasters import height_above_ground
-from plotmosaic.align.stemmap import grid_groups
+from plotmosaic.align.voxel import occupied_groups
 
 Z = np.array([0.0, 0.0, 1.0])
 
@@ -166,7 +166,7 @@ def trunk_axes_up(
         if len(q) < c.trunk_min_points:
             return None, info
         slopes = []
-        for idx in grid_groups(q[:, :2], c.stem_cluster_m):
+        for idx in occupied_groups(q[:, :2], c.stem_cluster_m):
             if len(idx) < c.trunk_min_points or np.ptp(q[idx, 2]) < c.trunk_min_span:
                 continue
             w, V = np.linalg.eigh(np.cov(q[idx].T))

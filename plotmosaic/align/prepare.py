@@ -24,7 +24,8 @@ SPARSE_PROBE = (
     5_000  # sample points whose neighbour count decides the sparse rule (its median is stable)
 )
 # Widest cloud registered (m, any axis, after stray points are dropped): a plot or a cropped ALS tile
-# is far smaller; beyond it the coarse rasters would need gigabytes, so it is refused with its extent.
+# is far smaller, a wider cloud mixes places or frames. Memory does not follow the extent below it:
+# grids over a cloud are sparse (occupied cells only) or grow their cell to a fixed size.
 MAX_EXTENT_M = 20_000.0
 
 

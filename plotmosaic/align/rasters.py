@@ -15,11 +15,14 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import fft, ndimage
+from scipy.spatial import cKDTree
 
 from plotmosaic.align.coarse_config import CoarseConfig
 from plotmosaic.parallel import inner_workers
 
 CHANNELS = ("stems", "canopy", "terrain")
+# window values held at once by the sparse DTM's rank filter (32 MB of float64)
+SPARSE_BLOCK_VALUES = 1 << 22
 
 
 @dataclass
@@ -68,11 +71,60 @@ def ground_model(
 def height_above_ground(
     points: np.ndarray, cell: float = 1.0, config: CoarseConfig | None = None
 ) -> np.ndarray:
-    """Each point's height above the rough DTM of its (levelled) cloud."""
+    """Each point's height above the rough DTM of its (levelled) cloud.
+
+    A DTM of more than `dtm_dense_cells` cells is built on the occupied cells only (`sparse_ground`),
+    so its memory follows the points, not the extent (a few far points spread over kilometres)."""
+    c = config or CoarseConfig()
     xy, z = points[:, :2], points[:, 2]
-    dtm, origin, _ = ground_model(xy, z, cell, config)
+    origin = xy.min(axis=0) - cell
     ij = np.floor((xy - origin) / cell).astype(np.int64)
+    if float(np.prod((ij.max(axis=0) + 2).astype(float))) > c.dtm_dense_cells:
+        return z - sparse_ground(ij, z, c)
+    dtm, origin, _ = ground_model(xy, z, cell, c)
     return z - dtm[ij[:, 0], ij[:, 1]]
+
+
+def sparse_ground(ij: np.ndarray, z: np.ndarray, c: CoarseConfig) -> np.ndarray:
+    """`ground_model`'s DTM at each point's cell `ij`, computed on the occupied cells only.
+
+    The same lowest point per cell, the same rank of the same window (empty cells count as +inf, as
+    in the dense filter) and a hole filled from a nearest valid cell (a tie may pick another one)."""
+    w = c.dtm_window
+    ii = ij - ij.min(axis=0) + w  # room for the window's offsets on every side: keys never alias
+    stride = int(ii[:, 1].max()) + w + 1
+    keys, inv = np.unique(ii[:, 0] * stride + ii[:, 1], return_inverse=True)
+    low = np.full(len(keys), np.inf)
+    np.minimum.at(low, inv, z)
+    # ndimage's rank for this percentile and window size (see scipy.ndimage.percentile_filter)
+    size = w * w
+    rank = size - 1 if c.dtm_percentile == 100.0 else int(float(size) * c.dtm_percentile / 100.0)
+    offsets = [
+        di * stride + dj
+        for di in range(-(w // 2), w - w // 2)
+        for dj in range(-(w // 2), w - w // 2)
+    ]
+    ref = np.empty(len(keys))
+    block = max(1, SPARSE_BLOCK_VALUES // size)
+    for s in range(0, len(keys), block):
+        k = keys[s : s + block]
+        window = np.full((len(k), size), np.inf)
+        for o, off in enumerate(offsets):
+            pos = np.minimum(np.searchsorted(keys, k + off), len(keys) - 1)
+            hit = keys[pos] == k + off
+            window[hit, o] = low[pos[hit]]
+        ref[s : s + block] = np.partition(window, rank, axis=1)[:, rank]
+    ok = ~(low > ref + c.dtm_max_step)
+    if not ok.any():
+        return np.full(len(z), float(np.median(z)))
+    cells = np.column_stack([keys // stride, keys % stride]).astype(np.float64)
+    ground = low.copy()
+    holes = np.flatnonzero(~ok)
+    if len(holes):
+        good = np.flatnonzero(ok)
+        nearest = cKDTree(cells[good]).query(cells[holes])[1]
+        ground[holes] = low[good[nearest]]
+    return ground[inv.ravel()]
 
 
 def point_features(

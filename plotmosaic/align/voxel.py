@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from plotmosaic.errors import InputError
 from plotmosaic.io.frame import column_bounds
@@ -18,24 +20,8 @@ from plotmosaic.io.frame import column_bounds
 # 1 mm, 0.1 mm, ...), and faces exactly on multiples of the scale would leave many points on a face,
 # where rounding in the last bit (a UTM offset added and removed) decides their cube.
 FACE_PHASE = 0.00246
-# Cells of any dense grid (raster, occupancy image) built from a cloud's extent: 2e8 float64 cells are
-# 1.6 GB. A cloud whose extent needs more is stretched by far points or is too large to register whole.
-MAX_DENSE_CELLS = 200_000_000
 # points whose cube keys are computed at once (a few L2-sized float buffers)
 KEY_BLOCK = 1 << 16
-
-
-def check_dense_grid(shape, cell: float, what: str = "grid") -> tuple[int, ...]:
-    """`shape` as ints, or a one-line InputError when the grid would exceed MAX_DENSE_CELLS."""
-    shape = tuple(int(v) for v in shape)
-    cells = float(np.prod([float(v) for v in shape]))
-    if cells > MAX_DENSE_CELLS:
-        extent = " x ".join(f"{v * cell:.0f}" for v in shape)
-        raise InputError(
-            f"{what}: a {extent} m extent at {cell} m cells needs {cells:.3g} cells, more than "
-            f"{MAX_DENSE_CELLS:.0e}; the cloud has far stray points or must be cropped"
-        )
-    return shape
 
 
 def cube_keys(
@@ -164,3 +150,29 @@ def thin_with_counts(points: np.ndarray, cell: float) -> tuple[np.ndarray, np.nd
     first, counts = order[starts], np.diff(np.append(starts, len(order)))
     by_index = np.argsort(first)
     return first[by_index], counts[by_index]
+
+
+def occupied_groups(xy: np.ndarray, cell: float) -> list[np.ndarray]:
+    """Indices of the 8-connected groups of occupied `cell` squares over `xy`, in the order of each
+    group's first square in row-major order (ndimage.label's numbering on the dense grid).
+
+    Built on the occupied squares only: memory follows the points, not the extent they span."""
+    if len(xy) == 0:
+        return []
+    ij = np.floor((xy - xy.min(axis=0)) / cell).astype(np.int64) + 1
+    stride = int(ij[:, 1].max()) + 2  # a column of empty squares either side: no key aliases a row
+    keys, inv = np.unique(ij[:, 0] * stride + ij[:, 1], return_inverse=True)
+    a, b = [], []
+    for off in (1, stride - 1, stride, stride + 1):  # right, and the three below: each link once
+        pos = np.minimum(np.searchsorted(keys, keys + off), len(keys) - 1)
+        hit = np.flatnonzero(keys[pos] == keys + off)
+        a.append(hit)
+        b.append(pos[hit])
+    a, b = np.concatenate(a), np.concatenate(b)
+    links = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(len(keys), len(keys)))
+    # numbered from node 0 up, and the nodes are the sorted keys: first squares in row-major order
+    n, labels = connected_components(links, directed=False)
+    lab = labels[inv.ravel()]
+    order = np.argsort(lab, kind="stable")
+    bounds = np.searchsorted(lab[order], np.arange(n + 1))
+    return [order[bounds[k] : bounds[k + 1]] for k in range(n)]
