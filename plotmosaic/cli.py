@@ -10,6 +10,10 @@ import sys
 
 import typer
 
+# typer vendors click: its parser raises these, not the `click` package's
+from typer._click import exceptions as click_errors
+from typer.core import TyperGroup
+
 from plotmosaic import __version__
 from plotmosaic.commands import (
     align,
@@ -23,6 +27,8 @@ from plotmosaic.commands import (
     report,
     simulate,
 )
+from plotmosaic.commands.common import interrupts
+from plotmosaic.errors import INTERRUPTED, InputError
 
 HELP = """Targetless, GNSS-free registration of forest LiDAR scans into one georeferenced cloud.
 
@@ -39,7 +45,39 @@ Typical run on a plot scanned from five positions, with an ALS tile over the reg
   plotmosaic config --defaults > my.toml             # every setting; give back with --config
 """
 
-app = typer.Typer(help=HELP, no_args_is_help=True, add_completion=False, rich_markup_mode=None)
+
+class OneLineErrors(TyperGroup):
+    """Bad options, arguments and unreadable files end as one `error:` line and exit 2, as every
+    other bad input does, instead of click's usage block."""
+
+    def main(self, *args, standalone_mode: bool = True, **kwargs):
+        try:  # not standalone, click returns a typer.Exit's code instead of exiting
+            returned = super().main(*args, standalone_mode=False, **kwargs)
+            code = returned if isinstance(returned, int) else 0
+        except click_errors.NoArgsIsHelpError as exc:
+            typer.echo(exc.ctx.get_help() if exc.ctx else str(exc))
+            code = 0
+        except click_errors.ClickException as exc:
+            where = f" (see {exc.ctx.command_path} --help)" if getattr(exc, "ctx", None) else ""
+            message = " ".join(exc.format_message().split())
+            typer.echo(f"error: {message}{where}", err=True)
+            code = InputError.exit_code
+        except click_errors.Abort:  # click's form of Ctrl-C at a prompt or EOF
+            typer.echo("interrupted", err=True)
+            code = INTERRUPTED
+        if standalone_mode:
+            sys.exit(code)
+        return code
+
+
+app = typer.Typer(
+    cls=OneLineErrors,
+    help=HELP,
+    no_args_is_help=True,
+    add_completion=False,
+    rich_markup_mode=None,
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
 
 
 def _version(value: bool) -> None:
@@ -71,8 +109,6 @@ app.command("config")(config_command.config_command)
 
 
 def main() -> None:
-    from plotmosaic.commands.common import INTERRUPTED, interrupts
-
     try:
         app()
     except KeyboardInterrupt:  # outside a command (e.g. while importing): same exit code

@@ -18,9 +18,17 @@ def _terminate(signum, frame):
 
 def main() -> None:
     signal.signal(signal.SIGTERM, _terminate)
+    for stream in (sys.stdout, sys.stderr):  # file names need not be UTF-8: print them escaped
+        stream.reconfigure(errors="backslashreplace")
     try:
         from plotmosaic.cli import main as cli_main
     except KeyboardInterrupt:
         sys.stderr.write("interrupted\n")
         sys.exit(INTERRUPTED)
-    cli_main()
+    try:
+        cli_main()
+    finally:
+        # the work is done and reported: a signal now would only end the process by the default
+        # action (status 143) while it exits, so the exit code stands
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)

@@ -29,6 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from plotmosaic.align.config import DEFAULT_LEVELS, KINDS, MAX_LEVELS
 from plotmosaic.errors import InputError
 from plotmosaic.io.e57 import is_e57, list_scans, scan_ref, select_scan, split_scan_ref, stored_pose
+from plotmosaic.io.paths import check_input_file, input_problem
 
 _SAFE_ID = re.compile(r"^[\w.-]+$")
 
@@ -53,7 +54,8 @@ ScanKind = Enum("ScanKind", {k: k for k in KINDS}, type=str)
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan: a NaN position would be silently ignored downstream
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class Scan(_Strict):
@@ -234,8 +236,7 @@ def _normalise(data: dict) -> dict:
 
 def load_manifest(path: str | Path, check_files: bool = True) -> Manifest:
     path = Path(path)
-    if not path.exists():
-        raise InputError(f"{path}: manifest not found")
+    check_input_file(path, "manifest")
     try:  # utf-8-sig: editors on Windows start files with a byte-order mark
         data = tomllib.loads(path.read_text(encoding="utf-8-sig"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
@@ -312,13 +313,15 @@ def _check_unique(manifest: Manifest, path: Path) -> None:
 def _check_paths(manifest: Manifest, path: Path) -> None:
     for plot in manifest.plots:
         for scan in plot.scans:
-            if not manifest.resolve(scan.file).is_file():
+            problem = input_problem(manifest.resolve(scan.file))
+            if problem:
                 raise InputError(
-                    f"{path}: plot {plot.id!r}, scan {scan.id!r}, field 'path': file not found: {scan.path}"
+                    f"{path}: plot {plot.id!r}, scan {scan.id!r}, field 'path': {problem}: {scan.path}"
                 )
     for tile in manifest.als:
-        if not manifest.resolve(tile.path).is_file():
-            raise InputError(f"{path}: als tile, field 'path': file not found: {tile.path}")
+        problem = input_problem(manifest.resolve(tile.path))
+        if problem:
+            raise InputError(f"{path}: als tile, field 'path': {problem}: {tile.path}")
 
 
 def dump_manifest(manifest: Manifest) -> str:

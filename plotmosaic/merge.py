@@ -261,7 +261,34 @@ def output_bounds(sources: list[Source]) -> tuple[np.ndarray, np.ndarray]:
     if not corners:
         raise InputError("every input file is empty: nothing to merge")
     allc = np.vstack(corners)
-    return allc.min(axis=0), allc.max(axis=0)
+    lo, hi = allc.min(axis=0), allc.max(axis=0)
+    if np.max(hi - lo) > MAX_SPAN_M:
+        raise InputError(_span_culprit([s for s in sources if s.info.point_count], corners))
+    return lo, hi
+
+
+# the output's 1 mm integers about a kilometre offset hold +-2,147 km: keep a margin below that
+MAX_SPAN_M = 2_000_000.0
+
+
+def _span_culprit(sources: list[Source], corners: list[np.ndarray]) -> str:
+    """Why the merged extent is too wide to write: a file whose own points span that far (a stray
+    point, not a pose), else the scan posed farthest from the others (its pose)."""
+    limit = f"one merged file at 1 mm holds at most {MAX_SPAN_M / 1000:,.0f} km"
+    for s in sources:
+        span = float(np.max(s.info.maxs - s.info.mins))
+        if span > MAX_SPAN_M:
+            return (
+                f"{s.path}: the file's own points span {span / 1000:,.0f} km (a stray point far "
+                f"from the scan, or a damaged file); {limit}"
+            )
+    centres = np.array([c.mean(axis=0) for c in corners])
+    far = np.linalg.norm(centres - np.median(centres, axis=0), axis=1)
+    s = sources[int(np.argmax(far))]
+    return (
+        f"{s.path}: scan {s.id!r} is posed {far.max() / 1000:,.0f} km from the other scans "
+        f"(is its pose right?); {limit}"
+    )
 
 
 def output_attributes(sources: list[Source]) -> list[str]:

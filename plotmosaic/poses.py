@@ -19,6 +19,7 @@ import numpy as np
 
 from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import write_text_atomic
+from plotmosaic.io.paths import check_input_file
 
 
 @dataclass
@@ -64,8 +65,7 @@ class Poses:
 def read_json(path: str | Path, what: str = "JSON file"):
     """Parsed JSON of a file the user named; one-line errors for a missing or broken file."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: {what} not found")
+    check_input_file(path, what)
     try:
         return json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:

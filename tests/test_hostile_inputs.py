@@ -20,6 +20,7 @@ from helpers import assert_one_line_error, invoke
 from plotmosaic.align.config import AlignConfig
 from plotmosaic.align.outliers import stray_mask
 from plotmosaic.align.prepare import prepare_cloud
+from plotmosaic.errors import InputError
 from plotmosaic.graph.cache import PairCache
 from plotmosaic.io.atomic import remove_stale_temporaries
 from plotmosaic.io.las import read_cloud
@@ -387,6 +388,14 @@ def children(pid: int) -> set[int]:
     return out
 
 
+def _in_sleep(pid: int) -> bool:
+    """The process waits in a timed sleep (Python's time.sleep: the kernel's hrtimer_nanosleep)."""
+    try:
+        return "nanosleep" in Path(f"/proc/{pid}/wchan").read_text()
+    except OSError:
+        return False
+
+
 def alive(pid: int) -> bool:
     try:
         state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
@@ -401,14 +410,6 @@ def pairs_line(output: str) -> tuple[int, int]:
     return int(m.group(1)), int(m.group(2))
 
 
-def _workers_bound() -> bool:
-    import inspect
-
-    from plotmosaic.graph import executor
-
-    return "bind_to_parent" in inspect.getsource(executor)
-
-
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_sigkill_register_plot_leaves_no_orphans_and_resumes(small_sim, tmp_path):
     manifest = thinned_manifest(tmp_path, small_sim, ["P1-S0", "P1-S1", "P1-S2"])
@@ -420,28 +421,23 @@ def test_sigkill_register_plot_leaves_no_orphans_and_resumes(small_sim, tmp_path
         start_new_session=True,
     )
     workers: set[int] = set()
-    deadline = time.monotonic() + 240
-    while time.monotonic() < deadline and proc.poll() is None:
-        workers |= {c for c in children(proc.pid) if alive(c)}
-        if list((out / "pairs").glob("*.json")):
-            break
-        time.sleep(0.05)
+
+    def first_pair_cached() -> bool:
+        workers.update(c for c in children(proc.pid) if alive(c))
+        return bool(list((out / "pairs").glob("*.json"))) or proc.poll() is not None
+
+    assert _wait_for(first_pair_cached, 240)
     assert proc.poll() is None, "register-plot finished before it could be killed"
     workers |= {c for c in children(proc.pid) if alive(c)}
     proc.kill()
     proc.wait()
     assert workers, "no worker process was seen"
-    time.sleep(0.2)
-    end = (
-        time.monotonic() + 3.0
-    )  # a worker notices its parent is gone within POLL_SECONDS (or at once: PDEATHSIG)
-    while time.monotonic() < end and any(alive(w) for w in workers):
-        time.sleep(0.05)
+    # a worker notices its parent is gone within POLL_SECONDS (or at once: PDEATHSIG)
+    _wait_for(lambda: not any(alive(w) for w in workers), 3.0)
     orphans = [w for w in workers if alive(w)]
     for w in orphans:
         os.kill(w, signal.SIGKILL)
-    # (until graph/executor.py's pool initializer calls plotmosaic.lifetime.bind_to_parent, only the resume is checked)
-    assert not orphans or not _workers_bound(), f"orphaned workers: {orphans}"
+    assert not orphans, f"orphaned workers: {orphans}"
 
     done = len(list((out / "pairs").glob("*.json")))
     assert 1 <= done < 3
@@ -488,21 +484,255 @@ def test_pool_workers_die_with_their_parent(tmp_path):
         [sys.executable, str(script)], stdout=subprocess.PIPE, text=True, start_new_session=True
     )
     assert proc.stdout.readline().strip() == "ready"
-    deadline = time.monotonic() + 60
-    workers: set[int] = set()
-    while (
-        len(workers) < 2 and time.monotonic() < deadline
-    ):  # spawn workers (and the resource tracker)
-        workers = {c for c in children(proc.pid) if alive(c)}
-        time.sleep(0.05)
-    time.sleep(1.0)  # the initializers have run (the jobs are sleeping inside them)
-    workers = {c for c in children(proc.pid) if alive(c)}
+
+    # the spawned workers (and the resource tracker), each inside its job's sleep: its initializer ran
+    def sleeping_workers() -> set[int]:
+        return {c for c in children(proc.pid) if alive(c) and _in_sleep(c)}
+
+    assert _wait_for(lambda: len(sleeping_workers()) >= 2, 60)
+    workers = sleeping_workers()
     proc.kill()
     proc.wait()
-    end = time.monotonic() + 3.0
-    while time.monotonic() < end and any(alive(w) for w in workers):
-        time.sleep(0.05)
+    _wait_for(lambda: not any(alive(w) for w in workers), 3.0)
     orphans = [w for w in workers if alive(w)]
     for w in orphans:
         os.kill(w, signal.SIGKILL)
     assert len(workers) >= 2 and not orphans, (workers, orphans)
+
+
+# ---- issue 38: one line for every bad input, non-UTF-8 names, leftovers, interrupt windows ------
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
+def test_a_non_finite_manifest_number_is_named(small_sim, tmp_path, value):
+    manifest = write_manifest(tmp_path / "m.toml", small_sim, ["P1-S0", "P1-S1"])
+    text = manifest.read_text().replace(
+        'id = "P1-S1"\n', f'id = "P1-S1"\napprox_position = [{value}, 0.0, 0.0]\n'
+    )
+    manifest.write_text(text)
+    before = tree(tmp_path)
+    for args in (("info", manifest), ("register-plot", manifest, "--out", tmp_path / "reg")):
+        res = invoke(*args)
+        assert_one_line_error(res, "m.toml", "'P1-S1'", "approx_position", "finite")
+    assert_nothing_left(tmp_path, before)
+
+
+def test_a_truncated_scan_stops_register_plot_before_any_pair(small_sim, tmp_path):
+    data = small_sim.scan_paths["P1-S2"].read_bytes()
+    bad = tmp_path / "BAD.laz"
+    bad.write_bytes(data[: len(data) // 2])  # header intact, points cut off
+    manifest = tmp_path / "m.toml"
+    manifest.write_text(
+        f'[[scans]]\nid = "good"\npath = "{small_sim.scan_paths["P1-S0"]}"\n'
+        f'[[scans]]\nid = "BAD"\npath = "{bad}"\n'
+    )
+    res = invoke("register-plot", manifest, "--out", tmp_path / "reg", "-j", "1")
+    lines = [ln for ln in res.output.splitlines() if not ln.startswith("preparing scans")]
+    assert res.exit_code == 2 and len(lines) == 1 and lines[0].startswith("error: "), res.output
+    assert str(bad) in lines[0] and "'BAD'" in lines[0] and "truncated" in lines[0]
+    assert not list((tmp_path / "reg").glob("pairs/*.json")), "a pair ran before the check"
+
+
+def test_bad_option_values_and_unreadable_files_get_one_line(small_sim, tmp_path):
+    src, tgt = small_sim.scan_paths["P1-S1"], small_sim.scan_paths["P1-S0"]
+    assert_one_line_error(invoke("align", src, tgt, "--levels-source", "abc"), "--levels-source")
+    assert_one_line_error(invoke("align", src, tgt, "--no-such-option"), "--no-such-option")
+    assert_one_line_error(invoke("align", src), "'target'")
+    assert_one_line_error(invoke("no-such-command"), "no-such-command")
+    for args in (("-h",), ("align", "-h"), ("merge", "--help")):
+        res = invoke(*args)
+        assert res.exit_code == 0 and res.output.startswith("Usage: "), res.output
+
+    unreadable = tmp_path / "locked.laz"
+    unreadable.write_bytes(src.read_bytes())
+    unreadable.chmod(0)
+    # root reads anything: drop the capability that lets it, as a user without it would be
+    prefix = ["setpriv", "--inh-caps=-dac_override,-dac_read_search"]
+    prefix += ["--bounding-set=-dac_override,-dac_read_search"] if os.geteuid() == 0 else []
+    for command in (["info", str(unreadable)], ["align", str(unreadable), str(tgt)]):
+        res = subprocess.run([*prefix, *PLOTMOSAIC, *command], capture_output=True, text=True)
+        lines = res.stderr.strip().splitlines()
+        assert res.returncode == 2 and len(lines) == 1, res.stderr
+        assert (
+            lines[0].startswith("error: ") and "locked.laz" in lines[0] and "readable" in lines[0]
+        )
+
+
+def test_links_that_go_nowhere_are_named_for_what_they_are(tmp_path):
+    (tmp_path / "loop_a.laz").symlink_to(tmp_path / "loop_b.laz")
+    (tmp_path / "loop_b.laz").symlink_to(tmp_path / "loop_a.laz")
+    (tmp_path / "broken.laz").symlink_to(tmp_path / "gone.laz")
+    assert_one_line_error(invoke("info", tmp_path / "loop_a.laz"), "loop_a.laz", "link loop")
+    assert_one_line_error(invoke("info", tmp_path / "broken.laz"), "broken symbolic link")
+    manifest = tmp_path / "m.toml"
+    manifest.write_text('[[scans]]\nid = "a"\npath = "loop_a.laz"\n')
+    assert_one_line_error(invoke("info", manifest), "m.toml", "'a'", "link loop")
+
+
+def test_a_stray_point_far_away_is_named_by_merge_not_blamed_on_the_pose(small_sim, tmp_path):
+    las = read_cloud(small_sim.scan_paths["P1-S3"])
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales = [0.01, 0.01, 0.01]  # 1 cm integers reach 10,000 km
+    header.offsets = np.floor(las.xyz.min(axis=0))
+    far = laspy.LasData(header)
+    xyz = np.vstack([las.xyz, las.xyz[:1] + [1.0e7, 0.0, 0.0]])
+    far.x, far.y, far.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    far.write(tmp_path / "far.laz")
+    manifest = write_manifest(tmp_path / "m.toml", small_sim, ["P1-S0", "P1-S3"])
+    manifest.write_text(
+        manifest.read_text().replace(str(small_sim.scan_paths["P1-S3"]), str(tmp_path / "far.laz"))
+    )
+    before = tree(tmp_path)
+    res = invoke(
+        "merge", manifest, "--poses", small_sim.ground_truth_path, "--out", tmp_path / "o" / "m.laz"
+    )
+    assert_one_line_error(res, "far.laz", "10,000 km", "stray point")
+    assert "pose" not in res.output
+    assert_nothing_left(tmp_path, before)
+
+
+def test_the_write_probe_leaves_nothing_on_a_full_disk(tmp_path, monkeypatch):
+    from plotmosaic.io import atomic
+
+    def full(fd):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(atomic.os, "fsync", full)
+    before = tree(tmp_path)
+    with pytest.raises(InputError, match="No space left"):
+        atomic.check_output_dir(tmp_path / "new" / "out")
+    with pytest.raises(InputError, match="No space left"):
+        atomic.check_output_file(tmp_path / "r.json")
+    assert_nothing_left(tmp_path, before)
+
+
+def _non_utf8(folder: Path, name: bytes) -> Path:
+    return Path(os.fsdecode(os.path.join(os.fsencode(folder), name)))
+
+
+def test_non_utf8_names_end_to_end(small_sim, tmp_path):
+    """A source file, a plot folder and an output with names that are not UTF-8 (as old Windows or
+    camera exports make them): the run works, text outputs hold the names escaped."""
+    plot = _non_utf8(tmp_path, b"plot_\xe9")
+    plot.mkdir()
+    manifest = write_manifest(tmp_path / "m.toml", small_sim, ["P1-S0", "P1-S1"], als=False)
+    text = manifest.read_text(encoding="utf-8")
+    for sid in ("P1-S0", "P1-S1"):
+        copy = plot / f"{sid}.laz"
+        copy.write_bytes(small_sim.scan_paths[sid].read_bytes())
+        text = text.replace(str(small_sim.scan_paths[sid]), f"{sid}.laz")
+    (plot / "m.toml").write_text(text, encoding="utf-8")
+    out = _non_utf8(tmp_path, b"merged_\xff.laz")
+    res = subprocess.run(
+        [
+            *PLOTMOSAIC,
+            "merge",
+            plot / "m.toml",
+            "--poses",
+            small_sim.ground_truth_path,
+            "--out",
+            out,
+        ],
+        capture_output=True,
+    )
+    assert res.returncode == 0, res.stderr
+    assert len(laspy.read(out).points) > 0
+    json.loads(out.with_name("merged_\udcff.laz.json").read_text())
+    assert "\\udcff" in out.with_name("merged_\udcff.config-used.toml").read_text(encoding="utf-8")
+
+
+def test_align_with_a_non_utf8_name_and_sigterm_as_it_exits(small_sim, tmp_path):
+    """The summary printed, SIGTERM lands while the process exits: 0 or 130, never the default
+    action's 143 or a traceback; a source name that is not UTF-8 is printed escaped."""
+    source = _non_utf8(tmp_path, b"scan_\xff\xfe.laz")
+    source.write_bytes(small_sim.scan_paths["P1-S1"].read_bytes())
+    target = tmp_path / "same.laz"  # the same cloud: the fine stage from identity is quick
+    target.write_bytes(small_sim.scan_paths["P1-S1"].read_bytes())
+    out = tmp_path / "r.json"
+    proc = subprocess.Popen(
+        [*PLOTMOSAIC, "align", source, target, "--no-coarse", "--out", out],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    seen = []
+    for line in proc.stdout:
+        seen.append(line)
+        if b"settings used" in line:
+            proc.send_signal(signal.SIGTERM)
+            break
+    rest, err = proc.communicate(timeout=120)
+    assert proc.returncode in (0, 130), (proc.returncode, err)
+    assert b"Traceback" not in err and b"Error" not in err, err
+    assert b"scan_\\udcff\\udcfe.laz" in seen[0], seen
+    assert json.loads(out.read_text())["fitness"] > 0.99
+    assert "\\udcff" in (tmp_path / "r.config-used.toml").read_text(encoding="utf-8")
+
+
+def _group_alive(pgid: int) -> list[int]:
+    return [
+        int(p.parent.name)
+        for p in Path("/proc").glob("[0-9]*/stat")
+        if _pgid(p) == pgid and alive(int(p.parent.name))
+    ]
+
+
+def _pgid(stat: Path) -> int | None:
+    try:
+        return int(stat.read_text().rsplit(")", 1)[1].split()[2])
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def _workers(pid: int) -> list[int]:
+    """The spawned pool workers among the children (not the resource tracker)."""
+    found = []
+    for child in children(pid):
+        try:
+            if b"--multiprocessing-fork" in Path(f"/proc/{child}/cmdline").read_bytes():
+                found.append(child)
+        except OSError:
+            continue
+    return found
+
+
+def _ignores_sigint(pid: int) -> bool:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("SigIgn:"):
+            return bool(int(line.split()[1], 16) & (1 << (signal.SIGINT - 1)))
+    return False
+
+
+def _wait_for(condition, seconds: float) -> bool:
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+@pytest.mark.parametrize("moment", ["workers starting", "first scan prepared"])
+def test_ctrl_c_in_the_first_seconds_of_the_worker_pool(small_sim, tmp_path, moment):
+    """Ctrl-C reaches the whole process group, workers still importing included: one line
+    `interrupted`, exit 130, no traceback from any worker, no process left."""
+    manifest = thinned_manifest(tmp_path, small_sim, ["P1-S0", "P1-S1", "P1-S2"])
+    out = tmp_path / "reg"
+    proc = subprocess.Popen(
+        [*PLOTMOSAIC, "register-plot", str(manifest), "--out", str(out), "-j", "2"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
+    )
+    if moment == "workers starting":  # both spawned, the parent past its forks, workers importing
+        ready = lambda: len(_workers(proc.pid)) >= 2 and not _ignores_sigint(proc.pid)  # noqa: E731
+    else:
+        ready = lambda: any((out / "prepared").glob("*.npz"))  # noqa: E731
+    assert _wait_for(lambda: ready() or proc.poll() is not None, 240)
+    assert proc.poll() is None, "register-plot ended before the interrupt"
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    lines = [ln for ln in err.decode(errors="replace").splitlines() if ln.strip()]
+    lines = [ln for ln in lines if not ln.startswith(("preparing scans", "registering pairs"))]
+    assert proc.returncode == 130 and lines == ["interrupted"], (proc.returncode, lines)
+    assert _wait_for(lambda: not _group_alive(proc.pid), 10), _group_alive(proc.pid)

@@ -20,7 +20,6 @@ from scipy.spatial import cKDTree
 
 from plotmosaic.align.coarse_config import CoarseConfig
 from plotmosaic.align.rasters import ground_model, height_above_ground
-from plotmosaic.align.stemmap import grid_groups
 from plotmosaic.align.voxel import occupied_groups
 
 PAIR_RSS_LIMIT = 2 * 2**30  # what any pair the extent check accepts may use
@@ -116,6 +115,18 @@ def stem_band(small_sim) -> np.ndarray:
     xyz = local(small_sim.scan_paths["P1-S0"])
     hag = height_above_ground(xyz, 1.0, CoarseConfig())
     return xyz[(hag > 0.5) & (hag < 4.0), :2]
+
+
+def grid_groups(xy: np.ndarray, cell: float) -> list[np.ndarray]:
+    """The dense reference: ndimage's 8-connected labelling of a `cell` occupancy image over `xy`."""
+    ij = np.floor((xy - xy.min(axis=0)) / cell).astype(np.int64) + 1
+    grid = np.zeros(tuple(ij.max(axis=0) + 2), bool)
+    grid[ij[:, 0], ij[:, 1]] = True
+    labels, n = ndimage.label(grid, structure=np.ones((3, 3)))
+    lab = labels[ij[:, 0], ij[:, 1]] - 1
+    order = np.argsort(lab, kind="stable")
+    bounds = np.searchsorted(lab[order], np.arange(n + 1))
+    return [order[bounds[k] : bounds[k + 1]] for k in range(n)]
 
 
 def test_occupied_groups_number_groups_as_the_dense_labelling(small_sim):

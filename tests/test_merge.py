@@ -341,7 +341,7 @@ def test_truncated_scan_is_named_and_leaves_nothing(site, tmp_path):
         "b.laz",
         "truncated",
     )
-    assert list((tmp_path / "out").iterdir()) == []
+    assert not (tmp_path / "out").exists()  # the folder the run made is gone with it
 
 
 def test_als_tile_in_another_crs_is_refused(site, tmp_path):

@@ -232,3 +232,22 @@ def test_cli_rerun_uses_the_cache(runs):
         and "0 registered now" in result.output
     )
     assert "P1-S3" in result.output  # the per-scan table
+
+
+def test_register_plot_reads_the_report_settings(runs, tmp_path):
+    """`[report]` drives register-plot's page as it does tie-to-als's: no 3D view when asked for
+    none, the pictures' point budget as set."""
+    import shutil
+
+    from plotmosaic.report.config import ReportConfig
+
+    assert (runs["out"] / "view3d.html").is_file()  # the default writes one
+    out = tmp_path / "out"
+    shutil.copytree(runs["out"], out)
+    (out / "view3d.html").unlink()
+    report = ReportConfig(picture_points=5000, view3d_points=0)
+    result = register_plot(
+        runs["manifest"], out, jobs=1, progress=False, config=RegisterConfig(report=report)
+    )
+    assert result.computed == 0  # the pairs came from the cache: only the solve and the report
+    assert (out / "report.html").is_file() and not (out / "view3d.html").exists()

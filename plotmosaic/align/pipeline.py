@@ -18,6 +18,7 @@ import numpy as np
 
 from plotmosaic import __version__
 from plotmosaic.align import judge as judge_mod
+from plotmosaic.align import scene
 from plotmosaic.align.coarse import coarse_align
 from plotmosaic.align.complexity import match_levels
 from plotmosaic.align.config import KINDS, AlignConfig, IcpStage, default_levels
@@ -272,6 +273,8 @@ def register_prepared(
     else it is a prior like any other."""
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
+    if config.judge.enabled:  # the judge refuses a scene that is not a forest: before the search
+        scene.check(src, tgt, config.judge)
     coarse = None
     T = to_local_transform(
         np.eye(4) if init is None else np.asarray(init, dtype=float), src.frame, tgt.frame

@@ -14,10 +14,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from plotmosaic.align.coarse_config import CoarseConfig
+from plotmosaic.align.voxel import occupied_groups
 
 
 @dataclass
@@ -38,19 +38,6 @@ def _circle(xy: np.ndarray) -> tuple[np.ndarray, float, float]:
     return centre, r, res
 
 
-def grid_groups(xy: np.ndarray, cell: float) -> list[np.ndarray]:
-    """Indices of the connected groups of a `cell` occupancy grid over `xy` (8-connected): linear in
-    the points and deterministic, no all-pairs clustering."""
-    ij = np.floor((xy - xy.min(axis=0)) / cell).astype(np.int64) + 1
-    grid = np.zeros(tuple(ij.max(axis=0) + 2), bool)
-    grid[ij[:, 0], ij[:, 1]] = True
-    labels, n = ndimage.label(grid, structure=np.ones((3, 3)))
-    lab = labels[ij[:, 0], ij[:, 1]] - 1
-    order = np.argsort(lab, kind="stable")
-    bounds = np.searchsorted(lab[order], np.arange(n + 1))
-    return [order[bounds[k] : bounds[k + 1]] for k in range(n)]
-
-
 def stem_map(
     points: np.ndarray, normals: np.ndarray, hag: np.ndarray, config: CoarseConfig
 ) -> StemMap:
@@ -63,7 +50,7 @@ def stem_map(
     if len(xy) < c.stem_min_points:
         return empty
     centres, diam, support = [], [], []
-    for idx in grid_groups(xy, c.stem_cluster_m):
+    for idx in occupied_groups(xy, c.stem_cluster_m):
         if len(idx) < c.stem_min_points:
             continue
         pts = xy[idx]

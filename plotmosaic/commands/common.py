@@ -10,9 +10,11 @@ from __future__ import annotations
 import contextlib
 import errno
 import functools
+import os
 import signal
 import threading
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import typer
 
@@ -42,6 +44,8 @@ class _Interrupts:
         self.received = False
 
     def handler(self, signum, frame):
+        if self.received:  # a second Ctrl-C must not break the clean-up the first one started
+            return
         self.received = True
         raise KeyboardInterrupt
 
@@ -144,9 +148,6 @@ def check_poses_match(manifest, poses_path):
 @contextlib.contextmanager
 def no_empty_output(folder) -> Iterator[None]:
     """A run that fails leaves no empty output folder it created (folders holding files are kept)."""
-    import os
-    from pathlib import Path
-
     top = None  # the outermost folder this run will create
     current = Path(folder).absolute()
     while not current.exists() and current.parent != current:
@@ -193,8 +194,12 @@ def write_config_used(path, settings, command: str):
     from plotmosaic.io.atomic import write_text_atomic
     from plotmosaic.settings import dump_settings
 
-    header = f"Settings used by `plotmosaic {command}` (give back with --config to repeat the run)."
-    if sys.argv and sys.argv[0].endswith("plotmosaic"):  # not when called in-process (tests)
+    header = (
+        f"Settings used by `plotmosaic {command}` (give back with --config to repeat the run; "
+        "copy it first when the run writes into this folder: a run never writes over its inputs)."
+    )
+    # the console script or `python -m plotmosaic`; not when called in-process (tests)
+    if sys.argv and sys.argv[0].endswith(("plotmosaic", os.path.join("plotmosaic", "__main__.py"))):
         argv = " ".join(shlex.quote(a) for a in sys.argv[1:])
         header += f"\ncommand line: plotmosaic {argv}"
     return write_text_atomic(path, dump_settings(settings, header))

@@ -11,6 +11,7 @@ from plotmosaic.commands.common import (
     CONFIG_HELP,
     CONFIG_USED,
     handle_errors,
+    no_empty_output,
     run_settings,
     write_config_used,
 )
@@ -103,7 +104,10 @@ def merge_command(
         check_output_file(out, force=True)
         check_output_file(used, force=True)
     # SIGINT / SIGTERM are the command wrapper's (commands/common.py): they unwind as KeyboardInterrupt
-    summary = merge_scans(loaded, load_poses(poses), out, merge, progress=True, poses_path=poses)
+    with no_empty_output(out if merge.tiles else out.parent):  # a failed run leaves no folder
+        summary = merge_scans(
+            loaded, load_poses(poses), out, merge, progress=True, poses_path=poses
+        )
     write_config_used(used, settings, "merge")
     print_summary(summary)
     typer.echo(f"settings used: {used}")

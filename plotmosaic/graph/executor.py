@@ -8,14 +8,17 @@ a crash of the whole run. The scheduling itself is concurrent.futures' or Dask's
 from __future__ import annotations
 
 import atexit
+import contextlib
 import dataclasses
 import hashlib
 import json
-import multiprocessing
+import multiprocessing.context
 import os
+import signal
+import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from functools import partial
@@ -274,7 +277,7 @@ def _pool(workers: int, per_worker: int) -> ProcessPoolExecutor:
     # spawn: Open3D and BLAS thread pools do not survive fork reliably
     _POOL[shape] = pool = ProcessPoolExecutor(
         workers,
-        mp_context=multiprocessing.get_context("spawn"),
+        mp_context=_DeafSpawnContext(),
         initializer=_limit_threads,
         initargs=(per_worker,),
     )
@@ -285,11 +288,44 @@ def close_pool(kill: bool = False) -> None:
     """Shut the kept pool down (at exit, on a new shape, or killed after an interruption)."""
     for pool in _POOL.values():
         procs = list((getattr(pool, "_processes", None) or {}).values())
-        pool.shutdown(wait=not kill, cancel_futures=kill)
-        if kill:
+        if kill:  # SIGKILL: workers hold SIGINT / SIGTERM blocked, and a running pair would finish
             for proc in procs:
-                proc.terminate()  # a pair already running would otherwise finish after Ctrl-C
+                proc.kill()
+        pool.shutdown(wait=True, cancel_futures=kill)
     _POOL.clear()
+
+
+_STOPS = (signal.SIGINT, signal.SIGTERM)
+
+
+@contextlib.contextmanager
+def _stops_ignored() -> Iterator[None]:
+    """Ctrl-C and SIGTERM ignored in the block (only the main thread may change handlers)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {s: signal.signal(s, signal.SIG_IGN) for s in _STOPS}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+class _DeafProcess(multiprocessing.context.SpawnProcess):
+    """A spawned worker that ignores Ctrl-C and SIGTERM from its first instant: the terminal signals
+    the whole process group, and a worker still importing would print a traceback. An ignored
+    signal stays ignored across exec (a caught or blocked one does not), so the parent ignores them
+    while it forks (milliseconds); the parent alone stops its workers."""
+
+    @staticmethod
+    def _Popen(process_obj):
+        with _stops_ignored():
+            return multiprocessing.context.SpawnProcess._Popen(process_obj)
+
+
+class _DeafSpawnContext(multiprocessing.context.SpawnContext):
+    Process = _DeafProcess
 
 
 atexit.register(close_pool)
@@ -301,8 +337,8 @@ def _run_local(jobs, tick, n_jobs, worker) -> None:
         for job in jobs:
             tick(call_with_threads(budget(n_jobs), worker, job))
         return
-    pool = _pool(workers, per_worker)
     try:
+        pool = _pool(workers, per_worker)
         pending = {pool.submit(worker, job): job for job in jobs}
         while pending:
             finished, _ = wait(pending, return_when=FIRST_COMPLETED)

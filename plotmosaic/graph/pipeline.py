@@ -400,7 +400,14 @@ def prepare_scans(
         if job.prepared:
             for pj in prepare_jobs_for(job):
                 unique.setdefault(pj.key, pj)
-    todo = [pj for pj in unique.values() if not entry(pj.folder, pj.key).is_file()]
+    return _prepare(list(unique.values()), executor, n_jobs, scheduler, progress)
+
+
+def _prepare(
+    jobs: list[PrepareJob], executor: str, n_jobs: int | None, scheduler: str | None, progress: bool
+) -> dict[str, dict]:
+    """Run the prepare jobs whose cache entry is missing; the failed records by prepared key."""
+    todo = [pj for pj in jobs if not entry(pj.folder, pj.key).is_file()]
     # entries already on disk are checked when loaded (a damaged one is prepared again there)
     records = run_pairs(
         todo,
@@ -413,6 +420,34 @@ def prepare_scans(
         label="preparing scans",
     )
     return {r["key"]: r for r in records if r.get("status") != "ok"}
+
+
+def prepare_every_scan(
+    manifest: Manifest,
+    config: RegisterConfig,
+    seed: int,
+    folder: Path,
+    executor: str = "local",
+    n_jobs: int | None = None,
+    scheduler: str | None = None,
+    progress: bool = True,
+) -> None:
+    """Read and prepare every scan of the manifest before any pair runs (into the cache the pairs
+    load from): a scan that cannot be read stops the run here, named, instead of leaving it unplaced."""
+    settings = config.align.model_dump_json()
+    jobs = {}
+    for plot in manifest.plots:
+        for scan in plot.scans:
+            path = str(manifest.resolve(scan.path))
+            key = prepared_key(path, scan.kind.value, scan.k, settings, seed)
+            jobs[key] = PrepareJob(
+                key, scan.id, path, scan.kind.value, scan.k, settings, seed, str(folder)
+            )
+    for key, record in _prepare(list(jobs.values()), executor, n_jobs, scheduler, progress).items():
+        pj = jobs[key]
+        cause = str(record.get("error", "")).removeprefix("InputError: ")
+        cause = cause.removeprefix(f"{pj.path}: ")
+        raise InputError(f"{pj.path}: scan {pj.scan!r} cannot be used ({cause})")
 
 
 def compute_pairs(
@@ -544,6 +579,9 @@ def register_plot(
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a folder")
     cache = PairCache(out / "pairs")
+    prepare_every_scan(
+        manifest, config, seed, out / "prepared", executor, jobs, scheduler, progress
+    )
     placed, placement, placement_records = place_scans(
         manifest, config, seed, out, executor, jobs, scheduler, force, progress
     )

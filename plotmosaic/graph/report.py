@@ -282,7 +282,7 @@ def write_register_report(
         ),
         bundle=residual_summary(G),
     )
-    cfg = ReportConfig(picture_points=getattr(config, "report_points", 20_000))
+    cfg = getattr(config, "report", None) or ReportConfig()
     _, figures = build_report(inp, cfg, seed, overview=True)
     for r in result.plots:
         sub = G.subgraph(r.scans)

@@ -111,9 +111,14 @@ def _probe(folder: Path, what: Path) -> None:
             d.mkdir()
             made.append(d)
         probe = folder / f".plotmosaic-probe.tmp-{os.getpid()}"
-        with open(probe, "wb") as fh:
-            fh.write(b"probe")
-        probe.unlink()
+        try:
+            with open(probe, "wb") as fh:
+                fh.write(b"probe")
+                fh.flush()
+                os.fsync(fh.fileno())  # a full disk refuses the data here, not at open()
+        finally:
+            with contextlib.suppress(OSError):
+                probe.unlink()
     except OSError as exc:
         reason = exc.strerror or str(exc)
         if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
@@ -187,6 +192,7 @@ def atomic_output(path: str | Path, force: bool = True) -> Iterator[Path]:
 
 
 def write_text_atomic(path: str | Path, text: str) -> Path:
+    """UTF-8 text; a file name that is not UTF-8 (a surrogate escape) is written as `\\udcff`."""
     with atomic_output(path) as tmp:
-        tmp.write_text(text)
+        tmp.write_text(text, encoding="utf-8", errors="backslashreplace")
     return Path(path)

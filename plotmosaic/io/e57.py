@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from plotmosaic.errors import InputError
+from plotmosaic.io.paths import check_input_file
 
 CHUNK_SIZE = 1_000_000
 _REF = re.compile(r"^(?P<file>.*\.e57)#(?P<index>\d+)$", re.IGNORECASE)
@@ -80,10 +81,7 @@ def _libe57():
 
 def _open(path: Path):
     libe57 = _libe57()
-    if not path.exists():
-        raise InputError(f"{path}: file not found")
-    if path.is_dir():
-        raise InputError(f"{path}: is a directory, expected an E57 file")
+    check_input_file(path, "E57 file")
     try:
         return libe57.ImageFile(str(path), "r")
     except Exception as exc:  # libE57 raises E57Exception (bad checksum, bad header, ...)

@@ -20,6 +20,7 @@ from pyproj import CRS
 from plotmosaic.errors import InputError
 from plotmosaic.io import e57, ply
 from plotmosaic.io.atomic import atomic_output
+from plotmosaic.io.paths import check_input_file
 from plotmosaic.merge_config import CHUNK_SIZE
 
 # Standard attributes carried through the tool (LAS dimension name -> dtype).
@@ -102,10 +103,7 @@ def _check_file(path: Path) -> Path:
     path = Path(path)
     if file_format(path) == "e57":
         return path  # io/e57.py checks the file (and the scan a reference path names)
-    if not path.exists():
-        raise InputError(f"{path}: file not found")
-    if path.is_dir():
-        raise InputError(f"{path}: is a directory, expected a point-cloud file")
+    check_input_file(path, "point-cloud file")
     if path.suffix.lower() not in READ_SUFFIXES:
         raise InputError(f"{path}: not a point-cloud file (expected .las, .laz, .e57 or .ply)")
     return path

@@ -21,6 +21,7 @@ import numpy as np
 from plyfile import PlyData, PlyParseError
 
 from plotmosaic.errors import InputError
+from plotmosaic.io.paths import check_input_file
 
 CHUNK_SIZE = 2_000_000
 _INTENSITY = ("intensity", "scalar_intensity", "scalar_Intensity", "Intensity")
@@ -39,10 +40,7 @@ def _short(exc: Exception) -> str:
 
 def _vertices(path: Path):
     """The vertex element's structured array (memory-mapped for binary files)."""
-    if not path.exists():
-        raise InputError(f"{path}: file not found")
-    if path.is_dir():
-        raise InputError(f"{path}: is a directory, expected a PLY file")
+    check_input_file(path, "PLY file")
     try:
         data = PlyData.read(str(path), mmap="r")
         vertex = data["vertex"]
