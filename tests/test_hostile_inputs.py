@@ -639,6 +639,14 @@ def test_non_utf8_names_end_to_end(small_sim, tmp_path):
     assert len(laspy.read(out).points) > 0
     json.loads(out.with_name("merged_\udcff.laz.json").read_text())
     assert "\\udcff" in out.with_name("merged_\udcff.config-used.toml").read_text(encoding="utf-8")
+    reg = plot / "reg"
+    res = subprocess.run(
+        [*PLOTMOSAIC, "register-plot", plot / "m.toml", "--out", reg, "-j", "1"],
+        capture_output=True,
+    )
+    assert res.returncode == 0, res.stderr
+    assert b"plot_\\udce9" in res.stdout and (reg / "report.html").is_file()
+    assert set(json.loads((reg / "poses.json").read_text())["scans"]) == {"P1-S0", "P1-S1"}
 
 
 def test_align_with_a_non_utf8_name_and_sigterm_as_it_exits(small_sim, tmp_path):
