@@ -22,9 +22,9 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from plotmosaic.align.complexity import level_purity
-from plotmosaic.align.config import AlignConfig
 from plotmosaic.align.pipeline import align_files, register_prepared
 from plotmosaic.align.prepare import prepare_cloud
+from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import RegistrationFailed
 from plotmosaic.io.frame import apply_transform
 from plotmosaic.io.las import read_cloud

@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
-from plotmosaic.bench.config import BenchConfig
 from plotmosaic.bench.pairs import manifest_pairs
 from plotmosaic.bench.protocol import get_protocol
 from plotmosaic.bench.run import BenchPair, run_bench, write_outputs
+from plotmosaic.config.bench import BenchConfig
 from plotmosaic.io import read_cloud
 from plotmosaic.manifest import load_manifest
 from plotmosaic.poses import load_poses

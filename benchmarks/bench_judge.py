@@ -27,7 +27,6 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from plotmosaic.align import judge
-from plotmosaic.align.config import AlignConfig
 from plotmosaic.align.pipeline import (
     blunt_fit,
     final_icp,
@@ -35,6 +34,7 @@ from plotmosaic.align.pipeline import (
     prepare_pair,
     register_prepared,
 )
+from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import RegistrationFailed
 from plotmosaic.io.frame import to_local_transform
 from plotmosaic.io.las import PointCloud, read_cloud
@@ -187,10 +187,10 @@ def suite_trials(cases: list[str], n: int) -> list[tuple]:
 
 def suite_cases(trials):
     """(name, prepared source, prepared target, truth source file -> target file, config) per trial."""
-    from plotmosaic.align.config import default_levels
     from plotmosaic.align.prepare import prepare_cloud
     from plotmosaic.bench.protocol import params_to_matrix
     from plotmosaic.bench.real_suite import _case_state, draw
+    from plotmosaic.config.align import default_levels
     from plotmosaic.io.frame import apply_transform
 
     for name, proto, trial, coarse in trials:

@@ -22,8 +22,8 @@ import numpy as np
 from bench_judge import DATA, cases
 
 from plotmosaic.align import scene
-from plotmosaic.align.config import AlignConfig, default_levels
 from plotmosaic.align.pipeline import prepare_pair, register_prepared
+from plotmosaic.config.align import AlignConfig, default_levels
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.io.las import PointCloud, read_cloud
 from plotmosaic.simulate.run import simulate

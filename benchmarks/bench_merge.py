@@ -122,8 +122,8 @@ READ_ONLY = """
 import sys
 from pathlib import Path
 from plotmosaic.manifest import load_manifest
-from plotmosaic.merge import read_records
-from plotmosaic.merge_config import CHUNK_SIZE
+from plotmosaic.stages.merge import read_records
+from plotmosaic.config.merge import CHUNK_SIZE
 m = load_manifest(sys.argv[1])
 n = sum(len(c) for s in m.scans for c in read_records(m.resolve(s.path), CHUNK_SIZE))
 print(n)
@@ -166,10 +166,10 @@ def profile_merge(root: Path) -> None:
     read only, read + pose (numpy), full merge (+ LAZ compression and writing)."""
     from threadpoolctl import threadpool_limits
 
+    from plotmosaic.config.merge import MergeConfig
     from plotmosaic.manifest import load_manifest
-    from plotmosaic.merge import merge_scans, plan_sources, posed_record, read_records
-    from plotmosaic.merge_config import MergeConfig
     from plotmosaic.poses import load_poses
+    from plotmosaic.stages.merge import merge_scans, plan_sources, posed_record, read_records
 
     manifest, poses = load_manifest(root / "manifest.toml"), load_poses(root / "poses.json")
     config = MergeConfig(force=True)

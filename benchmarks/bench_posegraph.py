@@ -30,8 +30,8 @@ def pair_counts(sizes: list[int], placed: bool = False) -> None:
     import networkx as nx
     import numpy as np
 
+    from plotmosaic.config.scale import PlacedPriors
     from plotmosaic.graph.pairs import candidate_pairs
-    from plotmosaic.graph.scale_config import PlacedPriors
     from plotmosaic.manifest import Plot, Scan
 
     jitter = 0.01 if placed else 1.0
@@ -77,7 +77,7 @@ def signature_counts(sizes: list[int]) -> None:
     import networkx as nx
     import numpy as np
 
-    from plotmosaic.graph.scale_config import SignatureConfig
+    from plotmosaic.config.scale import SignatureConfig
     from plotmosaic.graph.signature import Signature, signature_pairs, similarity, stem_triangles
     from plotmosaic.graph.synthetic import stem_map_grid
 

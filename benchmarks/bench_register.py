@@ -21,11 +21,11 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-from plotmosaic.graph.anchors import tie_to_als
-from plotmosaic.graph.pipeline import register_plot
 from plotmosaic.graph.posegraph import graph_from_json, inverse, optimise, pose_error
 from plotmosaic.poses import load_poses
 from plotmosaic.simulate.run import simulate
+from plotmosaic.stages.register_plot import register_plot
+from plotmosaic.stages.tie_to_als import tie_to_als
 
 
 def errors_in_plot_frame(poses, truth, plots) -> list[tuple]:

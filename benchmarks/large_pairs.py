@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from plotmosaic.align.config import AlignConfig
 from plotmosaic.align.pipeline import final_icp
 from plotmosaic.align.prepare import prepare_cloud
+from plotmosaic.config.align import AlignConfig
 from plotmosaic.io.frame import to_global_transform, to_local_transform
 from plotmosaic.io.las import read_cloud
 from plotmosaic.manifest import load_manifest

@@ -14,10 +14,10 @@ from pathlib import Path
 
 from plotmosaic.align.voxel import voxel_centroids
 from plotmosaic.bench.protocol import params_to_matrix
+from plotmosaic.config.report import ReportConfig
 from plotmosaic.io.las import read_cloud
 from plotmosaic.poses import load_poses
 from plotmosaic.report.build import collect
-from plotmosaic.report.config import ReportConfig
 from plotmosaic.report.slice import ring_spread
 
 

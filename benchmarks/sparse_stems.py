@@ -17,10 +17,10 @@ import argparse
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from plotmosaic.align.config import AlignConfig
 from plotmosaic.align.pipeline import final_icp
 from plotmosaic.align.prepare import prepare_cloud
 from plotmosaic.bench.real_cases import build_case
+from plotmosaic.config.align import AlignConfig
 from plotmosaic.io.frame import to_global_transform, to_local_transform
 from plotmosaic.io.las import PointCloud
 

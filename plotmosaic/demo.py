@@ -8,16 +8,16 @@ from pathlib import Path
 
 import numpy as np
 
+from plotmosaic.config.merge import MergeConfig
 from plotmosaic.errors import InputError
-from plotmosaic.graph.anchors import tie_to_als
-from plotmosaic.graph.pipeline import register_plot
 from plotmosaic.graph.posegraph import inverse, pose_error
 from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed
 from plotmosaic.manifest import load_manifest
-from plotmosaic.merge import merge_scans, sidecar_path
-from plotmosaic.merge_config import MergeConfig
 from plotmosaic.poses import Poses, load_poses
 from plotmosaic.simulate.run import simulate
+from plotmosaic.stages.merge import merge_scans, sidecar_path
+from plotmosaic.stages.register_plot import register_plot
+from plotmosaic.stages.tie_to_als import tie_to_als
 
 DEMO_PRESET = "paper"
 DEMO_POINTS_PER_SCAN = 400_000  # the paper preset at a modest size: minutes, not hours, on 2 cores

@@ -26,7 +26,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from plotmosaic.align.config import DEFAULT_LEVELS, KINDS, MAX_LEVELS
+from plotmosaic.config.align import DEFAULT_LEVELS, KINDS, MAX_LEVELS
 from plotmosaic.errors import InputError
 from plotmosaic.io.e57 import is_e57, list_scans, scan_ref, select_scan, split_scan_ref, stored_pose
 from plotmosaic.io.paths import check_input_file, input_problem

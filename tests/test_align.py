@@ -10,11 +10,11 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from plotmosaic.align.complexity import level_purity, match_levels
-from plotmosaic.align.config import AlignConfig
 from plotmosaic.align.icp import _exp_se3, information_matrix, point_to_plane_jacobian
 from plotmosaic.align.pipeline import PairResult, align_clouds, register_prepared
 from plotmosaic.align.prepare import prepare_cloud
 from plotmosaic.align.vmf import fit_vmf_mixture, sample_vmf
+from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import RegistrationFailed
 from plotmosaic.io.frame import apply_transform, translation
 from plotmosaic.io.las import PointCloud, read_cloud

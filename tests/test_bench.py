@@ -226,8 +226,8 @@ def test_bench_two_trials_table_matches_the_trials(request, tmp_path):
 
 
 def test_bench_is_deterministic_for_a_seed():
-    from plotmosaic.bench.config import BenchConfig, FpfhConfig, MethodsConfig
     from plotmosaic.bench.run import BenchPair, run_bench
+    from plotmosaic.config.bench import BenchConfig, FpfhConfig, MethodsConfig
 
     src, tgt = split_pair(synthetic_plot(trees=10))
     config = BenchConfig(
@@ -314,8 +314,8 @@ def test_ground_truth_from_poses_transform_json_or_identity(tmp_path):
 
 def test_bench_draws_forestalign_failures(tmp_path):
     """A trial forestalign gets wrong comes with a picture of where it put the source (and no picture for baselines)."""
-    from plotmosaic.bench.config import BenchConfig
     from plotmosaic.bench.run import BenchPair, run_bench
+    from plotmosaic.config.bench import BenchConfig
 
     src, tgt = split_pair(synthetic_plot(trees=6))
     far = PointCloud(
@@ -485,8 +485,8 @@ def test_rigid_cpd_fixed_scale_converges_to_the_pose():
     pytest.importorskip("probreg")
     from scipy.spatial.transform import Rotation
 
-    from plotmosaic.bench.config import CpdConfig
     from plotmosaic.bench.methods import _rigid_cpd
+    from plotmosaic.config.bench import CpdConfig
 
     rng = np.random.default_rng(0)
     x = rng.uniform(-15, 15, (600, 3)) * [1, 1, 0.5]

@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 from pydantic import BaseModel
 
-from plotmosaic.align.config import MAX_LEVELS
 from plotmosaic.commands.common import run_settings
+from plotmosaic.config.align import MAX_LEVELS
+from plotmosaic.config.merge import MergeConfig
+from plotmosaic.config.register import RegisterConfig, TieConfig
+from plotmosaic.config.settings import Settings, dump_settings, load_settings, settings_from_dict
 from plotmosaic.errors import InputError
-from plotmosaic.graph.config import RegisterConfig, TieConfig
 from plotmosaic.manifest import Scan
-from plotmosaic.merge_config import MergeConfig
 from plotmosaic.poses import load_poses
-from plotmosaic.settings import Settings, dump_settings, load_settings, settings_from_dict
 from tests.helpers import assert_one_line_error, invoke
 
 FAST = """

@@ -287,7 +287,7 @@ def test_register_plot_from_e57(project, tmp_path):
 
 def _merge_reads_e57(path: Path) -> bool:
     """merge.py opens its inputs through io.las.open_las (not laspy.open), which takes E57 scans."""
-    from plotmosaic.merge import Source, output_extra_dims
+    from plotmosaic.stages.merge import Source, output_extra_dims
 
     ref = scan_ref(path, 0)
     try:

@@ -8,10 +8,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from plotmosaic.align.config import AlignConfig
 from plotmosaic.align.normals import LazyNormals
 from plotmosaic.align.pipeline import _fine_schedule, final_icp
 from plotmosaic.align.prepare import prepare_cloud
+from plotmosaic.config.align import AlignConfig
 from plotmosaic.io.frame import to_global_transform, to_local_transform, translation
 from plotmosaic.io.las import PointCloud
 
@@ -116,8 +116,8 @@ def test_the_side_test_keeps_the_two_faces_of_a_stem_apart(sparse_pair):
 def test_a_scanner_is_trusted_only_where_the_cloud_crowds_around_it(sparse_pair):
     """The file origin is the scanner of a single scan in its own frame (1/r^2 density about it); the
     same scan in a project frame, a cloud of even density, or a mobile cloud get none."""
-    from plotmosaic.align.config import ViewpointConfig
     from plotmosaic.align.viewpoint import crowding, scanner_viewpoint
+    from plotmosaic.config.align import ViewpointConfig
 
     src, _, _ = sparse_pair
     np.testing.assert_allclose(src.frame.to_global(src.viewpoint), 0.0, atol=1e-12)

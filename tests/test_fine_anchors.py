@@ -6,12 +6,12 @@ from __future__ import annotations
 import networkx as nx
 import numpy as np
 
-from plotmosaic.graph.config import RegisterConfig
+from plotmosaic.config.register import RegisterConfig
 from plotmosaic.graph.executor import PairJob
-from plotmosaic.graph.pipeline import als_anchor_edges, anchor_id, solve_plot
 from plotmosaic.graph.posegraph import build_graph
 from plotmosaic.io.frame import inverse, translation
 from plotmosaic.manifest import Plot, Scan
+from plotmosaic.stages.register_plot import als_anchor_edges, anchor_id, solve_plot
 
 N, SPACING, SHORT = 7, 18.0, 0.01  # scans in a row 18 m apart, each pair 1 cm short
 UTM = np.array([470_000.0, 3_810_000.0, 2_100.0])

@@ -262,9 +262,9 @@ def test_placed_scans_are_paired_within_reach_of_their_spacing():
 def test_graph_placed_scans_get_their_neighbours_verified_first(tmp_path):
     import networkx as nx
 
-    from plotmosaic.graph.config import RegisterConfig
-    from plotmosaic.graph.pipeline import _pair_job, position_jobs
+    from plotmosaic.config.register import RegisterConfig
     from plotmosaic.manifest import Manifest
+    from plotmosaic.stages.register_plot import _pair_job, position_jobs
 
     for k in range(16):
         (tmp_path / f"s{k}.laz").write_bytes(bytes([k]) * 10)

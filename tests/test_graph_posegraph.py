@@ -4,7 +4,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from plotmosaic.graph.config import PoseGraphConfig
+from plotmosaic.config.register import PoseGraphConfig
 from plotmosaic.graph.posegraph import (
     build_graph,
     condition_information,

@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 from helpers import assert_one_line_error, invoke
 
-from plotmosaic.align.config import AlignConfig
 from plotmosaic.align.outliers import stray_mask
 from plotmosaic.align.prepare import prepare_cloud
+from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import InputError
 from plotmosaic.graph.cache import PairCache
 from plotmosaic.io.atomic import remove_stale_temporaries
@@ -235,7 +235,7 @@ def test_unwritable_outputs_are_refused_before_work(small_sim, tmp_path, monkeyp
 
     for where in (
         "plotmosaic.align.pipeline.align_files",
-        "plotmosaic.graph.pipeline.register_plot",
+        "plotmosaic.stages.register_plot.register_plot",
         "plotmosaic.commands.merge.merge_scans",
     ):
         monkeypatch.setattr(where, started)

@@ -26,8 +26,7 @@ MODULES = {_name(p): p for p in sorted(ROOT.rglob("*.py"))}
 
 
 def _is_config(module: str) -> bool:
-    last = module.rpartition(".")[2]
-    return module == "plotmosaic.settings" or last == "config" or last.endswith("_config")
+    return module == "plotmosaic.config" or module.startswith("plotmosaic.config.")
 
 
 def _project(name: str) -> str | None:
@@ -86,8 +85,8 @@ def test_scan_finds_the_imports_it_must():
     G = _graph()
     assert G.has_edge("plotmosaic.cli", "plotmosaic.commands.align")  # `from pkg import module`
     assert G.has_edge("plotmosaic.commands.align", "plotmosaic.align.pipeline")  # in a function
-    assert G.has_edge("plotmosaic.graph.pipeline", "plotmosaic.graph.config")
-    assert not G.has_edge("plotmosaic.graph.config", "plotmosaic.graph.pipeline")
+    assert G.has_edge("plotmosaic.stages.register_plot", "plotmosaic.config.register")
+    assert not G.has_edge("plotmosaic.config.register", "plotmosaic.stages.register_plot")
 
 
 def test_import_graph_is_acyclic():
@@ -124,12 +123,12 @@ def test_config_module_is_a_leaf(module):
 
 def test_all_config_modules_found():
     expected = {
-        "plotmosaic.settings",
-        "plotmosaic.align.config",
-        "plotmosaic.align.coarse_config",
-        "plotmosaic.align.judge_config",
-        "plotmosaic.graph.config",
-        "plotmosaic.merge_config",
-        "plotmosaic.report.config",
+        "plotmosaic.config.settings",
+        "plotmosaic.config.align",
+        "plotmosaic.config.coarse",
+        "plotmosaic.config.judge",
+        "plotmosaic.config.register",
+        "plotmosaic.config.merge",
+        "plotmosaic.config.report",
     }
     assert expected <= set(CONFIG_MODULES)

@@ -10,10 +10,10 @@ from helpers import SIM_PAIR_MAX_DEG, SIM_PAIR_MAX_M, assert_one_line_error, inv
 from typer.testing import CliRunner
 
 from plotmosaic.align import judge, scene
-from plotmosaic.align.config import AlignConfig
 from plotmosaic.align.pipeline import PairResult, blunt_fit, prepare_pair, register_prepared
 from plotmosaic.align.prepare import prepare_cloud
 from plotmosaic.cli import app
+from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import RegistrationFailed
 from plotmosaic.io.frame import rotation_deg, to_local_transform
 from plotmosaic.io.las import PointCloud, read_cloud
@@ -251,8 +251,8 @@ def test_near_miss_refused_by_its_own_basin_when_the_truth_is_withheld(pair):
 @pytest.fixture(scope="module")
 def boxed(spanner_dir):
     """bench_real.py's mls-boxed6m: a ground view cut to 6 m range against a view 8 m away (real MLS)."""
-    from plotmosaic.align.config import default_levels
     from plotmosaic.bench.real_cases import build_case
+    from plotmosaic.config.align import default_levels
 
     case = build_case("mls-boxed6m", spanner_dir.parent)
     cfg = AlignConfig()
@@ -286,7 +286,7 @@ def test_boxed_view_refused_when_a_copy_fits_as_well(boxed):
     """The same forest twice in the target, 60 m apart: the pose on the copy is a distinct rival as
     sharp as the truth, so the truth is refused (confidence 0), whichever of the two is judged."""
     ps, _, case, cfg = boxed
-    from plotmosaic.align.config import default_levels
+    from plotmosaic.config.align import default_levels
 
     shift = np.eye(4)
     shift[0, 3] = 60.0

@@ -18,9 +18,9 @@ import pytest
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from plotmosaic.align.coarse_config import CoarseConfig
 from plotmosaic.align.rasters import ground_model, height_above_ground
 from plotmosaic.align.voxel import occupied_groups
+from plotmosaic.config.coarse import CoarseConfig
 
 PAIR_RSS_LIMIT = 2 * 2**30  # what any pair the extent check accepts may use
 # a safety net for the shared machine, well above the address space a normal pair reserves

@@ -15,7 +15,8 @@ import pytest
 from helpers import assert_one_line_error, invoke
 from pyproj import CRS
 
-import plotmosaic.merge as merge_module
+import plotmosaic.stages.merge as merge_module
+from plotmosaic.config.merge import MergeConfig
 from plotmosaic.errors import InputError
 from plotmosaic.io import PointCloud, write_cloud
 from plotmosaic.io.frame import apply_transform
@@ -28,9 +29,8 @@ from plotmosaic.manifest import (
     dump_manifest,
     load_manifest,
 )
-from plotmosaic.merge import merge_scans, read_source_table
-from plotmosaic.merge_config import MergeConfig
 from plotmosaic.poses import Poses, ScanPose, load_poses
+from plotmosaic.stages.merge import merge_scans, read_source_table
 
 N = 20_000
 UTM = "EPSG:32612"

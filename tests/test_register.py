@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 from pyproj import CRS
 
+from plotmosaic.config.register import RegisterConfig
 from plotmosaic.graph.cache import PairCache
-from plotmosaic.graph.config import RegisterConfig
-from plotmosaic.graph.pipeline import plan_jobs, register_plot
 from plotmosaic.graph.posegraph import inverse, pose_error
 from plotmosaic.manifest import dump_manifest, load_manifest
 from plotmosaic.poses import load_poses
+from plotmosaic.stages.register_plot import plan_jobs, register_plot
 
 pytestmark = pytest.mark.slow
 SUBSET = ["P1-S0", "P1-S2", "P1-S3"]
@@ -158,7 +158,7 @@ def test_dask_executor_gives_the_same_edge(runs, tmp_path):
 
 def test_tie_to_als_georeferences_every_scan(runs, tmp_path, monkeypatch):
     import plotmosaic.io.las as las
-    from plotmosaic.graph.anchors import tie_to_als
+    from plotmosaic.stages.tie_to_als import tie_to_als
 
     read, inner = [], las.read_cloud
 
@@ -198,7 +198,7 @@ def test_tie_to_als_keeps_the_plot_as_register_plot_placed_it(runs, tmp_path):
     disagree with poses.json by 3 cm; the georeferenced plot keeps poses.json's shape."""
     import shutil
 
-    from plotmosaic.graph.anchors import tie_to_als
+    from plotmosaic.stages.tie_to_als import tie_to_als
 
     src = tmp_path / "out"
     shutil.copytree(runs["out"], src, ignore=shutil.ignore_patterns("pairs"))
@@ -239,7 +239,7 @@ def test_register_plot_reads_the_report_settings(runs, tmp_path):
     none, the pictures' point budget as set."""
     import shutil
 
-    from plotmosaic.report.config import ReportConfig
+    from plotmosaic.config.report import ReportConfig
 
     assert (runs["out"] / "view3d.html").is_file()  # the default writes one
     out = tmp_path / "out"

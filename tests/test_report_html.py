@@ -27,8 +27,8 @@ def _truth(sim) -> dict[str, np.ndarray]:
 
 
 def test_breast_slice_rings_double_when_one_scan_is_off(dense_sim):
+    from plotmosaic.config.report import ReportConfig
     from plotmosaic.report.build import collect
-    from plotmosaic.report.config import ReportConfig
     from plotmosaic.report.slice import ring_spread
 
     truth = _truth(dense_sim)
@@ -82,11 +82,11 @@ class _Page(HTMLParser):
 
 def _registered_folder(sim, out: Path):
     """register-plot's result on the small plot built from the truth (plus one bad pair), without registering."""
-    from plotmosaic.graph.config import RegisterConfig
-    from plotmosaic.graph.pipeline import PlotResult, RegisterResult
+    from plotmosaic.config.register import RegisterConfig
     from plotmosaic.graph.posegraph import build_graph, optimise
     from plotmosaic.manifest import load_manifest
     from plotmosaic.poses import Poses, ScanPose
+    from plotmosaic.stages.register_plot import PlotResult, RegisterResult
 
     truth = _truth(sim)
     ids = sorted(truth)
@@ -132,7 +132,7 @@ def _registered_folder(sim, out: Path):
 
 
 def test_report_html_is_self_contained(small_sim, tmp_path):
-    from plotmosaic.graph.report import write_register_report
+    from plotmosaic.report.runs import write_register_report
 
     result, manifest, config = _registered_folder(small_sim, tmp_path)
     md = write_register_report(result, manifest, config, seed=0)
@@ -190,7 +190,7 @@ def _arc(centre, r, a0, a1, n, rng, noise=0.002):
 
 def test_ring_spread_reads_the_offset_between_two_half_rings():
     """Two scans see opposite sides of a 20 cm stem; the second one's ring is 3 cm off, or not at all."""
-    from plotmosaic.report.config import SliceConfig
+    from plotmosaic.config.report import SliceConfig
     from plotmosaic.report.slice import find_stems
 
     rng = np.random.default_rng(1)
@@ -210,8 +210,8 @@ def test_ring_spread_reads_the_offset_between_two_half_rings():
 def test_warnings_in_plain_words():
     import networkx as nx
 
+    from plotmosaic.config.report import ReportConfig
     from plotmosaic.report.build import warnings_for
-    from plotmosaic.report.config import ReportConfig
 
     G = nx.Graph()
     G.add_edge("S1", "S2", source="S1", target="S2")

@@ -52,9 +52,9 @@ def test_grid_of_150_scans_with_wrong_edges_drops_every_wrong_edge():
 
 
 def _pair_jobs(sim, folder, ids=("P1-S0", "P1-S2", "P1-S3")):
-    from plotmosaic.graph.config import RegisterConfig
-    from plotmosaic.graph.pipeline import plan_jobs
+    from plotmosaic.config.register import RegisterConfig
     from plotmosaic.manifest import load_manifest
+    from plotmosaic.stages.register_plot import plan_jobs
 
     m = load_manifest(sim.manifest_path)
     plot = m.plots[0]
@@ -70,7 +70,7 @@ def _pair_jobs(sim, folder, ids=("P1-S0", "P1-S2", "P1-S3")):
 def test_each_scan_prepared_once_and_cached_on_disk(small_sim, tmp_path):
     from plotmosaic.graph import prepared as store
     from plotmosaic.graph.executor import prepare_jobs_for
-    from plotmosaic.graph.pipeline import prepare_scans
+    from plotmosaic.stages.register_plot import prepare_scans
 
     jobs = _pair_jobs(small_sim, tmp_path / "prepared")
     assert len(jobs) == 3

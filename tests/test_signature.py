@@ -8,7 +8,7 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from plotmosaic.graph.config import RegisterConfig
+from plotmosaic.config.register import RegisterConfig
 from plotmosaic.graph.signature import (
     Signature,
     SignatureConfig,
@@ -81,7 +81,7 @@ def test_growth_only_where_the_graph_is_apart():
 @pytest.fixture(scope="module")
 def grid9(tmp_path_factory):
     """A 3 x 3 simulated grid (`small` scene, 50k points a scan) with no positions and no ALS."""
-    from plotmosaic.simulate.config import grid_layout
+    from plotmosaic.config.simulate import grid_layout
     from plotmosaic.simulate.run import make_config, simulate
 
     root = tmp_path_factory.mktemp("grid9")
@@ -93,8 +93,8 @@ def grid9(tmp_path_factory):
 
 
 def test_nine_scan_grid_without_positions_or_als(grid9, tmp_path):
-    from plotmosaic.graph.pipeline import match_signatures, plan_jobs
     from plotmosaic.manifest import load_manifest
+    from plotmosaic.stages.register_plot import match_signatures, plan_jobs
 
     manifest = load_manifest(grid9 / "noals.toml")
     assert not manifest.als

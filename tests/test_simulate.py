@@ -9,11 +9,11 @@ from pyproj import CRS
 from typer.testing import CliRunner
 
 from plotmosaic.cli import app
+from plotmosaic.config.simulate import PRESETS
 from plotmosaic.io.frame import apply_transform
 from plotmosaic.io.las import read_cloud, read_header_info
 from plotmosaic.manifest import load_manifest
 from plotmosaic.poses import load_poses
-from plotmosaic.simulate.config import PRESETS
 from plotmosaic.simulate.mesh import FOLIAGE, GROUND, UNDERSTORY, WOODY
 from plotmosaic.simulate.run import expected_scans, make_config, simulate
 from plotmosaic.simulate.scene import Scene, build_world
@@ -255,7 +255,7 @@ def test_cli(tmp_path):
 
 
 def test_scale_presets_validate():
-    from plotmosaic.simulate.config import grid_layout
+    from plotmosaic.config.simulate import grid_layout
 
     large = PRESETS["large"]
     assert (
@@ -283,7 +283,7 @@ def test_scale_presets_validate():
 
 
 def test_tiny_large_and_understorey_simulate(tmp_path):
-    from plotmosaic.simulate.config import grid_layout
+    from plotmosaic.config.simulate import grid_layout
 
     tiny = dict(
         points_per_scan=4000,

@@ -7,11 +7,11 @@ import os
 import numpy as np
 import pytest
 
-from plotmosaic.graph.anchors import as_stored
+from plotmosaic.config.report import SliceConfig
 from plotmosaic.io.las import PointCloud, read_cloud, write_cloud
-from plotmosaic.report.config import SliceConfig
 from plotmosaic.report.distance import thin
 from plotmosaic.report.slice import cell_minima, fit_circle, low_stratum, merge_minima
+from plotmosaic.stages.tie_to_als import as_stored
 
 
 def _clouds():
@@ -108,9 +108,9 @@ def _rigid_case(tmp_path, nudge):
     """register-plot's poses of a 3-scan plot, the same moved as one piece into a CRS, one scan nudged."""
     from types import SimpleNamespace
 
-    from plotmosaic.graph.anchors import Anchor
     from plotmosaic.io.frame import translation
     from plotmosaic.poses import Poses, ScanPose
+    from plotmosaic.stages.tie_to_als import Anchor
 
     rot = np.array([[0.0, -1, 0, 0], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
     plot = {"S0": np.eye(4), "S1": translation([10.0, 2, 0]), "S2": rot @ translation([-5.0, 8, 1])}
@@ -129,8 +129,8 @@ def _rigid_case(tmp_path, nudge):
 
 
 def test_a_plot_moved_as_one_piece_is_judged_in_register_plots_report(tmp_path):
-    from plotmosaic.graph.report import rigid_plots
-    from plotmosaic.report.config import ReportConfig
+    from plotmosaic.config.report import ReportConfig
+    from plotmosaic.report.runs import rigid_plots
 
     cfg = ReportConfig()
     result, earlier, page = _rigid_case(tmp_path, 0.0)

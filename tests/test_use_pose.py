@@ -5,8 +5,8 @@ import pytest
 from helpers import SIM_PAIR_MAX_DEG, SIM_PAIR_MAX_M, invoke, write_e57
 from scipy.spatial.transform import Rotation
 
-from plotmosaic.align.config import AlignConfig
 from plotmosaic.align.pipeline import prepare_pair, register_prepared
+from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import RegistrationFailed
 from plotmosaic.io.frame import inverse, pose_error
 from plotmosaic.io.las import read_cloud

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from plotmosaic.align.config import StemNormalConfig
 from plotmosaic.align.normals import LazyNormals, level_shape, local_shape, stem_normals
 from plotmosaic.align.voxel import (
     FACE_PHASE,
@@ -15,6 +14,7 @@ from plotmosaic.align.voxel import (
     voxel_centroids,
     voxelize,
 )
+from plotmosaic.config.align import StemNormalConfig
 from plotmosaic.io.frame import column_bounds
 
 

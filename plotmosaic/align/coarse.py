@@ -26,8 +26,6 @@ from scipy import fft
 from scipy.spatial import cKDTree
 
 from plotmosaic.align import features3d, slices, stemmap
-from plotmosaic.align.coarse_config import CoarseConfig
-from plotmosaic.align.config import IcpStage
 from plotmosaic.align.icp import point_to_plane_icp
 from plotmosaic.align.levelling import Vertical, rotate, vertical_hypotheses
 from plotmosaic.align.normals import local_shape
@@ -43,6 +41,8 @@ from plotmosaic.align.rasters import (
 )
 from plotmosaic.align.sampling import sample
 from plotmosaic.align.voxel import thin, voxel_centroids
+from plotmosaic.config.align import IcpStage
+from plotmosaic.config.coarse import CoarseConfig
 from plotmosaic.io.frame import pose_error
 from plotmosaic.parallel import both, in_two_threads
 

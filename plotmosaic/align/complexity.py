@@ -23,8 +23,8 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from plotmosaic.align import vmf
-from plotmosaic.align.config import VmfConfig
 from plotmosaic.align.normals import LEVEL_FEATURE_NAMES
+from plotmosaic.config.align import VmfConfig
 
 VAR_FLOOR = 1e-4
 

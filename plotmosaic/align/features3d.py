@@ -16,10 +16,10 @@ import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
-from plotmosaic.align.coarse_config import CoarseConfig
 from plotmosaic.align.levelling import rotate
 from plotmosaic.align.normals import local_shape
 from plotmosaic.align.voxel import voxel_centroids
+from plotmosaic.config.coarse import CoarseConfig
 
 CHUNK = 256  # hypotheses scored per batch: bounds memory at CHUNK x correspondences
 PRE_COUNT = 400  # correspondences every sample is first scored on (evenly spaced: deterministic)

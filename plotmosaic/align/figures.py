@@ -8,7 +8,7 @@ import numpy as np
 
 from plotmosaic.align.prepare import PreparedCloud
 from plotmosaic.io.las import PointCloud, write_cloud
-from plotmosaic.report.pictures import savefig
+from plotmosaic.io.pictures import savefig
 
 COLOURS = ["#8c6d31", "#2b8cbe", "#31a354", "#de2d26", "#756bb1"]  # level 0 (least complex) first
 

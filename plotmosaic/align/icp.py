@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from plotmosaic.align.config import IcpStage
+from plotmosaic.config.align import IcpStage
 from plotmosaic.parallel import inner_workers
 
 

@@ -22,10 +22,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from plotmosaic.align import scene
-from plotmosaic.align.config import IcpStage
 from plotmosaic.align.icp import nearest, point_to_plane_icp
-from plotmosaic.align.judge_config import JudgeConfig
 from plotmosaic.align.sampling import sample
+from plotmosaic.config.align import IcpStage
+from plotmosaic.config.judge import JudgeConfig
 from plotmosaic.io.frame import inverse, rotation_deg
 from plotmosaic.parallel import in_two_threads
 

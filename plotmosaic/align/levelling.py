@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from plotmosaic.align.coarse_config import CoarseConfig
 from plotmosaic.align.rasters import height_above_ground
 from plotmosaic.align.voxel import occupied_groups
+from plotmosaic.config.coarse import CoarseConfig
 
 Z = np.array([0.0, 0.0, 1.0])
 

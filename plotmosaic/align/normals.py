@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 from plotmosaic.parallel import in_two_threads
 
 if TYPE_CHECKING:
-    from plotmosaic.align.config import StemNormalConfig
+    from plotmosaic.config.align import StemNormalConfig
 
 FEATURE_NAMES = ("linearity", "planarity", "scattering")
 # the complexity levels' features: the shape of the wider (2 r) neighbourhood and how vertical its main axis is

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from plotmosaic.align.config import StrayConfig
+from plotmosaic.config.align import StrayConfig
 
 
 def _axis_strays(

@@ -21,11 +21,11 @@ from plotmosaic.align import judge as judge_mod
 from plotmosaic.align import scene
 from plotmosaic.align.coarse import coarse_align
 from plotmosaic.align.complexity import match_levels
-from plotmosaic.align.config import KINDS, AlignConfig, IcpStage, default_levels
 from plotmosaic.align.icp import Mirror, evaluate, information_matrix, point_to_plane_icp
-from plotmosaic.align.judge_config import JudgeConfig
 from plotmosaic.align.prepare import PreparedCloud, prepare_cloud
 from plotmosaic.align.sampling import sample
+from plotmosaic.config.align import KINDS, AlignConfig, IcpStage, default_levels
+from plotmosaic.config.judge import JudgeConfig
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.frame import inverse, rotation_deg, to_global_transform, to_local_transform

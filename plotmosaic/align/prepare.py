@@ -9,12 +9,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from plotmosaic.align.complexity import fit_levels
-from plotmosaic.align.config import AlignConfig, StrayConfig
 from plotmosaic.align.normals import LazyNormals, level_shape, local_shape
 from plotmosaic.align.outliers import stray_mask
 from plotmosaic.align.sampling import sample
 from plotmosaic.align.viewpoint import scanner_viewpoint
 from plotmosaic.align.voxel import thin, thin_with_counts, voxel_centroids, voxelize
+from plotmosaic.config.align import AlignConfig, StrayConfig
 from plotmosaic.errors import InputError
 from plotmosaic.io.frame import Frame, column_bounds
 from plotmosaic.io.las import PointCloud

@@ -17,7 +17,7 @@ import numpy as np
 from scipy import fft, ndimage
 from scipy.spatial import cKDTree
 
-from plotmosaic.align.coarse_config import CoarseConfig
+from plotmosaic.config.coarse import CoarseConfig
 from plotmosaic.parallel import inner_workers
 
 CHANNELS = ("stems", "canopy", "terrain")

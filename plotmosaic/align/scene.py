@@ -21,7 +21,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from plotmosaic.align.judge_config import JudgeConfig
+from plotmosaic.config.judge import JudgeConfig
 from plotmosaic.errors import RegistrationFailed
 
 

@@ -18,8 +18,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import fft
 
-from plotmosaic.align.coarse_config import CoarseConfig
 from plotmosaic.align.peaks import distinct_peaks
+from plotmosaic.config.coarse import CoarseConfig
 from plotmosaic.parallel import in_two_threads
 
 

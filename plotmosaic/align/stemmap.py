@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from plotmosaic.align.coarse_config import CoarseConfig
 from plotmosaic.align.voxel import occupied_groups
+from plotmosaic.config.coarse import CoarseConfig
 
 
 @dataclass

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from plotmosaic.align.config import ViewpointConfig
 from plotmosaic.align.sampling import sample
+from plotmosaic.config.align import ViewpointConfig
 
 
 def crowding(xyz: np.ndarray, config: ViewpointConfig, rng: np.random.Generator) -> float:

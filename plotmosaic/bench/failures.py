@@ -8,7 +8,7 @@ import numpy as np
 
 from plotmosaic.bench.figures import pyplot
 from plotmosaic.io.frame import apply_transform
-from plotmosaic.report.pictures import savefig
+from plotmosaic.io.pictures import savefig
 
 
 def _thin(xyz: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from plotmosaic.bench.config import CpdConfig, IcpConfig, MethodsConfig
+from plotmosaic.config.bench import CpdConfig, IcpConfig, MethodsConfig
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.io.frame import Frame, to_global_transform
 from plotmosaic.io.las import PointCloud
@@ -98,9 +98,9 @@ def run_method(name: str, pair: PairInput, config: MethodsConfig, seed: int) -> 
 
 def _forestalign(pair: PairInput, config: MethodsConfig, seed: int):
     """plotmosaic's PairResult (RegistrationFailed when it refuses)."""
-    from plotmosaic.align.config import AlignConfig, default_levels
     from plotmosaic.align.pipeline import align_clouds, register_prepared
     from plotmosaic.align.prepare import prepare_cloud
+    from plotmosaic.config.align import AlignConfig, default_levels
 
     cfg = AlignConfig()
     init = None
@@ -124,8 +124,8 @@ def _forestalign(pair: PairInput, config: MethodsConfig, seed: int):
 
 def prepare_target(pair: PairInput, seed: int):
     """The target as forestalign prepares it (default settings), to share over a case's trials."""
-    from plotmosaic.align.config import AlignConfig, default_levels
     from plotmosaic.align.prepare import prepare_cloud
+    from plotmosaic.config.align import AlignConfig, default_levels
 
     kind = pair.target_kind.lower()
     return prepare_cloud(pair.target, kind, default_levels(kind), AlignConfig(), seed + 1, "target")

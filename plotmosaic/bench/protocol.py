@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from plotmosaic.bench.config import PROTOCOLS, Protocol
+from plotmosaic.config.bench import PROTOCOLS, Protocol
 from plotmosaic.io.frame import translation
 
 PARAMS = ("roll", "pitch", "yaw", "tx", "ty", "tz")

@@ -98,7 +98,7 @@ def random_frame(
     xyz: np.ndarray, rng: np.random.Generator, max_tilt_deg: float = 2.0
 ) -> np.ndarray:
     """A rigid G putting a cloud in its own frame: random heading and small tilt, centre moved near the origin."""
-    from plotmosaic.simulate.config import TlsConfig
+    from plotmosaic.config.simulate import TlsConfig
     from plotmosaic.simulate.tls import random_pose
 
     centre = (xyz.min(axis=0) + xyz.max(axis=0)) / 2.0

@@ -22,11 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
-from plotmosaic.bench.config import PROTOCOLS, Protocol
 from plotmosaic.bench.figures import pyplot
 from plotmosaic.bench.protocol import PARAMS, rotation_angle
+from plotmosaic.config.bench import PROTOCOLS, Protocol
 from plotmosaic.io.atomic import write_text_atomic
-from plotmosaic.report.pictures import savefig
+from plotmosaic.io.pictures import savefig
 
 # paper: +-45 deg all three angles, +-15 m, all six at once; beyond: any heading, +-20 m (tilts as the paper);
 # true: the source handed over in its true pose (the control)
@@ -203,9 +203,9 @@ def _near(result, truth: np.ndarray) -> tuple[list[str], str | None]:
 
 def run_trial(job: Trial) -> tuple[dict, list[dict]]:
     """Every method of `job` on its draw: (the case's info, one row a method)."""
-    from plotmosaic.bench.config import MethodsConfig
     from plotmosaic.bench.methods import PairInput, run_method
     from plotmosaic.bench.protocol import is_success, params_to_matrix, pose_error
+    from plotmosaic.config.bench import MethodsConfig
     from plotmosaic.io.frame import apply_transform
     from plotmosaic.io.las import PointCloud
 

@@ -18,7 +18,6 @@ from pathlib import Path
 
 import numpy as np
 
-from plotmosaic.bench.config import BenchConfig
 from plotmosaic.bench.methods import PairInput, available, run_method
 from plotmosaic.bench.overlap import crop_to_overlap, overlap_fraction
 from plotmosaic.bench.protocol import (
@@ -30,6 +29,7 @@ from plotmosaic.bench.protocol import (
     sample_params,
 )
 from plotmosaic.bench.tables import markdown_table, plot_errors, summarise
+from plotmosaic.config.bench import BenchConfig
 from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import atomic_output, write_text_atomic
 from plotmosaic.io.frame import apply_transform

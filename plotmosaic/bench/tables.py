@@ -12,7 +12,7 @@ import numpy as np
 
 from plotmosaic.bench.figures import pyplot
 from plotmosaic.bench.protocol import PARAMS
-from plotmosaic.report.pictures import savefig
+from plotmosaic.io.pictures import savefig
 
 INITIAL = "initial"
 

@@ -8,7 +8,6 @@ import numpy as np
 import typer
 from rich.console import Console
 
-from plotmosaic.align.config import DEFAULT_LEVELS, KINDS, MAX_LEVELS
 from plotmosaic.commands.common import (
     CONFIG_HELP,
     CONFIG_USED,
@@ -16,6 +15,7 @@ from plotmosaic.commands.common import (
     run_settings,
     write_config_used,
 )
+from plotmosaic.config.align import DEFAULT_LEVELS, KINDS, MAX_LEVELS
 from plotmosaic.errors import InputError
 from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed, inputs_of
 from plotmosaic.poses import read_json, rigid_matrix

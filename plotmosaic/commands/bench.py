@@ -8,8 +8,8 @@ from pathlib import Path
 
 import typer
 
-from plotmosaic.align.config import KINDS
 from plotmosaic.commands.common import handle_errors
+from plotmosaic.config.align import KINDS
 from plotmosaic.errors import InputError
 from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed, inputs_of, manifest_inputs
 
@@ -99,11 +99,11 @@ def bench_command(
     ),
 ) -> None:
     """Paper-style benchmark: per-parameter RMSE, success rate and time over seeded random trials."""
-    from plotmosaic.bench.config import BenchConfig, MethodsConfig
     from plotmosaic.bench.methods import METHODS
     from plotmosaic.bench.pairs import load_truth, manifest_pairs
     from plotmosaic.bench.protocol import get_protocol
     from plotmosaic.bench.run import BenchPair, run_bench, write_outputs
+    from plotmosaic.config.bench import BenchConfig, MethodsConfig
     from plotmosaic.io.las import read_cloud
     from plotmosaic.manifest import load_manifest
     from plotmosaic.poses import load_poses

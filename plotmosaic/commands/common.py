@@ -176,8 +176,8 @@ CONFIG_USED = "config-used.toml"
 def run_settings(config_path, overrides: dict | None = None):
     """The settings of this run: defaults, then the --config file, then the command's options
     (nested {"section": {"key": value}}; None = not given). Bad keys or values: exit 2, one line."""
+    from plotmosaic.config.settings import Settings, SettingsError, load_settings, with_overrides
     from plotmosaic.errors import InputError
-    from plotmosaic.settings import Settings, SettingsError, load_settings, with_overrides
 
     try:
         settings = load_settings(config_path) if config_path is not None else Settings()
@@ -191,8 +191,8 @@ def write_config_used(path, settings, command: str):
     import shlex
     import sys
 
+    from plotmosaic.config.settings import dump_settings
     from plotmosaic.io.atomic import write_text_atomic
-    from plotmosaic.settings import dump_settings
 
     header = (
         f"Settings used by `plotmosaic {command}` (give back with --config to repeat the run; "

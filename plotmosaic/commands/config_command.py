@@ -20,7 +20,7 @@ def config_command(
     ),
 ) -> None:
     """The settings of every stage: `--defaults > my.toml`, edit, then give it with --config."""
-    from plotmosaic.settings import default_toml
+    from plotmosaic.config.settings import default_toml
 
     if defaults == (check is not None):
         raise InputError("give one of --defaults or --check FILE.toml")
@@ -35,7 +35,7 @@ def config_command(
 
 
 def _changed(settings) -> list[str]:
-    from plotmosaic.settings import Settings
+    from plotmosaic.config.settings import Settings
 
     out: list[str] = []
 

@@ -15,13 +15,13 @@ from plotmosaic.commands.common import (
     run_settings,
     write_config_used,
 )
+from plotmosaic.config.merge import MergeConfig
 from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import check_output_dir, check_output_file
 from plotmosaic.io.outputs import OutputPlan, check_outputs, inputs_of, manifest_inputs
 from plotmosaic.manifest import load_manifest
-from plotmosaic.merge import TILE_INDEX, MergeSummary, merge_scans, parse_bbox, sidecar_path
-from plotmosaic.merge_config import MergeConfig
 from plotmosaic.poses import load_poses
+from plotmosaic.stages.merge import TILE_INDEX, MergeSummary, merge_scans, parse_bbox, sidecar_path
 
 _MERGE = MergeConfig.model_fields
 

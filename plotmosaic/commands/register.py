@@ -19,8 +19,8 @@ from plotmosaic.commands.common import (
     run_settings,
     write_config_used,
 )
+from plotmosaic.config.register import PairSelection, RegisterOptions, TieOptions
 from plotmosaic.errors import InputError
-from plotmosaic.graph.config import PairSelection, RegisterOptions, TieOptions
 from plotmosaic.io.atomic import check_output_dir
 from plotmosaic.io.outputs import (
     Input,
@@ -147,7 +147,7 @@ def register_plot_command(
     ),
 ) -> None:
     """Register every overlapping pair of scans in each plot and place all scans with a pose graph."""
-    from plotmosaic.graph.pipeline import register_plot
+    from plotmosaic.stages.register_plot import register_plot
 
     _check_jobs(jobs)
     if executor not in ("local", "dask"):
@@ -210,7 +210,7 @@ def tie_to_als_command(
     ),
 ) -> None:
     """Register each plot to the ALS and optimise the whole region with the ALS frame fixed."""
-    from plotmosaic.graph.anchors import tie_to_als
+    from plotmosaic.stages.tie_to_als import tie_to_als
 
     _check_jobs(jobs)
     if buffer is not None and buffer < 0:

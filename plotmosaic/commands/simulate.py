@@ -107,7 +107,7 @@ def simulate_command(
     ),
 ) -> None:
     """Simulate a forest plot: terrain, trees, understory; TLS scans, an ALS tile, ground truth and a manifest."""
-    from plotmosaic.simulate.config import grid_layout
+    from plotmosaic.config.simulate import grid_layout
     from plotmosaic.simulate.run import make_config, simulate
     from plotmosaic.simulate.scene import plot_ids
 

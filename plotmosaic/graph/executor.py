@@ -130,8 +130,8 @@ def run_pair_job(job: PairJob) -> dict:
     Both scans come from the prepared-cloud cache (`job.prepared`), computed there by whichever
     job needs them first; without a cache folder they are prepared in this process (memoised).
     """
-    from plotmosaic.align.config import AlignConfig
     from plotmosaic.align.pipeline import register_prepared
+    from plotmosaic.config.align import AlignConfig
 
     start = time.perf_counter()
     record = {"source": job.source, "target": job.target, "key": job.key}

@@ -18,7 +18,7 @@ from itertools import combinations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from plotmosaic.graph.config import PairSelection
+from plotmosaic.config.register import PairSelection
 from plotmosaic.manifest import Plot, Scan
 
 

@@ -19,7 +19,7 @@ import gtsam
 import networkx as nx
 import numpy as np
 
-from plotmosaic.graph.config import PoseGraphConfig
+from plotmosaic.config.register import PoseGraphConfig
 from plotmosaic.io.frame import inverse, pose_error, rotation_deg  # noqa: F401  (re-exported)
 
 

@@ -82,8 +82,8 @@ def save_prepared(path: str | Path, cloud: PreparedCloud) -> Path:
 
 def load_prepared(path: str | Path) -> PreparedCloud:
     """The cloud saved by `save_prepared`; raises ValueError (or OSError) when the file is damaged."""
-    from plotmosaic.align.config import StemNormalConfig
     from plotmosaic.align.normals import LazyNormals
+    from plotmosaic.config.align import StemNormalConfig
 
     with np.load(path, allow_pickle=False) as data:
         arrays = {k: data[k] for k in data.files}
@@ -159,8 +159,8 @@ reads = 0  # scans read and prepared by this process (tests and benchmarks count
 def _compute(job: PrepareJob, cloud=None) -> PreparedCloud:
     """Prepare the job's scan: `cloud` when the caller holds its points already, else read from job.path."""
     global reads
-    from plotmosaic.align.config import AlignConfig, default_levels
     from plotmosaic.align.prepare import prepare_cloud
+    from plotmosaic.config.align import AlignConfig, default_levels
     from plotmosaic.io.las import read_cloud
 
     config = AlignConfig.model_validate_json(job.config_json)

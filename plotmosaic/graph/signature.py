@@ -18,15 +18,15 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from plotmosaic.align.coarse_config import CoarseConfig
 from plotmosaic.align.levelling import rotate, vertical_hypotheses
 from plotmosaic.align.normals import local_shape
 from plotmosaic.align.rasters import height_above_ground
 from plotmosaic.align.sampling import sample
 from plotmosaic.align.stemmap import stem_map
 from plotmosaic.align.voxel import voxel_centroids
+from plotmosaic.config.coarse import CoarseConfig
+from plotmosaic.config.scale import SignatureConfig
 from plotmosaic.graph.prepared import PrepareJob, entry, load_points, run_prepare_job
-from plotmosaic.graph.scale_config import SignatureConfig
 
 
 @dataclass

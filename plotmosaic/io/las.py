@@ -17,11 +17,11 @@ import laspy
 import numpy as np
 from pyproj import CRS
 
+from plotmosaic.config.merge import CHUNK_SIZE
 from plotmosaic.errors import InputError
 from plotmosaic.io import e57, ply
 from plotmosaic.io.atomic import atomic_output
 from plotmosaic.io.paths import check_input_file
-from plotmosaic.merge_config import CHUNK_SIZE
 
 # Standard attributes carried through the tool (LAS dimension name -> dtype).
 STANDARD_ATTRIBUTES: dict[str, np.dtype] = {

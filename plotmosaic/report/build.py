@@ -15,10 +15,10 @@ from pathlib import Path
 import networkx as nx
 import numpy as np
 
+from plotmosaic.config.report import ReportConfig
 from plotmosaic.io.frame import apply_transform
 from plotmosaic.report import html as H
 from plotmosaic.report import views
-from plotmosaic.report.config import ReportConfig
 from plotmosaic.report.distance import edge_distances, scan_medians, thin
 from plotmosaic.report.figures import origin_of
 from plotmosaic.report.pictures import plot_scans as scans_picture

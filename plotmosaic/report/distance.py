@@ -6,7 +6,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from plotmosaic.align.voxel import groups
-from plotmosaic.report.config import DistanceConfig
+from plotmosaic.config.report import DistanceConfig
 from plotmosaic.report.slice import flat_keys
 
 

@@ -1,6 +1,6 @@
 """Pictures for `plotmosaic report` that the register-plot report does not already draw.
 
-Top/side views of placed scans and the pose graph come from `plotmosaic.graph.report`
+Top/side views of placed scans and the pose graph come from `plotmosaic.report.runs`
 (plot_scans, plot_graph); this module adds a thin vertical slice (where misalignment shows as
 doubled stems and ground) and the structural-complexity levels of a prepared cloud.
 Everything is matplotlib with the Agg backend, metres on equal-aspect axes.
@@ -16,7 +16,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from plotmosaic.report.pictures import savefig  # noqa: E402
+from plotmosaic.io.pictures import savefig  # noqa: E402
 
 
 def subsample(xyz: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:

@@ -18,10 +18,10 @@ import networkx as nx
 import numpy as np
 
 from plotmosaic.errors import InputError
-from plotmosaic.graph import report as graph_report
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.frame import apply_transform
 from plotmosaic.io.las import read_cloud
+from plotmosaic.report import runs as graph_report
 from plotmosaic.report.figures import origin_of, plot_levels, plot_slice, subsample
 from plotmosaic.report.pictures import plot_scans
 
@@ -41,8 +41,8 @@ def _levels(
     clouds: dict[str, tuple[np.ndarray, str]], seed: int
 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """The align pipeline's own levels for each (xyz, kind): what ForestAlign actually matches."""
-    from plotmosaic.align.config import AlignConfig, default_levels
     from plotmosaic.align.prepare import prepare_cloud
+    from plotmosaic.config.align import AlignConfig, default_levels
     from plotmosaic.io.las import PointCloud
 
     cfg = AlignConfig()
@@ -384,8 +384,8 @@ def report_dir(
 def _dir_html(
     directory: Path, out: Path, poses, table: dict, G, plots: dict[str, list[str]], seed: int
 ):
-    from plotmosaic.graph.report import residual_summary
     from plotmosaic.report.build import ReportInput, build_report
+    from plotmosaic.report.runs import residual_summary
 
     if G is None:
         G = nx.Graph()

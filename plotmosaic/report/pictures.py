@@ -10,17 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from plotmosaic.io.atomic import atomic_output  # noqa: E402
-
-
-def savefig(fig, path: str | Path, dpi: int = 110, tight: bool = True) -> Path:
-    """PNG written atomically (an interrupted run leaves the old picture), the figure closed
-    (pictures of long runs must not pile up); `tight` crops the margins."""
-    path = Path(path)
-    with atomic_output(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight" if tight else None)
-    plt.close(fig)
-    return path
+from plotmosaic.io.pictures import savefig  # noqa: E402
 
 
 def dots(ax, x, y, s: float, color, **kwargs):

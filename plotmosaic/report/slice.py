@@ -14,7 +14,7 @@ import numpy as np
 from scipy import ndimage
 
 from plotmosaic.align.voxel import groups
-from plotmosaic.report.config import SliceConfig
+from plotmosaic.config.report import SliceConfig
 
 # ---------------------------------------------------------------- ground
 

@@ -16,7 +16,7 @@ import networkx as nx  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import Circle, Rectangle  # noqa: E402
 
-from plotmosaic.report.pictures import savefig  # noqa: E402
+from plotmosaic.io.pictures import savefig  # noqa: E402
 from plotmosaic.report.slice import Ground, Stem  # noqa: E402
 
 

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from plotmosaic.config.simulate import AlsConfig
 from plotmosaic.io.las import PointCloud
-from plotmosaic.simulate.config import AlsConfig
 from plotmosaic.simulate.mesh import FOLIAGE, GROUND, UNDERSTORY
 from plotmosaic.simulate.scene import Scene
 from plotmosaic.simulate.terrain import Terrain

@@ -13,8 +13,8 @@ from matplotlib.lines import Line2D  # noqa: E402
 
 from plotmosaic.io.frame import apply_transform  # noqa: E402
 from plotmosaic.io.las import PointCloud  # noqa: E402
+from plotmosaic.io.pictures import savefig  # noqa: E402
 from plotmosaic.poses import ScanPose  # noqa: E402
-from plotmosaic.report.pictures import savefig  # noqa: E402
 from plotmosaic.simulate.mesh import LABEL_NAMES  # noqa: E402
 from plotmosaic.simulate.scene import World  # noqa: E402
 

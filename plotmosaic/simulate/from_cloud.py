@@ -32,9 +32,9 @@ import numpy as np
 from pydantic import ValidationError
 from scipy.spatial import cKDTree
 
+from plotmosaic.config.simulate import CutConfig
 from plotmosaic.errors import InputError
 from plotmosaic.io.frame import translation
-from plotmosaic.simulate.config import CutConfig
 
 RING_RADII = (
     0.25,
@@ -167,7 +167,7 @@ def _enclosed(tree: cKDTree, local: np.ndarray, s: np.ndarray, clearance: float)
 
 def _frame_rotation(rng: np.random.Generator, max_tilt_deg: float) -> np.ndarray:
     """A random heading in [0, 360) and a tilt up to `max_tilt_deg` (the simulator's tripod model)."""
-    from plotmosaic.simulate.config import TlsConfig
+    from plotmosaic.config.simulate import TlsConfig
     from plotmosaic.simulate.tls import random_pose
 
     return random_pose(np.zeros(3), TlsConfig(max_tilt_deg=max_tilt_deg), rng)[:3, :3]

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 from pyproj import CRS
 
+from plotmosaic.config.simulate import ALIASES, CRS_EPSG, PRESETS, SimulationConfig
 from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.frame import translation
@@ -25,7 +26,6 @@ from plotmosaic.io.las import PointCloud, write_cloud
 from plotmosaic.manifest import AlsTile, Manifest, Plot, Scan, dump_manifest
 from plotmosaic.poses import Poses, ScanPose
 from plotmosaic.simulate.als import scan_als
-from plotmosaic.simulate.config import ALIASES, CRS_EPSG, PRESETS, SimulationConfig
 from plotmosaic.simulate.scene import Scene, World, build_world, plot_ids, scan_id, square_extent
 from plotmosaic.simulate.tls import random_pose, scan_tls
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
-from plotmosaic.simulate.config import SimulationConfig
+from plotmosaic.config.simulate import SimulationConfig
 from plotmosaic.simulate.mesh import Mesh, concat
 from plotmosaic.simulate.terrain import Terrain, make_terrain
 from plotmosaic.simulate.trees import Vegetation, make_vegetation

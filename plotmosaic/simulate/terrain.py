@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import zoom
 
-from plotmosaic.simulate.config import TerrainConfig
+from plotmosaic.config.simulate import TerrainConfig
 from plotmosaic.simulate.mesh import GROUND, Mesh
 
 

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from plotmosaic.config.simulate import TlsConfig
 from plotmosaic.io.las import PointCloud
-from plotmosaic.simulate.config import TlsConfig
 from plotmosaic.simulate.scene import Scene
 
 # Reflectance at 830 nm by label: ground, bark, needles/leaves, grass/shrubs.

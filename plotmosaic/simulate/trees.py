@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from plotmosaic.simulate.config import ForestConfig
+from plotmosaic.config.simulate import ForestConfig
 from plotmosaic.simulate.mesh import (
     FOLIAGE,
     UNDERSTORY,

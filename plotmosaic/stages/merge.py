@@ -32,6 +32,7 @@ from pyproj import CRS
 from pyproj.exceptions import CRSError
 from threadpoolctl import threadpool_limits
 
+from plotmosaic.config.merge import SCALE, MergeConfig, bbox_limits
 from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import atomic_output, check_writable
 from plotmosaic.io.frame import apply_transform, translation
@@ -45,7 +46,6 @@ from plotmosaic.io.las import (
     short_error,
 )
 from plotmosaic.manifest import Manifest
-from plotmosaic.merge_config import SCALE, MergeConfig, bbox_limits
 from plotmosaic.parallel import in_two_threads, threads
 from plotmosaic.poses import Poses
 

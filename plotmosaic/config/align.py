@@ -6,8 +6,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from plotmosaic.align.coarse_config import CoarseConfig
-from plotmosaic.align.judge_config import JudgeConfig
+from plotmosaic.config.coarse import CoarseConfig
+from plotmosaic.config.judge import JudgeConfig
 
 KINDS = ("tls", "mls", "uls", "als")  # sensor kinds: terrestrial, mobile, UAV, airborne
 # complexity levels K of one cloud: the level schedule repeats its last entry beyond 3, and more

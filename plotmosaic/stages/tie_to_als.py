@@ -21,11 +21,10 @@ import networkx as nx
 import numpy as np
 
 from plotmosaic.align.voxel import voxel_centroids
+from plotmosaic.config.register import TieConfig
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.graph.cache import PairCache, pair_key
-from plotmosaic.graph.config import TieConfig
 from plotmosaic.graph.executor import PairJob, prepare_jobs_for
-from plotmosaic.graph.pipeline import EDGE_FIELDS, compute_pairs
 from plotmosaic.graph.posegraph import (
     Solution,
     build_graph,
@@ -40,6 +39,7 @@ from plotmosaic.io.frame import Frame, apply_transform, translation
 from plotmosaic.io.las import PointCloud, las_offsets, read_cloud, write_cloud
 from plotmosaic.manifest import Manifest, Plot, load_manifest
 from plotmosaic.poses import Poses, ScanPose, load_poses
+from plotmosaic.stages.register_plot import EDGE_FIELDS, compute_pairs
 
 ALS_NODE = "ALS"
 LAS_SCALE = 0.001  # write_cloud's default: the plot and ALS clouds are written at 1 mm
@@ -389,5 +389,5 @@ def _anchor_dict(a: Anchor) -> dict:
     }
 
 
-# the report (report.md + report.html) is H-report's: plotmosaic/graph/report.py
-from plotmosaic.graph.report import write_tie_report  # noqa: E402
+# the report (report.md + report.html) is H-report's: plotmosaic/report/runs.py
+from plotmosaic.report.runs import write_tie_report  # noqa: E402

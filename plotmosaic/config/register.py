@@ -6,9 +6,9 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from plotmosaic.align.config import AlignConfig
-from plotmosaic.graph.scale_config import PlacedPriors, SignatureConfig
-from plotmosaic.report.config import ReportConfig
+from plotmosaic.config.align import AlignConfig
+from plotmosaic.config.report import ReportConfig
+from plotmosaic.config.scale import PlacedPriors, SignatureConfig
 
 
 class PairSelection(BaseModel):

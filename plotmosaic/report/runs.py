@@ -14,7 +14,7 @@ import numpy as np  # noqa: E402
 
 from plotmosaic.io.atomic import write_text_atomic  # noqa: E402
 from plotmosaic.io.frame import apply_transform  # noqa: E402
-from plotmosaic.report.pictures import savefig  # noqa: E402
+from plotmosaic.io.pictures import savefig  # noqa: E402
 
 
 def _fmt(value, scale=1.0, digits=1) -> str:
@@ -213,9 +213,9 @@ def write_register_report(
     result, manifest, config, seed: int, reader: Callable[[Path], np.ndarray] | None = None
 ) -> Path:
     """report.md (tables, pictures) and report.html (summary, breast-height slice, distances, map) of register-plot."""
-    from plotmosaic.graph.config import PoseGraphConfig
+    from plotmosaic.config.register import PoseGraphConfig
+    from plotmosaic.config.report import ReportConfig
     from plotmosaic.report.build import ReportInput, Stage, build_report
-    from plotmosaic.report.config import ReportConfig
 
     out, G = result.out, result.graph
     kept = sum(1 for *_, e in G.edges(data=True) if not e.get("dropped"))
@@ -378,9 +378,9 @@ def write_tie_report(
 
     `earlier` (register-plot's poses) and `earlier_report` (its report.html): a plot the region solve
     moved rigidly is shown over the ALS, its within-plot checks are linked, not recomputed."""
-    from plotmosaic.graph.config import PoseGraphConfig
+    from plotmosaic.config.register import PoseGraphConfig
+    from plotmosaic.config.report import ReportConfig
     from plotmosaic.report.build import ReportInput, Stage, build_report
-    from plotmosaic.report.config import ReportConfig
 
     out, G = result.out, result.graph
     lines = [

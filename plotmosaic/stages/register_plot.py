@@ -15,11 +15,12 @@ from pathlib import Path
 import networkx as nx
 import numpy as np
 
-from plotmosaic.errors import InputError
-from plotmosaic.graph.cache import PairCache, pair_key
-from plotmosaic.graph.config import (
+from plotmosaic.config.register import (
     RegisterConfig,
 )
+from plotmosaic.config.scale import PlacedPriors, SignatureConfig
+from plotmosaic.errors import InputError
+from plotmosaic.graph.cache import PairCache, pair_key
 from plotmosaic.graph.executor import PairJob, prepare_jobs_for, run_pairs, with_stored_poses
 from plotmosaic.graph.pairs import (
     candidate_pairs,
@@ -42,7 +43,6 @@ from plotmosaic.graph.prepared import (
     prepared_key,
     run_prepare_job,
 )
-from plotmosaic.graph.scale_config import PlacedPriors, SignatureConfig
 from plotmosaic.graph.signature import (
     SignatureJob,
     from_record,
@@ -710,5 +710,5 @@ def register_plot(
     return result
 
 
-# the report (report.md + report.html) is H-report's: plotmosaic/graph/report.py
-from plotmosaic.graph.report import write_register_report  # noqa: E402
+# the report (report.md + report.html) is H-report's: plotmosaic/report/runs.py
+from plotmosaic.report.runs import write_register_report  # noqa: E402

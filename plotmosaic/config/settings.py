@@ -19,8 +19,9 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from plotmosaic.align.config import AlignConfig
-from plotmosaic.graph.config import (
+from plotmosaic.config.align import AlignConfig
+from plotmosaic.config.merge import MergeConfig
+from plotmosaic.config.register import (
     PairSelection,
     PoseGraphConfig,
     RegisterConfig,
@@ -29,8 +30,7 @@ from plotmosaic.graph.config import (
     TieOptions,
     graph_align_config,
 )
-from plotmosaic.merge_config import MergeConfig
-from plotmosaic.report.config import ReportConfig
+from plotmosaic.config.report import ReportConfig
 
 
 class RegisterSection(RegisterOptions):

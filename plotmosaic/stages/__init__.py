@@ -1,0 +1,1 @@
+"""The commands' stages: register-plot (plan -> place -> grow -> solve), tie-to-als, merge."""
