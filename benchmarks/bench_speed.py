@@ -1,0 +1,152 @@
+"""Speed of whole processes beside their read floor: one table anyone can rerun.
+
+Each case runs the real command line in a child process (nothing imported here is timed) and reports
+wall time, CPU time (user + system of the child and its workers) and peak memory, beside the *read
+floor*: the same files only read with laspy in a child process of its own. The inputs are simulated
+once under `--work` and reused.
+
+    .venv/bin/python benchmarks/bench_speed.py --work /tmp/speed                  # every case
+    .venv/bin/python benchmarks/bench_speed.py --work /tmp/speed --cases pair400k,demo
+
+Cases (the targets of the speed issue are in benchmarks/results/speed.md):
+  pair400k  `plotmosaic align` of the demo's P1-S1 onto P1-S0 (400k points each) from anywhere
+  pair8m    the same at 8M points a scan
+  demo      register-plot + tie-to-als + merge on the demo's plot (five 400k scans; simulate excluded)
+  large1m   register-plot of the `large` preset (36 scans) at 1M points a scan
+
+Measure on a quiet machine (nothing else running) or compare CPU seconds only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+PLOTMOSAIC = [sys.executable, "-m", "plotmosaic"]
+READ = "import sys, laspy\nfor p in sys.argv[1:]:\n    laspy.read(p)\n"
+
+
+@dataclass(frozen=True)
+class Run:
+    wall_s: float
+    cpu_s: float
+    peak_mb: float  # the largest child process's peak RSS
+
+
+# runs the command in a fresh process whose only children are the command's: RUSAGE_CHILDREN is then
+# the command's own CPU time and peak memory, however many runs came before
+MEASURE = """
+import json, resource, subprocess, sys, time
+start = time.perf_counter()
+subprocess.run(sys.argv[1:], check=True, stdout=subprocess.DEVNULL)
+wall = time.perf_counter() - start
+r = resource.getrusage(resource.RUSAGE_CHILDREN)
+print(json.dumps([wall, r.ru_utime + r.ru_stime, r.ru_maxrss / 1024.0]))
+"""
+
+
+def timed(argv: list[str]) -> Run:
+    """Run `argv` to the end (it must succeed): its wall, CPU and peak memory."""
+    out = subprocess.run(
+        [sys.executable, "-c", MEASURE, *argv], check=True, capture_output=True, text=True
+    ).stdout
+    return Run(*json.loads(out))
+
+
+def simulated(work: Path, name: str, preset: str, points: int) -> Path:
+    """A simulated plot under `work` (made once): its folder."""
+    folder = work / name
+    if not (folder / "manifest.toml").is_file():
+        args = ["simulate", str(folder), "--preset", preset, "--points-per-scan", str(points)]
+        subprocess.run([*PLOTMOSAIC, *args], check=True, stdout=subprocess.DEVNULL)
+    return folder
+
+
+def read_floor(paths: list[Path]) -> Run:
+    return timed([sys.executable, "-c", READ, *map(str, paths)])
+
+
+def pair(work: Path, points: int) -> tuple[Run, Run]:
+    sim = simulated(work, f"paper{points // 1000}k", "paper", points)
+    src, tgt = sim / "P1" / "P1-S1.laz", sim / "P1" / "P1-S0.laz"
+    out = work / f"pair{points // 1000}k.json"
+    out.unlink(missing_ok=True)
+    run = timed([*PLOTMOSAIC, "align", str(src), str(tgt), "--out", str(out), "--force"])
+    return run, read_floor([src, tgt])
+
+
+def chain(work: Path, jobs: int) -> tuple[Run, Run]:
+    sim = simulated(work, "paper400k", "paper", 400_000)
+    manifest = sim / "manifest.toml"
+    out = work / "demo-chain"
+    steps = [
+        ["register-plot", str(manifest), "--out", str(out / "reg"), "-j", str(jobs), "--force"],
+        [
+            "tie-to-als",
+            str(manifest),
+            "--poses",
+            str(out / "reg" / "poses.json"),
+            "--out",
+            str(out / "geo"),
+            "-j",
+            str(jobs),
+            "--force",
+        ],
+        [
+            "merge",
+            str(manifest),
+            "--poses",
+            str(out / "geo" / "poses.json"),
+            "--out",
+            str(out / "merged.laz"),
+            "--force",
+        ],
+    ]
+    runs = [timed([*PLOTMOSAIC, *step]) for step in steps]
+    total = Run(
+        sum(r.wall_s for r in runs), sum(r.cpu_s for r in runs), max(r.peak_mb for r in runs)
+    )
+    return total, read_floor(sorted(sim.rglob("*.laz")))
+
+
+def large(work: Path, jobs: int) -> tuple[Run, Run]:
+    sim = simulated(work, "large1m", "large", 1_000_000)
+    out = work / "large1m-reg"
+    run = timed(
+        [*PLOTMOSAIC, "register-plot", str(sim / "manifest.toml"), "--out", str(out)]
+        + ["-j", str(jobs), "--force"]
+    )
+    return run, read_floor(sorted((sim / "P1").glob("*.laz")))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", type=Path, required=True, help="folder for the simulated inputs")
+    ap.add_argument("--cases", default="pair400k,pair8m,demo,large1m")
+    ap.add_argument("-j", "--jobs", type=int, default=os.cpu_count() or 1)
+    a = ap.parse_args()
+    a.work.mkdir(parents=True, exist_ok=True)
+    cases = {
+        "pair400k": lambda: pair(a.work, 400_000),
+        "pair8m": lambda: pair(a.work, 8_000_000),
+        "demo": lambda: chain(a.work, a.jobs),
+        "large1m": lambda: large(a.work, a.jobs),
+    }
+    print("| case | wall (s) | CPU (s) | peak (MB) | read floor wall (s) | wall / floor |")
+    print("|---|---|---|---|---|---|")
+    for name in a.cases.split(","):
+        run, floor = cases[name]()
+        print(
+            f"| {name} | {run.wall_s:.1f} | {run.cpu_s:.1f} | {run.peak_mb:.0f} "
+            f"| {floor.wall_s:.1f} | {run.wall_s / floor.wall_s:.1f} |",
+            flush=True,
+        )
+
+
+if __name__ == "__main__":
+    main()
