@@ -26,7 +26,7 @@ from scipy import fft
 from scipy.spatial import cKDTree
 
 from plotmosaic.align import features3d, slices, stemmap
-from plotmosaic.align.icp import point_to_plane_icp
+from plotmosaic.align.icp import evaluate, point_to_plane_icp
 from plotmosaic.align.levelling import Vertical, rotate, vertical_hypotheses
 from plotmosaic.align.normals import local_shape
 from plotmosaic.align.peaks import angle_diff, distinct_peaks
@@ -338,8 +338,6 @@ def _refine(
 
 def _score(structure: np.ndarray, tgt: tuple, T: np.ndarray, distance: float) -> float:
     """Share of non-flat source points with a target partner: flat ground matches anywhere, stems do not."""
-    from plotmosaic.align.icp import evaluate
-
     return evaluate(structure, tgt[2], T, distance)[0]
 
 

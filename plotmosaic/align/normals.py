@@ -14,15 +14,11 @@ neighbourhood's main axis instead (algebraic fit, Kasa 1976) and takes the radia
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 from scipy.spatial import cKDTree
 
+from plotmosaic.config.align import StemNormalConfig
 from plotmosaic.parallel import in_two_threads
-
-if TYPE_CHECKING:
-    from plotmosaic.config.align import StemNormalConfig
 
 FEATURE_NAMES = ("linearity", "planarity", "scattering")
 # the complexity levels' features: the shape of the wider (2 r) neighbourhood and how vertical its main axis is

@@ -21,6 +21,7 @@ from plotmosaic.align import judge as judge_mod
 from plotmosaic.align import scene
 from plotmosaic.align.coarse import coarse_align
 from plotmosaic.align.complexity import match_levels
+from plotmosaic.align.figures import save_levels as write_levels
 from plotmosaic.align.icp import Mirror, evaluate, information_matrix, point_to_plane_icp
 from plotmosaic.align.prepare import PreparedCloud, prepare_cloud
 from plotmosaic.align.sampling import sample
@@ -624,8 +625,6 @@ def align_clouds(
         seed,
     )
     if save_levels is not None:
-        from plotmosaic.align.figures import save_levels as write_levels
-
         say("saving levels")
         write_levels(save_levels, src, tgt, source.crs, target.crs)
     t1 = time.perf_counter()

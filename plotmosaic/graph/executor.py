@@ -32,9 +32,15 @@ from rich.progress import (
     TimeElapsedColumn,
     TimeRemainingColumn,
 )
+from threadpoolctl import threadpool_limits
 
+from plotmosaic.align.pipeline import register_prepared
+from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import InputError, RegistrationFailed
+from plotmosaic.graph import prepared as store
 from plotmosaic.graph.prepared import PrepareJob, get_prepared, prepared_key
+from plotmosaic.lifetime import bind_to_parent
+from plotmosaic.parallel import limited, set_threads
 
 
 @dataclass(frozen=True)
@@ -99,8 +105,6 @@ def _prepared_in_memory(job: PrepareJob):
         _PREPARED.move_to_end(memo)
         return _PREPARED[memo], 0.0
     start = time.perf_counter()
-    from plotmosaic.graph import prepared as store
-
     prepared = store._compute(job)
     _PREPARED[memo] = prepared
     while len(_PREPARED) > _PREPARED_MAX:
@@ -130,9 +134,6 @@ def run_pair_job(job: PairJob) -> dict:
     Both scans come from the prepared-cloud cache (`job.prepared`), computed there by whichever
     job needs them first; without a cache folder they are prepared in this process (memoised).
     """
-    from plotmosaic.align.pipeline import register_prepared
-    from plotmosaic.config.align import AlignConfig
-
     start = time.perf_counter()
     record = {"source": job.source, "target": job.target, "key": job.key}
     try:
@@ -166,9 +167,6 @@ def _limit_threads(n: int = 1) -> None:
     """Pool initializer: this worker's share of the thread budget, set before numpy/open3d are imported."""
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = str(n)
-    from plotmosaic.lifetime import bind_to_parent
-    from plotmosaic.parallel import set_threads
-
     set_threads(n)  # two-thread maps and KD-tree queries inside take what this worker has
     bind_to_parent()  # a SIGKILLed run leaves no orphaned workers
 
@@ -187,10 +185,6 @@ def split(n_jobs: int | None, n_tasks: int) -> tuple[int, int]:
 
 def call_with_threads(threads: int, worker: Callable, job):
     """`worker(job)` within a thread budget (Dask workers: no initializer of ours runs there)."""
-    from threadpoolctl import threadpool_limits
-
-    from plotmosaic.parallel import limited
-
     with limited(threads), threadpool_limits(threads):
         return worker(job)
 

@@ -22,10 +22,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from plotmosaic import __version__
-from plotmosaic.align.prepare import PreparedCloud
+from plotmosaic.align.normals import LazyNormals
+from plotmosaic.align.prepare import PreparedCloud, prepare_cloud
+from plotmosaic.config.align import AlignConfig, StemNormalConfig, default_levels
 from plotmosaic.graph.cache import file_hash
 from plotmosaic.io.atomic import atomic_output
 from plotmosaic.io.frame import Frame
+from plotmosaic.io.las import read_cloud
 
 FORMAT = 2  # 2: the stem-normal settings of target_normals
 _REBUILT = ("tree", "target_normals")  # derived from `points` on load
@@ -82,8 +85,6 @@ def save_prepared(path: str | Path, cloud: PreparedCloud) -> Path:
 
 def load_prepared(path: str | Path) -> PreparedCloud:
     """The cloud saved by `save_prepared`; raises ValueError (or OSError) when the file is damaged."""
-    from plotmosaic.align.normals import LazyNormals
-    from plotmosaic.config.align import StemNormalConfig
 
     with np.load(path, allow_pickle=False) as data:
         arrays = {k: data[k] for k in data.files}
@@ -123,8 +124,6 @@ def points_reader(entries: dict[str, Path]):
                 return load_points(cached)
             except Exception:  # damaged entry: the scan itself
                 pass
-        from plotmosaic.io.las import read_cloud
-
         return read_cloud(path, attributes=False).xyz
 
     return read
@@ -159,10 +158,6 @@ reads = 0  # scans read and prepared by this process (tests and benchmarks count
 def _compute(job: PrepareJob, cloud=None) -> PreparedCloud:
     """Prepare the job's scan: `cloud` when the caller holds its points already, else read from job.path."""
     global reads
-    from plotmosaic.align.prepare import prepare_cloud
-    from plotmosaic.config.align import AlignConfig, default_levels
-    from plotmosaic.io.las import read_cloud
-
     config = AlignConfig.model_validate_json(job.config_json)
     if cloud is None:
         cloud = read_cloud(job.path, attributes=False)

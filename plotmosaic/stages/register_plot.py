@@ -57,6 +57,7 @@ from plotmosaic.io.frame import translation
 from plotmosaic.io.las import read_header_info
 from plotmosaic.manifest import Manifest, Plot, Scan, load_manifest
 from plotmosaic.poses import Poses, ScanPose
+from plotmosaic.report.runs import write_register_report
 
 # Figures of a pair result kept on the graph edge (the full result stays in DIR/pairs/).
 EDGE_FIELDS = (
@@ -708,7 +709,3 @@ def register_plot(
     write_register_report(result, manifest, config, seed, reader=points_reader(entries))
     result.seconds = time.perf_counter() - start
     return result
-
-
-# the report (report.md + report.html) is H-report's: plotmosaic/report/runs.py
-from plotmosaic.report.runs import write_register_report  # noqa: E402

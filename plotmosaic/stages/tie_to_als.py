@@ -39,6 +39,7 @@ from plotmosaic.io.frame import Frame, apply_transform, translation
 from plotmosaic.io.las import PointCloud, las_offsets, read_cloud, write_cloud
 from plotmosaic.manifest import Manifest, Plot, load_manifest
 from plotmosaic.poses import Poses, ScanPose, load_poses
+from plotmosaic.report.runs import write_tie_report
 from plotmosaic.stages.register_plot import EDGE_FIELDS, compute_pairs
 
 ALS_NODE = "ALS"
@@ -387,7 +388,3 @@ def _anchor_dict(a: Anchor) -> dict:
         "crop": a.crop,
         "residual": a.residual,
     }
-
-
-# the report (report.md + report.html) is H-report's: plotmosaic/report/runs.py
-from plotmosaic.report.runs import write_tie_report  # noqa: E402
