@@ -14,6 +14,7 @@ from plotmosaic.graph.posegraph import inverse, pose_error
 from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed
 from plotmosaic.manifest import load_manifest
 from plotmosaic.poses import Poses, load_poses
+from plotmosaic.report.build import Stage, add_stages
 from plotmosaic.simulate.run import simulate
 from plotmosaic.stages.merge import merge_scans, sidecar_path
 from plotmosaic.stages.register_plot import register_plot
@@ -122,8 +123,6 @@ def _run(outdir: Path, seed: int, points_per_scan: int, jobs: int | None, echo) 
     if (
         page.is_file()
     ):  # the demo's own stage times, known only now, join the final report's time table
-        from plotmosaic.report.build import Stage, add_stages
-
         add_stages(
             page,
             [

@@ -6,6 +6,7 @@ scheduler's SIGTERM in that window used to kill the process with 143 instead of 
 
 from __future__ import annotations
 
+import importlib
 import signal
 import sys
 
@@ -21,7 +22,8 @@ def main() -> None:
     for stream in (sys.stdout, sys.stderr):  # file names need not be UTF-8: print them escaped
         stream.reconfigure(errors="backslashreplace")
     try:
-        from plotmosaic.cli import main as cli_main
+        # imported only now, under the handler above: the import itself is the window to cover
+        cli_main = importlib.import_module("plotmosaic.cli").main
     except KeyboardInterrupt:
         sys.stderr.write("interrupted\n")
         sys.exit(INTERRUPTED)
