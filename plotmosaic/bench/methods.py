@@ -16,6 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from plotmosaic.align.pipeline import align_clouds, register_prepared
+from plotmosaic.align.prepare import prepare_cloud
+from plotmosaic.config.align import AlignConfig, default_levels
 from plotmosaic.config.bench import CpdConfig, IcpConfig, MethodsConfig
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.io.frame import Frame, to_global_transform
@@ -57,11 +60,6 @@ def available(name: str) -> str | None:
             import probreg  # noqa: F401
         except ImportError:
             return "probreg is not installed (pip install 'plotmosaic[bench]'; it builds with a C++ compiler)"
-    if name == "forestalign":
-        try:
-            from plotmosaic.align.pipeline import align_clouds  # noqa: F401
-        except ImportError as exc:
-            return f"the align pipeline is not available ({exc})"
     return None
 
 
@@ -98,10 +96,6 @@ def run_method(name: str, pair: PairInput, config: MethodsConfig, seed: int) -> 
 
 def _forestalign(pair: PairInput, config: MethodsConfig, seed: int):
     """plotmosaic's PairResult (RegistrationFailed when it refuses)."""
-    from plotmosaic.align.pipeline import align_clouds, register_prepared
-    from plotmosaic.align.prepare import prepare_cloud
-    from plotmosaic.config.align import AlignConfig, default_levels
-
     cfg = AlignConfig()
     init = None
     if config.no_coarse:
@@ -124,9 +118,6 @@ def _forestalign(pair: PairInput, config: MethodsConfig, seed: int):
 
 def prepare_target(pair: PairInput, seed: int):
     """The target as forestalign prepares it (default settings), to share over a case's trials."""
-    from plotmosaic.align.prepare import prepare_cloud
-    from plotmosaic.config.align import AlignConfig, default_levels
-
     kind = pair.target_kind.lower()
     return prepare_cloud(pair.target, kind, default_levels(kind), AlignConfig(), seed + 1, "target")
 

@@ -34,9 +34,16 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from plotmosaic.bench.run import BenchPair
+from plotmosaic.config.simulate import TlsConfig
 from plotmosaic.errors import InputError
+from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.frame import apply_transform, inverse, rotation_deg, translation
 from plotmosaic.io.las import PointCloud, read_cloud
+from plotmosaic.poses import load_poses
+from plotmosaic.simulate.from_cloud import cut_views, grid_positions
+from plotmosaic.simulate.run import simulate
+from plotmosaic.simulate.tls import random_pose
 
 DATA = (
     Path(__file__).resolve().parents[3] / "shared" / "data"
@@ -73,7 +80,6 @@ class RealCase:
     meta: dict = field(default_factory=dict)
 
     def bench_pair(self):
-        from plotmosaic.bench.run import BenchPair
 
         return BenchPair(
             self.name, self.source, self.target, self.truth, self.source_kind, self.target_kind
@@ -98,9 +104,6 @@ def random_frame(
     xyz: np.ndarray, rng: np.random.Generator, max_tilt_deg: float = 2.0
 ) -> np.ndarray:
     """A rigid G putting a cloud in its own frame: random heading and small tilt, centre moved near the origin."""
-    from plotmosaic.config.simulate import TlsConfig
-    from plotmosaic.simulate.tls import random_pose
-
     centre = (xyz.min(axis=0) + xyz.max(axis=0)) / 2.0
     R = random_pose(np.zeros(3), TlsConfig(max_tilt_deg=max_tilt_deg), rng)[:3, :3]
     G = np.eye(4)
@@ -220,8 +223,6 @@ def _refined(root: str, source: str, target: str) -> tuple[np.ndarray, dict]:
     T, meta = refine_truth(_spanner(root, source).xyz, _spanner(root, target).xyz, voxel=voxel)
     meta = {**meta, "voxel": voxel}
     try:
-        from plotmosaic.io.atomic import write_text_atomic
-
         write_text_atomic(path, json.dumps({"transform": T.tolist(), "meta": meta}))
     except (OSError, InputError):
         pass  # no cache: the next run refines again
@@ -234,7 +235,6 @@ def _refined(root: str, source: str, target: str) -> tuple[np.ndarray, dict]:
 def _views_case(
     name: str, cloud: PointCloud, spacing: float, seed: int, note: str, boxed: float | None = None
 ) -> RealCase:
-    from plotmosaic.simulate.from_cloud import cut_views, grid_positions
 
     positions = grid_positions(cloud.xyz, 2, spacing)
     target, source = cut_views(cloud.xyz, positions, seed)
@@ -334,9 +334,6 @@ def _sim_case(
     name: str, preset: str, seed: int, points_per_scan: int | None, pair=("P1-S1", "P1-S0")
 ) -> RealCase:
     """A simulator preset into a temporary folder (removed after reading), scan pair[0] onto pair[1]."""
-    from plotmosaic.poses import load_poses
-    from plotmosaic.simulate.run import simulate
-
     with tempfile.TemporaryDirectory(prefix=f"plotmosaic-{preset}-") as tmp:
         kw = {} if points_per_scan is None else {"points_per_scan": points_per_scan}
         result = simulate(tmp, preset, seed=seed, **kw)

@@ -23,10 +23,22 @@ from pathlib import Path
 import numpy as np
 
 from plotmosaic.bench.figures import pyplot
-from plotmosaic.bench.protocol import PARAMS, rotation_angle
-from plotmosaic.config.bench import PROTOCOLS, Protocol
+from plotmosaic.bench.methods import PairInput, prepare_target, run_method
+from plotmosaic.bench.protocol import (
+    PARAMS,
+    is_success,
+    params_to_matrix,
+    pose_error,
+    rotation_angle,
+)
+from plotmosaic.bench.real_cases import build_case
+from plotmosaic.config.bench import PROTOCOLS, MethodsConfig, Protocol
 from plotmosaic.io.atomic import write_text_atomic
+from plotmosaic.io.frame import Frame, apply_transform, to_local_transform
+from plotmosaic.io.frame import pose_error as angle_distance
+from plotmosaic.io.las import PointCloud
 from plotmosaic.io.pictures import savefig
+from plotmosaic.parallel import set_threads, threads
 
 # paper: +-45 deg all three angles, +-15 m, all six at once; beyond: any heading, +-20 m (tilts as the paper);
 # true: the source handed over in its true pose (the control)
@@ -156,11 +168,6 @@ _STATE: dict = {}  # per process: the case being run (built once, its target pre
 def _case_state(name: str, seed: int, data: str | None):
     key_ = (name, seed, data)
     if key_ not in _STATE:
-        from plotmosaic.bench.methods import PairInput, prepare_target
-        from plotmosaic.bench.real_cases import build_case
-        from plotmosaic.io.frame import apply_transform
-        from plotmosaic.io.las import PointCloud
-
         _STATE.clear()  # one case at a time: memory stays bounded
         t0 = time.perf_counter()
         case = build_case(name, data, seed)
@@ -184,8 +191,6 @@ def _case_state(name: str, seed: int, data: str | None):
 
 def _near(result, truth: np.ndarray) -> tuple[list[str], str | None]:
     """Generators with a hypothesis near the truth, and the winning generator:vertical (coarse stage only)."""
-    from plotmosaic.io.frame import Frame, pose_error, to_local_transform
-
     coarse = getattr(result, "coarse", None)
     if not coarse or not coarse.get("hypotheses"):
         return [], None
@@ -194,7 +199,7 @@ def _near(result, truth: np.ndarray) -> tuple[list[str], str | None]:
     )
     near = set()
     for h in coarse["hypotheses"]:
-        deg, m = pose_error(np.asarray(h["transform"]), local)
+        deg, m = angle_distance(np.asarray(h["transform"]), local)
         if deg < NEAR_DEG and m < NEAR_M:
             near.add(h["generator"])
     win = coarse["hypotheses"][0]
@@ -203,12 +208,6 @@ def _near(result, truth: np.ndarray) -> tuple[list[str], str | None]:
 
 def run_trial(job: Trial) -> tuple[dict, list[dict]]:
     """Every method of `job` on its draw: (the case's info, one row a method)."""
-    from plotmosaic.bench.methods import PairInput, run_method
-    from plotmosaic.bench.protocol import is_success, params_to_matrix, pose_error
-    from plotmosaic.config.bench import MethodsConfig
-    from plotmosaic.io.frame import apply_transform
-    from plotmosaic.io.las import PointCloud
-
     case, aligned, prepared, info = _case_state(job.case, job.seed, job.data)
     p = draw(job.protocol, job.seed, job.case, job.trial)
     centre = aligned.xyz.mean(axis=0)
@@ -267,7 +266,6 @@ def run_trial(job: Trial) -> tuple[dict, list[dict]]:
 
 def _init_worker(threads: int) -> None:
     os.environ["OMP_NUM_THREADS"] = str(threads)  # Open3D's OpenMP, imported after this
-    from plotmosaic.parallel import set_threads
 
     set_threads(threads)
 
@@ -289,8 +287,6 @@ def run_suite(
     `on_trial(case info, rows)`). `jobs` worker processes share the thread budget of plotmosaic.parallel.
     Returns the new rows.
     """
-    from plotmosaic.parallel import threads
-
     done = set()
     path = None
     if out is not None:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from plotmosaic.bench.failures import plot_failure
 from plotmosaic.bench.methods import PairInput, available, run_method
 from plotmosaic.bench.overlap import crop_to_overlap, overlap_fraction
 from plotmosaic.bench.protocol import (
@@ -171,7 +172,6 @@ def _failure_picture(
     truth: np.ndarray,
     folder: Path,
 ) -> Path:
-    from plotmosaic.bench.failures import plot_failure
 
     slug = "".join(
         ch if ch.isalnum() else "-" for ch in f"{row['pair']}-{row['method']}-trial{row['trial']}"

@@ -8,6 +8,8 @@ import numpy as np
 import typer
 from rich.console import Console
 
+from plotmosaic.align.pipeline import align_files
+from plotmosaic.align.prepare import MIN_POINTS
 from plotmosaic.commands.common import (
     CONFIG_HELP,
     CONFIG_USED,
@@ -17,6 +19,8 @@ from plotmosaic.commands.common import (
 )
 from plotmosaic.config.align import DEFAULT_LEVELS, KINDS, MAX_LEVELS
 from plotmosaic.errors import InputError
+from plotmosaic.io.atomic import check_output_dir, check_output_file
+from plotmosaic.io.las import read_header_info
 from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed, inputs_of
 from plotmosaic.poses import read_json, rigid_matrix
 
@@ -31,9 +35,6 @@ def load_init(path: Path) -> np.ndarray:
 
 def check_point_counts(files) -> None:
     """Each (path, role) can be read and has enough points to register: a header read, before any work."""
-    from plotmosaic.align.prepare import MIN_POINTS
-    from plotmosaic.io.las import read_header_info
-
     for path, role in files:
         n = read_header_info(path).point_count
         if n < MIN_POINTS:
@@ -143,9 +144,6 @@ def align_command(
 
     Exit 0 on success, 2 on bad input, 3 when the pair cannot be registered (the message shows why).
     """
-    from plotmosaic.align.pipeline import align_files
-    from plotmosaic.io.atomic import check_output_dir, check_output_file
-
     for kind, which in ((source_kind, "--source-kind"), (target_kind, "--target-kind")):
         if kind.lower() not in KINDS:
             raise InputError(f"{which} {kind!r}: expected one of {', '.join(KINDS)}")

@@ -8,10 +8,18 @@ from pathlib import Path
 
 import typer
 
+from plotmosaic.bench.methods import METHODS
+from plotmosaic.bench.pairs import load_truth, manifest_pairs
+from plotmosaic.bench.protocol import get_protocol
+from plotmosaic.bench.run import BenchPair, run_bench, write_outputs
 from plotmosaic.commands.common import handle_errors
 from plotmosaic.config.align import KINDS
+from plotmosaic.config.bench import BenchConfig, MethodsConfig
 from plotmosaic.errors import InputError
+from plotmosaic.io.las import read_cloud
 from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed, inputs_of, manifest_inputs
+from plotmosaic.manifest import load_manifest
+from plotmosaic.poses import load_poses
 
 # what bench/run.py writes in OUT
 BENCH_NAMES = ("trials.csv", "table.md", "errors.png", "summary.json", "failures")
@@ -99,15 +107,6 @@ def bench_command(
     ),
 ) -> None:
     """Paper-style benchmark: per-parameter RMSE, success rate and time over seeded random trials."""
-    from plotmosaic.bench.methods import METHODS
-    from plotmosaic.bench.pairs import load_truth, manifest_pairs
-    from plotmosaic.bench.protocol import get_protocol
-    from plotmosaic.bench.run import BenchPair, run_bench, write_outputs
-    from plotmosaic.config.bench import BenchConfig, MethodsConfig
-    from plotmosaic.io.las import read_cloud
-    from plotmosaic.manifest import load_manifest
-    from plotmosaic.poses import load_poses
-
     try:
         proto = get_protocol(protocol, max_rotation, max_yaw, max_translation)
     except ValueError as exc:

@@ -18,7 +18,19 @@ from pathlib import Path
 
 import typer
 
-from plotmosaic.errors import INTERRUPTED, PlotmosaicError
+from plotmosaic.align.prepare import MIN_POINTS
+from plotmosaic.config.settings import (
+    Settings,
+    SettingsError,
+    dump_settings,
+    load_settings,
+    with_overrides,
+)
+from plotmosaic.errors import INTERRUPTED, InputError, PlotmosaicError
+from plotmosaic.io.atomic import write_text_atomic
+from plotmosaic.io.las import read_header_info
+from plotmosaic.manifest import load_manifest
+from plotmosaic.poses import load_poses
 
 # OS errors that describe the user's files or disk, not a bug: reported as bad input (exit 2)
 _USER_ERRNOS = {
@@ -106,11 +118,6 @@ def handle_errors(func: Callable) -> Callable:
 
 def check_scan_files(manifest_path):
     """The manifest, after a header read of every scan: each readable, with enough points to register."""
-    from plotmosaic.align.prepare import MIN_POINTS
-    from plotmosaic.errors import InputError
-    from plotmosaic.io.las import read_header_info
-    from plotmosaic.manifest import load_manifest
-
     manifest = load_manifest(manifest_path)
     for scan in manifest.scans:
         path = manifest.resolve(scan.path)
@@ -124,9 +131,6 @@ def check_scan_files(manifest_path):
 
 def check_poses_match(manifest, poses_path):
     """The poses file, if it was made for this manifest: shared scan ids, in the same plots."""
-    from plotmosaic.errors import InputError
-    from plotmosaic.poses import load_poses
-
     poses = load_poses(poses_path)
     plots = {s.id: p.id for p in manifest.plots for s in p.scans}
     shared = [sid for sid in poses.scans if sid in plots]
@@ -176,9 +180,6 @@ CONFIG_USED = "config-used.toml"
 def run_settings(config_path, overrides: dict | None = None):
     """The settings of this run: defaults, then the --config file, then the command's options
     (nested {"section": {"key": value}}; None = not given). Bad keys or values: exit 2, one line."""
-    from plotmosaic.config.settings import Settings, SettingsError, load_settings, with_overrides
-    from plotmosaic.errors import InputError
-
     try:
         settings = load_settings(config_path) if config_path is not None else Settings()
         return with_overrides(settings, overrides or {}, "command-line option")
@@ -190,9 +191,6 @@ def write_config_used(path, settings, command: str):
     """The settings a run used, as TOML beside its outputs (atomic): `--config` repeats the run."""
     import shlex
     import sys
-
-    from plotmosaic.config.settings import dump_settings
-    from plotmosaic.io.atomic import write_text_atomic
 
     header = (
         f"Settings used by `plotmosaic {command}` (give back with --config to repeat the run; "

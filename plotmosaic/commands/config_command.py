@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from plotmosaic.commands.common import handle_errors, run_settings
+from plotmosaic.config.settings import Settings, default_toml
 from plotmosaic.errors import InputError
 
 
@@ -20,8 +21,6 @@ def config_command(
     ),
 ) -> None:
     """The settings of every stage: `--defaults > my.toml`, edit, then give it with --config."""
-    from plotmosaic.config.settings import default_toml
-
     if defaults == (check is not None):
         raise InputError("give one of --defaults or --check FILE.toml")
     if defaults:
@@ -35,7 +34,6 @@ def config_command(
 
 
 def _changed(settings) -> list[str]:
-    from plotmosaic.config.settings import Settings
 
     out: list[str] = []
 

@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from plotmosaic.commands.common import handle_errors
+from plotmosaic.demo import run_demo
 
 
 @handle_errors
@@ -24,8 +25,6 @@ def demo_command(
     ),
 ) -> None:
     """Simulate a forest plot (5 TLS scans + ALS), run register-plot, tie-to-als and merge, report errors."""
-    from plotmosaic.demo import run_demo
-
     result = run_demo(
         outdir, seed=seed, points_per_scan=points_per_scan, jobs=jobs, force=force, echo=typer.echo
     )

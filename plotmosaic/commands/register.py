@@ -20,7 +20,7 @@ from plotmosaic.commands.common import (
     write_config_used,
 )
 from plotmosaic.config.register import PairSelection, RegisterOptions, TieOptions
-from plotmosaic.errors import InputError
+from plotmosaic.errors import InputError, PlotmosaicError
 from plotmosaic.io.atomic import check_output_dir
 from plotmosaic.io.outputs import (
     Input,
@@ -30,6 +30,8 @@ from plotmosaic.io.outputs import (
     inputs_of,
     manifest_inputs,
 )
+from plotmosaic.stages.register_plot import register_plot
+from plotmosaic.stages.tie_to_als import tie_to_als
 
 _REGISTER = RegisterOptions.model_fields
 _PAIRS = PairSelection.model_fields
@@ -40,8 +42,6 @@ _TIE = TieOptions.model_fields
 def _recorded(out: Path, settings, command: str) -> Iterator[None]:
     """Run the stage; the settings it used land in OUT/config-used.toml (also when it fails with
     a result folder to explain)."""
-    from plotmosaic.errors import PlotmosaicError
-
     try:
         yield
     except PlotmosaicError:
@@ -147,8 +147,6 @@ def register_plot_command(
     ),
 ) -> None:
     """Register every overlapping pair of scans in each plot and place all scans with a pose graph."""
-    from plotmosaic.stages.register_plot import register_plot
-
     _check_jobs(jobs)
     if executor not in ("local", "dask"):
         raise InputError(f"--executor must be 'local' or 'dask', not {executor!r}")
@@ -210,8 +208,6 @@ def tie_to_als_command(
     ),
 ) -> None:
     """Register each plot to the ALS and optimise the whole region with the ALS frame fixed."""
-    from plotmosaic.stages.tie_to_als import tie_to_als
-
     _check_jobs(jobs)
     if buffer is not None and buffer < 0:
         raise InputError(f"--buffer must not be negative, not {buffer}")

@@ -9,6 +9,7 @@ import typer
 from plotmosaic.commands.common import handle_errors
 from plotmosaic.errors import InputError
 from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed, inputs_of
+from plotmosaic.report.page import pair_files, report_dir, report_pair
 
 # what report/page.py and report/build.py write: two pages, a 3D view and figures named by plot
 _NAMES = ("index.md", "report.html", "view3d.html")
@@ -53,8 +54,6 @@ def report_command(
     ),
 ) -> None:
     """Pictures of a registration (before/after, breast-height slice, distances, levels, pose graph): index.md and report.html."""
-    from plotmosaic.report.page import pair_files, report_dir, report_pair
-
     if pair and pair[0] is not None:
         if directory is not None:
             raise InputError("give either a folder or --pair RESULT.json SOURCE TARGET, not both")

@@ -8,8 +8,12 @@ import typer
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from plotmosaic.commands.common import handle_errors
+from plotmosaic.config.simulate import grid_layout
 from plotmosaic.errors import InputError
 from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed, inputs_of
+from plotmosaic.simulate.from_cloud import cut_cloud_to_folder, parse_positions
+from plotmosaic.simulate.run import make_config, simulate
+from plotmosaic.simulate.scene import plot_ids
 
 _WRITES = ("manifest.toml", "ground_truth.json")  # besides one folder per plot (simulate/run.py)
 
@@ -107,10 +111,6 @@ def simulate_command(
     ),
 ) -> None:
     """Simulate a forest plot: terrain, trees, understory; TLS scans, an ALS tile, ground truth and a manifest."""
-    from plotmosaic.config.simulate import grid_layout
-    from plotmosaic.simulate.run import make_config, simulate
-    from plotmosaic.simulate.scene import plot_ids
-
     if outdir.exists() and not outdir.is_dir():
         raise InputError(f"{outdir}: exists and is not a folder")
     if outdir.is_dir() and any(outdir.iterdir()) and not force:
@@ -209,8 +209,6 @@ def _cut(
     **settings,
 ) -> None:
     """`simulate --from-cloud`: virtual scans of a real cloud, ground truth and a manifest."""
-    from plotmosaic.simulate.from_cloud import cut_cloud_to_folder, parse_positions
-
     if positions is not None and (views is not None or spacing is not None):
         raise InputError("--from-cloud: give --positions or --views/--spacing, not both")
     parsed = parse_positions(positions) if positions is not None else None

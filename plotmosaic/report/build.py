@@ -16,6 +16,7 @@ import networkx as nx
 import numpy as np
 
 from plotmosaic.config.report import ReportConfig
+from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.frame import apply_transform
 from plotmosaic.report import html as H
 from plotmosaic.report import views
@@ -245,8 +246,6 @@ def stage_table(stages: list[Stage]) -> str:
 
 def add_stages(page: Path, stages: list[Stage]) -> Path:
     """Append rows to a written report.html's stage table (e.g. the demo's own stages, known only later)."""
-    from plotmosaic.io.atomic import write_text_atomic
-
     text = Path(page).read_text()
     rows = "".join(
         "<tr>" + "".join(f"<td>{H.esc(c)}</td>" for c in r) + "</tr>" for r in _stage_rows(stages)
@@ -291,7 +290,6 @@ def write_3d_view(path: Path, views_: list[PlotView], cfg: ReportConfig, seed: i
         import plotly.graph_objects as go
     except ImportError:
         return None
-    from plotmosaic.io.atomic import write_text_atomic
 
     rng = np.random.default_rng(seed)
     allp = [p for v in views_ for p in v.thinned.values()]

@@ -17,13 +17,20 @@ from pathlib import Path
 import networkx as nx
 import numpy as np
 
+from plotmosaic.align.prepare import prepare_cloud
+from plotmosaic.config.align import AlignConfig, default_levels
 from plotmosaic.errors import InputError
+from plotmosaic.graph.posegraph import graph_from_json
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.frame import apply_transform
-from plotmosaic.io.las import read_cloud
+from plotmosaic.io.las import PointCloud, read_cloud
+from plotmosaic.manifest import load_manifest
+from plotmosaic.poses import load_poses
 from plotmosaic.report import runs as graph_report
+from plotmosaic.report.build import ReportInput, Stage, build_report
 from plotmosaic.report.figures import origin_of, plot_levels, plot_slice, subsample
 from plotmosaic.report.pictures import plot_scans
+from plotmosaic.report.runs import residual_summary
 
 
 @dataclass
@@ -41,10 +48,6 @@ def _levels(
     clouds: dict[str, tuple[np.ndarray, str]], seed: int
 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """The align pipeline's own levels for each (xyz, kind): what ForestAlign actually matches."""
-    from plotmosaic.align.prepare import prepare_cloud
-    from plotmosaic.config.align import AlignConfig, default_levels
-    from plotmosaic.io.las import PointCloud
-
     cfg = AlignConfig()
     out = {}
     for name, (xyz, kind) in clouds.items():
@@ -176,8 +179,6 @@ def _pair_html(
     data: dict, T: np.ndarray, src: Path, tgt: Path, names: tuple[str, str], out: Path, seed: int
 ):
     """report.html of one pair: the source placed by the transform, the target as it is."""
-    from plotmosaic.report.build import ReportInput, Stage, build_report
-
     G = nx.Graph()
     G.add_node(names[0], kind=data.get("source_kind", "tls"))
     G.add_node(names[1], kind=data.get("target_kind", "tls"))
@@ -220,8 +221,6 @@ def _pair_html(
 
 def _load_graph(path: Path):
     """graph.json as register-plot wrote it (plotmosaic.graph.posegraph's node-link form)."""
-    from plotmosaic.graph.posegraph import graph_from_json
-
     try:
         return graph_from_json(json.loads(path.read_text()))
     except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, nx.NetworkXError) as exc:
@@ -233,8 +232,6 @@ def _load_graph(path: Path):
 def _scan_table(directory: Path, manifest_path: str | Path | None):
     """{scan id: (path, kind, plot)} from the manifest if given, else from graph.json's nodes."""
     if manifest_path is not None:
-        from plotmosaic.manifest import load_manifest
-
         m = load_manifest(manifest_path)
         return {s.id: (m.resolve(s.path), s.kind.value, m.plot_of(s.id).id) for s in m.scans}, m
     graph = directory / "graph.json"
@@ -259,7 +256,6 @@ def report_dir(
     seed: int = 0,
     levels: bool = True,
 ) -> Report:
-    from plotmosaic.poses import load_poses
 
     directory = Path(directory)
     if not directory.is_dir():
@@ -384,8 +380,6 @@ def report_dir(
 def _dir_html(
     directory: Path, out: Path, poses, table: dict, G, plots: dict[str, list[str]], seed: int
 ):
-    from plotmosaic.report.build import ReportInput, build_report
-    from plotmosaic.report.runs import residual_summary
 
     if G is None:
         G = nx.Graph()

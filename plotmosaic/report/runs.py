@@ -12,9 +12,17 @@ import matplotlib.pyplot as plt  # noqa: E402
 import networkx as nx  # noqa: E402
 import numpy as np  # noqa: E402
 
+from plotmosaic.config.register import PoseGraphConfig
+from plotmosaic.config.report import ReportConfig
 from plotmosaic.io.atomic import write_text_atomic  # noqa: E402
-from plotmosaic.io.frame import apply_transform  # noqa: E402
+from plotmosaic.io.frame import (
+    apply_transform,  # noqa: E402
+    inverse,
+    pose_error,
+)
+from plotmosaic.io.las import read_cloud
 from plotmosaic.io.pictures import savefig  # noqa: E402
+from plotmosaic.report.build import ReportInput, Stage, build_report
 
 
 def _fmt(value, scale=1.0, digits=1) -> str:
@@ -175,7 +183,6 @@ def residual_summary(G: nx.Graph) -> dict:
 
 
 def _read_scan(path: Path) -> np.ndarray:
-    from plotmosaic.io.las import read_cloud
 
     return read_cloud(path, attributes=False).xyz
 
@@ -199,8 +206,6 @@ def _md_figures(figures: list[tuple[str, str, Path]], plot: str) -> list[str]:
 
 def _recorded(result) -> list:
     """Stages a result records in a `timings` dict (name -> wall seconds), when its pipeline keeps one."""
-    from plotmosaic.report.build import Stage
-
     timings = getattr(result, "timings", None)
     return (
         [Stage(k, float(v), "wall time") for k, v in timings.items() if isinstance(v, (int, float))]
@@ -213,10 +218,6 @@ def write_register_report(
     result, manifest, config, seed: int, reader: Callable[[Path], np.ndarray] | None = None
 ) -> Path:
     """report.md (tables, pictures) and report.html (summary, breast-height slice, distances, map) of register-plot."""
-    from plotmosaic.config.register import PoseGraphConfig
-    from plotmosaic.config.report import ReportConfig
-    from plotmosaic.report.build import ReportInput, Stage, build_report
-
     out, G = result.out, result.graph
     kept = sum(1 for *_, e in G.edges(data=True) if not e.get("dropped"))
     dropped = G.number_of_edges() - kept
@@ -334,8 +335,6 @@ def rigid_plots(result, earlier, earlier_report: Path | None, cfg) -> dict[str, 
     as register-plot left it, within the report's rigid tolerance): judged in register-plot's report."""
     import os
 
-    from plotmosaic.io.frame import inverse, pose_error
-
     if earlier is None or earlier_report is None or not Path(earlier_report).is_file():
         return {}
     after = result.poses
@@ -378,10 +377,6 @@ def write_tie_report(
 
     `earlier` (register-plot's poses) and `earlier_report` (its report.html): a plot the region solve
     moved rigidly is shown over the ALS, its within-plot checks are linked, not recomputed."""
-    from plotmosaic.config.register import PoseGraphConfig
-    from plotmosaic.config.report import ReportConfig
-    from plotmosaic.report.build import ReportInput, Stage, build_report
-
     out, G = result.out, result.graph
     lines = [
         "# tie-to-als report",

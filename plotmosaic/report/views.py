@@ -17,7 +17,7 @@ import numpy as np  # noqa: E402
 from matplotlib.patches import Circle, Rectangle  # noqa: E402
 
 from plotmosaic.io.pictures import savefig  # noqa: E402
-from plotmosaic.report.slice import Ground, Stem  # noqa: E402
+from plotmosaic.report.slice import Ground, Stem, cell_minima, ground_model  # noqa: E402
 
 
 def scan_colours(names: list[str]) -> dict[str, tuple]:
@@ -267,8 +267,6 @@ def hillshade_background(ground: Ground) -> tuple[np.ndarray, tuple, str]:
 
 def canopy_height(als_xyz: np.ndarray, cell: float = 1.0) -> tuple[np.ndarray, tuple, str]:
     """ALS canopy height model: highest minus lowest return per cell (ground filled from neighbours)."""
-    from plotmosaic.report.slice import cell_minima, ground_model
-
     ground = ground_model(cell_minima(als_xyz, cell), cell, spike=2.0)
     keys = np.floor(als_xyz[:, :2] / cell).astype(np.int64)
     lo = np.array([round(ground.x0 / cell), round(ground.y0 / cell)])

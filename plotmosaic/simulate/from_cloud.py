@@ -32,9 +32,16 @@ import numpy as np
 from pydantic import ValidationError
 from scipy.spatial import cKDTree
 
-from plotmosaic.config.simulate import CutConfig
+from plotmosaic.config.simulate import CutConfig, TlsConfig
 from plotmosaic.errors import InputError
+from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.frame import translation
+from plotmosaic.io.las import STANDARD_ATTRIBUTES, PointCloud, read_cloud, write_cloud
+from plotmosaic.manifest import Manifest, Plot, Scan, dump_manifest
+from plotmosaic.poses import Poses, ScanPose
+from plotmosaic.simulate.run import scan_path
+from plotmosaic.simulate.scene import scan_id
+from plotmosaic.simulate.tls import random_pose
 
 RING_RADII = (
     0.25,
@@ -167,9 +174,6 @@ def _enclosed(tree: cKDTree, local: np.ndarray, s: np.ndarray, clearance: float)
 
 def _frame_rotation(rng: np.random.Generator, max_tilt_deg: float) -> np.ndarray:
     """A random heading in [0, 360) and a tilt up to `max_tilt_deg` (the simulator's tripod model)."""
-    from plotmosaic.config.simulate import TlsConfig
-    from plotmosaic.simulate.tls import random_pose
-
     return random_pose(np.zeros(3), TlsConfig(max_tilt_deg=max_tilt_deg), rng)[:3, :3]
 
 
@@ -360,13 +364,6 @@ def cut_cloud_to_folder(
     **settings,
 ) -> CutResult:
     """Read a LAS/LAZ cloud, cut views, write one LAZ per view + ground_truth.json + manifest.toml into `outdir`."""
-    from plotmosaic.io.atomic import write_text_atomic
-    from plotmosaic.io.las import STANDARD_ATTRIBUTES, PointCloud, read_cloud, write_cloud
-    from plotmosaic.manifest import Manifest, Plot, Scan, dump_manifest
-    from plotmosaic.poses import Poses, ScanPose
-    from plotmosaic.simulate.run import scan_path
-    from plotmosaic.simulate.scene import scan_id
-
     cfg = make_cut_config(None, **settings)
     t0 = time.perf_counter()
     cloud = read_cloud(cloud_path, attributes=[n for n in STANDARD_ATTRIBUTES if n != "gps_time"])

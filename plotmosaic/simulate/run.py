@@ -26,6 +26,7 @@ from plotmosaic.io.las import PointCloud, write_cloud
 from plotmosaic.manifest import AlsTile, Manifest, Plot, Scan, dump_manifest
 from plotmosaic.poses import Poses, ScanPose
 from plotmosaic.simulate.als import scan_als
+from plotmosaic.simulate.figures import make_figures
 from plotmosaic.simulate.scene import Scene, World, build_world, plot_ids, scan_id, square_extent
 from plotmosaic.simulate.tls import random_pose, scan_tls
 
@@ -227,8 +228,6 @@ def simulate(
         seconds=seconds,
     )
     if figures:
-        from plotmosaic.simulate.figures import make_figures
-
         t0 = time.perf_counter()
         als_sample = _sample(als_world, rng_fig)
         result.figures = make_figures(outdir / "figures", world, samples, poses, als_sample)
