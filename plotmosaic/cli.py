@@ -27,8 +27,7 @@ from plotmosaic.commands import (
     report,
     simulate,
 )
-from plotmosaic.commands.common import interrupts
-from plotmosaic.errors import INTERRUPTED, InputError
+from plotmosaic.errors import INTERRUPTED, InputError, exit_interrupted, interrupts
 
 HELP = """Targetless, GNSS-free registration of forest LiDAR scans into one georeferenced cloud.
 
@@ -111,13 +110,11 @@ app.command("config")(config_command.config_command)
 def main() -> None:
     try:
         app()
-    except KeyboardInterrupt:  # outside a command (e.g. while importing): same exit code
-        typer.echo("interrupted", err=True)
-        sys.exit(INTERRUPTED)
+    except KeyboardInterrupt:  # outside a command (e.g. while parsing options): same exit code
+        exit_interrupted()
     except Exception as exc:  # a bug, not bad input: one line unless debugging
         if interrupts.received:  # an interrupt wrapped in another error by a library
-            typer.echo("interrupted", err=True)
-            sys.exit(INTERRUPTED)
+            exit_interrupted()
         if os.environ.get("PLOTMOSAIC_DEBUG"):
             raise
         typer.echo(

@@ -1,7 +1,7 @@
 """The console script's first code: SIGTERM is an interrupt from the first instant.
 
-Importing the command layer (typer, numpy, Open3D, GTSAM) takes about a second; a batch
-scheduler's SIGTERM in that window used to kill the process with 143 instead of 130.
+Importing the command layer (typer, numpy, Open3D, GTSAM) takes a noticeable while; a batch
+scheduler's SIGTERM in that window would otherwise kill the process with 143 instead of 130.
 """
 
 from __future__ import annotations
@@ -10,25 +10,20 @@ import importlib
 import signal
 import sys
 
-from plotmosaic.errors import INTERRUPTED
-
-
-def _terminate(signum, frame):
-    raise KeyboardInterrupt
+from plotmosaic.errors import exit_interrupted, interrupts
 
 
 def main() -> None:
-    signal.signal(signal.SIGTERM, _terminate)
+    signal.signal(signal.SIGTERM, interrupts.handler)
     for stream in (sys.stdout, sys.stderr):  # file names need not be UTF-8: print them escaped
         stream.reconfigure(errors="backslashreplace")
     try:
         # imported only now, under the handler above: the import itself is the window to cover
-        cli_main = importlib.import_module("plotmosaic.cli").main
+        cli = importlib.import_module("plotmosaic.cli")
     except KeyboardInterrupt:
-        sys.stderr.write("interrupted\n")
-        sys.exit(INTERRUPTED)
+        exit_interrupted()
     try:
-        cli_main()
+        cli.main()
     finally:
         # the work is done and reported: a signal now would only end the process by the default
         # action (status 143) while it exits, so the exit code stands

@@ -11,8 +11,6 @@ import contextlib
 import errno
 import functools
 import os
-import signal
-import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -26,7 +24,7 @@ from plotmosaic.config.settings import (
     load_settings,
     with_overrides,
 )
-from plotmosaic.errors import INTERRUPTED, InputError, PlotmosaicError
+from plotmosaic.errors import INTERRUPTED, InputError, PlotmosaicError, interrupts
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.las import read_header_info
 from plotmosaic.manifest import load_manifest
@@ -48,36 +46,6 @@ _USER_ERRNOS = {
 }
 
 
-class _Interrupts:
-    """SIGINT / SIGTERM raise KeyboardInterrupt and are remembered: an error that a library wraps
-    around the interrupt (e.g. LazrsError "Failed to call write") still ends as an interrupt."""
-
-    def __init__(self) -> None:
-        self.received = False
-
-    def handler(self, signum, frame):
-        if self.received:  # a second Ctrl-C must not break the clean-up the first one started
-            return
-        self.received = True
-        raise KeyboardInterrupt
-
-    @contextlib.contextmanager
-    def installed(self) -> Iterator[None]:
-        self.received = False
-        if threading.current_thread() is not threading.main_thread():
-            yield  # signals can only be handled in the main thread
-            return
-        previous = {s: signal.signal(s, self.handler) for s in (signal.SIGINT, signal.SIGTERM)}
-        try:
-            yield
-        finally:
-            for s, h in previous.items():
-                signal.signal(s, h)
-
-
-interrupts = _Interrupts()
-
-
 def _interrupted() -> typer.Exit:
     typer.echo("interrupted", err=True)
     return typer.Exit(INTERRUPTED)
@@ -97,17 +65,9 @@ def handle_errors(func: Callable) -> Callable:
         except (typer.Exit, SystemExit):
             raise
         except OSError as exc:
-            if interrupts.received:
-                raise _interrupted() from None
             if exc.errno in _USER_ERRNOS and exc.filename is not None:
                 typer.echo(f"error: {exc.filename}: {exc.strerror}", err=True)
                 raise typer.Exit(2) from None
-            raise
-        except Exception:
-            if (
-                interrupts.received
-            ):  # the interrupt surfaced wrapped in another error (LazrsError, ...)
-                raise _interrupted() from None
             raise
 
     return wrapper

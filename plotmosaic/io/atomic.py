@@ -16,7 +16,7 @@ import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
-from plotmosaic.errors import InputError
+from plotmosaic.errors import InputError, signals_held
 
 TEMP_NAME = re.compile(r"^\..+\.tmp-(\d+)$")  # our own temporaries: `.NAME.tmp-PID`
 NAME_MAX = (
@@ -25,8 +25,9 @@ NAME_MAX = (
 _cleaned: set[str] = set()  # folders already swept for stale temporaries in this process
 
 
-def _temp_name(path: Path) -> Path:
-    return path.with_name(f".{path.name}.tmp-{os.getpid()}")
+def temp_name(path: Path, tag: str = "") -> Path:
+    """The temporary beside `path` (`.NAME{tag}.tmp-PID`): a later run finds what a killed one left."""
+    return path.with_name(f".{path.name}{tag}.tmp-{os.getpid()}")
 
 
 def _alive(pid: int) -> bool:
@@ -78,7 +79,7 @@ def _check_names(path: Path) -> None:
     # the temporary's name is the longest one we write
     name, extra = (
         len(os.fsencode(path.name)),
-        len(os.fsencode(_temp_name(path).name)) - len(os.fsencode(path.name)),
+        len(os.fsencode(temp_name(path).name)) - len(os.fsencode(path.name)),
     )
     if name + extra > NAME_MAX:
         raise InputError(
@@ -181,7 +182,7 @@ def atomic_output(path: str | Path, force: bool = True) -> Iterator[Path]:
     """Yield a temporary path next to `path`; on success rename it onto `path`."""
     path = check_writable(Path(path), force=force)
     remove_stale_temporaries(path.parent if str(path.parent) else Path("."))
-    tmp = _temp_name(path)
+    tmp = temp_name(path)
     try:
         yield tmp
         os.replace(tmp, path)
@@ -196,3 +197,44 @@ def write_text_atomic(path: str | Path, text: str) -> Path:
     with atomic_output(path) as tmp:
         tmp.write_text(text, encoding="utf-8", errors="backslashreplace")
     return Path(path)
+
+
+@contextlib.contextmanager
+def atomic_folder(path: Path, force: bool) -> Iterator[Path]:
+    """Yield a temporary folder beside `path`; on success it replaces `path` (an earlier folder)."""
+    tmp = temp_name(path)
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    try:
+        yield tmp
+        with signals_held():
+            if path.exists():
+                if not force:
+                    raise InputError(f"{path}: already exists (use --force to overwrite)")
+                old = temp_name(path, ".old")
+                os.replace(path, old)
+                try:
+                    os.replace(tmp, path)
+                except BaseException:
+                    os.replace(old, path)
+                    raise
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                os.replace(tmp, path)
+    except BaseException:
+        with signals_held():
+            shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+@contextlib.contextmanager
+def temp_folder(path: Path, tag: str) -> Iterator[Path]:
+    """A scratch folder beside `path` (`.NAME{tag}.tmp-PID`), removed at the end whatever happens."""
+    folder = temp_name(path, tag)
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir()
+    try:
+        yield folder
+    finally:
+        with signals_held():
+            shutil.rmtree(folder, ignore_errors=True)

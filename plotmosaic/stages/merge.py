@@ -18,9 +18,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
-import shutil
-import signal
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -33,8 +30,14 @@ from pyproj.exceptions import CRSError
 from threadpoolctl import threadpool_limits
 
 from plotmosaic.config.merge import SCALE, MergeConfig, bbox_limits
-from plotmosaic.errors import InputError
-from plotmosaic.io.atomic import atomic_output, check_writable
+from plotmosaic.errors import InputError, interrupts
+from plotmosaic.io.atomic import (
+    atomic_folder,
+    atomic_output,
+    check_writable,
+    temp_folder,
+    temp_name,
+)
 from plotmosaic.io.frame import apply_transform, translation
 from plotmosaic.io.las import (
     STANDARD_ATTRIBUTES,
@@ -623,7 +626,7 @@ def merge_scans(
     """Write every posed scan (and optionally the ALS tiles) into one LAS/LAZ 1.4 file (or, with
     `tiles`, one LAZ per tile in the folder `out`), atomically."""
     config = config or MergeConfig()
-    with interrupts_win():
+    with interrupts.installed():
         return _merge_scans(manifest, poses, Path(out), config, progress, poses_path)
 
 
@@ -698,7 +701,7 @@ def _merge_scans(
                     summary = summary_of(writer.header.mins, writer.header.maxs)
                     write_sidecar(summary)
             else:
-                with _spill_folder(out) as folder:
+                with temp_folder(out, ".spill") as folder:
                     step = int(round(config.voxel / SCALE)) if config.voxel else None
                     dtype = header.point_format.dtype()
                     parallel = min(2, threads()) if config.tiles else 1
@@ -764,7 +767,7 @@ def _check_output(out: Path, config: MergeConfig) -> Path:
             raise InputError(
                 f"{out}: exists and is not a tile folder written by plotmosaic merge --tiles; not replacing it"
             )
-        check_writable(temp_path(out), force=True)
+        check_writable(temp_name(out), force=True)
         return out / TILE_INDEX
     if out.suffix.lower() not in (".las", ".laz"):
         raise InputError(f"{out}: output must end in .las or .laz")
@@ -879,94 +882,6 @@ def _write_tiles(
     return tiles
 
 
-# ---------------------------------------------------------------- temporaries and interrupts
-
-
-def temp_path(path: Path, tag: str = "") -> Path:
-    """A temporary beside `path`, named like plotmosaic.io.atomic's (`.NAME.tmp-PID`) so a later run can
-    find and remove what a killed run left."""
-    return path.with_name(f".{path.name}{tag}.tmp-{os.getpid()}")
-
-
-@contextlib.contextmanager
-def _signals_held() -> Iterator[None]:
-    """Hold SIGINT/SIGTERM while cleaning up, so a second Ctrl-C cannot leave half the temporaries."""
-    held = {signal.SIGINT, signal.SIGTERM}
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, held)
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
-
-
-@contextlib.contextmanager
-def _spill_folder(out: Path) -> Iterator[Path]:
-    """The tile spill folder beside the output, removed at the end whatever happens."""
-    folder = temp_path(out, ".spill")
-    shutil.rmtree(folder, ignore_errors=True)
-    folder.mkdir()
-    try:
-        yield folder
-    finally:
-        with _signals_held():
-            shutil.rmtree(folder, ignore_errors=True)
-
-
-@contextlib.contextmanager
-def atomic_folder(path: Path, force: bool) -> Iterator[Path]:
-    """Yield a temporary folder beside `path`; on success it replaces `path` (an earlier tile folder)."""
-    tmp = temp_path(path)
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
-    try:
-        yield tmp
-        with _signals_held():
-            if path.exists():
-                if not force:
-                    raise InputError(f"{path}: already exists (use --force to overwrite)")
-                old = temp_path(path, ".old")
-                os.replace(path, old)
-                try:
-                    os.replace(tmp, path)
-                except BaseException:
-                    os.replace(old, path)
-                    raise
-                shutil.rmtree(old, ignore_errors=True)
-            else:
-                os.replace(tmp, path)
-    except BaseException:
-        with _signals_held():
-            shutil.rmtree(tmp, ignore_errors=True)
-        raise
-
-
-@contextlib.contextmanager
-def interrupts_win() -> Iterator[None]:
-    """Ctrl-C (or SIGTERM) ends the merge as KeyboardInterrupt (exit 130), also when it lands inside the
-    LAZ codec, which reports it as its own error (LazrsError "Failed to call write")."""
-    received: list[int] = []
-
-    def interrupt(signum, frame):
-        received.append(signum)
-        raise KeyboardInterrupt
-
-    previous = {}
-    try:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            previous[sig] = signal.signal(sig, interrupt)
-    except ValueError:  # not the main thread: signals are not ours to handle
-        pass
-    try:
-        yield
-    except Exception:
-        if received:
-            raise KeyboardInterrupt from None
-        raise
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-
-
 def read_records(path: Path, chunk_size: int) -> Iterator[laspy.ScaleAwarePointRecord]:
     """The file's raw point records chunk by chunk (stored integers, all fields)."""
     with open_las(path) as reader:
@@ -1041,3 +956,6 @@ def posed_record(
 def write_chunk(writer: laspy.LasWriter, record: laspy.ScaleAwarePointRecord) -> None:
     if len(record):
         writer.write_points(record)
+
+
+interrupts_win = interrupts.installed  # the name tests/test_merge.py still calls
