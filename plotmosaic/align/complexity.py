@@ -133,13 +133,12 @@ def _fit_valid(
     )
     x, f = normals[idx], features[idx]
     if k <= 1:
-        mix = vmf.fit_vmf_mixture(x, 1, seed, config.max_iter, config.tol, 1, config.kappa_max)
+        # a single component needs no restarts
+        mix = vmf.fit_vmf_mixture(x, 1, config.model_copy(update={"n_init": 1}), seed)
         labels = np.zeros(n, dtype=np.int64)
         return Levels(*_order(normals, features, labels, mix.mu, mix.kappa, mix.weights, mode))
     if mode == "vmf":
-        mix = vmf.fit_vmf_mixture(
-            x, k, seed, config.max_iter, config.tol, config.n_init, config.kappa_max
-        )
+        mix = vmf.fit_vmf_mixture(x, k, config, seed)
         mu, kappa, weights = mix.mu, mix.kappa, mix.weights
         labels = mix.predict(normals)
     elif mode == "vmf+eigen":

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from plotmosaic.config.align import VmfConfig
+
 LOG_4PI = np.log(4.0 * np.pi)
 
 
@@ -140,24 +142,21 @@ def em(
 
 
 def fit_vmf_mixture(
-    x: np.ndarray,
-    k: int,
-    seed: int = 0,
-    max_iter: int = 150,
-    tol: float = 1e-6,
-    n_init: int = 3,
-    kappa_max: float = 500.0,
+    x: np.ndarray, k: int, config: VmfConfig | None = None, seed: int = 0
 ) -> VmfMixture:
-    """Fit K symmetric vMF components to unit axes x (N, 3); best of n_init seeded restarts."""
+    """Fit K symmetric vMF components to unit axes x (N, 3); best of `config.n_init` seeded restarts."""
+    config = config or VmfConfig()
     x = np.asarray(x, dtype=np.float64)
     rng = np.random.default_rng(seed)
     best = None
-    for _ in range(max(1, n_init)):
+    for _ in range(config.n_init):
         mu0 = _init_axes(x, k, rng)
         kappa0 = np.full(k, 5.0)
         logr = log_density(x, mu0, kappa0)
         resp = np.exp(logr - logsumexp_rows(logr))
-        mu, kappa, weights, _, ll, it = em(x, resp, None, max_iter, tol, kappa_max, mu0, kappa0)
+        mu, kappa, weights, _, ll, it = em(
+            x, resp, None, config.max_iter, config.tol, config.kappa_max, mu0, kappa0
+        )
         if best is None or ll > best.log_likelihood:
             best = VmfMixture(mu, kappa, weights, ll, it)
     return best
