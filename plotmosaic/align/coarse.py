@@ -563,10 +563,9 @@ def coarse_align(
     start = time.perf_counter()
     rng = np.random.default_rng(seed)
     # An airborne target (ALS/ULS) is georeferenced: its z is the vertical, while its ground normals
-    # show the terrain's slope (11 deg on the simulated plot) and few stems correct them. Levelling it
-    # by its normals tilted it against a TLS source levelled by its stems, and 10 % of TLS -> ALS
-    # starts then took a heading 180 deg off. The source may come in any orientation: several
-    # vertical hypotheses (z-up first when it is airborne), each searched.
+    # show the terrain's slope and few stems correct them (docs/method.md#coarse-stage-settings).
+    # The source may come in any orientation: several vertical hypotheses (z-up first when it is
+    # airborne), each searched.
     src, tgt = both(
         lambda job: _prepared(*job),
         (source, config, seed, source.kind in AIRBORNE, False, config.max_verticals),

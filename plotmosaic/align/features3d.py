@@ -69,9 +69,9 @@ def fpfh_features(points: np.ndarray, config: CoarseConfig, voxel: float | None 
 def fpfh(pts: np.ndarray, normal_radius: float, radius: float, max_nn: int) -> np.ndarray:
     """(N, 33) FPFH descriptors (Rusu et al. 2009, with Open3D's pair features and binning).
 
-    numpy/scipy instead of Open3D: the same descriptors at a similar cost, without Open3D's ~1 s import
+    numpy/scipy instead of Open3D: the same descriptors at a similar cost, without Open3D's slow import
     on every align. Normals keep the eigen-solver's sign, as in Open3D: orienting them towards the
-    cloud's centre found the boxed-view truth on 0 of 5 trials instead of 2.
+    cloud's centre lost the truth of boxed-in views.
     """
     n_pts = len(pts)
     out = np.zeros((n_pts, 3 * BINS), np.float32)
@@ -202,9 +202,8 @@ def vote_4dof(p: np.ndarray, q: np.ndarray, config: CoarseConfig) -> list[tuple[
     With the vertical known, a heading fixes every correspondence's translation q - R p; the right
     ones agree within the inlier distance. Each heading's translations are binned (two grids half a
     bin apart, so a cluster cut by one grid's border is whole in the other) and the fullest bins
-    become poses. Exhaustive and seeded by nothing: random pair sampling scored the first 3,000
-    consistent of 200,000 draws, a handful of right samples when 13 of 1,400 matches are right
-    (MLS views 8 m apart).
+    become poses. Exhaustive and seeded by nothing: random pair sampling draws only a handful of
+    right samples when few matches are right (sparse views metres apart).
     """
     c = config
     if len(p) < 2:
@@ -235,8 +234,8 @@ def vote_4dof(p: np.ndarray, q: np.ndarray, config: CoarseConfig) -> list[tuple[
                 best_n.append(n[k])
     if not best_n:
         return []
-    # ranked by their bins' counts: a pre-count on a subset of the matches holds ~4 of 24 right ones
-    # and lost the pose among hundreds of chance bins
+    # ranked by their bins' counts over all matches: a pre-count on a subset holds too few right
+    # ones and lost the pose among hundreds of chance bins
     order = np.argsort(-np.asarray(best_n), kind="stable")[:PRE_KEEP]
     R = _rz(np.asarray(best_R)[order])
     t = np.asarray(best_t)[order] - np.einsum("kij,j->ki", R, centre)

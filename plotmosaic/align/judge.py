@@ -347,8 +347,7 @@ def judge(
             }
         )
         # a rival too blunt to be accepted itself fits only by chance: it may not outscore the pose
-        # (mls-boxed6m: right poses, sharpness 0.14, lost on score to chance fits at 0.027), but
-        # it stays a rival of the fine margin
+        # (docs/method.md#judge-settings), but it stays a rival of the fine margin
         if prof["score"] > best and sharp >= config.blunt_min_sharpness:
             best, best_T, best_name, best_prof = prof["score"], A, name, prof
         if fine > fine_best:

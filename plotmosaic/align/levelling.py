@@ -225,8 +225,8 @@ def vertical_hypotheses(
     fit = None if fit is None else _upper(rotation_between(both, Z).T @ fit)
     found = [Vertical(both, "normals")]
     if trunks is not None:
-        # ground-based views: trunks first, the kind two views of one plot agree on best (pair
-        # consistency 0.3-1.8 deg against 0.4-2.5 deg for the joint normals, MLS and TreeLS views)
+        # ground-based views: trunks first, the kind two views of one plot agree on best
+        # (docs/method.md#coarse-stage-settings)
         found.insert(0 if not airborne else 1, Vertical(trunks, "trunks"))
     found.append(Vertical(ground, "ground"))
     if fit is not None:
@@ -238,8 +238,8 @@ def vertical_hypotheses(
     ordered += found[1:]
     out: list[Vertical] = []
     for v in ordered:
-        # an estimate far from the joint one levels nothing: the ground-normals vote of a boxed 6 m
-        # view picked a trunk's side, 90 deg off, and took a search slot from a useful vertical
+        # an estimate far from the joint one levels nothing (a boxed view's ground vote can pick a
+        # trunk's side) and would take a search slot from a useful vertical
         far = v.name != "z-up" and angle_deg(v.up, both) > c.max_vertical_spread_deg
         if not far and all(angle_deg(v.up, o.up) > c.vertical_duplicate_deg for o in out):
             out.append(v)

@@ -24,7 +24,7 @@ LOG_4PI = np.log(4.0 * np.pi)
 
 def logsumexp_rows(a: np.ndarray) -> np.ndarray:
     """(N, 1) log sum_k exp a[:, k] for a few columns K (a column loop: numpy's reductions over a
-    short last axis are slow, scipy's logsumexp took a third of the EM time)."""
+    short last axis, and scipy's logsumexp, are slow here)."""
     m = a[:, 0].copy()
     for j in range(1, a.shape[1]):
         np.maximum(m, a[:, j], out=m)

@@ -127,7 +127,7 @@ class ViewpointConfig(BaseModel):
         description="horizontal circle (m) about the origin whose density is compared",
     )
     cell: float = Field(1.0, gt=0, le=100, description="cell (m) of the density comparison")
-    # one scan of the `large` preset: 23-25; a merged TLS plot (TreeLS) about its centre: 0.9
+    # a single scan crowds around its scanner many times over; a merged plot does not
     min_crowding: float = Field(
         4.0,
         gt=1,
@@ -162,7 +162,7 @@ class StemNormalConfig(BaseModel):
         0.3, ge=0, le=1, description="(l1 - l2) / l1 of the neighbourhood at least: stem-like"
     )
     min_points: int = Field(8, ge=4, le=1000, description="fewer neighbours: no circle")
-    # the `large` preset's bark is rough to ~1.5 cm; branches, foliage and stem bases fit worse
+    # above bark's roughness; branches, foliage and stem bases fit worse (docs/method.md#fine-stage-settings)
     max_residual: float = Field(
         0.02, gt=0, le=1, description="rms distance (m) of the neighbours from the circle at most"
     )
@@ -189,8 +189,8 @@ class AlignConfig(BaseModel):
     sparse_min_neighbors: int = Field(
         6, ge=1, le=1000, description="median neighbours within normal_radius below this: sparse"
     )
-    # the `large` preset at 60k points, 60 pairs from their poses: yaw noise a pair 0.018 -> 0.014 deg
-    # (benchmarks/results/graph.md, "Round stems")
+    # a sparse stem's plane normal is the view direction; its circle's radius is not
+    # (docs/method.md#fine-stage-settings)
     stem_normals: StemNormalConfig = Field(
         default_factory=StemNormalConfig,
         description="circle-fitted normals on stems where a ground-based scan is sparse",
@@ -251,8 +251,8 @@ class AlignConfig(BaseModel):
         default_factory=_final_schedule, min_length=1, description="stages of the final ICP"
     )
     # the fine stage's last, tight stage where both clouds are dense (align/pipeline.final_icp), x the
-    # judge's scale factor: TreeLS views 7 m apart from the truth, yaw 0.033 -> 0.004 deg; on the sparse
-    # small preset (factor ~5) it would be looser than the last stage and is left out
+    # judge's scale factor; on sparse clouds it would be looser than the last stage and is left out
+    # (docs/method.md#fine-stage-settings)
     final_polish_distance: float = Field(
         0.05, gt=0, le=1, description="correspondence distance (m) of the fine stage's polish stage"
     )
@@ -263,18 +263,16 @@ class AlignConfig(BaseModel):
         0.03, gt=0, le=1, description="least Tukey width (m) of the fine stage when it polishes"
     )
     # two scans of these kinds polish at final_polish_* unscaled, however sparse: their plane
-    # residuals are range noise (mm); unpolished, stems seen from opposite sides pull 18 m pairs of the
-    # `large` preset at 60k points ~0.9 cm short (10 pairs from the truth: -0.88 -> -0.16 cm mean
-    # along the baseline, 1.44 -> 0.59 cm mean error, benchmarks/results/graph.md)
+    # residuals are range noise (mm); unpolished, stems seen from opposite sides pull far pairs short
+    # (docs/method.md#fine-stage-settings)
     final_polish_fixed_kinds: list[Literal["tls", "mls", "uls", "als"]] = Field(
         default_factory=lambda: ["tls"],
         description="pairs of these sensor kinds polish unscaled (others x the judge's scale factor)",
     )
     # two scans of these kinds end with a symmetric ICP (each one's sample on the other's planes, one
-    # solve): on the `large` preset at 60k points, 60 pairs from their poses, mean error 0.87 -> 0.48
-    # cm and 0.033 -> 0.023 deg, worst 6.6 -> 1.3 cm and 0.24 -> 0.07 deg (benchmarks/results/graph.md);
-    # other kinds, and a pair whose target is `final_reverse_ratio` sparser, keep one direction (the
-    # denser cloud's planes: a sparse cloud's planes bias it)
+    # solve: neither side's plane errors dominate; docs/method.md#fine-stage-settings); other kinds,
+    # and a pair whose target is `final_reverse_ratio` sparser, keep one direction (the denser cloud's
+    # planes: a sparse cloud's planes bias it)
     final_symmetric_kinds: list[Literal["tls", "mls", "uls", "als"]] = Field(
         default_factory=lambda: ["tls"],
         description="pairs of these sensor kinds end with a symmetric ICP (empty: one direction)",
@@ -307,26 +305,22 @@ class AlignConfig(BaseModel):
     max_inlier_rmse: float = Field(
         0.2, gt=0, le=100, description="above (m): cannot register; sparse ALS alone gives ~0.16"
     )
-    # judge confidence below this => ambiguous => exit 3: a distinct rival pose fits almost as well
-    # (benchmarks/bench_judge.py, 12 real and simulated cases: right poses 0.29-1.0, wrong ones
-    # 0.00-0.10; but a leaf-on UAS strip -> ALS pose 10.6 deg / 1.6 m off reached 0.21 in
-    # benchmarks/bench_real.py, so the floor sits between that and the lowest right pose;
-    # register-plot sets 0 and lets its loops decide); with judge.min_sharpness 0.04: confidence
-    # alone let an FPFH pose 165 deg off through at 0.37 (benchmarks/results/judge.md)
+    # judge confidence below this => ambiguous => exit 3: a distinct rival pose fits almost as well;
+    # between the wrong poses' highest and the right poses' lowest (docs/method.md#judge-settings);
+    # register-plot sets 0 and lets its loops decide
     min_confidence: float = Field(
         0.25, ge=0, le=1, description="least judge confidence (margin over the best distinct rival)"
     )
     # the final ICP takes its planes from the denser cloud: planes of a sparse ALS target (1 m
-    # normals) bias yaw by ~0.2 deg on UAS -> ALS; registered the other way round and inverted
+    # normals) bias yaw (docs/method.md#fine-stage-settings); registered the other way round and inverted
     final_reverse_ratio: float = Field(
         2.0,
         ge=1,
         description="target spacing / source spacing above which the final ICP runs target -> source",
     )
     # the final ICP keeps a match only where both scanners see the same side of its plane: a point on
-    # the far side of a thin stem or branch no longer pulls two scans together (the `large` preset at
-    # 60k points, 60 pairs from their poses: mean error along the baseline 0.19 -> 0.04 cm, worst
-    # 1.34 -> 0.99 cm; benchmarks/results/graph.md)
+    # the far side of a thin stem or branch no longer pulls two scans together
+    # (docs/method.md#fine-stage-settings)
     viewpoint: ViewpointConfig = Field(
         default_factory=ViewpointConfig,
         description="scanner positions for the final ICP's side test",

@@ -7,8 +7,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 class SceneConfig(BaseModel):
     """Is each cloud a forest scene (align/scene.py)? Refused before any pose is weighed (exit 3).
-    Calibrated by benchmarks/bench_judge_scenes.py (benchmarks/results/judge.md, "Scenes that are not
-    a forest"): forest clouds of every sensor against industrial, indoor, urban and random scenes."""
+    Calibration: see docs/method.md#judge-settings."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -84,8 +83,8 @@ class JudgeConfig(BaseModel):
     rival_points: int = Field(
         2_000, ge=200, le=50_000, description="source points of a rival's refinement ICP"
     )
-    # the last, 4 cm stage (kernel as narrow): without it the boxed MLS view's truth, refined as a rival,
-    # drifted 0.94 deg / 10 cm and its fine share fell to chance level (0.057 -> 0.016); with it 0.045 deg
+    # a last stage as tight as the finest scale: a rival that is the truth must end on it, or its
+    # fine share falls to chance (see docs/method.md#judge-settings)
     rival_schedule: list[tuple[float, int]] = Field(
         [(0.6, 8), (0.25, 8), (0.1, 6), (0.04, 8)],
         description="(distance m, iterations) stages of a rival's refinement; distances x the scale factor",
@@ -96,9 +95,8 @@ class JudgeConfig(BaseModel):
         le=1,
         description="widest Tukey floor (m, x the scale factor) of a rival's stages",
     )
-    # bench_real.py uas-strip-als paper 10: a raster start refined to 5.2 deg / 7 cm off the right pose (a
-    # narrow strip's roll is held weakly: the 10 cm stage ran out still sliding) took the fine margin to 0.59;
-    # a second pass reached the pose. A far rival cannot be the pose, so only near ones pay for it
+    # a narrow strip holds its roll weakly: a near rival may still be sliding into the pose, and a
+    # far one cannot be the pose, so only near ones pay for more passes (docs/method.md#judge-settings)
     near_rival_radii: float = Field(
         2.0,
         ge=1,
@@ -109,10 +107,8 @@ class JudgeConfig(BaseModel):
     near_rival_passes: int = Field(
         2, ge=0, le=8, description="extra refinement passes of a near rival at most (0: none)"
     )
-    # bench_real.py mls-2views beyond 0 (judge.md, "The pose's own basin"): an FPFH pose the final ICP left
-    # 3.8 deg / 0.31 m off, inside the distinct radius of the truth, fine share 0.011; refined from 2 deg /
-    # 0.2 m around it, 12 of 12 starts reach the truth (0.053, 5x); a right pose's return to it (treels, MLS:
-    # 1.00x its share) or, where the short refinement stalls (sim8m paper S1 -> S0), end blunter (0.02x)
+    # a near miss the final ICP left inside the distinct radius has the sharper truth beside it;
+    # a right pose's starts return to it (docs/method.md#judge-settings)
     basin_neighbours: int = Field(
         2,
         ge=0,
@@ -126,7 +122,7 @@ class JudgeConfig(BaseModel):
     basin_m: float = Field(
         0.2, gt=0, le=2, description="shift of a basin start (m, x the scale factor)"
     )
-    # a right pose's returning starts end at 1.002-1.003x its share (refinement noise); the near miss's at 5x
+    # above refinement noise, far below what a near miss's starts gain (docs/method.md#judge-settings)
     basin_tolerance: float = Field(
         0.25,
         ge=0,
@@ -147,13 +143,12 @@ class JudgeConfig(BaseModel):
         le=1,
         description="least judge score of an accepted pose: a floor, the margin decides",
     )
-    # the boxed MLS view's right pose: 5.5-6.9x the rival's share at the smallest scale, 1.5x at the next
+    # wider scales rank a boxed-in view's rivals level with the truth; the finest does not
     fine_scales: int = Field(
         1, ge=1, le=8, description="smallest profile scales whose share makes the fine margin"
     )
-    # bench_judge.py (judge.md), 36 cases at 73eca96: right poses' fine margins 0.735-1.0 (the UAS strip
-    # lowest; the boxed view 0.794, its score margin 0.053); wrong ones <= 0.532, a near miss. Confidence
-    # 0.25 (min_confidence) = a fine margin of 0.6
+    # between the wrong poses' highest fine margin and the right poses' lowest
+    # (docs/method.md#judge-settings)
     chance_margin: float = Field(
         0.5,
         ge=0,
@@ -166,19 +161,16 @@ class JudgeConfig(BaseModel):
         le=1,
         description="fine margin (1 - best rival's fine share / the pose's) counting as confidence 1",
     )
-    # bench_real.py mls-2views: a pose 175 deg / 7.6 m off won with confidence 0.27 among wrong rivals
-    # (the truth was not among them) at sharpness 0.025; right poses: >= 0.046 (weak sim pairs),
-    # >= 0.081 in bench_judge.py's 12 cases
+    # a wrong pose among wrong rivals can win on confidence, never on sharpness
+    # (docs/method.md#judge-settings)
     min_sharpness: float = Field(
         0.04,
         ge=0,
         le=1,
         description="least sharpness (see stored_min_sharpness) of a pose accepted on its confidence alone",
     )
-    # bench_real.py mls-uas at d742d0a (MLS clip onto the UAS drone clip): right poses at sharpness
-    # 0.039-0.040 with confidence 1.0, two sensors' noise spreads the finest share. Calibration at
-    # 6077240 (judge.md): all 38 wrong poses within 0.03-0.04 have confidence 0; wrong ones reaching
-    # confidence 1.0 with the truth withheld sit at 0.026 (and score < min_score)
+    # two noisy sensors together spread the finest share: a right pose may be blunter, but then only
+    # as a clear winner (docs/method.md#judge-settings)
     blunt_min_sharpness: float = Field(
         0.03,
         ge=0,
@@ -204,8 +196,8 @@ class JudgeConfig(BaseModel):
         le=2,
         description="most a verified stored pose may move under ICP (m, at the source centroid)",
     )
-    # bench_judge.py, 12 cases: right poses 0.081-0.43, 155 wrong ones 0.002-0.122 of which none
-    # also passed the correction and score checks; a pose that fails falls back to the search
+    # right stored poses are sharp; a pose that fails falls back to the search
+    # (docs/method.md#judge-settings)
     stored_min_sharpness: float = Field(
         0.075,
         gt=0,

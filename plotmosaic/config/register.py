@@ -115,7 +115,7 @@ class RegisterOptions(BaseModel):
     )
     # the ALS placements (those kept by placement_min_confidence) as edges to one ALS node per plot:
     # they do not depend on the scan-to-scan edges, so they hold the far corners of a big plot
-    # where a chain of pairs drifts (`large` preset: placements within 1.5 cm of the truth)
+    # where a chain of pairs drifts (docs/method.md#plot-settings)
     als_anchors: bool = Field(
         True, description="ALS placements of a plot's scans are edges of its pose graph"
     )

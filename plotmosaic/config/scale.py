@@ -59,8 +59,8 @@ class SignatureConfig(BaseModel):
     partners: int = Field(
         4, ge=1, le=16, description="best-ranked partners each scan is registered with"
     )
-    # `large` at 60k points: of the 4 best-ranked partners of the 15 scans the ALS did not place,
-    # the best was a grid neighbour (18 m) for 14, the 2nd-4th for 17 of 45 (the rest 25-105 m away)
+    # the best-ranked partner of an unplaced scan is mostly its grid neighbour
+    # (docs/method.md#plot-settings)
     placed_partners: int = Field(
         1,
         ge=1,
@@ -77,16 +77,16 @@ class PlacedPriors(BaseModel):
     verify_first: bool = Field(
         True, description="a prior from two sure placements is verified before any search"
     )
-    # `large` at 60k points: the 21 placements at 0.81-1.0 were all within 1.5 cm / 0.048 deg, and
-    # a prior that does not verify still gets the full search
+    # placements this sure were all right to cm (docs/method.md#plot-settings); a prior that does not
+    # verify still gets the full search
     min_confidence: float = Field(
         0.8,
         ge=0,
         le=1,
         description="both placements at least this sure (judge confidence) to verify first",
     )
-    # `large` (18 m grid, 60k points): neighbours 18 m apart verified 29 of 29, diagonals (25 m) 5 of
-    # 18, pairs >= 35 m 0 of 27 at 30-120 s each; two placed scans close a loop through the ALS node
+    # far pairs rarely verify and cost a full search each (docs/method.md#plot-settings); two placed
+    # scans close a loop through the ALS node anyway
     reach: float = Field(
         1.25,
         gt=0,
