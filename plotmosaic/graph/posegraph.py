@@ -308,20 +308,27 @@ def _noise(info: np.ndarray, config: PoseGraphConfig):
     return gtsam.noiseModel.Robust.Create(kernel, base)
 
 
-def _conditioned(G: nx.Graph, u: str, v: str, config: PoseGraphConfig) -> np.ndarray:
-    """The edge's conditioned information, remembered on the edge (an eigen-decomposition per edge, once)."""
-    e = G.edges[u, v]
-    memo = e.get("_info")
-    if memo is None or memo[0] is not config:
-        memo = e["_info"] = (
-            config,
-            condition_information(e.get("information"), e.get("inlier_rmse"), config),
-        )
-    return memo[1]
+@dataclass
+class EdgeInformation:
+    """The conditioned information of a graph's edges, owned by one solve or optimisation: an
+    eigen-decomposition per edge, once, however often the edge is solved and tested."""
+
+    G: nx.Graph
+    config: PoseGraphConfig
+    held: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
+
+    def of(self, u: str, v: str) -> np.ndarray:
+        key = _edge_id(u, v)
+        if key not in self.held:
+            e = self.G.edges[u, v]
+            self.held[key] = condition_information(
+                e.get("information"), e.get("inlier_rmse"), self.config
+            )
+        return self.held[key]
 
 
 def residual(
-    G: nx.Graph, u: str, v: str, poses: dict[str, np.ndarray], config: PoseGraphConfig
+    G: nx.Graph, u: str, v: str, poses: dict[str, np.ndarray], information: EdgeInformation
 ) -> dict:
     """Residual of one edge at the given poses: rotation (deg), translation (m) and chi2 (conditioned info)."""
     e = G.edges[u, v]
@@ -330,7 +337,7 @@ def residual(
         inverse(e["transform"]) @ inverse(poses[j]) @ poses[i]
     )  # identity when the edge is satisfied
     xi = gtsam.Pose3.Logmap(_pose3(E))
-    info = _conditioned(G, u, v, config)
+    info = information.of(u, v)
     return {
         "rotation_deg": rotation_deg(E),
         "translation": float(np.linalg.norm(E[:3, 3])),
@@ -338,7 +345,7 @@ def residual(
     }
 
 
-def _solve(G: nx.Graph, reference: str, config: PoseGraphConfig):
+def _solve(G: nx.Graph, reference: str, config: PoseGraphConfig, information: EdgeInformation):
     """One robust LM solve: (Solution without sigmas, factor graph, result values, keys)."""
     init = spanning_tree_poses(G, reference)
     placed = sorted(init)
@@ -355,7 +362,7 @@ def _solve(G: nx.Graph, reference: str, config: PoseGraphConfig):
     for u, v, e in kept(G).edges(data=True):
         if u not in keys or v not in keys:
             continue
-        info = _conditioned(G, u, v, config)
+        info = information.of(u, v)
         graph.add(
             gtsam.BetweenFactorPose3(
                 keys[e["target"]], keys[e["source"]], _pose3(e["transform"]), _noise(info, config)
@@ -389,7 +396,7 @@ def _add_sigmas(sol: Solution, graph, result, keys: dict) -> Solution:
 def solve(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None) -> Solution:
     """Place every scan connected to `reference` (fixed at identity) with robust Levenberg-Marquardt."""
     config = config or PoseGraphConfig()
-    return _add_sigmas(*_solve(G, reference, config))
+    return _add_sigmas(*_solve(G, reference, config, EdgeInformation(G, config)))
 
 
 def _drop(G: nx.Graph, u: str, v: str, reason: str, dropped: list[dict]) -> None:
@@ -414,18 +421,19 @@ def optimise(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None)
     for u, v in unconfirmed:
         _drop(G, u, v, "unverified", dropped)
     initial = spanning_tree_poses(G, reference)
+    information = EdgeInformation(G, config)
     for u, v, e in G.edges(data=True):
         e["residual_before"] = (
-            residual(G, u, v, initial, config) if u in initial and v in initial else None
+            residual(G, u, v, initial, information) if u in initial and v in initial else None
         )
     residual_drops = 0
     while True:
-        sol, graph, result, keys = _solve(G, reference, config)
+        sol, graph, result, keys = _solve(G, reference, config, information)
         worst, worst_chi2 = None, 0.0
         for u, v in kept(G).edges():
             if u not in sol.poses or v not in sol.poses:
                 continue
-            r = residual(G, u, v, sol.poses, config)
+            r = residual(G, u, v, sol.poses, information)
             metric = (
                 r["rotation_deg"] > config.outlier_rotation_deg
                 or r["translation"] > config.outlier_translation
@@ -439,9 +447,7 @@ def optimise(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None)
     _add_sigmas(sol, graph, result, keys)
     for u, v, e in G.edges(data=True):
         e["residual_after"] = (
-            residual(G, u, v, sol.poses, config) if u in sol.poses and v in sol.poses else None
+            residual(G, u, v, sol.poses, information) if u in sol.poses and v in sol.poses else None
         )
-    for _, _, e in G.edges(data=True):
-        e.pop("_info", None)  # not part of the graph's saved form
     sol.dropped = dropped
     return sol
