@@ -1,7 +1,7 @@
 """Pictures for `plotmosaic report` that the register-plot report does not already draw.
 
-Top/side views of placed scans and the pose graph come from `plotmosaic.report.runs`
-(plot_scans, plot_graph); this module adds a thin vertical slice (where misalignment shows as
+Top/side views of placed scans come from `plotmosaic.report.pictures` and the pose-graph map
+from `plotmosaic.report.views`; this module adds a thin vertical slice (where misalignment shows as
 doubled stems and ground) and the structural-complexity levels of a prepared cloud.
 Everything is matplotlib with the Agg backend, metres on equal-aspect axes.
 """

@@ -31,6 +31,7 @@ from plotmosaic.report.build import ReportInput, Stage, build_report
 from plotmosaic.report.figures import origin_of, plot_levels, plot_slice, subsample
 from plotmosaic.report.pictures import plot_scans
 from plotmosaic.report.runs import residual_summary
+from plotmosaic.report.views import plot_map
 
 
 @dataclass
@@ -329,13 +330,14 @@ def report_dir(
             T = {sid: poses.scans[sid].transform for sid in ids if sid in poses.scans}
             figs.append(
                 (
-                    f"Plot {plot}, pose graph (edge colour = residual after optimisation)",
-                    graph_report.plot_graph(
+                    f"Plot {plot}, pose graph (edge label = residual after optimisation)",
+                    plot_map(
                         out / f"{plot}_graph.png",
                         sub,
-                        T,
+                        {k: v[:3, 3] for k, v in T.items()},
+                        None,
                         f"plot {plot}: pose graph",
-                        origin_of({k: v[None, :3, 3] for k, v in T.items()}) if T else None,
+                        origin_of({k: v[None, :3, 3] for k, v in T.items()}) if T else np.zeros(3),
                     ),
                 )
             )

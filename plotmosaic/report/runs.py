@@ -5,24 +5,16 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import networkx as nx  # noqa: E402
-import numpy as np  # noqa: E402
+import networkx as nx
+import numpy as np
 
 from plotmosaic.config.register import PoseGraphConfig
 from plotmosaic.config.report import ReportConfig
-from plotmosaic.io.atomic import write_text_atomic  # noqa: E402
-from plotmosaic.io.frame import (
-    apply_transform,  # noqa: E402
-    inverse,
-    pose_error,
-)
+from plotmosaic.io.atomic import write_text_atomic
+from plotmosaic.io.frame import apply_transform, inverse, pose_error
 from plotmosaic.io.las import read_cloud
-from plotmosaic.io.pictures import savefig  # noqa: E402
 from plotmosaic.report.build import ReportInput, Stage, build_report
+from plotmosaic.report.views import plot_map
 
 
 def _fmt(value, scale=1.0, digits=1) -> str:
@@ -31,75 +23,6 @@ def _fmt(value, scale=1.0, digits=1) -> str:
 
 def yaw_deg(T: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(T[1, 0], T[0, 0])))
-
-
-def plot_graph(
-    path: Path,
-    G: nx.Graph,
-    poses: dict[str, np.ndarray],
-    title: str,
-    origin: np.ndarray | None = None,
-) -> Path:
-    """Scans at their placed positions (top view); edges coloured by final translation residual, dropped dashed."""
-    origin = np.zeros(3) if origin is None else origin
-    fig, ax = plt.subplots(figsize=(7, 6.5))
-    pos = {n: (poses[n][:3, 3] - origin)[:2] for n in G.nodes if n in poses}
-    if pos:  # unplaced scans in a row below the placed ones
-        xy = np.array(list(pos.values()))
-        x0, y0 = xy[:, 0].min(), xy[:, 1].min() - 0.15 * (np.ptp(xy[:, 1]) + 5)
-    else:
-        x0, y0 = 0.0, 0.0
-    step = 0
-    for n in G.nodes:
-        if n not in pos:
-            pos[n] = np.array([x0 + step, y0])
-            step += 4.0
-    cmap = plt.get_cmap("viridis")
-    res = [
-        e["residual_after"]["translation"] * 100
-        for _, _, e in G.edges(data=True)
-        if not e.get("dropped") and e.get("residual_after")
-    ]
-    vmax = max(res + [1.0])
-    for u, v, e in G.edges(data=True):
-        (x1, y1), (x2, y2) = pos[u], pos[v]
-        r = e.get("residual_after")
-        if e.get("dropped"):
-            ax.plot([x1, x2], [y1, y2], "--", color="red", lw=1.5)
-            label = f"dropped ({e.get('drop_reason')})"
-        else:
-            cm = (r["translation"] * 100) if r else 0.0
-            ax.plot([x1, x2], [y1, y2], "-", color=cmap(cm / vmax), lw=2.5)
-            label = f"{cm:.1f} cm" if r else ""
-        ax.text(
-            (x1 + x2) / 2,
-            (y1 + y2) / 2,
-            label,
-            fontsize=7,
-            ha="center",
-            va="center",
-            bbox={"fc": "white", "ec": "none", "alpha": 0.7, "pad": 0.5},
-        )
-    for n, (x, y) in pos.items():
-        placed = n in poses
-        ax.scatter(
-            [x],
-            [y],
-            s=140,
-            color="tab:blue" if placed else "lightgrey",
-            edgecolor="black",
-            zorder=3,
-        )
-        ax.text(
-            x, y, f" {n}" + ("" if placed else " (unplaced)"), fontsize=9, va="bottom", zorder=4
-        )
-    sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(0, vmax))
-    fig.colorbar(sm, ax=ax, label="edge residual after optimisation (cm)", shrink=0.8)
-    ax.set_aspect("equal")
-    ax.set_title(title)
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    return savefig(fig, path)
 
 
 def edge_table(G: nx.Graph) -> list[str]:
@@ -323,8 +246,13 @@ def write_register_report(
                 + [f"- {f['source']} -> {f['target']}: {f.get('error')}" for f in failed]
                 + [""]
             )
-        graph_png = plot_graph(
-            out / f"{r.plot}_graph.png", sub, r.solution.poses, f"plot {r.plot}: pose graph"
+        graph_png = plot_map(
+            out / f"{r.plot}_graph.png",
+            sub,
+            {n: T[:3, 3] for n, T in r.solution.poses.items()},
+            None,
+            f"plot {r.plot}: pose graph",
+            np.zeros(3),
         )
         lines += _md_figures(figures, r.plot) + [f"![graph]({graph_png.name})", ""]
     return write_text_atomic(out / "report.md", "\n".join(lines))

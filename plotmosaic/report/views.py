@@ -194,6 +194,20 @@ def plot_scan_distances(path: Path, medians: dict[str, float], spreads: dict[str
     return savefig(fig, path)
 
 
+def _map_positions(
+    G: nx.Graph, positions: dict[str, np.ndarray], origin: np.ndarray
+) -> dict[str, np.ndarray]:
+    """Each node's map position: placed scans where they are, unplaced ones in a row below."""
+    pos = {n: positions[n][:2] - origin[:2] for n in G.nodes if n in positions}
+    x0, y0 = 0.0, 0.0
+    if pos:
+        xy = np.array(list(pos.values()))
+        x0, y0 = xy[:, 0].min(), xy[:, 1].min() - 0.15 * (np.ptp(xy[:, 1]) + 5)
+    unplaced = [n for n in G.nodes if n not in pos]
+    pos.update({n: np.array([x0 + 4.0 * k, y0]) for k, n in enumerate(unplaced)})
+    return pos
+
+
 def plot_map(
     path: Path,
     G: nx.Graph,
@@ -203,7 +217,8 @@ def plot_map(
     origin: np.ndarray,
     unsure: set[tuple[str, str]] = frozenset(),
 ) -> Path:
-    """Scan positions and edges from above: kept (solid), dropped (red dashed, reason), unsure (orange dotted).
+    """The pose-graph map: scans from above (unplaced ones grey, in a row below) and edges, kept
+    (solid, residual after the solve), dropped (red dashed, reason), unsure (orange dotted).
 
     `background` is (image, extent in the same frame as positions, label): canopy height or hillshade.
     """
@@ -222,10 +237,8 @@ def plot_map(
         )
         if "canopy" in label:
             fig.colorbar(im, ax=ax, label=label, shrink=0.7)
-    pos = {n: positions[n][:2] - origin[:2] for n in G.nodes if n in positions}
+    pos = _map_positions(G, positions, origin)
     for u, v, e in G.edges(data=True):
-        if u not in pos or v not in pos:
-            continue
         (x1, y1), (x2, y2) = pos[u], pos[v]
         key = tuple(sorted((u, v)))
         if e.get("dropped"):
@@ -248,13 +261,17 @@ def plot_map(
             bbox={"fc": "white", "ec": "none", "alpha": 0.75, "pad": 0.5},
         )
     for n, (x, y) in pos.items():
-        ax.scatter([x], [y], s=150, color="gold", edgecolor="black", zorder=3, marker="^")
-        ax.text(x, y, f"  {n}", fontsize=9, va="bottom", zorder=4, weight="bold")
+        placed = n in positions
+        colour = "gold" if placed else "lightgrey"
+        ax.scatter([x], [y], s=150, color=colour, edgecolor="black", zorder=3, marker="^")
+        name = f"  {n}" + ("" if placed else " (unplaced)")
+        ax.text(x, y, name, fontsize=9, va="bottom", zorder=4, weight="bold")
     ax.plot([], [], "-", color="tab:blue", label="kept edge (residual after the solve)")
     ax.plot([], [], "--", color="red", label="dropped edge (reason)")
     ax.plot([], [], ":", color="darkorange", label="unsure edge (low coarse confidence)")
     ax.legend(fontsize=8, loc="lower right")
-    ax.set_aspect("equal")
+    # without a background the limits widen, not the figure shrink: a row of scans stays readable
+    ax.set_aspect("equal", adjustable="box" if background is not None else "datalim")
     ax.set_title(title + (f"\nbackground: {background[2]}" if background is not None else ""))
     ax.set_xlabel(f"x - {origin[0]:.0f} (m)" if origin.any() else "x (m)")
     ax.set_ylabel(f"y - {origin[1]:.0f} (m)" if origin.any() else "y (m)")
