@@ -27,6 +27,12 @@ class RegistrationFailed(PlotmosaicError):
     exit_code = 3
 
 
+def short_error(exc: Exception) -> str:
+    """A library's error message cut to its first line, to go inside our one-line message."""
+    text = str(exc).strip().splitlines()
+    return text[0][:160] if text else type(exc).__name__
+
+
 INTERRUPTED = 130  # exit code of an interrupted run (Ctrl-C or SIGTERM), the shell's 128 + SIGINT
 
 

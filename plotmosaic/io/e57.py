@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plotmosaic.errors import InputError
+from plotmosaic.errors import InputError, short_error
 from plotmosaic.io.paths import check_input_file
 
 CHUNK_SIZE = 1_000_000
@@ -68,11 +68,6 @@ class E57Scan:
         return f"scan {self.index}" + (f" ({self.name!r})" if self.name else "")
 
 
-def _short(exc: Exception) -> str:
-    text = str(exc).strip().splitlines()
-    return text[0][:160] if text else type(exc).__name__
-
-
 def _libe57():
     from pye57 import libe57
 
@@ -85,7 +80,7 @@ def _open(path: Path):
     try:
         return libe57.ImageFile(str(path), "r")
     except Exception as exc:  # libE57 raises E57Exception (bad checksum, bad header, ...)
-        raise InputError(f"{path}: not a readable E57 file ({_short(exc)})") from None
+        raise InputError(f"{path}: not a readable E57 file ({short_error(exc)})") from None
 
 
 def _number(node) -> float:
@@ -173,7 +168,7 @@ def _describe(node, index: int) -> E57Scan:
     try:
         pose, problem = _pose(node), None
     except Exception as exc:  # the points are still usable: registration does not need the pose
-        pose, problem = None, _short(exc)
+        pose, problem = None, short_error(exc)
     return E57Scan(
         index,
         _string(node, "name"),
@@ -196,7 +191,9 @@ def list_scans(path: str | Path) -> list[E57Scan]:
             try:
                 scans.append(_describe(node, i))
             except Exception as exc:
-                raise InputError(f"{path}: scan {i}: unreadable header ({_short(exc)})") from None
+                raise InputError(
+                    f"{path}: scan {i}: unreadable header ({short_error(exc)})"
+                ) from None
         return scans
     finally:
         imf.close()
@@ -369,14 +366,14 @@ def iter_e57_chunks(
         try:
             reader = points.reader(buffers)
         except Exception as exc:
-            raise InputError(f"{where}: unreadable point data ({_short(exc)})") from None
+            raise InputError(f"{where}: unreadable point data ({short_error(exc)})") from None
         try:
             while True:
                 try:
                     got = reader.read()
                 except Exception as exc:
                     raise InputError(
-                        f"{where}: corrupt or truncated point data ({_short(exc)})"
+                        f"{where}: corrupt or truncated point data ({short_error(exc)})"
                     ) from None
                 if got == 0:
                     break

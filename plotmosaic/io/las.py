@@ -8,6 +8,7 @@ as their LAS dtypes. Reading goes chunk by chunk so memory stays bounded by what
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from functools import cached_property, partial
@@ -18,7 +19,7 @@ import numpy as np
 from pyproj import CRS
 
 from plotmosaic.config.merge import CHUNK_SIZE
-from plotmosaic.errors import InputError
+from plotmosaic.errors import InputError, short_error
 from plotmosaic.io import e57, ply
 from plotmosaic.io.atomic import atomic_output
 from plotmosaic.io.paths import check_input_file
@@ -126,9 +127,17 @@ def open_las(path: Path, xyz_only: bool = False) -> laspy.LasReader:
         raise InputError(f"{path}: not a readable LAS/LAZ file ({short_error(exc)})") from None
 
 
-def short_error(exc: Exception) -> str:
-    text = str(exc).strip().splitlines()
-    return text[0][:160] if text else type(exc).__name__
+@contextlib.contextmanager
+def corrupt_data(path: Path) -> Iterator[None]:
+    """A codec error while reading points names the file as corrupt or truncated (exit 2)."""
+    try:
+        yield
+    except InputError:
+        raise
+    except Exception as exc:
+        raise InputError(
+            f"{path}: corrupt or truncated LAS/LAZ data ({short_error(exc)})"
+        ) from None
 
 
 def _parse_crs(header: laspy.LasHeader) -> CRS | None:
@@ -183,34 +192,22 @@ def iter_chunks(
     with open_las(path, xyz_only=attributes is False) as reader:
         crs = _parse_crs(reader.header)
         names = _wanted_attributes(reader.header, attributes)
-        try:
+        with corrupt_data(path):
             for chunk in reader.chunk_iterator(chunk_size):
                 xyz = np.column_stack(
                     [np.asarray(chunk.x), np.asarray(chunk.y), np.asarray(chunk.z)]
                 )
                 attrs = {n: np.array(chunk[n]) for n in names}
                 yield PointCloud(xyz, attrs, crs)
-        except InputError:
-            raise
-        except Exception as exc:
-            raise InputError(
-                f"{path}: corrupt or truncated LAS/LAZ data ({short_error(exc)})"
-            ) from None
 
 
 def _las_records(path: Path, attributes: bool | Iterable[str], chunk_size: int = CHUNK_SIZE):
     """(count, raw point record, attribute names, header) per chunk of a LAS/LAZ file."""
     with open_las(path, xyz_only=attributes is False) as reader:
         names = _wanted_attributes(reader.header, attributes)
-        try:
+        with corrupt_data(path):
             for chunk in reader.chunk_iterator(chunk_size):
                 yield len(chunk), chunk, names, reader.header
-        except InputError:
-            raise
-        except Exception as exc:
-            raise InputError(
-                f"{path}: corrupt or truncated LAS/LAZ data ({short_error(exc)})"
-            ) from None
 
 
 def read_cloud(

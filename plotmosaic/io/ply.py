@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 from plyfile import PlyData, PlyParseError
 
-from plotmosaic.errors import InputError
+from plotmosaic.errors import InputError, short_error
 from plotmosaic.io.paths import check_input_file
 
 CHUNK_SIZE = 2_000_000
@@ -33,11 +33,6 @@ _COLOUR = {
 _NORMALS = {"nx": "normal_x", "ny": "normal_y", "nz": "normal_z"}
 
 
-def _short(exc: Exception) -> str:
-    text = str(exc).strip().splitlines()
-    return text[0][:160] if text else type(exc).__name__
-
-
 def _vertices(path: Path):
     """The vertex element's structured array (memory-mapped for binary files)."""
     check_input_file(path, "PLY file")
@@ -48,7 +43,7 @@ def _vertices(path: Path):
     except KeyError:
         raise InputError(f"{path}: PLY file without a 'vertex' element") from None
     except Exception as exc:  # plyfile raises PlyParseError, ValueError, ... for bad headers/bodies
-        raise InputError(f"{path}: not a readable PLY file ({_short(exc)})") from None
+        raise InputError(f"{path}: not a readable PLY file ({short_error(exc)})") from None
     names = array.dtype.names or ()
     missing = [c for c in "xyz" if c not in names]
     if missing:
@@ -173,4 +168,4 @@ def iter_ply_chunks(
     except InputError:
         raise
     except Exception as exc:  # a truncated binary body surfaces when the map is read
-        raise InputError(f"{path}: corrupt or truncated PLY data ({_short(exc)})") from None
+        raise InputError(f"{path}: corrupt or truncated PLY data ({short_error(exc)})") from None

@@ -42,11 +42,11 @@ from plotmosaic.io.frame import apply_transform, translation
 from plotmosaic.io.las import (
     STANDARD_ATTRIBUTES,
     HeaderInfo,
+    corrupt_data,
     las_offsets,
     make_header,
     open_las,
     read_header_info,
-    short_error,
 )
 from plotmosaic.manifest import Manifest
 from plotmosaic.parallel import in_two_threads, threads
@@ -884,13 +884,8 @@ def _write_tiles(
 
 def read_records(path: Path, chunk_size: int) -> Iterator[laspy.ScaleAwarePointRecord]:
     """The file's raw point records chunk by chunk (stored integers, all fields)."""
-    with open_las(path) as reader:
-        try:
-            yield from reader.chunk_iterator(chunk_size)
-        except Exception as exc:
-            raise InputError(
-                f"{path}: corrupt or truncated LAS/LAZ data ({short_error(exc)})"
-            ) from None
+    with open_las(path) as reader, corrupt_data(path):
+        yield from reader.chunk_iterator(chunk_size)
 
 
 def integer_transform(
