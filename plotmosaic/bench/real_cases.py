@@ -65,7 +65,7 @@ STRIP_WIDTH = 5.0  # metres: a narrow drone strip (<= 6 m)
 TREELS_SPACING = 7.0
 MLS_SPACING = 8.0
 BOXED_RANGE = 6.0
-UNDERSTOREY_POINTS = 200_000  # points per simulated scan: enough for the pipeline, a build of ~20 s
+UNDERSTOREY_POINTS = 200_000  # points per simulated scan: enough for the pipeline, a quick build
 
 
 @dataclass

@@ -15,7 +15,7 @@ from plotmosaic.io.pictures import savefig  # noqa: E402
 
 def dots(ax, x, y, s: float, color, **kwargs):
     """`ax.scatter(x, y, s=s, color=color)` drawn as one line's markers: Agg stamps one cached marker per
-    point instead of a path each (the same picture; ~2x cheaper on the overview's ~150,000 points)."""
+    point instead of a path each (the same picture, drawn at a fraction of the cost)."""
     return ax.plot(x, y, "o", ms=float(np.sqrt(s)), color=color, ls="none", **kwargs)
 
 

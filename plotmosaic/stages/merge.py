@@ -390,14 +390,14 @@ def voxel_ijk(raw: np.ndarray, step: int) -> np.ndarray:
 
 
 def column_bounds(ijk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-column min and max of an (N, 3) array (column by column: ~6x faster than axis=0)."""
+    """Per-column min and max of an (N, 3) array (column by column: axis=0 reductions are several times slower)."""
     return np.array([ijk[:, k].min() for k in range(3)]), np.array(
         [ijk[:, k].max() for k in range(3)]
     )
 
 
 def take_records(raw: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """raw[index] for a structured point array, as whole rows of bytes (~15x faster than numpy's
+    """raw[index] for a structured point array, as whole rows of bytes (much faster than numpy's
     field-by-field gather of a structured dtype)."""
     raw = np.ascontiguousarray(raw)
     rows = raw.view(np.uint8).reshape(len(raw), raw.dtype.itemsize)
@@ -688,7 +688,7 @@ def _merge_scans(
 
     try:
         # One BLAS thread: the 3x3 products are tiny per point, and a multi-threaded OpenBLAS on a
-        # busy 2-core machine made apply_transform 20x slower; the LAZ codec uses the cores instead.
+        # busy machine slows apply_transform down many times; the LAZ codec uses the cores instead.
         with threadpool_limits(1, user_api="blas"), _progress(progress, total) as bar:
             if config.voxel is None and not config.tiles:
                 with atomic_output(out, force=True) as tmp:
