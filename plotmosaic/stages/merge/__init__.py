@@ -1,0 +1,391 @@
+"""Merge posed scans into one LAS/LAZ 1.4 cloud, streaming chunk by chunk.
+
+Memory stays bounded by the chunk size (with voxel thinning or --tiles, by the tile memory budget:
+points are bucketed by tile into spill files beside the output, then each tile is thinned alone):
+no scan, and no output, is ever held whole. Each chunk is posed in float64 straight from the file's stored
+integers to the output's (one 4x4: input scaling, pose, output scaling), stored at 1 mm around
+an offset rounded to 1 km, so UTM coordinates keep their millimetres. All other fields (intensity,
+returns, classification, gps_time, RGB, user data, flags, unscaled extra dimensions such as
+`label`) are carried over as stored; a field some input lacks is zero for its points.
+
+Each source gets its own point_source_id: the scan's index in the manifest (0, 1, ...; a scan
+left out with --skip-missing keeps its number free) and, after them, the ALS tiles. The table
+id <-> number is written both into the file (VLR user "plotmosaic", record 1, JSON) and into a
+sidecar `<out>.json` with the per-source counts, bounds, CRS and settings. Both are written
+atomically: a failed or interrupted merge leaves no file and keeps an earlier output.
+
+This module writes (stream, or tiles thinned one at a time); `plan` decides what is written,
+`records` poses and thins point records, `tiles` spills them by tile, `progress` shows it."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import laspy
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from plotmosaic.config.merge import SCALE, MergeConfig, bbox_limits
+from plotmosaic.errors import InputError, interrupts
+from plotmosaic.io.atomic import atomic_folder, atomic_output, temp_folder
+from plotmosaic.manifest import Manifest
+from plotmosaic.parallel import in_two_threads, threads
+from plotmosaic.poses import Poses
+from plotmosaic.stages.merge.plan import (
+    TILE_INDEX,
+    MergeSummary,
+    Source,
+    SourceCount,
+    build_header,
+    check_output,
+    output_bounds,
+    output_crs,
+    parse_bbox,
+    plan_sources,
+    read_source_table,
+    sidecar_path,
+)
+from plotmosaic.stages.merge.progress import progress_bar
+from plotmosaic.stages.merge.records import (
+    first_in_voxel,
+    posed_record,
+    read_records,
+    stable_order,
+    take_records,
+    voxel_ijk,
+)
+from plotmosaic.stages.merge.tiles import Bucket, TileSpill, scatter, tile_points
+
+_SPLIT_SAMPLE = 65_536  # records sampled to choose where an over-budget tile is cut
+_SPILL_READ = 1_000_000  # records read at once when an over-budget tile is re-bucketed
+_PRETHIN_WORTH = (
+    0.8  # in-chunk thinning goes on for a source while it drops at least 20 % of the points
+)
+
+
+def _split(bucket: Bucket, dtype: np.dtype, step: int) -> list[Bucket]:
+    """Cut an over-budget tile in two along voxel faces, at the median of a sample on its widest axis."""
+    mapped = np.memmap(bucket.path, dtype=dtype, mode="r", shape=(bucket.count,))
+    sample = voxel_ijk(np.array(mapped[:: max(1, bucket.count // _SPLIT_SAMPLE)]), step)
+    del mapped
+    extent = bucket.hi - bucket.lo
+    spread = np.percentile(sample, 95, axis=0) - np.percentile(sample, 5, axis=0)
+    score = np.where(extent > 0, spread, -1.0)
+    if score.max() <= 0:  # the sample is one voxel wide: fall back on the bounds
+        score = np.where(extent > 0, extent, -1)
+    axis = int(np.argmax(score))
+    cut = int(
+        np.clip(np.median(sample[:, axis]), bucket.lo[axis] + 1, bucket.hi[axis])
+    )  # both halves non-empty
+    halves = [Bucket(bucket.path.with_suffix(f".{k}.bin")) for k in (0, 1)]
+    with open(bucket.path, "rb") as f:
+        while len(raw := np.fromfile(f, dtype=dtype, count=_SPILL_READ)):
+            ijk = voxel_ijk(raw, step)
+            scatter(raw, ijk, (ijk[:, axis] >= cut).astype(np.int64), lambda k: halves[int(k)])
+    bucket.path.unlink()
+    return halves
+
+
+def thinned_blocks(
+    bucket: Bucket, dtype: np.dtype, step: int | None, max_points: int
+) -> Iterator[np.ndarray]:
+    """A tile's records, voxel-thinned when `step` is set, in blocks of at most `max_points`, in a
+    fixed order (sub-tile by sub-tile, stream order within each); the spill files are removed as read."""
+    stack = [bucket]
+    while stack:
+        b = stack.pop()
+        if step is None:  # no thinning: stream the tile as it is
+            with open(b.path, "rb") as f:
+                while len(raw := np.fromfile(f, dtype=dtype, count=max_points)):
+                    yield raw
+        elif b.count <= max_points:
+            raw = np.fromfile(b.path, dtype=dtype)
+            yield take_records(raw, first_in_voxel(voxel_ijk(raw, step)))
+        elif np.all(b.lo == b.hi):  # a single voxel: its first point
+            yield np.fromfile(b.path, dtype=dtype, count=1)
+        else:
+            stack.extend(reversed(_split(b, dtype, step)))
+            continue
+        b.path.unlink()
+
+
+def auto_tile_edge(
+    mins: np.ndarray, maxs: np.ndarray, total: int, max_points: int, step: int
+) -> int:
+    """Tile edge (voxels) for a single output: about a quarter of the budget a tile at mean density."""
+    if total <= max_points:
+        return 1 << 40  # one tile
+    area = max(float((maxs[0] - mins[0]) * (maxs[1] - mins[1])), 1e-6)
+    edge_m = 0.5 * np.sqrt(area * max_points / total)
+    return max(1, int(edge_m / SCALE) // step)
+
+
+# ---------------------------------------------------------------- merging
+
+
+def merge_scans(
+    manifest: Manifest,
+    poses: Poses,
+    out: str | Path,
+    config: MergeConfig | None = None,
+    progress: bool = True,
+    poses_path: str | Path | None = None,
+) -> MergeSummary:
+    """Write every posed scan (and optionally the ALS tiles) into one LAS/LAZ 1.4 file (or, with
+    `tiles`, one LAZ per tile in the folder `out`), atomically."""
+    config = config or MergeConfig()
+    with interrupts.installed():
+        return _merge_scans(manifest, poses, Path(out), config, progress, poses_path)
+
+
+def _merge_scans(
+    manifest: Manifest, poses: Poses, out: Path, config: MergeConfig, progress: bool, poses_path
+) -> MergeSummary:
+    sidecar = check_output(out, config)
+    start = time.perf_counter()
+    sources, skipped, ignored = plan_sources(manifest, poses, config)
+    crs, crs_source = output_crs(manifest, poses, sources)
+    for s in sources:  # ALS tiles are taken as they are: they must be in the output CRS
+        if (
+            s.kind == "als"
+            and s.id.startswith("als:")
+            and s.info.crs is not None
+            and crs is not None
+            and not s.info.crs.equals(crs, ignore_axis_order=True)
+        ):
+            raise InputError(
+                f"{s.path}: ALS tile is in {s.info.crs.name}, the merged cloud in {crs.name}"
+            )
+    mins, maxs = output_bounds(sources)
+    if config.bbox is not None:
+        lo, hi = bbox_limits(config.bbox)
+        if np.any(lo > maxs) or np.any(hi < mins):
+            raise InputError(
+                f"--bbox does not overlap the merged scans (x {mins[0]:.3f}..{maxs[0]:.3f}, y {mins[1]:.3f}..{maxs[1]:.3f}, z {mins[2]:.3f}..{maxs[2]:.3f})"
+            )
+    header = build_header(sources, crs, mins)
+    counts = [SourceCount(s.source_id, s.id, s.kind, str(s.path)) for s in sources]
+    total = sum(s.info.point_count for s in sources)
+
+    def summary_of(lo, hi, tiles=None) -> MergeSummary:
+        return MergeSummary(
+            out,
+            sidecar,
+            counts,
+            np.asarray(lo),
+            np.asarray(hi),
+            crs.to_wkt() if crs else None,
+            crs.name if crs else None,
+            crs_source,
+            config.voxel,
+            config.bbox,
+            time.perf_counter() - start,
+            skipped,
+            ignored,
+            tiles,
+        )
+
+    def write_sidecar(summary: MergeSummary) -> None:
+        data = {
+            "poses": str(poses_path) if poses_path else None,
+            "frame": poses.frame,
+            **summary.to_dict(),
+        }
+        with atomic_output(sidecar, force=True) as tmp_json:
+            tmp_json.write_text(json.dumps(data, indent=1))
+
+    try:
+        # One BLAS thread: the 3x3 products are tiny per point, and a multi-threaded OpenBLAS on a
+        # busy machine slows apply_transform down many times; the LAZ codec uses the cores instead.
+        with threadpool_limits(1, user_api="blas"), progress_bar(progress, total) as bar:
+            if config.voxel is None and not config.tiles:
+                with atomic_output(out, force=True) as tmp:
+                    with laspy.open(
+                        tmp, mode="w", header=header, do_compress=out.suffix.lower() == ".laz"
+                    ) as writer:
+                        _stream(writer, sources, counts, header, config, bar)
+                    if writer.header.point_count == 0:
+                        raise InputError("no point left to write (check --bbox)")
+                    summary = summary_of(writer.header.mins, writer.header.maxs)
+                    write_sidecar(summary)
+            else:
+                with temp_folder(out, ".spill") as folder:
+                    step = int(round(config.voxel / SCALE)) if config.voxel else None
+                    dtype = header.point_format.dtype()
+                    parallel = min(2, threads()) if config.tiles else 1
+                    max_points = tile_points(config, dtype, parallel)
+                    if config.tiles:
+                        edge = int(round(config.tile_size / SCALE)) // (step or 1)
+                    else:
+                        edge = auto_tile_edge(mins, maxs, total, max_points, step or 1)
+                    spill = TileSpill(folder, step or 1, edge)
+                    _bucket(spill, sources, counts, header, config, step, bar)
+                    if not spill.buckets:
+                        raise InputError("no point left to write (check --bbox)")
+                    if config.tiles:
+                        with atomic_folder(out, config.force) as tmp_dir:
+                            tiles = _write_tiles(
+                                tmp_dir, spill, header, counts, step, max_points, parallel
+                            )
+                            summary = summary_of(
+                                np.min([t["min"] for t in tiles], axis=0),
+                                np.max([t["max"] for t in tiles], axis=0),
+                                tiles,
+                            )
+                            data = {
+                                "poses": str(poses_path) if poses_path else None,
+                                "frame": poses.frame,
+                                **summary.to_dict(),
+                            }
+                            (tmp_dir / TILE_INDEX).write_text(json.dumps(data, indent=1))
+                    else:
+                        with atomic_output(out, force=True) as tmp:
+                            with laspy.open(
+                                tmp,
+                                mode="w",
+                                header=header,
+                                do_compress=out.suffix.lower() == ".laz",
+                            ) as writer:
+                                for _, bucket in spill.tiles():
+                                    for block in thinned_blocks(bucket, dtype, step, max_points):
+                                        _count_out(counts, block)
+                                        write_chunk(
+                                            writer,
+                                            laspy.ScaleAwarePointRecord(
+                                                block,
+                                                header.point_format,
+                                                header.scales,
+                                                header.offsets,
+                                            ),
+                                        )
+                            summary = summary_of(writer.header.mins, writer.header.maxs)
+                            write_sidecar(summary)
+    except OSError as exc:  # disk full, folder vanished...: a user problem, not a bug
+        raise InputError(f"{out}: cannot write ({exc.strerror or exc})") from None
+    summary.seconds = time.perf_counter() - start
+    return summary
+
+
+def _stream(
+    writer: laspy.LasWriter,
+    sources: list[Source],
+    counts: list[SourceCount],
+    header,
+    config: MergeConfig,
+    bar,
+) -> None:
+    """Plain merge: every chunk posed and written straight away, in stream order."""
+    for source, count in zip(sources, counts):
+        for chunk in read_records(source.path, config.chunk_size):
+            record = posed_record(source, chunk, header, config.bbox)
+            write_chunk(writer, record)
+            count.points_in += len(chunk)
+            count.points_out += len(record)
+            if bar is not None:
+                bar.advance(len(chunk), source.id)
+
+
+def _bucket(
+    spill: TileSpill,
+    sources: list[Source],
+    counts: list[SourceCount],
+    header,
+    config: MergeConfig,
+    step: int | None,
+    bar,
+) -> None:
+    """First pass: every chunk posed, cropped, thinned within itself (a point that is not the first of its
+    voxel in its chunk cannot be the first in the cloud) and bucketed by tile."""
+    for source, count in zip(sources, counts):
+        prethin = step is not None
+        for chunk in read_records(source.path, config.chunk_size):
+            record = posed_record(source, chunk, header, config.bbox, step if prethin else None)
+            spill.add(record.array)
+            # a fine voxel keeps nearly every point: then the in-chunk pass costs a sort and saves nothing
+            prethin = prethin and len(record) < _PRETHIN_WORTH * len(chunk)
+            count.points_in += len(chunk)
+            if bar is not None:
+                bar.advance(len(chunk), source.id)
+
+
+def _count_out(counts: list[SourceCount], block: np.ndarray) -> None:
+    per_id = np.bincount(block["point_source_id"], minlength=counts[-1].source_id + 1)
+    for count in counts:
+        count.points_out += int(per_id[count.source_id])
+
+
+def _tile_name(origin: np.ndarray) -> str:
+    return "tile_" + "_".join(f"{v:.3f}".rstrip("0").rstrip(".") for v in origin) + ".laz"
+
+
+def _write_tiles(
+    folder: Path, spill: TileSpill, header, counts, step: int | None, max_points: int, parallel: int
+) -> list[dict]:
+    """One LAZ per tile, `parallel` tiles at a time (each with a single-threaded codec then)."""
+    edge_m = spill.edge * spill.step * SCALE
+    backend = laspy.LazBackend.Lazrs if parallel > 1 else laspy.LazBackend.LazrsParallel
+    dtype = header.point_format.dtype()
+
+    def write(item) -> dict:
+        (i, j), bucket = item
+        origin = header.offsets[:2] + np.array([i, j]) * edge_m
+        tile_counts = [SourceCount(c.source_id, c.id, c.kind, c.path) for c in counts]
+        path = folder / _tile_name(origin)
+        with laspy.open(
+            path, mode="w", header=header, do_compress=True, laz_backend=backend
+        ) as writer:
+            for block in thinned_blocks(bucket, dtype, step, max_points):
+                _count_out(tile_counts, block)
+                write_chunk(
+                    writer,
+                    laspy.ScaleAwarePointRecord(
+                        block, header.point_format, header.scales, header.offsets
+                    ),
+                )
+        h = writer.header
+        return {
+            "file": path.name,
+            "origin": [round(float(v), 3) for v in origin],
+            "size": round(edge_m, 3),
+            "points": int(h.point_count),
+            "min": [round(float(v), 3) for v in h.mins],
+            "max": [round(float(v), 3) for v in h.maxs],
+            "_counts": [c.points_out for c in tile_counts],
+        }
+
+    items, tiles = spill.tiles(), []
+    for k in range(
+        0, len(items), parallel
+    ):  # by pairs, not one pool over all: Ctrl-C waits for two tiles at most
+        tiles += (
+            in_two_threads(write, items[k : k + parallel]) if parallel > 1 else [write(items[k])]
+        )
+    for tile in tiles:
+        for count, n in zip(counts, tile.pop("_counts")):
+            count.points_out += n
+    return tiles
+
+
+def write_chunk(writer: laspy.LasWriter, record: laspy.ScaleAwarePointRecord) -> None:
+    if len(record):
+        writer.write_points(record)
+
+
+__all__ = [
+    "TILE_INDEX",
+    "MergeSummary",
+    "merge_scans",
+    "first_in_voxel",
+    "parse_bbox",
+    "plan_sources",
+    "posed_record",
+    "read_records",
+    "read_source_table",
+    "sidecar_path",
+    "stable_order",
+]
+
+interrupts_win = interrupts.installed  # the name tests/test_merge.py still calls
