@@ -2,6 +2,8 @@ from pathlib import Path
 
 import pytest
 
+from plotmosaic.simulate.run import simulate
+
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 SPANNER = SHARED / "spanner"
 E57_DIR = SHARED / "e57"
@@ -26,6 +28,4 @@ def spanner_dir() -> Path:
 @pytest.fixture(scope="session")
 def small_sim(tmp_path_factory):
     """The `small` simulated plot (5 TLS scans in the paper layout + an ALS tile), seed 0, shared by all tests."""
-    from plotmosaic.simulate.run import simulate
-
     return simulate(tmp_path_factory.mktemp("sim"), "small", seed=0)

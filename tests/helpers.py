@@ -3,6 +3,8 @@
 from pathlib import Path
 
 import numpy as np
+import pye57
+from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
 from plotmosaic.cli import app
@@ -28,16 +30,12 @@ def assert_one_line_error(result, *needles, code=2):
 
 
 def _quaternion(R: np.ndarray) -> list[float]:
-    from scipy.spatial.transform import Rotation
-
     x, y, z, w = Rotation.from_matrix(R).as_quat()
     return [w, x, y, z]
 
 
 def write_e57(path: Path, scans: list[tuple[str, np.ndarray, np.ndarray, dict]]) -> Path:
     """An E57 with one scan per (name, local xyz, pose 4x4, extra fields) written with pye57."""
-    import pye57
-
     with pye57.E57(str(path), mode="w") as e57:
         for name, xyz, pose, extra in scans:
             data = {

@@ -2,16 +2,20 @@
 
 from pathlib import Path
 
+import laspy
 import numpy as np
+import pye57
 import pytest
 from helpers import assert_one_line_error, invoke, write_e57
+from pye57 import libe57
 
 from plotmosaic.errors import InputError
+from plotmosaic.graph.cache import file_hash
 from plotmosaic.io.e57 import list_scans, scan_ref, stored_pose
 from plotmosaic.io.frame import inverse, pose_error
 from plotmosaic.io.las import iter_chunks, open_las, read_cloud, read_header_info
 from plotmosaic.manifest import load_manifest
-from plotmosaic.poses import load_poses
+from plotmosaic.poses import Poses, ScanPose, load_poses
 
 
 @pytest.mark.parametrize(
@@ -187,9 +191,6 @@ def write_spherical_e57(
     path: Path, rae: np.ndarray, state: np.ndarray, intensity: np.ndarray
 ) -> Path:
     """A one-scan E57 in spherical coordinates (double range, scaled-integer angles), with libE57 itself."""
-    import pye57
-    from pye57 import libe57
-
     n = len(rae)
     with pye57.E57(str(path), mode="w") as e57:
         imf = e57.image_file
@@ -255,21 +256,16 @@ def test_spherical_scaled_integer_and_invalid_points(tmp_path):
     ), result.output
 
 
-def _cache_takes_scan_refs(path: Path) -> bool:
-    """graph/cache.file_hash must tell scans of one file apart, else their pairs would share a cache key."""
-    from plotmosaic.graph.cache import file_hash
-
-    try:
-        return file_hash(scan_ref(path, 0)) != file_hash(scan_ref(path, 1))
-    except OSError:
-        return False
+def test_scans_of_one_file_have_their_own_cache_keys(project):
+    """graph/cache.file_hash tells the scans of one E57 apart, else their pairs would share a cache entry."""
+    path = project[0]
+    keys = [file_hash(scan_ref(path, i)) for i in range(3)]
+    assert len(set(keys)) == 3 and all(k.startswith(file_hash(path)) for k in keys)
 
 
 @pytest.mark.slow
 def test_register_plot_from_e57(project, tmp_path):
     path, ids, points, poses, counts = project
-    if not _cache_takes_scan_refs(path):
-        pytest.skip("graph/cache.file_hash does not take E57 scan references (FILE.e57#INDEX) yet")
     toml = tmp_path / "m.toml"
     toml.write_text(
         'plot_id = "P1"\n'
@@ -285,28 +281,8 @@ def test_register_plot_from_e57(project, tmp_path):
         assert trans < 0.02 and rot < 0.1, (sid, trans, rot)
 
 
-def _merge_reads_e57(path: Path) -> bool:
-    """merge.py opens its inputs through io.las.open_las (not laspy.open), which takes E57 scans."""
-    from plotmosaic.stages.merge import Source, output_extra_dims
-
-    ref = scan_ref(path, 0)
-    try:
-        output_extra_dims([Source("s", "tls", ref, 0, np.eye(4), read_header_info(ref))])
-        return True
-    except (OSError, InputError):
-        return False
-
-
 def test_merge_carries_intensity_and_colour(e57_dir, tmp_path):
     """Two E57 scans (one with intensity + colour, one with colour) merged: counts, positions and attributes kept."""
-    import laspy
-
-    from plotmosaic.poses import Poses, ScanPose
-
-    if not _merge_reads_e57(e57_dir / "pumpAVisualReferenceImage.e57"):
-        pytest.skip(
-            "merge.py opens inputs with laspy.open, not io.las.open_las, so it cannot read E57 yet"
-        )
     pump, cube = e57_dir / "pumpAVisualReferenceImage.e57", e57_dir / "ColouredCubeFloat.e57"
     toml = tmp_path / "m.toml"
     toml.write_text(
@@ -341,8 +317,6 @@ def test_merge_carries_intensity_and_colour(e57_dir, tmp_path):
 
 def test_bad_stored_pose_only_matters_where_used(tmp_path):
     """A non-unit quaternion: the points still read, info says why, use_pose names file and scan."""
-    import pye57
-
     xyz = np.random.default_rng(2).uniform(-5, 5, (200, 3))
     path = tmp_path / "q.e57"
     with pye57.E57(str(path), mode="w") as e57:

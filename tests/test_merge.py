@@ -554,6 +554,15 @@ def big_site(tmp_path_factory):
     return root
 
 
+def _bytes_in(path) -> int:
+    """Bytes written so far to a temporary file, or to the files of a temporary folder (0 if gone)."""
+    try:
+        files = list(path.iterdir()) if path.is_dir() else [path]
+        return sum(f.stat().st_size for f in files)
+    except FileNotFoundError:  # removed between listing and reading: the merge moved on
+        return 0
+
+
 @pytest.mark.parametrize(
     "options, temporary, sig",
     [
@@ -585,12 +594,11 @@ def test_interrupt_mid_merge_exits_130_and_leaves_nothing(
         text=True,
     )
     deadline = time.monotonic() + 60
-    while not any(temporary in p.name for p in out.iterdir()):  # wait until it is writing
-        assert proc.poll() is None and time.monotonic() < deadline, (
+    while not any(temporary in p.name and _bytes_in(p) > 0 for p in out.iterdir()):
+        assert proc.poll() is None and time.monotonic() < deadline, (  # poll until it writes
             proc.stderr.read() if proc.poll() is not None else "timeout"
         )
         time.sleep(0.005)
-    time.sleep(0.2)
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err

@@ -7,11 +7,12 @@ import re
 
 import matplotlib.image as mpimg
 import numpy as np
-from test_bench import UTM, split_pair, synthetic_plot
+from builders import UTM, split_pair, synthetic_plot
 from typer.testing import CliRunner
 
 from plotmosaic.bench.protocol import params_to_matrix
 from plotmosaic.cli import app
+from plotmosaic.graph.posegraph import build_graph, graph_to_json, optimise
 from plotmosaic.io.frame import apply_transform
 from plotmosaic.io.las import PointCloud, write_cloud
 from plotmosaic.poses import Poses, ScanPose
@@ -126,8 +127,6 @@ def test_report_rejects_a_result_without_transform(tmp_path):
 
 def test_report_for_a_register_plot_folder(tmp_path):
     """A folder in register-plot's format (graph.json from the pose-graph module, poses.json)."""
-    from plotmosaic.graph.posegraph import build_graph, graph_to_json, optimise
-
     scene = synthetic_plot(trees=8)
     rng = np.random.default_rng(0)
     world = {}  # scan -> scanner-to-world pose

@@ -1,13 +1,31 @@
 """Issue 16: nothing in register-plot grows faster than the work (pose graph, pair selection)."""
 
+import importlib.util
 import time
+from pathlib import Path
 
 import networkx as nx
 import numpy as np
-from test_graph_posegraph import synthetic_plot
+from builders import synthetic_pose_graph
+from scipy.spatial.transform import Rotation
 
+from plotmosaic.config.register import RegisterConfig
+from plotmosaic.graph import prepared as store
+from plotmosaic.graph.executor import prepare_jobs_for
 from plotmosaic.graph.posegraph import _edge_id, build_graph, optimise, pose_error, triangles
 from plotmosaic.graph.synthetic import grid_graph
+from plotmosaic.manifest import load_manifest
+from plotmosaic.stages.register_plot import plan_jobs, prepare_scans
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def _benchmark(name: str):
+    """A script of benchmarks/ loaded as a module (the folder is not a package)."""
+    spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def test_triangles_are_networkx_triangles():
@@ -26,7 +44,7 @@ BLOWUP_SECONDS = 60
 
 def test_complete_graph_of_30_scans_optimises_in_seconds():
     # all pairs of 30 scans: the clique enumeration took about a day here
-    truth, nodes, edges = synthetic_plot(30, seed=3, outlier=("s7", "s2"))
+    truth, nodes, edges = synthetic_pose_graph(30, seed=3, outlier=("s7", "s2"))
     G = build_graph(nodes, edges)
     start = time.perf_counter()
     sol = optimise(G, "s0")
@@ -52,9 +70,6 @@ def test_grid_of_150_scans_with_wrong_edges_drops_every_wrong_edge():
 
 
 def _pair_jobs(sim, folder, ids=("P1-S0", "P1-S2", "P1-S3")):
-    from plotmosaic.config.register import RegisterConfig
-    from plotmosaic.manifest import load_manifest
-    from plotmosaic.stages.register_plot import plan_jobs
 
     m = load_manifest(sim.manifest_path)
     plot = m.plots[0]
@@ -68,9 +83,6 @@ def _pair_jobs(sim, folder, ids=("P1-S0", "P1-S2", "P1-S3")):
 
 
 def test_each_scan_prepared_once_and_cached_on_disk(small_sim, tmp_path):
-    from plotmosaic.graph import prepared as store
-    from plotmosaic.graph.executor import prepare_jobs_for
-    from plotmosaic.stages.register_plot import prepare_scans
 
     jobs = _pair_jobs(small_sim, tmp_path / "prepared")
     assert len(jobs) == 3
@@ -86,8 +98,6 @@ def test_each_scan_prepared_once_and_cached_on_disk(small_sim, tmp_path):
 
 
 def test_prepared_cloud_round_trip_and_damaged_entry(small_sim, tmp_path, capsys):
-    from plotmosaic.graph import prepared as store
-    from plotmosaic.graph.executor import prepare_jobs_for
 
     (job,) = [j for j in _pair_jobs(small_sim, tmp_path, ("P1-S0", "P1-S2"))]
     ps, _ = prepare_jobs_for(job)
@@ -119,16 +129,8 @@ def test_large_accuracy_best_fit_takes_out_only_the_reference_gauge():
     """benchmarks/large_accuracy.py: a plot whose every scan carries the same small rigid error beside a
     reference held exact is off in the reference frame (growing with distance) but not after the best
     fit; a right plot is right in both."""
-    import sys
-    from pathlib import Path
 
-    from scipy.spatial.transform import Rotation
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    try:
-        import large_accuracy
-    finally:
-        sys.path.pop(0)
+    large_accuracy = _benchmark("large_accuracy")
     rng = np.random.default_rng(0)
     utm = np.array([470_000.0, 3_810_000.0, 2_100.0])
     truth = {}

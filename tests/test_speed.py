@@ -3,15 +3,20 @@ ones, the plot cloud registered in memory is exactly what its written file holds
 pool of a run serves its stages with one spawn."""
 
 import os
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from plotmosaic.config.report import SliceConfig
+from plotmosaic.config.report import ReportConfig, SliceConfig
+from plotmosaic.graph.executor import _POOL, close_pool, run_pairs
+from plotmosaic.io.frame import translation
 from plotmosaic.io.las import PointCloud, read_cloud, write_cloud
+from plotmosaic.poses import Poses, ScanPose
 from plotmosaic.report.distance import thin
+from plotmosaic.report.runs import rigid_plots
 from plotmosaic.report.slice import cell_minima, fit_circle, low_stratum, merge_minima
-from plotmosaic.stages.tie_to_als import as_stored
+from plotmosaic.stages.tie_to_als import Anchor, as_stored
 
 
 def _clouds():
@@ -90,8 +95,6 @@ def worker_pid(job) -> dict:
 
 
 def test_one_pool_serves_the_stages_of_a_run():
-    from plotmosaic.graph.executor import _POOL, close_pool, run_pairs
-
     try:
         first = run_pairs(list("abcd"), progress=False, n_jobs=2, worker=worker_pid)
         second = run_pairs(list("efgh"), progress=False, n_jobs=2, worker=worker_pid)
@@ -106,12 +109,6 @@ def test_one_pool_serves_the_stages_of_a_run():
 
 def _rigid_case(tmp_path, nudge):
     """register-plot's poses of a 3-scan plot, the same moved as one piece into a CRS, one scan nudged."""
-    from types import SimpleNamespace
-
-    from plotmosaic.io.frame import translation
-    from plotmosaic.poses import Poses, ScanPose
-    from plotmosaic.stages.tie_to_als import Anchor
-
     rot = np.array([[0.0, -1, 0, 0], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
     plot = {"S0": np.eye(4), "S1": translation([10.0, 2, 0]), "S2": rot @ translation([-5.0, 8, 1])}
     earlier = Poses({k: ScanPose(T, "P1") for k, T in plot.items()}, frame="plot")
@@ -129,9 +126,6 @@ def _rigid_case(tmp_path, nudge):
 
 
 def test_a_plot_moved_as_one_piece_is_judged_in_register_plots_report(tmp_path):
-    from plotmosaic.config.report import ReportConfig
-    from plotmosaic.report.runs import rigid_plots
-
     cfg = ReportConfig()
     result, earlier, page = _rigid_case(tmp_path, 0.0)
     judged = rigid_plots(result, earlier, page, cfg)
