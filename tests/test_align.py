@@ -163,6 +163,7 @@ def test_sim_tls_pair_from_perturbations(sim_prepared):
         assert result.fitness > cfg.min_fitness
 
 
+@pytest.mark.slow
 def test_sim_tls_pair_large_errors_never_silently_wrong(sim_prepared):
     """+-10 deg / +-2 m (the issue's range): a trial is either within bounds or refused (exit 3).
 
@@ -185,6 +186,7 @@ def test_sim_tls_pair_large_errors_never_silently_wrong(sim_prepared):
     assert good >= 2
 
 
+@pytest.mark.slow
 def test_initial_guess_is_a_prior_not_a_trap(sim_prepared):
     """With the coarse stage on (the default), a +-10 deg / +-2 m guess is searched around and verified:
     the starts that ICP alone ends in a wrong minimum from come back right too. ICP alone (the judge's
@@ -210,6 +212,7 @@ def test_initial_guess_is_a_prior_not_a_trap(sim_prepared):
         assert any(h["prior"] for h in result.coarse["hypotheses"])
 
 
+@pytest.mark.slow
 def test_level_stage_never_ends_worse_than_its_start(sim_pair):
     """Plain vMF levels (the paper's signal) can slide a verified coarse pose away (2 deg / 0.7 m seen
     on this pair before the sampling changed); a level result that fits worse than its start is
@@ -232,6 +235,7 @@ def test_level_stage_never_ends_worse_than_its_start(sim_pair):
     assert result.levels["reverted"] and deg.max() < PAIR_MAX_DEG and m.max() < 0.02, (deg, m)
 
 
+@pytest.mark.slow
 def test_utm_coordinates_keep_precision(sim_pair):
     """The same pair shifted into UTM-sized coordinates gives the same transform, to the millimetre."""
     src, tgt, T_true = sim_pair
@@ -290,6 +294,7 @@ def test_real_uas_to_als_recovers_known_perturbation(spanner_dir):
     assert result.levels["matching"] == {"0": 0, "1": 1}
 
 
+@pytest.mark.slow
 def test_same_inputs_and_seed_same_result(sim_pair):
     """Whole pipeline (coarse stage included, both clouds prepared in parallel threads) twice: same figures."""
     src, tgt, _ = sim_pair

@@ -43,6 +43,7 @@ def pair(small_sim, tmp_path_factory):
     return small_sim.scan_paths["P1-S1"], small_sim.scan_paths["P1-S0"], folder
 
 
+@pytest.mark.slow
 def test_config_used_given_back_repeats_align_bit_for_bit(pair, tmp_path):
     src, tgt, folder = pair
     init, fast = folder / "init.json", folder / "fast.toml"

@@ -122,6 +122,7 @@ def test_stray_point_leaves_the_prepared_cloud_unchanged(small_sim, tmp_path, ho
     np.testing.assert_array_equal(stray.levels, clean.levels)
 
 
+@pytest.mark.slow
 def test_align_with_a_nan_written_stray_point_registers(small_sim, tmp_path):
     src = with_stray(small_sim.scan_paths["P1-S1"], tmp_path / "stray.laz", "nan")
     out = tmp_path / "out" / "r.json"
@@ -411,6 +412,7 @@ def pairs_line(output: str) -> tuple[int, int]:
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+@pytest.mark.slow
 def test_sigkill_register_plot_leaves_no_orphans_and_resumes(small_sim, tmp_path):
     manifest = thinned_manifest(tmp_path, small_sim, ["P1-S0", "P1-S1", "P1-S2"])
     out = tmp_path / "reg"
@@ -610,6 +612,7 @@ def _non_utf8(folder: Path, name: bytes) -> Path:
     return Path(os.fsdecode(os.path.join(os.fsencode(folder), name)))
 
 
+@pytest.mark.slow
 def test_non_utf8_names_end_to_end(small_sim, tmp_path):
     """A source file, a plot folder and an output with names that are not UTF-8 (as old Windows or
     camera exports make them): the run works, text outputs hold the names escaped."""
@@ -649,6 +652,7 @@ def test_non_utf8_names_end_to_end(small_sim, tmp_path):
     assert set(json.loads((reg / "poses.json").read_text())["scans"]) == {"P1-S0", "P1-S1"}
 
 
+@pytest.mark.slow
 def test_align_with_a_non_utf8_name_and_sigterm_as_it_exits(small_sim, tmp_path):
     """The summary printed, SIGTERM lands while the process exits: 0 or 130, never the default
     action's 143 or a traceback; a source name that is not UTF-8 is printed escaped."""

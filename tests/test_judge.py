@@ -70,6 +70,7 @@ def test_profile_separates_truth_from_a_distinct_pose(pair):
     assert judge.scale_factor(ps, pt, cfg.judge) >= 1.0
 
 
+@pytest.mark.slow
 def test_sharpness_floor_refuses_a_blunt_fit(pair):
     """A pose the ICP settles at by chance fits bluntly: below min_sharpness, refused with the figure."""
     ps, pt, T_true, _, cfg = pair
@@ -142,6 +143,7 @@ def test_local_start_far_off_is_refused_never_wrong(pair):
         assert deg < 0.1 and m < 0.02, (deg, m)
 
 
+@pytest.mark.slow
 def test_true_pose_control_right_or_refused_on_every_path(pair):
     """The source handed over in its true pose: back within 1 deg / 10 cm or refused, with and without the coarse stage."""
     ps, pt, T_true, centre, cfg = pair
@@ -153,6 +155,7 @@ def test_true_pose_control_right_or_refused_on_every_path(pair):
     assert accepted  # this pair is easy: the coarse path keeps the truth
 
 
+@pytest.mark.slow
 def test_unrelated_forests_refused_on_every_path(small_sim, pair):
     """A scan against the mirror image of its neighbour (no rigid transform relates them): exit 3 on every path."""
     ps, _, _, _, cfg = pair
@@ -168,6 +171,7 @@ def test_unrelated_forests_refused_on_every_path(small_sim, pair):
         )
 
 
+@pytest.mark.slow
 def test_cli_no_coarse_exits_3_or_right(small_sim, tmp_path):
     """The issue's reproduction (`align P1-S1 P1-S0 --no-coarse`): never a wrong pose with exit 0."""
     out = tmp_path / "r.json"
