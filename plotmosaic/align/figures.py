@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import matplotlib.pyplot as plt  # the Agg backend: io.pictures selects it
 import numpy as np
 
 from plotmosaic.align.prepare import PreparedCloud
@@ -27,11 +28,6 @@ def plot_levels(
     clouds: dict[str, PreparedCloud], path: Path, max_points: int = 150_000, seed: int = 0
 ) -> Path:
     """Per cloud a side view (x-z) and a top view (x-y), points coloured by level."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     rng = np.random.default_rng(seed)
     fig, axes = plt.subplots(len(clouds), 2, figsize=(13, 5.2 * len(clouds)), squeeze=False)
     for row, (name, p) in enumerate(clouds.items()):

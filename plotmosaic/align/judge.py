@@ -15,6 +15,7 @@ Every transform here maps source-local to target-local coordinates.
 
 from __future__ import annotations
 
+import time
 import weakref
 from dataclasses import dataclass, field
 
@@ -318,8 +319,6 @@ def judge(
     rivals blunter than `blunt_min_sharpness` are rivals of the fine margin only, not of the score.
     Refined rivals are remembered per pair (`_refined`). A source or target that is not a forest
     scene (`scene.check`) is refused first (RegistrationFailed): no pose between them is right."""
-    import time
-
     scene.check(src, tgt, config)
     t0 = time.perf_counter()
     c = centre(src, config)

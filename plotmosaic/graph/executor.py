@@ -353,7 +353,7 @@ def _kind(job) -> str:
 
 
 def _run_dask(jobs, tick, n_jobs, scheduler, worker) -> None:
-    try:
+    try:  # deferred: dask is heavy and only --executor dask needs it
         from dask.distributed import Client, LocalCluster, as_completed
     except ImportError:  # pragma: no cover - dask[distributed] is a dependency
         raise InputError("--executor dask needs dask[distributed] installed") from None
