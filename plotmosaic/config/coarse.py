@@ -350,11 +350,12 @@ class CoarseConfig(BaseModel):
         True,
         description="generate hypotheses by correlating fine height-slice occupancy (when not settled)",
     )
+    # see docs/method.md#coarse-stage-settings
     slice_cell: float = Field(
         0.3,
         gt=0.05,
         le=5,
-        description="occupancy cell (m): a stem is one or two cells (0.5 m lost the truth on sparse MLS views)",
+        description="occupancy cell (m): a stem is one or two cells (coarser cells merge stems)",
     )
     slice_edges: tuple[float, ...] = Field(
         (0.3, 1.0, 2.0, 4.0, 8.0, 30.0),
@@ -374,11 +375,12 @@ class CoarseConfig(BaseModel):
     slice_suppression_m: float = Field(
         2.0, gt=0, le=50, description="radius (m) cleared around a peak before the next one"
     )
+    # enough to hold the truth's rank on sparse views (docs/method.md#coarse-stage-settings)
     slice_hypotheses: int = Field(
         6,
         ge=1,
         le=64,
-        description="distinct poses handed to verification (the truth ranked 0-4 on the sparse MLS views)",
+        description="distinct poses handed to verification",
     )
     slice_distinct_yaw_deg: float = Field(
         3.0, gt=0, le=90, description="poses closer than this in heading and ..."
