@@ -14,12 +14,11 @@ id <-> number is written both into the file (VLR user "plotmosaic", record 1, JS
 sidecar `<out>.json` with the per-source counts, bounds, CRS and settings. Both are written
 atomically: a failed or interrupted merge leaves no file and keeps an earlier output.
 
-This module writes (stream, or tiles thinned one at a time); `plan` decides what is written,
+This module writes (stream, or tiles thinned one at a time); `job` and `plan` decide what is written,
 `records` poses and thins point records, `tiles` spills them by tile, `progress` shows it."""
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -28,21 +27,18 @@ import laspy
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from plotmosaic.config.merge import SCALE, MergeConfig, bbox_limits
+from plotmosaic.config.merge import SCALE, MergeConfig
 from plotmosaic.errors import InputError, interrupts
 from plotmosaic.io.atomic import atomic_folder, atomic_output, temp_folder
 from plotmosaic.manifest import Manifest
 from plotmosaic.parallel import in_two_threads, threads
 from plotmosaic.poses import Poses
+from plotmosaic.stages.merge.job import MergeJob, plan_merge, sidecar_text, summary_of
 from plotmosaic.stages.merge.plan import (
     TILE_INDEX,
     MergeSummary,
     Source,
     SourceCount,
-    build_header,
-    check_output,
-    output_bounds,
-    output_crs,
     parse_bbox,
     plan_sources,
     read_source_table,
@@ -50,6 +46,7 @@ from plotmosaic.stages.merge.plan import (
 )
 from plotmosaic.stages.merge.progress import progress_bar
 from plotmosaic.stages.merge.records import (
+    count_out,
     first_in_voxel,
     posed_record,
     read_records,
@@ -57,13 +54,17 @@ from plotmosaic.stages.merge.records import (
     take_records,
     voxel_ijk,
 )
-from plotmosaic.stages.merge.tiles import Bucket, TileSpill, scatter, tile_points
+from plotmosaic.stages.merge.tiles import (
+    Bucket,
+    TileSpill,
+    bucket_sources,
+    scatter,
+    tile_name,
+    tile_points,
+)
 
 _SPLIT_SAMPLE = 65_536  # records sampled to choose where an over-budget tile is cut
 _SPILL_READ = 1_000_000  # records read at once when an over-budget tile is re-bucketed
-_PRETHIN_WORTH = (
-    0.8  # in-chunk thinning goes on for a source while it drops at least 20 % of the points
-)
 
 
 def _split(bucket: Bucket, dtype: np.dtype, step: int) -> list[Bucket]:
@@ -144,129 +145,82 @@ def merge_scans(
 def _merge_scans(
     manifest: Manifest, poses: Poses, out: Path, config: MergeConfig, progress: bool, poses_path
 ) -> MergeSummary:
-    sidecar = check_output(out, config)
-    start = time.perf_counter()
-    sources, skipped, ignored = plan_sources(manifest, poses, config)
-    crs, crs_source = output_crs(manifest, poses, sources)
-    for s in sources:  # ALS tiles are taken as they are: they must be in the output CRS
-        if (
-            s.kind == "als"
-            and s.id.startswith("als:")
-            and s.info.crs is not None
-            and crs is not None
-            and not s.info.crs.equals(crs, ignore_axis_order=True)
-        ):
-            raise InputError(
-                f"{s.path}: ALS tile is in {s.info.crs.name}, the merged cloud in {crs.name}"
-            )
-    mins, maxs = output_bounds(sources)
-    if config.bbox is not None:
-        lo, hi = bbox_limits(config.bbox)
-        if np.any(lo > maxs) or np.any(hi < mins):
-            raise InputError(
-                f"--bbox does not overlap the merged scans (x {mins[0]:.3f}..{maxs[0]:.3f}, y {mins[1]:.3f}..{maxs[1]:.3f}, z {mins[2]:.3f}..{maxs[2]:.3f})"
-            )
-    header = build_header(sources, crs, mins)
-    counts = [SourceCount(s.source_id, s.id, s.kind, str(s.path)) for s in sources]
-    total = sum(s.info.point_count for s in sources)
-
-    def summary_of(lo, hi, tiles=None) -> MergeSummary:
-        return MergeSummary(
-            out,
-            sidecar,
-            counts,
-            np.asarray(lo),
-            np.asarray(hi),
-            crs.to_wkt() if crs else None,
-            crs.name if crs else None,
-            crs_source,
-            config.voxel,
-            config.bbox,
-            time.perf_counter() - start,
-            skipped,
-            ignored,
-            tiles,
-        )
-
-    def write_sidecar(summary: MergeSummary) -> None:
-        data = {
-            "poses": str(poses_path) if poses_path else None,
-            "frame": poses.frame,
-            **summary.to_dict(),
-        }
-        with atomic_output(sidecar, force=True) as tmp_json:
-            tmp_json.write_text(json.dumps(data, indent=1))
-
+    job = plan_merge(manifest, poses, out, config, poses_path)
     try:
         # One BLAS thread: the 3x3 products are tiny per point, and a multi-threaded OpenBLAS on a
         # busy machine slows apply_transform down many times; the LAZ codec uses the cores instead.
-        with threadpool_limits(1, user_api="blas"), progress_bar(progress, total) as bar:
+        with threadpool_limits(1, user_api="blas"), progress_bar(progress, job.total) as bar:
             if config.voxel is None and not config.tiles:
-                with atomic_output(out, force=True) as tmp:
-                    with laspy.open(
-                        tmp, mode="w", header=header, do_compress=out.suffix.lower() == ".laz"
-                    ) as writer:
-                        _stream(writer, sources, counts, header, config, bar)
-                    if writer.header.point_count == 0:
-                        raise InputError("no point left to write (check --bbox)")
-                    summary = summary_of(writer.header.mins, writer.header.maxs)
-                    write_sidecar(summary)
+                summary = _write_stream(job, bar)
             else:
-                with temp_folder(out, ".spill") as folder:
-                    step = int(round(config.voxel / SCALE)) if config.voxel else None
-                    dtype = header.point_format.dtype()
-                    parallel = min(2, threads()) if config.tiles else 1
-                    max_points = tile_points(config, dtype, parallel)
-                    if config.tiles:
-                        edge = int(round(config.tile_size / SCALE)) // (step or 1)
-                    else:
-                        edge = auto_tile_edge(mins, maxs, total, max_points, step or 1)
-                    spill = TileSpill(folder, step or 1, edge)
-                    _bucket(spill, sources, counts, header, config, step, bar)
-                    if not spill.buckets:
-                        raise InputError("no point left to write (check --bbox)")
-                    if config.tiles:
-                        with atomic_folder(out, config.force) as tmp_dir:
-                            tiles = _write_tiles(
-                                tmp_dir, spill, header, counts, step, max_points, parallel
-                            )
-                            summary = summary_of(
-                                np.min([t["min"] for t in tiles], axis=0),
-                                np.max([t["max"] for t in tiles], axis=0),
-                                tiles,
-                            )
-                            data = {
-                                "poses": str(poses_path) if poses_path else None,
-                                "frame": poses.frame,
-                                **summary.to_dict(),
-                            }
-                            (tmp_dir / TILE_INDEX).write_text(json.dumps(data, indent=1))
-                    else:
-                        with atomic_output(out, force=True) as tmp:
-                            with laspy.open(
-                                tmp,
-                                mode="w",
-                                header=header,
-                                do_compress=out.suffix.lower() == ".laz",
-                            ) as writer:
-                                for _, bucket in spill.tiles():
-                                    for block in thinned_blocks(bucket, dtype, step, max_points):
-                                        _count_out(counts, block)
-                                        write_chunk(
-                                            writer,
-                                            laspy.ScaleAwarePointRecord(
-                                                block,
-                                                header.point_format,
-                                                header.scales,
-                                                header.offsets,
-                                            ),
-                                        )
-                            summary = summary_of(writer.header.mins, writer.header.maxs)
-                            write_sidecar(summary)
+                summary = _write_thinned(job, bar)
     except OSError as exc:  # disk full, folder vanished...: a user problem, not a bug
         raise InputError(f"{out}: cannot write ({exc.strerror or exc})") from None
-    summary.seconds = time.perf_counter() - start
+    summary.seconds = time.perf_counter() - job.start
     return summary
+
+
+def _finish_file(job: MergeJob, writer: laspy.LasWriter) -> MergeSummary:
+    """The summary of a written single file, and its sidecar written atomically."""
+    summary = summary_of(job, writer.header.mins, writer.header.maxs)
+    with atomic_output(job.sidecar, force=True) as tmp_json:
+        tmp_json.write_text(sidecar_text(job, summary))
+    return summary
+
+
+def _write_stream(job: MergeJob, bar) -> MergeSummary:
+    """Plain merge into one file, no thinning."""
+    out, header = job.out, job.header
+    with atomic_output(out, force=True) as tmp:
+        laz = out.suffix.lower() == ".laz"
+        with laspy.open(tmp, mode="w", header=header, do_compress=laz) as writer:
+            _stream(writer, job.sources, job.counts, header, job.config, bar)
+        if writer.header.point_count == 0:
+            raise InputError("no point left to write (check --bbox)")
+        return _finish_file(job, writer)
+
+
+def _write_thinned(job: MergeJob, bar) -> MergeSummary:
+    """Points spilled by tile beside the output, then each tile thinned alone: one file, or with
+    `tiles` one LAZ per tile in a folder."""
+    config, header = job.config, job.header
+    with temp_folder(job.out, ".spill") as folder:
+        step = int(round(config.voxel / SCALE)) if config.voxel else None
+        dtype = header.point_format.dtype()
+        parallel = min(2, threads()) if config.tiles else 1
+        max_points = tile_points(config, dtype, parallel)
+        if config.tiles:
+            edge = int(round(config.tile_size / SCALE)) // (step or 1)
+        else:
+            edge = auto_tile_edge(job.mins, job.maxs, job.total, max_points, step or 1)
+        spill = TileSpill(folder, step or 1, edge)
+        bucket_sources(spill, job.sources, job.counts, header, config, step, bar)
+        if not spill.buckets:
+            raise InputError("no point left to write (check --bbox)")
+        if config.tiles:
+            with atomic_folder(job.out, config.force) as tmp_dir:
+                tiles = _write_tiles(tmp_dir, spill, header, job.counts, step, max_points, parallel)
+                lo = np.min([t["min"] for t in tiles], axis=0)
+                hi = np.max([t["max"] for t in tiles], axis=0)
+                summary = summary_of(job, lo, hi, tiles)
+                (tmp_dir / TILE_INDEX).write_text(sidecar_text(job, summary))
+            return summary
+        return _write_thinned_file(job, spill, dtype, step, max_points)
+
+
+def _write_thinned_file(job: MergeJob, spill: TileSpill, dtype, step, max_points) -> MergeSummary:
+    out, header = job.out, job.header
+    with atomic_output(out, force=True) as tmp:
+        laz = out.suffix.lower() == ".laz"
+        with laspy.open(tmp, mode="w", header=header, do_compress=laz) as writer:
+            for _, bucket in spill.tiles():
+                for block in thinned_blocks(bucket, dtype, step, max_points):
+                    count_out(job.counts, block)
+                    record = laspy.ScaleAwarePointRecord(
+                        block, header.point_format, header.scales, header.offsets
+                    )
+                    write_chunk(writer, record)
+        return _finish_file(job, writer)
 
 
 def _stream(
@@ -288,39 +242,6 @@ def _stream(
                 bar.advance(len(chunk), source.id)
 
 
-def _bucket(
-    spill: TileSpill,
-    sources: list[Source],
-    counts: list[SourceCount],
-    header,
-    config: MergeConfig,
-    step: int | None,
-    bar,
-) -> None:
-    """First pass: every chunk posed, cropped, thinned within itself (a point that is not the first of its
-    voxel in its chunk cannot be the first in the cloud) and bucketed by tile."""
-    for source, count in zip(sources, counts):
-        prethin = step is not None
-        for chunk in read_records(source.path, config.chunk_size):
-            record = posed_record(source, chunk, header, config.bbox, step if prethin else None)
-            spill.add(record.array)
-            # a fine voxel keeps nearly every point: then the in-chunk pass costs a sort and saves nothing
-            prethin = prethin and len(record) < _PRETHIN_WORTH * len(chunk)
-            count.points_in += len(chunk)
-            if bar is not None:
-                bar.advance(len(chunk), source.id)
-
-
-def _count_out(counts: list[SourceCount], block: np.ndarray) -> None:
-    per_id = np.bincount(block["point_source_id"], minlength=counts[-1].source_id + 1)
-    for count in counts:
-        count.points_out += int(per_id[count.source_id])
-
-
-def _tile_name(origin: np.ndarray) -> str:
-    return "tile_" + "_".join(f"{v:.3f}".rstrip("0").rstrip(".") for v in origin) + ".laz"
-
-
 def _write_tiles(
     folder: Path, spill: TileSpill, header, counts, step: int | None, max_points: int, parallel: int
 ) -> list[dict]:
@@ -333,12 +254,12 @@ def _write_tiles(
         (i, j), bucket = item
         origin = header.offsets[:2] + np.array([i, j]) * edge_m
         tile_counts = [SourceCount(c.source_id, c.id, c.kind, c.path) for c in counts]
-        path = folder / _tile_name(origin)
+        path = folder / tile_name(origin)
         with laspy.open(
             path, mode="w", header=header, do_compress=True, laz_backend=backend
         ) as writer:
             for block in thinned_blocks(bucket, dtype, step, max_points):
-                _count_out(tile_counts, block)
+                count_out(tile_counts, block)
                 write_chunk(
                     writer,
                     laspy.ScaleAwarePointRecord(

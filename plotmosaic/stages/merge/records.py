@@ -16,7 +16,7 @@ from plotmosaic.io.las import (
     corrupt_data,
     open_las,
 )
-from plotmosaic.stages.merge.plan import Source
+from plotmosaic.stages.merge.plan import Source, SourceCount
 
 
 def voxel_ijk(raw: np.ndarray, step: int) -> np.ndarray:
@@ -140,3 +140,9 @@ def posed_record(
     record.array["X"], record.array["Y"], record.array["Z"] = q[:, 0], q[:, 1], q[:, 2]
     record.array["point_source_id"] = source.source_id
     return record
+
+
+def count_out(counts: list[SourceCount], block: np.ndarray) -> None:
+    per_id = np.bincount(block["point_source_id"], minlength=counts[-1].source_id + 1)
+    for count in counts:
+        count.points_out += int(per_id[count.source_id])

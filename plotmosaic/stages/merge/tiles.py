@@ -8,7 +8,15 @@ from pathlib import Path
 import numpy as np
 
 from plotmosaic.config.merge import MergeConfig
-from plotmosaic.stages.merge.records import column_bounds, stable_order, take_records, voxel_ijk
+from plotmosaic.stages.merge.plan import Source, SourceCount
+from plotmosaic.stages.merge.records import (
+    column_bounds,
+    posed_record,
+    read_records,
+    stable_order,
+    take_records,
+    voxel_ijk,
+)
 
 # ---------------------------------------------------------------- thinning by tiles
 #
@@ -19,6 +27,9 @@ from plotmosaic.stages.merge.records import column_bounds, stable_order, take_re
 # memory with one sort; a tile over the memory budget is cut in two first (recursively), so memory is
 # bounded by the budget, never by the input or the output.
 
+PRETHIN_WORTH = (
+    0.8  # in-chunk thinning goes on for a source while it drops at least 20 % of the points
+)
 _BYTES_OVERHEAD = 96  # per point while thinning a tile, beside two copies of its record: voxel indices, key, sort order
 
 
@@ -90,3 +101,30 @@ def tile_points(config: MergeConfig, dtype: np.dtype, parallel: int) -> int:
     """Points one tile may hold so that `parallel` tiles in memory fit the budget."""
     per_point = 2 * dtype.itemsize + _BYTES_OVERHEAD
     return max(1, config.tile_memory_mb * 2**20 // (per_point * parallel))
+
+
+def tile_name(origin: np.ndarray) -> str:
+    return "tile_" + "_".join(f"{v:.3f}".rstrip("0").rstrip(".") for v in origin) + ".laz"
+
+
+def bucket_sources(
+    spill: TileSpill,
+    sources: list[Source],
+    counts: list[SourceCount],
+    header,
+    config: MergeConfig,
+    step: int | None,
+    bar,
+) -> None:
+    """First pass: every chunk posed, cropped, thinned within itself (a point that is not the first of its
+    voxel in its chunk cannot be the first in the cloud) and bucketed by tile."""
+    for source, count in zip(sources, counts):
+        prethin = step is not None
+        for chunk in read_records(source.path, config.chunk_size):
+            record = posed_record(source, chunk, header, config.bbox, step if prethin else None)
+            spill.add(record.array)
+            # a fine voxel keeps nearly every point: then the in-chunk pass costs a sort and saves nothing
+            prethin = prethin and len(record) < PRETHIN_WORTH * len(chunk)
+            count.points_in += len(chunk)
+            if bar is not None:
+                bar.advance(len(chunk), source.id)
