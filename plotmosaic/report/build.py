@@ -97,23 +97,15 @@ def collect(
     return view
 
 
-def glance(
-    plot: str,
-    scans: list[str],
-    paths: dict[str, Path],
-    poses: dict[str, np.ndarray],
-    reader: Callable[[Path], np.ndarray],
-    cfg: ReportConfig,
-    seed: int,
-) -> PlotView:
+def glance(plot: str, scans: list[str], inp: ReportInput, cfg: ReportConfig, seed: int) -> PlotView:
     """A plot judged in an earlier report: only a seeded sample of each scan, for the pictures."""
     view = PlotView(plot, scans)
     rng = np.random.default_rng(seed)
     for sid in scans:
-        if sid in poses and sid in paths:
-            xyz = reader(paths[sid])
+        if sid in inp.poses and sid in inp.paths:
+            xyz = inp.reader(inp.paths[sid])
             pick = np.sort(rng.choice(len(xyz), min(len(xyz), cfg.picture_points), replace=False))
-            view.thinned[sid] = apply_transform(poses[sid], xyz[pick])
+            view.thinned[sid] = apply_transform(inp.poses[sid], xyz[pick])
     return view
 
 
@@ -371,7 +363,7 @@ def build_report(
     views_ = []
     for plot, scans in inp.plots.items():
         if plot in inp.judged_in:
-            views_.append(glance(plot, scans, inp.paths, inp.poses, inp.reader, cfg, seed))
+            views_.append(glance(plot, scans, inp, cfg, seed))
             continue
         v = collect(plot, scans, inp.paths, inp.poses, inp.reader, cfg, seed)
         add_distances(v, G, cfg)
