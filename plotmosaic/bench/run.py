@@ -35,6 +35,7 @@ from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import atomic_output, write_text_atomic
 from plotmosaic.io.frame import apply_transform
 from plotmosaic.io.las import PointCloud
+from plotmosaic.io.progress import progress_bar
 
 
 @dataclass
@@ -99,7 +100,7 @@ def run_bench(
     total = len(pairs) * n_cases * config.trials * len(methods)
     rows: list[dict] = []
     pictures = 0
-    with _progress(progress) as bar:
+    with progress_bar(progress) as bar:
         task = bar.add_task("bench", total=total)
         for k, pair in enumerate(pairs):
             aligned = PointCloud(
@@ -184,46 +185,6 @@ def _failure_picture(
         f"{' (the method refused it)' if row['failed'] else ''} {row['note']}"
     )
     return plot_failure(moved.xyz, target.xyz, estimate, truth, folder / f"{slug}.png", title)
-
-
-class _NoBar:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-    def add_task(self, *a, **k):
-        return 0
-
-    def update(self, *a, **k):
-        pass
-
-    def advance(self, *a, **k):
-        pass
-
-
-def _progress(enabled: bool):
-    if not enabled:
-        return _NoBar()
-    from rich.console import Console
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
-
-    columns = (
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-    )
-    return Progress(*columns, console=Console(stderr=True), transient=True)
 
 
 # ---------------------------------------------------------------- outputs

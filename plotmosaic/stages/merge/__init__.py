@@ -44,7 +44,7 @@ from plotmosaic.stages.merge.plan import (
     read_source_table,
     sidecar_path,
 )
-from plotmosaic.stages.merge.progress import progress_bar
+from plotmosaic.stages.merge.progress import points_bar
 from plotmosaic.stages.merge.records import (
     count_out,
     first_in_voxel,
@@ -149,7 +149,7 @@ def _merge_scans(
     try:
         # One BLAS thread: the 3x3 products are tiny per point, and a multi-threaded OpenBLAS on a
         # busy machine slows apply_transform down many times; the LAZ codec uses the cores instead.
-        with threadpool_limits(1, user_api="blas"), progress_bar(progress, job.total) as bar:
+        with threadpool_limits(1, user_api="blas"), points_bar(progress, job.total) as bar:
             if config.voxel is None and not config.tiles:
                 summary = _write_stream(job, bar)
             else:

@@ -4,32 +4,16 @@ from __future__ import annotations
 
 import contextlib
 
+from rich.console import Console
 
-def progress_bar(enabled: bool, total: int):
-    """A rich progress bar over points on stderr (nothing when disabled or not a terminal)."""
-    if not enabled:
-        return contextlib.nullcontext(None)
-    from rich.console import Console
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeRemainingColumn,
-    )
+from plotmosaic.io.progress import progress_bar
 
-    console = Console(stderr=True)
-    if not console.is_terminal:
+
+def points_bar(enabled: bool, total: int):
+    """A progress bar over points on stderr (nothing when disabled or not a terminal)."""
+    if not enabled or not Console(stderr=True).is_terminal:
         return contextlib.nullcontext(None)
-    bar = Progress(
-        TextColumn("merge {task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeRemainingColumn(),
-        console=console,
-        transient=True,
-    )
-    return _ProgressTask(bar, total)
+    return _ProgressTask(progress_bar(True, "merge {task.description}"), total)
 
 
 class _ProgressTask:
