@@ -148,6 +148,7 @@ def test_tls_levels_are_ground_stems_foliage(sim_pair, sim_prepared):
     assert purity[2]["classes"][2] > np.mean(labels == 2)
 
 
+@pytest.mark.slow
 def test_sim_tls_pair_from_perturbations(sim_prepared):
     """+-5 deg / +-1 m: every trial within PAIR_MAX_DEG and 2 cm."""
     ps, pt, T_true, cfg = sim_prepared
@@ -264,6 +265,7 @@ def test_utm_coordinates_keep_precision(sim_pair):
     np.testing.assert_allclose(again.transform, shifted.transform, rtol=0, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_non_overlapping_pair_fails_with_figures(sim_pair):
     src, tgt, _ = sim_pair
     far = PointCloud(tgt.xyz + [500.0, 0.0, 0.0])

@@ -43,6 +43,7 @@ def pair(small_sim, tmp_path_factory):
     return small_sim.scan_paths["P1-S1"], small_sim.scan_paths["P1-S0"], T_true, init
 
 
+@pytest.mark.slow
 def test_align_writes_result_and_levels(pair, tmp_path):
     src, tgt, T_true, init = pair
     out = tmp_path / "result.json"

@@ -124,6 +124,7 @@ def tilted_pair(views):
     return Cloud(move(T, src)), Cloud(tgt), np.linalg.inv(T)
 
 
+@pytest.mark.slow
 def test_coarse_recovers_a_45_degree_tilted_source_and_is_deterministic(tilted_pair):
     src, tgt, truth = tilted_pair
     c = CoarseConfig(max_points=20_000)

@@ -100,6 +100,7 @@ def test_sharpness_floor_refuses_a_blunt_fit(pair):
     assert blunt_fit(None, None, jc) is None  # results cached before sharpness
 
 
+@pytest.mark.slow
 def test_right_pair_accepted_with_high_confidence(pair):
     ps, pt, T_true, centre, cfg = pair
     result = register_prepared(ps, pt, cfg, None, seed=0)

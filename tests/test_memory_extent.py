@@ -80,6 +80,7 @@ def run_measured(command: list[str]) -> dict:
 
 
 @pytest.mark.parametrize("scene", ["random", "scan with far scatter"])
+@pytest.mark.slow
 def test_cloud_spread_over_19_km_stays_under_2_gb(small_sim, tmp_path, scene):
     """200,000 random points over 19.5 km, or a forest scan with 20,000 points scattered over 19.5 km
     (too many to be stray), onto a forest scan: the pair's peak memory stays under 2 GB (a dense 1 m

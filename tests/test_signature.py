@@ -92,6 +92,7 @@ def grid9(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 def test_nine_scan_grid_without_positions_or_als(grid9, tmp_path):
     from plotmosaic.manifest import load_manifest
     from plotmosaic.stages.register_plot import match_signatures, plan_jobs
