@@ -25,6 +25,8 @@ from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pyproj import CRS
+from pyproj.exceptions import CRSError
 
 from plotmosaic.config.align import DEFAULT_LEVELS, KINDS, MAX_LEVELS
 from plotmosaic.errors import InputError
@@ -115,9 +117,6 @@ class Plot(_Strict):
     @classmethod
     def _valid_crs(cls, value: str | None) -> str | None:
         if value is not None:
-            from pyproj import CRS
-            from pyproj.exceptions import CRSError
-
             try:
                 CRS.from_user_input(value)
             except CRSError:

@@ -15,6 +15,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import open3d as o3d
 
 from plotmosaic.align.pipeline import align_clouds, register_prepared
 from plotmosaic.align.prepare import prepare_cloud
@@ -126,8 +127,6 @@ def prepare_target(pair: PairInput, seed: int):
 
 
 def _o3d():
-    import open3d as o3d
-
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     return o3d
 
@@ -213,7 +212,7 @@ def _rigid_cpd(source: np.ndarray, target: np.ndarray, cfg: CpdConfig) -> np.nda
     clouds' spread and CPD stops at the coarse, centroid-matching pose, even from the true pose.
     This M-step is probreg's with that term corrected; the E-step is probreg's.
     """
-    from probreg import cpd, transformation
+    from probreg import cpd, transformation  # optional (the bench extra): only when CPD runs
 
     class FixedScaleRigidCPD(cpd.RigidCPD):
         def maximization_step(self, target, estep_res, sigma2_p=None):

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
 from scipy.spatial.transform import Rotation
 
 from plotmosaic.bench.run import BenchPair
@@ -119,8 +120,6 @@ def _moved(cloud: PointCloud, G: np.ndarray) -> PointCloud:
 
 
 def _pcd(xyz: np.ndarray, voxel: float):
-    import open3d as o3d
-
     return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz)).voxel_down_sample(voxel)
 
 
@@ -136,8 +135,6 @@ def refine_truth(
     Each runs the sparser cloud onto the denser one (a sparse target biases point-to-point ICP and is slow to
     query); point-to-point ICP, point-to-plane ICP (planes from the denser cloud) and generalised ICP.
     """
-    import open3d as o3d
-
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     reg = o3d.pipelines.registration
     offset = np.floor(target.mean(axis=0))  # local frame: UTM keeps its millimetres in Open3D

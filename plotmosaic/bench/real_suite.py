@@ -13,10 +13,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+import multiprocessing
 import os
 import subprocess
 import time
 from collections.abc import Callable, Iterable
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -329,8 +331,6 @@ def run_suite(
             except Exception as exc:  # noqa: BLE001 - one broken trial is logged and left for a re-run
                 crashed(job, exc)
         return new
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed
 
     share = max(1, threads() // jobs)
     ctx = multiprocessing.get_context("spawn")  # no fork of a parent holding OpenMP threads

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import typer
 from rich.console import Console
+from scipy.spatial.transform import Rotation
 
 from plotmosaic.align.pipeline import align_files
 from plotmosaic.align.prepare import MIN_POINTS
@@ -76,7 +77,6 @@ def output_plan(source, target, init, config, out, save_levels, force) -> Output
 
 
 def summary_lines(result) -> list[str]:
-    from scipy.spatial.transform import Rotation
 
     T = result.transform
     rx, ry, rz = Rotation.from_matrix(T[:3, :3]).as_euler("xyz", degrees=True)

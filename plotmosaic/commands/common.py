@@ -11,6 +11,8 @@ import contextlib
 import errno
 import functools
 import os
+import shlex
+import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -149,9 +151,6 @@ def run_settings(config_path, overrides: dict | None = None):
 
 def write_config_used(path, settings, command: str):
     """The settings a run used, as TOML beside its outputs (atomic): `--config` repeats the run."""
-    import shlex
-    import sys
-
     header = (
         f"Settings used by `plotmosaic {command}` (give back with --config to repeat the run; "
         "copy it first when the run writes into this folder: a run never writes over its inputs)."

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import typer
 from pydantic import ValidationError
+from rich.console import Console
+from rich.table import Table
 
 from plotmosaic.commands.common import (
     CONFIG_HELP,
@@ -134,8 +136,6 @@ def output_plan(manifest, poses: Path, config: Path | None, out: Path, used: Pat
 
 
 def print_summary(summary: MergeSummary) -> None:
-    from rich.console import Console
-    from rich.table import Table
 
     console = Console(highlight=False)
     table = Table(title=f"{summary.out}", title_justify="left")

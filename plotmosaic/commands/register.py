@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import typer
+from rich.console import Console
+from rich.table import Table
 
 from plotmosaic.commands.common import (
     CONFIG_HELP,
@@ -218,8 +220,6 @@ def tie_to_als_command(
     check_output_dir(out)
     with no_empty_output(out), _recorded(out, settings, "tie-to-als"), claimed(plan):
         result = tie_to_als(manifest, poses, out, settings.tie_config(), seed, jobs)
-    from rich.console import Console
-    from rich.table import Table
 
     table = Table(title="anchors (plot -> ALS)", title_justify="left")
     for name in ("plot", "status", "fitness", "inlier RMSE (cm)", "residual (cm / deg)"):
@@ -248,8 +248,6 @@ def tie_to_als_command(
 
 
 def _summary(G, solves, unplaced: list[str]) -> None:
-    from rich.console import Console
-    from rich.table import Table
 
     console = Console(highlight=False)
     kept = sum(1 for *_, e in G.edges(data=True) if not e.get("dropped"))

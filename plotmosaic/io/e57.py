@@ -69,7 +69,7 @@ class E57Scan:
 
 
 def _libe57():
-    from pye57 import libe57
+    from pye57 import libe57  # deferred: the C++ library loads only when an E57 file is read
 
     return libe57
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -261,8 +262,6 @@ def write_register_report(
 def rigid_plots(result, earlier, earlier_report: Path | None, cfg) -> dict[str, tuple[str, str]]:
     """Plots the region solve moved as one piece (each scan's pose relative to the plot's reference
     as register-plot left it, within the report's rigid tolerance): judged in register-plot's report."""
-    import os
-
     if earlier is None or earlier_report is None or not Path(earlier_report).is_file():
         return {}
     after = result.poses

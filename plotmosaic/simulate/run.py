@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from pydantic import ValidationError
 from pyproj import CRS
 
 from plotmosaic.config.simulate import ALIASES, CRS_EPSG, PRESETS, SimulationConfig
@@ -53,7 +54,6 @@ def make_config(preset: str = "small", **overrides) -> SimulationConfig:
         if path[-1] not in node:
             raise InputError(f"unknown simulation setting {key!r}")
         node[path[-1]] = value
-    from pydantic import ValidationError
 
     try:
         return SimulationConfig.model_validate(data)
