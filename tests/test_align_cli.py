@@ -99,6 +99,7 @@ def test_bad_input_exits_2(pair, tmp_path):
     assert "--levels-target" in one_line_error(invoke(src, tgt, "--levels-target", "0"), 2)
 
 
+@pytest.mark.slow
 def test_ambiguous_pair_exits_3_instead_of_a_silent_wrong_transform(small_sim, tmp_path):
     """Corner scans 32 m apart at 50k points share too little: the coarse stage's best pose (the two
     scanners pulled together, fitness 0.33 from the dense ground) is barely ahead of distinct rivals.

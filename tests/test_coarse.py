@@ -4,6 +4,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
+import pytest
 from scipy.spatial.transform import Rotation
 
 from plotmosaic.align.coarse import CoarseConfig, coarse_align
@@ -81,6 +82,7 @@ def pose_error(T, G):
     )
 
 
+@pytest.mark.slow
 def test_coarse_finds_drone_clip_inside_als_from_far_away(spanner_dir):
     """UAS -> ALS, perturbed far beyond ICP's reach (paper protocol range): found to within ICP range."""
     uas = read_cloud(spanner_dir / "UAS_Clip.laz", attributes=False).xyz

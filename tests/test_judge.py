@@ -124,6 +124,7 @@ def test_right_pair_accepted_with_high_confidence(pair):
     assert PairResult.from_dict(old).judge is None
 
 
+@pytest.mark.slow
 def test_local_start_far_off_is_refused_never_wrong(pair):
     """--no-coarse from a start that leaves ICP in a wrong minimum: exit 3 with the rival named, or right."""
     ps, pt, T_true, centre, cfg = pair
