@@ -4,12 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib.pyplot as plt  # the Agg backend: io.pictures selects it
 import numpy as np
 
 from plotmosaic.align.prepare import PreparedCloud
 from plotmosaic.io.las import PointCloud, write_cloud
-from plotmosaic.io.pictures import savefig
+from plotmosaic.io.pictures import pyplot, savefig
 
 COLOURS = ["#8c6d31", "#2b8cbe", "#31a354", "#de2d26", "#756bb1"]  # level 0 (least complex) first
 
@@ -29,7 +28,7 @@ def plot_levels(
 ) -> Path:
     """Per cloud a side view (x-z) and a top view (x-y), points coloured by level."""
     rng = np.random.default_rng(seed)
-    fig, axes = plt.subplots(len(clouds), 2, figsize=(13, 5.2 * len(clouds)), squeeze=False)
+    fig, axes = pyplot().subplots(len(clouds), 2, figsize=(13, 5.2 * len(clouds)), squeeze=False)
     for row, (name, p) in enumerate(clouds.items()):
         idx = np.arange(len(p.level_points))
         if len(idx) > max_points:

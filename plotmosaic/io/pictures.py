@@ -2,14 +2,22 @@
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
-import matplotlib
+from plotmosaic.io.atomic import atomic_output
 
-matplotlib.use("Agg")  # files only, never a window: selected before pyplot loads
-import matplotlib.pyplot as plt  # noqa: E402
 
-from plotmosaic.io.atomic import atomic_output  # noqa: E402
+@functools.cache
+def pyplot():
+    """matplotlib's pyplot on the Agg backend (files only, never a window), imported on first use:
+    matplotlib is a heavy import, and pair workers that draw nothing must not pay for it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
 
 
 def savefig(fig, path: str | Path, dpi: int = 110, tight: bool = True) -> Path:
@@ -18,5 +26,5 @@ def savefig(fig, path: str | Path, dpi: int = 110, tight: bool = True) -> Path:
     path = Path(path)
     with atomic_output(path) as tmp:
         fig.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight" if tight else None)
-    plt.close(fig)
+    pyplot().close(fig)
     return path
