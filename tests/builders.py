@@ -37,7 +37,7 @@ def split_pair(cloud: PointCloud, seed: int = 1) -> tuple[PointCloud, PointCloud
     return PointCloud(src.xyz + rng.normal(0, 0.005, src.xyz.shape)), tgt
 
 
-def _random_pose(rng, spread=15.0, tilt_deg=2.0):
+def random_pose(rng, spread=15.0, tilt_deg=2.0):
     angles = np.radians([rng.normal(0, tilt_deg), rng.normal(0, tilt_deg), rng.uniform(-180, 180)])
     T = np.eye(4)
     T[:3, :3] = gtsam.Rot3.Ypr(angles[2], angles[1], angles[0]).matrix()
@@ -59,7 +59,7 @@ def synthetic_pose_graph(n_scans=5, seed=0, rot_noise_deg=0.002, trans_noise=0.0
     """(truth, nodes, edges) of a plot whose every pair is an edge with small noise; `outlier`
     (source, target) names one edge turned 10 deg and 2 m wrong."""
     rng = np.random.default_rng(seed)
-    truth = {f"s{k}": _random_pose(rng) for k in range(n_scans)}
+    truth = {f"s{k}": random_pose(rng) for k in range(n_scans)}
     ref = "s0"
     truth = {k: inverse(truth[ref]) @ T for k, T in truth.items()}  # plot frame = reference scan
     edges = []

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from builders import UTM, split_pair, synthetic_plot
 from typer.testing import CliRunner
 
 from plotmosaic.bench.overlap import crop_to_overlap, overlap_fraction
@@ -23,37 +24,6 @@ from plotmosaic.bench.protocol import (
 from plotmosaic.bench.run import read_trials_csv
 from plotmosaic.cli import app
 from plotmosaic.io.las import PointCloud, write_cloud
-
-UTM = np.array([470250.0, 3810150.0, 2100.0])
-
-
-def synthetic_plot(seed: int = 0, size: float = 30.0, trees: int = 20) -> PointCloud:
-    """Undulating ground, stems and crowns at UTM coordinates: enough structure for ICP/RANSAC."""
-    rng = np.random.default_rng(seed)
-    xy = rng.uniform(-size / 2, size / 2, (15000, 2))
-
-    def ground(x, y):
-        return 0.8 * np.sin(x / 5) + 0.5 * np.cos(y / 4) + 0.05 * x
-
-    parts = [np.c_[xy, ground(xy[:, 0], xy[:, 1])]]
-    for _ in range(trees):
-        cx, cy = rng.uniform(-size / 2 + 2, size / 2 - 2, 2)
-        r, h = rng.uniform(0.15, 0.4), rng.uniform(8, 15)
-        a, z = rng.uniform(0, 2 * np.pi, 500), rng.uniform(0, h, 500)
-        base = ground(cx, cy)
-        parts.append(np.c_[cx + r * np.cos(a), cy + r * np.sin(a), base + z])
-        crown = rng.normal(0, 1.5, (400, 3))
-        parts.append(np.c_[cx + crown[:, 0], cy + crown[:, 1], base + h + 0.8 * crown[:, 2]])
-    return PointCloud(np.vstack(parts) + UTM)
-
-
-def split_pair(cloud: PointCloud, seed: int = 1) -> tuple[PointCloud, PointCloud]:
-    """Two independent halves of one scene (different points, same surfaces), slightly noisy."""
-    rng = np.random.default_rng(seed)
-    idx = rng.permutation(len(cloud))
-    src, tgt = cloud.select(idx[::2]), cloud.select(idx[1::2])
-    return PointCloud(src.xyz + rng.normal(0, 0.005, src.xyz.shape)), tgt
-
 
 # ---------------------------------------------------------------- protocol
 

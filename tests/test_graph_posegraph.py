@@ -1,8 +1,8 @@
 """The pose graph on synthetic edges: recovery, outlier rejection, disconnected scans, JSON round trip."""
 
-import gtsam
 import numpy as np
 import pytest
+from builders import random_pose, synthetic_pose_graph
 
 from plotmosaic.config.register import PoseGraphConfig
 from plotmosaic.graph.posegraph import (
@@ -17,61 +17,8 @@ from plotmosaic.graph.posegraph import (
 )
 
 
-def _random_pose(rng, spread=15.0, tilt_deg=2.0):
-    angles = np.radians([rng.normal(0, tilt_deg), rng.normal(0, tilt_deg), rng.uniform(-180, 180)])
-    T = np.eye(4)
-    T[:3, :3] = gtsam.Rot3.Ypr(angles[2], angles[1], angles[0]).matrix()
-    T[:3, 3] = [rng.uniform(-spread, spread), rng.uniform(-spread, spread), rng.normal(0, 0.3)]
-    return T
-
-
-def _icp_information(rng, T_target, n=400, sigma=0.003):
-    """J^T J / sigma^2 from a random tree-like point set: a realistic, anisotropic 6x6 (right perturbation)."""
-    pts = np.column_stack([rng.uniform(-15, 15, n), rng.uniform(-15, 15, n), rng.uniform(0, 12, n)])
-    normals = rng.normal(size=(n, 3))
-    normals[:, 2] *= 0.3  # mostly vertical stems: horizontal normals
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    J = np.column_stack([np.cross(pts, normals), normals])  # d(n . (R p + t)) / (w, v)
-    return J.T @ J / sigma**2
-
-
-def synthetic_plot(n_scans=5, seed=0, rot_noise_deg=0.002, trans_noise=0.0005, outlier=None):
-    rng = np.random.default_rng(seed)
-    truth = {f"s{k}": _random_pose(rng) for k in range(n_scans)}
-    ref = "s0"
-    truth = {k: inverse(truth[ref]) @ T for k, T in truth.items()}  # plot frame = reference scan
-    edges = []
-    for a in range(n_scans):
-        for b in range(a + 1, n_scans):
-            i, j = f"s{b}", f"s{a}"  # source, target
-            T = inverse(truth[j]) @ truth[i]
-            xi = np.concatenate(
-                [np.radians(rng.normal(0, rot_noise_deg, 3)), rng.normal(0, trans_noise, 3)]
-            )
-            T = T @ gtsam.Pose3.Expmap(xi).matrix()
-            edges.append(
-                {
-                    "source": i,
-                    "target": j,
-                    "transform": T,
-                    "fitness": 0.8,
-                    "inlier_rmse": 0.01,
-                    "overlap": 0.6,
-                    "information": _icp_information(rng, T),
-                }
-            )
-    if outlier is not None:
-        e = next(e for e in edges if (e["source"], e["target"]) == outlier)
-        e["transform"] = (
-            e["transform"]
-            @ gtsam.Pose3(gtsam.Rot3.Rz(np.radians(10)), np.array([2.0, 0.5, 0.0])).matrix()
-        )
-    nodes = {name: {"kind": "tls", "plot": "P1"} for name in truth}
-    return truth, nodes, edges
-
-
 def test_recovers_poses_with_small_noise():
-    truth, nodes, edges = synthetic_plot()
+    truth, nodes, edges = synthetic_pose_graph()
     G = build_graph(nodes, edges)
     sol = optimise(G, "s0")
     assert sol.unplaced == [] and sol.dropped == []
@@ -85,7 +32,7 @@ def test_recovers_poses_with_small_noise():
 
 @pytest.mark.parametrize("outlier", [("s3", "s1"), ("s1", "s0")])
 def test_wrong_edge_is_dropped(outlier):
-    truth, nodes, edges = synthetic_plot(outlier=outlier, seed=1)
+    truth, nodes, edges = synthetic_pose_graph(outlier=outlier, seed=1)
     G = build_graph(nodes, edges)
     assert cycle_outliers(G, PoseGraphConfig()) == [tuple(sorted(outlier))]
     sol = optimise(G, "s0")
@@ -97,7 +44,7 @@ def test_wrong_edge_is_dropped(outlier):
 
 
 def test_wrong_edge_found_by_residual_when_cycle_check_is_off():
-    truth, nodes, edges = synthetic_plot(outlier=("s4", "s2"), seed=2)
+    truth, nodes, edges = synthetic_pose_graph(outlier=("s4", "s2"), seed=2)
     G = build_graph(nodes, edges)
     config = PoseGraphConfig(
         cycle_translation=1e9, cycle_rotation_deg=1e9
@@ -112,7 +59,7 @@ def test_wrong_edge_found_by_residual_when_cycle_check_is_off():
 
 
 def test_disconnected_scan_reported_others_placed():
-    truth, nodes, edges = synthetic_plot(n_scans=5, seed=3)
+    truth, nodes, edges = synthetic_pose_graph(n_scans=5, seed=3)
     nodes["lonely"] = {"kind": "tls", "plot": "P1"}
     edges.append({"source": "lonely", "target": "s0", "status": "failed", "error": "no overlap"})
     G = build_graph(nodes, edges)
@@ -126,8 +73,8 @@ def test_disconnected_scan_reported_others_placed():
 
 def test_all_edges_of_a_scan_dropped_makes_it_unplaced():
     # s4 has only one edge, and it is wrong in a way no cycle can show; dropping it leaves s4 alone
-    truth, nodes, edges = synthetic_plot(n_scans=4, seed=4)
-    T = inverse(truth["s0"]) @ _random_pose(np.random.default_rng(9))
+    truth, nodes, edges = synthetic_pose_graph(n_scans=4, seed=4)
+    T = inverse(truth["s0"]) @ random_pose(np.random.default_rng(9))
     nodes["s4"] = {"kind": "tls", "plot": "P1"}
     G = build_graph(
         nodes,
@@ -153,7 +100,7 @@ def test_information_conditioning_floors_sigmas():
 
 
 def test_graph_json_round_trip():
-    _, nodes, edges = synthetic_plot(n_scans=3)
+    _, nodes, edges = synthetic_pose_graph(n_scans=3)
     G = build_graph(nodes, edges)
     optimise(G, "s0")
     import json
@@ -173,9 +120,9 @@ def test_graph_json_round_trip():
 
 def test_unconfirmed_low_confidence_bridge_is_dropped():
     # s4 hangs on one edge whose coarse stage was unsure: nothing confirms it, so s4 is not placed
-    truth, nodes, edges = synthetic_plot(n_scans=4, seed=5)
+    truth, nodes, edges = synthetic_pose_graph(n_scans=4, seed=5)
     nodes["s4"] = {"kind": "tls", "plot": "P1"}
-    wrong = inverse(truth["s0"]) @ _random_pose(np.random.default_rng(7))
+    wrong = inverse(truth["s0"]) @ random_pose(np.random.default_rng(7))
     edges.append(
         {
             "source": "s4",
@@ -202,13 +149,13 @@ def test_unconfirmed_low_confidence_bridge_is_dropped():
 def test_many_unsure_wrong_corner_edges_do_not_outvote_the_right_ones():
     # the region-preset failure: corner-to-corner pairs 30 m apart came back wrong with low coarse
     # confidence (4 of a plot's 10 edges); they must be dropped without taking the good edges along
-    truth, nodes, edges = synthetic_plot(n_scans=5, seed=11)
+    truth, nodes, edges = synthetic_pose_graph(n_scans=5, seed=11)
     rng = np.random.default_rng(3)
     bad = {("s2", "s1"), ("s3", "s1"), ("s4", "s2"), ("s4", "s3")}
     for e in edges:
         e["confidence"] = 0.7
         if (e["source"], e["target"]) in bad:
-            e["transform"] = inverse(truth[e["target"]]) @ _random_pose(rng)
+            e["transform"] = inverse(truth[e["target"]]) @ random_pose(rng)
             e["confidence"] = 0.03
     sol = optimise(build_graph(nodes, edges), "s0")
     assert sorted((d["source"], d["target"]) for d in sol.dropped) == sorted(bad)

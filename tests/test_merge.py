@@ -17,7 +17,7 @@ from pyproj import CRS
 
 import plotmosaic.stages.merge as merge_module
 from plotmosaic.config.merge import MergeConfig
-from plotmosaic.errors import InputError
+from plotmosaic.errors import InputError, interrupts
 from plotmosaic.io import PointCloud, write_cloud
 from plotmosaic.io.frame import apply_transform
 from plotmosaic.io.las import make_header, make_record, read_cloud
@@ -532,7 +532,7 @@ def test_interrupt_inside_the_laz_codec_is_an_interrupt():
             _write_laz(_RingingFile())
     finally:
         signal.signal(signal.SIGINT, previous)
-    with pytest.raises(KeyboardInterrupt), merge_module.interrupts_win():
+    with pytest.raises(KeyboardInterrupt), interrupts.installed():
         _write_laz(_RingingFile())
 
 

@@ -308,5 +308,3 @@ __all__ = [
     "sidecar_path",
     "stable_order",
 ]
-
-interrupts_win = interrupts.installed  # the name tests/test_merge.py still calls
