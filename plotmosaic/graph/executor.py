@@ -24,14 +24,6 @@ from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
-from rich.progress import (
-    BarColumn,
-    MofNCompleteColumn,
-    Progress,
-    TextColumn,
-    TimeElapsedColumn,
-    TimeRemainingColumn,
-)
 from threadpoolctl import threadpool_limits
 
 from plotmosaic.align.pipeline import register_prepared
@@ -39,6 +31,7 @@ from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.graph import prepared as store
 from plotmosaic.graph.prepared import PrepareJob, get_prepared, prepared_key
+from plotmosaic.io.progress import progress_bar
 from plotmosaic.lifetime import bind_to_parent
 from plotmosaic.parallel import limited, set_threads
 
@@ -189,18 +182,6 @@ def call_with_threads(threads: int, worker: Callable, job):
         return worker(job)
 
 
-def _progress(enabled: bool) -> Progress:
-    return Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-        disable=not enabled,
-        transient=False,
-    )
-
-
 def _failed(job, exc: BaseException) -> dict:
     if isinstance(job, PrepareJob):
         return {
@@ -242,7 +223,7 @@ def run_pairs(
         if on_result is not None:
             on_result(record)
 
-    with _progress(progress) as bar:
+    with progress_bar(progress, transient=False) as bar:
         task = bar.add_task(label, total=len(jobs))
 
         def tick(record: dict) -> None:
