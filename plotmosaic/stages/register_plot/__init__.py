@@ -1,0 +1,89 @@
+"""register-plot: prepare -> place -> plan -> pairs -> grow -> solve -> write, one module a step.
+
+A region manifest is done plot by plot: each plot gets its own frame (its reference scan's file
+coordinates); tie-to-als then places the plots in the ALS CRS.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from plotmosaic.config.register import RegisterConfig
+from plotmosaic.manifest import Manifest
+from plotmosaic.stages.register_plot.grow import graph_poses, grow, grow_jobs, position_jobs
+from plotmosaic.stages.register_plot.pairs import (
+    EDGE_FIELDS,
+    _pair_job,
+    anchor_id,
+    compute_pairs,
+    prepare,
+    prepare_every_scan,
+    prepare_scans,
+    run_jobs,
+    start_run,
+)
+from plotmosaic.stages.register_plot.place import als_anchor_edges, place, place_scans
+from plotmosaic.stages.register_plot.plan import match_signatures, plan, plan_jobs
+from plotmosaic.stages.register_plot.solve import PlotResult, solve, solve_plot
+from plotmosaic.stages.register_plot.write import RegisterResult, write
+
+__all__ = [
+    "EDGE_FIELDS",
+    "PlotResult",
+    "RegisterResult",
+    "_pair_job",
+    "als_anchor_edges",
+    "anchor_id",
+    "compute_pairs",
+    "graph_poses",
+    "grow_jobs",
+    "match_signatures",
+    "place_scans",
+    "plan_jobs",
+    "position_jobs",
+    "prepare_every_scan",
+    "prepare_scans",
+    "register_plot",
+    "solve_plot",
+]
+
+
+def register_plot(
+    manifest: str | Path | Manifest,
+    out: str | Path,
+    jobs: int | None = None,
+    executor: str = "local",
+    scheduler: str | None = None,
+    config: RegisterConfig | None = None,
+    seed: int = 0,
+    force: bool = False,
+    progress: bool = True,
+    on_result: Callable[[dict], None] | None = None,
+) -> RegisterResult:
+    """Register every plot of `manifest` into `out`: poses.json, graph.json and the report.
+
+    Pair results are cached under OUT/pairs (a run resumes where it stopped; `force` recomputes);
+    `on_result` sees each pair record as it is computed. Raises InputError for a bad manifest, an
+    output that is a file, or a scan that cannot be read (before any pair runs)."""
+    start = time.perf_counter()
+    run = start_run(
+        manifest,
+        out,
+        config,
+        seed=seed,
+        executor=executor,
+        n_jobs=jobs,
+        scheduler=scheduler,
+        force=force,
+        progress=progress,
+        on_result=on_result,
+    )
+    prepare(run)  # every scan read once, and a bad one named, before any pair
+    priors = place(run)  # big plots' scans on the ALS tile; poses stored in the scans
+    planned = plan(run, priors)  # candidate pairs by position, by signature where none
+    pairs = run_jobs(run, planned.jobs)
+    pairs = grow(run, priors, planned.ranks, pairs)  # more pairs where the graph allows
+    solved = solve(run, priors, pairs)  # one pose graph, each plot solved in its own frame
+    return write(run, priors, pairs, solved, start)

@@ -1,0 +1,180 @@
+"""Grow: more pairs in bounded rounds, where the verified pairs so far place scans or leave a plot in pieces."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import networkx as nx
+import numpy as np
+
+from plotmosaic.config.register import RegisterConfig
+from plotmosaic.graph.executor import PairJob, with_stored_poses
+from plotmosaic.graph.pairs import neighbour_pairs, reach_distance
+from plotmosaic.graph.posegraph import build_graph
+from plotmosaic.graph.signature import grow_candidates
+from plotmosaic.manifest import Manifest
+from plotmosaic.stages.register_plot.pairs import (
+    EDGE_FIELDS,
+    Pairs,
+    Run,
+    _pair_job,
+    _priors,
+    _signature_config,
+    anchor_id,
+    run_jobs,
+)
+from plotmosaic.stages.register_plot.place import Priors
+from plotmosaic.stages.register_plot.solve import solve_plot
+
+
+def _degrees(job_list: list[PairJob]) -> dict[str, int]:
+    degree: dict[str, int] = {}
+    for j in job_list:
+        degree[j.source] = degree.get(j.source, 0) + 1
+        degree[j.target] = degree.get(j.target, 0) + 1
+    return degree
+
+
+def graph_poses(
+    manifest: Manifest,
+    config: RegisterConfig,
+    job_list: list[PairJob],
+    records: dict[str, dict],
+    anchors: dict[str, list[dict]],
+) -> dict[str, np.ndarray]:
+    """scan id -> its pose in its plot's frame, from the pose graph of the pairs so far (and the ALS
+    anchors): what the verified pairs place, after the graph's own outlier checks."""
+    edges = [{k: records[j.key].get(k) for k in EDGE_FIELDS} for j in job_list if j.key in records]
+    G = build_graph({s.id: {} for s in manifest.scans}, edges)
+    poses: dict[str, np.ndarray] = {}
+    for plot in manifest.plots:
+        poses.update(solve_plot(G, plot, anchors.get(plot.id, []), config)[1].poses)
+    return poses
+
+
+def position_jobs(
+    manifest: Manifest,
+    config: RegisterConfig,
+    seed: int,
+    prepared: str | Path,
+    poses: dict[str, np.ndarray],
+    job_list: list[PairJob],
+) -> list[PairJob]:
+    """Neighbour pairs of a big plot's scans that the pose graph places (graph_poses), not tried yet:
+    at most `reach` x the scan spacing apart, their prior from the graph and verified first (a chain
+    of verified pairs is as good a prior as two ALS placements), at most `max_per_scan` pairs a scan."""
+    reach = _priors(config).reach
+    config_json = config.align.model_dump_json()
+    tried = {frozenset((j.source, j.target)) for j in job_list}
+    degree = _degrees(job_list)
+    cap = config.pairs.max_per_scan
+    out = []
+    for plot in manifest.plots:
+        if len(plot.scans) <= config.pairs.all_pairs_up_to:
+            continue  # every pair is tried already
+        ids = [s.id for s in plot.scans if s.id in poses]
+        if len(ids) < 2:
+            continue
+        xy = np.array([poses[i][:2, 3] for i in ids])
+        far = reach_distance(xy, reach, config.max_distance)
+        by_id = {s.id: s for s in plot.scans}
+        order = {s.id: k for k, s in enumerate(plot.scans)}
+        for i, j in neighbour_pairs(xy, config.pairs.neighbours, cap, far):
+            a, b = ids[i], ids[j]
+            if frozenset((a, b)) in tried or max(degree.get(a, 0), degree.get(b, 0)) >= cap:
+                continue
+            target, source = sorted((a, b), key=order.get)  # the later scan is the source
+            out.append(
+                _pair_job(
+                    manifest, by_id[source], by_id[target], config_json, seed, str(prepared), poses
+                )
+            )
+            tried.add(frozenset((a, b)))
+            degree[a] = degree.get(a, 0) + 1
+            degree[b] = degree.get(b, 0) + 1
+    return with_stored_poses(out, set(poses))
+
+
+def grow_jobs(
+    manifest: Manifest,
+    config: RegisterConfig,
+    seed: int,
+    prepared: str | Path,
+    placed: dict[str, np.ndarray],
+    ranks: dict[str, list[str]],
+    job_list: list[PairJob],
+    records: dict[str, dict],
+    anchored: set[str] | None = None,
+) -> list[PairJob]:
+    """Pairs to add where a plot's verified pairs leave it in pieces: the next signature-ranked partners.
+
+    `anchored`: scans held by an ALS anchor (one piece with each other through the plot's ALS node)."""
+    sig = _signature_config(config)
+    config_json = config.align.model_dump_json()
+    tried = {frozenset((j.source, j.target)) for j in job_list}
+    degree = _degrees(job_list)
+    G = nx.Graph()
+    for j in job_list:
+        if records.get(j.key, {}).get("status") == "ok":
+            G.add_edge(j.source, j.target)
+    out = []
+    for plot in manifest.plots:
+        ids = [s.id for s in plot.scans]
+        if not any(i in ranks for i in ids):
+            continue
+        sub = G.subgraph(ids).copy()
+        sub.add_nodes_from(ids)
+        sub.add_edges_from((i, anchor_id(plot)) for i in ids if i in (anchored or ()))
+        comps = [set(c) - {anchor_id(plot)} for c in nx.connected_components(sub)]
+        by_id = {s.id: s for s in plot.scans}
+        order = {s.id: k for k, s in enumerate(plot.scans)}
+        for a, b in grow_candidates(
+            ranks, tried, comps, degree, sig.grow_per_scan, config.pairs.max_per_scan
+        ):
+            target, source = sorted((a, b), key=order.get)  # the later scan is the source
+            out.append(
+                _pair_job(
+                    manifest, by_id[source], by_id[target], config_json, seed, str(prepared), placed
+                )
+            )
+    return out
+
+
+def _signature_round(
+    run: Run, priors: Priors, ranks: dict[str, list[str]], pairs: Pairs
+) -> list[PairJob]:
+    """The next signature-ranked partners where a plot is still in pieces."""
+    anchored = priors.from_als if run.config.als_anchors else set()
+    jobs = grow_jobs(
+        run.manifest,
+        run.config,
+        run.seed,
+        run.prepared,
+        priors.placed,
+        ranks,
+        pairs.jobs,
+        pairs.records,
+        anchored,
+    )
+    return with_stored_poses(jobs, priors.verify_first)
+
+
+def grow(run: Run, priors: Priors, ranks: dict[str, list[str]], pairs: Pairs) -> Pairs:
+    """The plan grown in bounded rounds: neighbour pairs of the scans the verified graph places
+    (priors verified first), else, where a plot is still in pieces, the next signature partners."""
+    grows = _signature_config(run.config).grow_rounds if ranks else 0
+    positions = _priors(run.config).position_rounds
+    while True:
+        more = []
+        if positions:
+            poses = graph_poses(run.manifest, run.config, pairs.jobs, pairs.records, priors.anchors)
+            more = position_jobs(
+                run.manifest, run.config, run.seed, run.prepared, poses, pairs.jobs
+            )
+            positions -= bool(more)
+        if not more and grows:
+            grows -= 1
+            more = _signature_round(run, priors, ranks, pairs)
+        if not more:
+            return pairs
+        pairs = run_jobs(run, more, pairs)

@@ -1,0 +1,147 @@
+"""Plan: the first pair jobs of every plot, by position, by signature where scans have no position."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from plotmosaic.config.register import RegisterConfig
+from plotmosaic.graph.executor import PairJob, run_pairs, with_stored_poses
+from plotmosaic.graph.pairs import candidate_pairs, manifest_positions
+from plotmosaic.graph.prepared import prepared_key
+from plotmosaic.graph.signature import (
+    SignatureJob,
+    from_record,
+    ranked_partners,
+    run_signature_job,
+    signature_pairs,
+    similarity,
+)
+from plotmosaic.manifest import Manifest
+from plotmosaic.stages.register_plot.pairs import Run, _pair_job, _priors, _signature_config
+from plotmosaic.stages.register_plot.place import Priors
+
+
+@dataclass(frozen=True, kw_only=True)
+class Plan:
+    """The first pair jobs, and the signature ranks the grow rounds draw further partners from."""
+
+    jobs: list[PairJob]
+    ranks: dict[str, list[str]]  # scan id -> other scans of its plot ranked by signature
+
+
+def plan_jobs(
+    manifest: Manifest,
+    config: RegisterConfig,
+    seed: int,
+    prepared: str | Path | None = None,
+    placed: dict[str, np.ndarray] | None = None,
+    linked: dict[str, list[tuple[str, str]]] | None = None,
+) -> list[PairJob]:
+    """The pair jobs of every plot; `prepared`: the prepared-cloud cache folder (DIR/prepared);
+    `placed`: scan poses from the ALS step (positions for the pair selection, priors for the coarse stage);
+    `linked`: plot id -> pairs of scans whose signatures match (pairs for scans without a position)."""
+    config_json = config.align.model_dump_json()
+    prepared = None if prepared is None else str(prepared)
+    placed = placed or {}
+    linked = linked or {}
+    reach = _priors(config).reach
+    jobs = []
+    for plot in manifest.plots:
+        positions = {s.id: placed[s.id][:3, 3] for s in plot.scans if s.id in placed} or None
+        for source, target in candidate_pairs(
+            plot, config.max_distance, positions, config.pairs, linked.get(plot.id), reach
+        ):
+            jobs.append(_pair_job(manifest, source, target, config_json, seed, prepared, placed))
+    return jobs
+
+
+def _signature_jobs(
+    manifest: Manifest, config: RegisterConfig, seed: int, out: Path, plots: list
+) -> dict[str, SignatureJob]:
+    """scan id -> its signature job, for every scan of these plots."""
+    settings = config.align.model_dump_json()
+    sig = _signature_config(config).model_dump_json()
+    folder = str(out / "prepared")
+    jobs = {}
+    for plot in plots:
+        for scan in plot.scans:
+            path = str(manifest.resolve(scan.path))
+            key = prepared_key(path, scan.kind.value, scan.k, settings, seed)
+            jobs[scan.id] = SignatureJob(
+                key, scan.id, path, scan.kind.value, scan.k, settings, seed, folder, sig
+            )
+    return jobs
+
+
+def match_signatures(
+    manifest: Manifest,
+    config: RegisterConfig,
+    seed: int,
+    out: Path,
+    placed: dict[str, np.ndarray],
+    executor: str = "local",
+    n_jobs: int | None = None,
+    scheduler: str | None = None,
+    progress: bool = True,
+) -> tuple[dict[str, list[tuple[str, str]]], dict[str, list[str]]]:
+    """Big plots where some scan has no position: every scan's stem-map signature (graph/signature.py).
+
+    Returns (plot id -> linked scan pairs, scan id -> other scans of its plot ranked by signature).
+    The scans are prepared here, into the cache their pairs load from (each still read once)."""
+    sig = _signature_config(config)
+    if not sig.enabled:
+        return {}, {}
+    plots = [
+        p
+        for p in manifest.plots
+        if len(p.scans) > config.pairs.all_pairs_up_to
+        and manifest_positions(p) is None
+        and not all(s.id in placed for s in p.scans)
+    ]
+    if not plots:
+        return {}, {}
+    jobs = _signature_jobs(manifest, config, seed, out, plots)
+    records = run_pairs(
+        list(jobs.values()),
+        None,
+        executor,
+        n_jobs,
+        scheduler,
+        progress,
+        worker=run_signature_job,
+        label="scan signatures",
+    )
+    by_key = {r["key"]: r for r in records}
+    linked, ranks = {}, {}
+    for plot in plots:
+        ids = [s.id for s in plot.scans]
+        sigs = [from_record(by_key.get(jobs[i].key, {})) for i in ids]
+        scores = similarity(sigs, sig)
+        # with ALS placements a scan needs one verified partner: the graph places it, and its
+        # neighbours follow by position (position_jobs), not by further, costlier signature guesses
+        partners = sig.placed_partners if sum(i in placed for i in ids) >= 3 else sig.partners
+        pairs = signature_pairs(scores, len(ids), partners, config.pairs.max_per_scan)
+        linked[plot.id] = [(ids[i], ids[j]) for i, j in pairs]
+        for i, row in enumerate(ranked_partners(scores, len(ids))):
+            ranks[ids[i]] = [ids[j] for j in row]
+    return linked, ranks
+
+
+def plan(run: Run, priors: Priors) -> Plan:
+    """The first pair jobs: candidate pairs by position, signature links where there is none."""
+    linked, ranks = match_signatures(
+        run.manifest,
+        run.config,
+        run.seed,
+        run.out,
+        priors.placed,
+        run.executor,
+        run.n_jobs,
+        run.scheduler,
+        run.progress,
+    )
+    jobs = plan_jobs(run.manifest, run.config, run.seed, run.prepared, priors.placed, linked)
+    return Plan(jobs=with_stored_poses(jobs, priors.verify_first), ranks=ranks)

@@ -1,0 +1,92 @@
+"""Solve: the pose graph of the run's pairs, each plot optimised in its reference scan's frame."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import networkx as nx
+
+from plotmosaic.config.register import RegisterConfig
+from plotmosaic.graph.posegraph import Solution, add_edges, build_graph, optimise
+from plotmosaic.io.las import read_header_info
+from plotmosaic.manifest import Plot
+from plotmosaic.poses import ScanPose
+from plotmosaic.stages.register_plot.pairs import EDGE_FIELDS, Pairs, Run, anchor_id
+from plotmosaic.stages.register_plot.place import Priors
+
+
+@dataclass
+class PlotResult:
+    plot: str
+    reference: str
+    solution: Solution
+    scans: list[str]
+
+    @property
+    def unplaced(self) -> list[str]:
+        return self.solution.unplaced
+
+
+@dataclass(frozen=True, kw_only=True)
+class Solved:
+    """The pose graph of every pair, each plot's solution and every placed scan's pose."""
+
+    graph: nx.Graph
+    plots: list[PlotResult]
+    scans: dict[str, ScanPose]
+
+
+def solve_plot(
+    G: nx.Graph, plot: Plot, anchors: list[dict], config: RegisterConfig
+) -> tuple[str, Solution]:
+    """(reference, solution) of one plot: its scans' subgraph, plus the ALS node when there are anchors.
+
+    The ALS node and its edges live only in the solve; what the solve marks on the scan-to-scan
+    edges (dropped, residuals) is written back to G, and the ALS node is no pose of the result."""
+    ids = [s.id for s in plot.scans]
+    sub = G.subgraph(ids)
+    ref = _choose_reference(sub, plot)
+    if not anchors:
+        return ref, optimise(sub, ref, config.graph)
+    H = add_edges(sub.copy(), anchors)
+    sol = optimise(H, ref, config.graph)
+    for u, v in sub.edges():
+        G.edges[u, v].update(H.edges[u, v])
+    node = anchor_id(plot)
+    sol.poses.pop(node, None)
+    sol.sigmas.pop(node, None)
+    sol.unplaced = [n for n in sol.unplaced if n != node]
+    return ref, sol
+
+
+def _choose_reference(G: nx.Graph, plot: Plot) -> str:
+    """The manifest's reference, unless it has no successful pair: then the best-connected scan."""
+    ref = plot.reference.id
+    if G.degree(ref) > 0 or G.number_of_edges() == 0:
+        return ref
+    biggest = max(nx.connected_components(G), key=len)
+    return max(sorted(biggest), key=lambda n: G.degree(n, weight="weight"))
+
+
+def solve(run: Run, priors: Priors, pairs: Pairs) -> Solved:
+    """Every pair an edge of one graph (every scan a node), then each plot solved on its own."""
+    manifest = run.manifest
+    nodes = {}
+    for plot in manifest.plots:
+        for scan in plot.scans:
+            path = manifest.resolve(scan.path)
+            nodes[scan.id] = {
+                "plot": plot.id,
+                "kind": scan.kind.value,
+                "path": str(path),
+                "points": read_header_info(path).point_count,
+            }
+    edges = [{k: pairs.records[j.key].get(k) for k in EDGE_FIELDS} for j in pairs.jobs]
+    G = build_graph(nodes, edges)
+    results, scans = [], {}
+    for plot in manifest.plots:
+        ref, sol = solve_plot(G, plot, priors.anchors[plot.id], run.config)
+        results.append(PlotResult(plot.id, ref, sol, [s.id for s in plot.scans]))
+        for name, T in sol.poses.items():
+            scans[name] = ScanPose(T, plot.id, sol.sigmas[name])
+    return Solved(graph=G, plots=results, scans=scans)

@@ -1,0 +1,103 @@
+"""tie-to-als clouds: each plot's scans merged into one cloud, and the ALS tile cropped around it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from plotmosaic.align.voxel import voxel_centroids
+from plotmosaic.errors import InputError
+from plotmosaic.graph.prepared import load_points
+from plotmosaic.io.frame import Frame, apply_transform
+from plotmosaic.io.las import PointCloud, las_offsets, read_cloud
+from plotmosaic.manifest import Manifest, Plot
+from plotmosaic.poses import Poses
+
+LAS_SCALE = 0.001  # write_cloud's default: the plot and ALS clouds are written at 1 mm
+
+
+def _voxel(xyz: np.ndarray, size: float) -> np.ndarray:
+    """Voxel-thinned points, computed near the origin so UTM-sized values keep their precision."""
+    frame = Frame.around(xyz)
+    return frame.to_global(voxel_centroids(frame.to_local(xyz), size))
+
+
+def _scan_points(manifest: Manifest, scan, prepared: dict[str, Path]) -> tuple[np.ndarray, bool]:
+    """(the scan's points, whether they are thinned already): register-plot's prepared (delta0-thinned)
+    cloud when it is still there, else the file."""
+    entry = prepared.get(scan.id)
+    if entry is not None and entry.is_file():
+        try:
+            return load_points(entry), True
+        except Exception:  # damaged entry: read the scan itself
+            pass
+    return read_cloud(manifest.resolve(scan.path), attributes=False).xyz, False
+
+
+def plot_cloud(
+    manifest: Manifest,
+    plot: Plot,
+    poses: Poses,
+    voxel: float,
+    prepared: dict[str, Path] | None = None,
+) -> PointCloud:
+    """All placed scans of the plot in the plot frame, voxel-thinned.
+
+    A scan read from its file is thinned on its own first (memory: its 8M points are not kept);
+    a prepared cloud is thinned already (delta0 cubes), so it joins the one pass over the plot."""
+    parts = []
+    for scan in plot.scans:
+        if scan.id in poses.scans:
+            xyz, thinned = _scan_points(manifest, scan, prepared or {})
+            xyz = apply_transform(poses.transform(scan.id), xyz)
+            parts.append(xyz if thinned else _voxel(xyz, voxel))
+    if not parts:
+        raise InputError(f"plot {plot.id!r}: none of its scans has a pose in the poses file")
+    return PointCloud(_voxel(np.concatenate(parts), voxel))
+
+
+def as_stored(cloud: PointCloud, scale: float = LAS_SCALE) -> PointCloud:
+    """The cloud as `write_cloud(path, cloud, scale=scale)` stores it and `read_cloud` gives it back
+    (coordinates rounded to `scale` around the writer's offsets): registering this in memory is
+    registering the written file, without reading it back."""
+    offsets = las_offsets(cloud.xyz.min(axis=0)) if len(cloud) else np.zeros(3)
+    xyz = np.empty_like(cloud.xyz)
+    for i in range(3):  # the writer's rounding (laspy) and the reader's scaling (io.las.read_cloud)
+        raw = np.round((cloud.xyz[:, i] - offsets[i]) / scale).astype(np.int32)
+        np.multiply(raw, scale, out=xyz[:, i])
+        xyz[:, i] += offsets[i]
+    return PointCloud(xyz, crs=cloud.crs)
+
+
+def load_als(manifest: Manifest) -> tuple[PointCloud, object]:
+    if not manifest.als:
+        raise InputError(
+            f"{manifest.source}: no [[als]] tile in the manifest; tie-to-als needs one"
+        )
+    clouds = [read_cloud(manifest.resolve(t.path), attributes=False) for t in manifest.als]
+    crs = next((c.crs for c in clouds if c.crs is not None), None)
+    return PointCloud(np.concatenate([c.xyz for c in clouds]), crs=crs), crs
+
+
+def crop_als(
+    als: PointCloud, plot: Plot, cloud: PointCloud, buffer: float
+) -> tuple[PointCloud, str]:
+    """ALS within the plot's footprint + buffer when its approximate CRS positions are known, else all of it."""
+    approx = [
+        s.approx_position
+        for s in plot.scans
+        if s.approx_position is not None and s.approx_position_frame == "crs"
+    ]
+    if not approx:
+        return als, "whole tile"
+    centre = np.mean(np.asarray(approx)[:, :2], axis=0)
+    lo, hi = cloud.xyz[:, :2].min(axis=0), cloud.xyz[:, :2].max(axis=0)
+    radius = float(np.linalg.norm(hi - lo) / 2 + buffer)
+    keep = np.linalg.norm(als.xyz[:, :2] - centre, axis=1) <= radius
+    if keep.sum() < 100:
+        raise InputError(
+            f"plot {plot.id!r}: the ALS has only {int(keep.sum())} points within {radius:.0f} m of the "
+            f"plot's approximate position ({centre[0]:.1f}, {centre[1]:.1f}); wrong CRS or position?"
+        )
+    return als.select(keep), f"{radius:.0f} m around ({centre[0]:.1f}, {centre[1]:.1f})"

@@ -1,0 +1,174 @@
+"""tie-to-als solve: one graph of every plot as register-plot placed it, each plot anchored to the ALS."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import networkx as nx
+import numpy as np
+
+from plotmosaic.config.register import TieConfig
+from plotmosaic.errors import RegistrationFailed
+from plotmosaic.graph.executor import PairJob
+from plotmosaic.graph.posegraph import Solution, build_graph, inverse, optimise
+from plotmosaic.io.frame import Frame, translation
+from plotmosaic.manifest import Manifest, Plot
+from plotmosaic.poses import Poses
+from plotmosaic.stages.register_plot.pairs import EDGE_FIELDS
+
+ALS_NODE = "ALS"
+
+
+@dataclass
+class Anchor:
+    plot: str
+    reference: str
+    status: str  # "ok" | "failed"
+    transform: np.ndarray | None = None  # plot frame -> ALS CRS
+    fitness: float | None = None
+    inlier_rmse: float | None = None
+    overlap: float | None = None
+    confidence: float | None = None
+    error: str | None = None
+    crop: str = "whole tile"
+    residual: dict | None = None  # anchor edge residual after the joint solve
+
+
+@dataclass(frozen=True, kw_only=True)
+class Tied:
+    """Each plot's pair to the ALS: the jobs, their records, each plot's anchor and reference scan."""
+
+    jobs: list[PairJob]
+    records: dict[str, dict]
+    computed: int
+    anchors: dict[str, Anchor]  # plot id -> its anchor (updated by region_graph and solve_region)
+    refs: dict[str, str]  # plot id -> its reference scan (plots with a placed scan)
+
+
+def _plot_reference(plot: Plot, poses: Poses, G: nx.Graph | None) -> str:
+    """The scan whose frame is the plot frame (identity pose); the manifest's reference otherwise."""
+    placed = [s.id for s in plot.scans if s.id in poses.scans]
+    recorded = poses.extra.get("plots", {}).get(plot.id, {}).get("reference")
+    if recorded in placed:
+        return recorded
+    for sid in placed:
+        if np.allclose(poses.transform(sid), np.eye(4), atol=1e-9):
+            return sid
+    return plot.reference.id if plot.reference.id in placed else placed[0]
+
+
+def _plot_edges(plot: Plot, poses: Poses, G: nx.Graph | None, ref: str) -> tuple[dict, list[dict]]:
+    """Within-plot edges: each placed scan to the reference as register-plot placed it, its sigmas as
+    information. Not the pairs again: register-plot's solve also held them by the ALS placements
+    (and confirmed unsure pairs through them), which a re-solve without them would lose (3 cm on
+    the `large` preset at 60k); pairs never cross plots, so one anchor moves a plot as one piece."""
+    ids = [s.id for s in plot.scans]
+    if G is not None and all(s in G for s in ids):
+        nodes = {n: dict(G.nodes[n]) for n in ids}  # the scans' files, for `plotmosaic report`
+    else:
+        nodes = {s.id: {"plot": plot.id, "kind": s.kind.value} for s in plot.scans}
+    edges = []
+    P_ref = poses.transform(ref)
+    for sid in ids:
+        if sid == ref or sid not in poses.scans:
+            continue
+        sp = poses.scans[sid]
+        info = (
+            None
+            if sp.sigma is None
+            else np.diag(1.0 / np.maximum(np.asarray(sp.sigma, float), 1e-6) ** 2)
+        )
+        edges.append(
+            {
+                "source": sid,
+                "target": ref,
+                "transform": inverse(P_ref) @ sp.transform,
+                "information": info,
+                "fitness": 1.0,
+                "overlap": 1.0,
+                "status": "ok",
+                "from_poses": True,
+            }
+        )
+    return nodes, edges
+
+
+def _anchor_dict(a: Anchor) -> dict:
+    return {
+        "reference": a.reference,
+        "status": a.status,
+        "fitness": a.fitness,
+        "inlier_rmse": a.inlier_rmse,
+        "overlap": a.overlap,
+        "confidence": a.confidence,
+        "error": a.error,
+        "crop": a.crop,
+        "residual": a.residual,
+    }
+
+
+def _anchor_edge(rec: dict, anchor: Anchor, poses: Poses, als_frame: Frame) -> dict:
+    """The edge reference scan file -> ALS local frame of one plot's ALS result."""
+    T = np.asarray(rec["transform"], float)  # plot frame -> ALS CRS
+    P_ref = poses.transform(anchor.reference)
+    # information moved onto the reference scan's tangent
+    info = np.asarray(rec["information"], float)
+    Ad = gtsam.Pose3(P_ref).AdjointMap()
+    edge = {k: rec.get(k) for k in EDGE_FIELDS}
+    edge.update(
+        source=anchor.reference,
+        target=ALS_NODE,
+        anchor=anchor.plot,
+        transform=translation(-als_frame.offset) @ T @ P_ref,
+        information=Ad.T @ info @ Ad,
+    )
+    anchor.status, anchor.transform = "ok", T
+    anchor.fitness, anchor.inlier_rmse, anchor.overlap, anchor.confidence = (
+        rec.get("fitness"),
+        rec.get("inlier_rmse"),
+        rec.get("overlap"),
+        rec.get("confidence"),
+    )
+    return edge
+
+
+def region_graph(
+    manifest: Manifest,
+    poses: Poses,
+    G_plot: nx.Graph | None,
+    als_frame: Frame,
+    tied: Tied,
+) -> nx.Graph:
+    """One graph: every plot's pairwise edges + an anchor edge per plot to the fixed ALS node.
+
+    Marks each anchor ok or failed; raises RegistrationFailed when no plot is tied to the ALS."""
+    nodes, edges = {ALS_NODE: {"kind": "als", "plot": None}}, []
+    for plot in manifest.plots:
+        if plot.id in tied.refs:
+            n, e = _plot_edges(plot, poses, G_plot, tied.refs[plot.id])
+            nodes.update(n)
+            edges += e
+    for job in tied.jobs:
+        rec, anchor = tied.records[job.key], tied.anchors[job.source]
+        if rec.get("status") != "ok":
+            anchor.status, anchor.error = "failed", rec.get("error")
+            continue
+        edges.append(_anchor_edge(rec, anchor, poses, als_frame))
+    if not any(a.status == "ok" for a in tied.anchors.values()):
+        raise RegistrationFailed(
+            "no plot could be registered to the ALS: "
+            + "; ".join(f"{a.plot}: {a.error}" for a in tied.anchors.values())
+        )
+    return build_graph(nodes, edges)
+
+
+def solve_region(G: nx.Graph, anchors: dict[str, Anchor], config: TieConfig) -> Solution:
+    """The region solved with the ALS node fixed; each anchor's edge residual recorded."""
+    for _u, _v, e in G.edges(data=True):  # register-plot decisions stand; the rest is re-checked
+        e["dropped"] = bool(e.get("dropped"))
+    sol = optimise(G, ALS_NODE, config.graph)
+    for a in anchors.values():
+        if a.status == "ok":
+            a.residual = G.edges[a.reference, ALS_NODE].get("residual_after")
+    return sol
