@@ -8,8 +8,9 @@ import dataclasses
 import numpy as np
 import pytest
 
+from plotmosaic.align.fine import final_icp
+from plotmosaic.align.fine import fine_schedule as _fine_schedule
 from plotmosaic.align.normals import LazyNormals
-from plotmosaic.align.pipeline import _fine_schedule, final_icp
 from plotmosaic.align.prepare import prepare_cloud
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.io.frame import to_global_transform, to_local_transform, translation

@@ -1,0 +1,112 @@
+"""The fine stage: point-to-plane ICP on every point at the finest spacing, and its schedule."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from plotmosaic.align import judge as judge_mod
+from plotmosaic.align.icp import Mirror, point_to_plane_icp
+from plotmosaic.align.prepare import PreparedCloud
+from plotmosaic.config.align import AlignConfig, IcpStage
+from plotmosaic.io.frame import inverse
+
+
+@dataclass(frozen=True, eq=False)
+class FineResult:
+    """The final ICP's pose and its last forward correspondences, in local coordinates."""
+
+    T: np.ndarray  # source local -> target local
+    p: np.ndarray  # source points
+    q: np.ndarray  # target points
+    n: np.ndarray  # target-side normals
+    iterations: int
+    reverse: bool  # the source's planes were used (sparse target)
+
+    def __iter__(self) -> Iterator:
+        """Unpacks as the tuple (T, p, q, n, iterations, reverse) it replaces."""
+        return iter((self.T, self.p, self.q, self.n, self.iterations, self.reverse))
+
+    def __getitem__(self, i: int):
+        return tuple(self)[i]
+
+
+def fine_schedule(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig):
+    """(stages, Tukey floor) of the final ICP: `final_schedule`, then a tight polish stage
+    (final_polish_*) with a narrower kernel: a 10 cm last stage with a 10 cm kernel leaves TLS pairs
+    0.03 deg off in yaw, and pairs the near half of a stem or branch seen by one scanner with the
+    other half seen by the other scanner, which pulls every baseline short (~1 cm per 18 m pair on
+    the `large` preset). Between two terrestrial scans (`final_polish_fixed_kinds`) the polish is
+    the same however sparse they are (their plane residuals are range noise, millimetres); with an
+    airborne or mobile cloud it is stretched by the judge's scale factor and left out where it would
+    be looser than the last stage."""
+    fixed = (
+        src.kind in config.final_polish_fixed_kinds and tgt.kind in config.final_polish_fixed_kinds
+    )
+    f = 1.0 if fixed else judge_mod.scale_factor(src, tgt, config.judge)
+    d = config.final_polish_distance * f
+    stages = list(config.final_schedule)
+    if config.final_polish_iterations == 0 or not stages or d >= stages[-1].max_distance:
+        return stages, config.robust_kernel
+    stages.append(IcpStage(max_distance=d, iterations=config.final_polish_iterations))
+    return stages, min(config.robust_kernel, config.final_polish_kernel * f)
+
+
+def final_icp(
+    src: PreparedCloud, tgt: PreparedCloud, T: np.ndarray, config: AlignConfig
+) -> FineResult:
+    """Final point-to-plane ICP with the planes of the denser cloud, or of both for two clouds of
+    `final_symmetric_kinds` of comparable density (neither side `final_reverse_ratio` sparser), with
+    the side test where both scanners are known."""
+    s_sp, t_sp = judge_mod.spacing(src, config.judge), judge_mod.spacing(tgt, config.judge)
+    schedule, kernel = fine_schedule(src, tgt, config)
+    # both scanners known (align/viewpoint.py): matches between the two faces of a stem are left out
+    views = (
+        None if src.viewpoint is None or tgt.viewpoint is None else (src.viewpoint, tgt.viewpoint)
+    )
+    if t_sp > config.final_reverse_ratio * s_sp:
+        # sparse target (ALS under a drone or ground scan): register it onto the dense source's planes
+        res = point_to_plane_icp(
+            tgt.fine_points,
+            src.points,
+            src.target_normals,
+            inverse(T),
+            schedule,
+            tree=src.tree,
+            kernel_floor=kernel,
+            tol=config.final_tol,
+            viewpoints=None if views is None else views[::-1],
+        )
+        T = inverse(res.T)
+        p, q = src.points[res.target_index], tgt.fine_points[res.source_index]
+        n = (
+            src.target_normals(res.target_index) @ T[:3, :3].T
+        )  # the same planes, in target coordinates
+        return FineResult(T, p, q, n, res.iterations, True)
+    symmetric = (
+        src.kind in config.final_symmetric_kinds and tgt.kind in config.final_symmetric_kinds
+    )
+    res = point_to_plane_icp(
+        src.fine_points,
+        tgt.points,
+        tgt.target_normals,
+        T,
+        schedule,
+        tree=tgt.tree,
+        kernel_floor=kernel,
+        tol=config.final_tol,
+        mirror=Mirror(tgt.fine_points, src.points, src.tree, src.target_normals)
+        if symmetric
+        else None,
+        viewpoints=views,
+    )
+    return FineResult(
+        res.T,
+        src.fine_points[res.source_index],
+        tgt.points[res.target_index],
+        tgt.target_normals(res.target_index),
+        res.iterations,
+        False,
+    )

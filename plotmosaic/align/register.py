@@ -1,0 +1,350 @@
+"""One pair's registration, top down (paper Algorithm 1 with the judge around it): verify a stored
+pose, search (coarse stage, or the rivals of a local start), level stage, final ICP, judge, quality,
+floors. All geometry runs in local frames; the result is in the files' own coordinates."""
+
+from __future__ import annotations
+
+import time
+import weakref
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from plotmosaic.align import judge as judge_mod
+from plotmosaic.align import scene
+from plotmosaic.align.coarse import coarse_align
+from plotmosaic.align.fine import FineResult, final_icp
+from plotmosaic.align.floors import check_quality
+from plotmosaic.align.icp import evaluate, information_matrix
+from plotmosaic.align.judge import Verdict
+from plotmosaic.align.level_icp import LevelResult, level_stage, levels_record, no_level_stage
+from plotmosaic.align.prepare import PreparedCloud
+from plotmosaic.align.result import PairResult
+from plotmosaic.align.sampling import sample
+from plotmosaic.config.align import AlignConfig
+from plotmosaic.io.frame import rotation_deg, to_global_transform, to_local_transform
+
+Say = Callable[[str], None]
+
+
+def register_prepared(
+    src: PreparedCloud,
+    tgt: PreparedCloud,
+    config: AlignConfig,
+    init: np.ndarray | None = None,
+    seed: int = 0,
+    progress: Say | None = None,
+    stored: bool = False,
+) -> PairResult:
+    """Registration of two prepared clouds; `init` (source file -> target file) is a prior for the
+    coarse stage, or the start itself with the coarse stage off. `stored`: `init` is a pose stored
+    in the scan files (E57 `use_pose`): when it verifies (judge.verify_stored) the search is skipped,
+    else it is a prior like any other."""
+    say = progress or _silent
+    clock = _Clock()
+    if config.judge.enabled:  # the judge refuses a scene that is not a forest: before the search
+        scene.check(src, tgt, config.judge)
+    T = to_local_transform(
+        np.eye(4) if init is None else np.asarray(init, dtype=float), src.frame, tgt.frame
+    )
+    start = T.copy()
+    check = None
+    if stored and init is not None and config.judge.enabled:
+        check = verify_stored_pose(src, tgt, T, config, say)
+    search = search_pose(src, tgt, config, T, init is not None, seed, check, say)
+    clock.mark("coarse")
+    rng = np.random.default_rng(seed)
+    if search.skipped:  # the stored pose's fine ICP stands: no level stage, no second fine stage
+        levels = no_level_stage(src, tgt, search.T)
+        clock.mark("levels_icp")
+        fine = check.fine
+    else:
+        levels = level_stage(src, tgt, config, search.T, search.coarse is not None, rng)
+        clock.mark("levels_icp")
+        say("final ICP")
+        fine = final_icp(src, tgt, levels.T, config)
+    clock.mark("final_icp")
+    judged = judge_pose(src, tgt, config, fine, start, search, say)
+    clock.mark("judge")
+    say("quality")
+    quality = measure(src, tgt, config, judged.fine, rng)
+    clock.mark("quality")
+    result = pair_result(src, tgt, config, search, levels, judged, quality, clock)
+    check_quality(result, config, local=not config.coarse.enabled or init is not None)
+    return result
+
+
+@dataclass(frozen=True, eq=False)
+class StoredCheck:
+    """A stored pose checked: the fine ICP from it and whether it verified."""
+
+    fine: FineResult
+    verified: bool
+    record: dict  # judge.verify_stored's figures for PairResult.coarse["stored_pose"]
+
+
+@dataclass(frozen=True, eq=False)
+class Search:
+    """Where the level stage starts, and the hypotheses the judge weighs the pose against."""
+
+    T: np.ndarray  # source local -> target local
+    coarse: dict | None  # PairResult.coarse (None: the coarse stage did not run)
+    hypotheses: list[dict]
+    skipped: bool  # a verified stored pose: no search and no level stage
+
+
+@dataclass(frozen=True, eq=False)
+class Judged:
+    """The pose the judge let stand, with its last fine stage, and its verdict."""
+
+    fine: FineResult
+    verdict: Verdict | None  # None: the judge is off
+
+
+@dataclass(frozen=True, eq=False)
+class Quality:
+    """The pose's figures in file coordinates."""
+
+    transform: np.ndarray  # source file -> target file
+    fitness: float
+    rmse: float
+    overlap: float
+    information: np.ndarray  # 6x6, from the final point-to-plane problem
+    sigma: float  # point-to-plane residual std behind `information`
+
+
+def verify_stored_pose(
+    src: PreparedCloud, tgt: PreparedCloud, T: np.ndarray, config: AlignConfig, say: Say
+) -> StoredCheck:
+    """The fine stage from the stored pose is the check: a right one barely moves and fits sharply."""
+    say("verifying the stored pose")
+    t = time.perf_counter()
+    fine = final_icp(src, tgt, T, config)
+    check = judge_mod.verify_stored(src, tgt, T, fine.T, config.judge)
+    check["seconds"] = time.perf_counter() - t
+    return StoredCheck(fine, check["verified"], _stored_record(check))
+
+
+def search_pose(
+    src: PreparedCloud,
+    tgt: PreparedCloud,
+    config: AlignConfig,
+    T: np.ndarray,
+    has_init: bool,
+    seed: int,
+    check: StoredCheck | None,
+    say: Say,
+) -> Search:
+    """The coarse stage, around `T` when a start was given, else from anywhere; nothing after a
+    verified stored pose. A local result (--init, --no-coarse) takes its rivals from the global search."""
+    skipped = check is not None and check.verified
+    coarse, hypotheses = None, []
+    if skipped:
+        # no search, so no rivals either; the level stage neither (the fine ICP is done)
+        coarse = {"skipped": "stored pose verified", "stored_pose": check.record}
+    elif config.coarse.enabled:
+        # with an initial guess the coarse stage searches around it and keeps it if it verifies best:
+        # ICP alone from a guess 10 deg / 2 m off can settle in a wrong minimum that still looks fit
+        say("coarse alignment")
+        if has_init:
+            cres = coarse_align(src, tgt, config.coarse, seed, prior=T)
+        else:
+            cres = global_search(src, tgt, config, seed)
+        T = np.asarray(cres.transform, dtype=float)
+        coarse = cres.to_dict()
+        hypotheses = list(cres.hypotheses)
+        if check is not None:
+            coarse["stored_pose"] = check.record
+    rivals = config.judge.enabled and config.judge.global_rivals
+    if rivals and not skipped and (has_init or not config.coarse.enabled):
+        say("searching for rival poses")
+        hypotheses += global_search(src, tgt, config, seed).hypotheses
+    return Search(T, coarse, hypotheses, skipped)
+
+
+def global_search(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig, seed: int):
+    """The coarse stage from anywhere (no prior), remembered per pair: the default path's pose and the
+    rivals of a local result (--no-coarse, --init) are the same search."""
+    key = (config.coarse.model_dump_json(exclude={"enabled"}), seed)
+    memo = src.__dict__.get("_global_search")
+    if memo is None or memo[0]() is not tgt or memo[1] != key:
+        # one pair kept, the target by weak reference: a cache of prepared clouds stays the only owner
+        memo = (weakref.ref(tgt), key, coarse_align(src, tgt, config.coarse, seed, prior=None))
+        src.__dict__["_global_search"] = memo
+    return memo[2]
+
+
+def judge_pose(
+    src: PreparedCloud,
+    tgt: PreparedCloud,
+    config: AlignConfig,
+    fine: FineResult,
+    start: np.ndarray,
+    search: Search,
+    say: Say,
+) -> Judged:
+    """The judge's verdict on the pose against every hypothesis and the start; after a search, one
+    retry from a better pose the judge found (`recover`)."""
+    if not config.judge.enabled:
+        return Judged(fine, None)
+    say("judging the pose against its rivals")
+    candidates = _candidates(search.hypotheses, start)
+    verdict = judge_mod.judge(src, tgt, fine.T, candidates, config.judge)
+    if search.skipped:
+        return Judged(fine, verdict)
+    return recover(src, tgt, config, candidates, fine, verdict, say)
+
+
+def recover(
+    src: PreparedCloud,
+    tgt: PreparedCloud,
+    config: AlignConfig,
+    candidates: list[tuple[np.ndarray, str]],
+    fine: FineResult,
+    verdict: Verdict,
+    say: Say,
+) -> Judged:
+    """At most one retry when the judge found a better pose than the final ICP's: a distinct rival
+    that scores better (only with the coarse stage on: after --no-coarse a distinct pose is not the
+    local result asked for, the refusal says so), or a sharper end of the pose's own basin (every
+    route: it lies within the basin radius, a local correction). The final ICP runs from it and the
+    judge again, the first pose among the candidates; the second pose is kept only if its verdict is
+    better (score when a rival won, confidence otherwise), else the first and its verdict stand."""
+    rival = verdict.rival_better and config.coarse.enabled
+    better = verdict.rival_transform if rival else verdict.basin_transform
+    if better is None:
+        return Judged(fine, verdict)
+    say("final ICP from a better rival" if rival else "final ICP from the pose's sharper basin")
+    second_fine = final_icp(src, tgt, better, config)
+    second = judge_mod.judge(
+        src, tgt, second_fine.T, candidates + [(fine.T, "first pose")], config.judge
+    )
+    keep = second.score > verdict.score if rival else second.confidence > verdict.confidence
+    return Judged(second_fine, second) if keep else Judged(fine, verdict)
+
+
+def measure(
+    src: PreparedCloud,
+    tgt: PreparedCloud,
+    config: AlignConfig,
+    fine: FineResult,
+    rng: np.random.Generator,
+) -> Quality:
+    """Fitness, RMSE and overlap at `quality_distance`, and the information of the pose."""
+    T = fine.T
+    # fitness / RMSE / overlap on seeded subsamples of the query side: same figures to ~0.1 %, a
+    # fraction of the nearest-neighbour queries on 8M-point scans
+    s_q = src.points[sample(len(src.points), config.quality_max_points, rng)]
+    t_q = tgt.points[sample(len(tgt.points), config.quality_max_points, rng)]
+    fitness, rmse, n_s = evaluate(s_q, tgt.tree, T, config.quality_distance)
+    _, _, n_t = evaluate(t_q, src.tree, np.linalg.inv(T), config.quality_distance)
+    overlap = float((n_s + n_t) / max(1, len(s_q) + len(t_q)))
+    # information from the final point-to-plane problem (its last correspondences), in file coordinates
+    T_file = to_global_transform(T, src.frame, tgt.frame)
+    if len(fine.p):
+        p, q = src.frame.to_global(fine.p), tgt.frame.to_global(fine.q)
+        info, sigma = information_matrix(p, q, fine.n, T_file)
+    else:
+        info, sigma = np.zeros((6, 6)), float("nan")
+    return Quality(T_file, fitness, rmse, overlap, info, sigma)
+
+
+def pair_result(
+    src: PreparedCloud,
+    tgt: PreparedCloud,
+    config: AlignConfig,
+    search: Search,
+    levels: LevelResult,
+    judged: Judged,
+    quality: Quality,
+    clock: _Clock,
+) -> PairResult:
+    """Every step's figures gathered in a PairResult."""
+    fine, verdict, spans = judged.fine, judged.verdict, clock.spans
+    moved = fine.T @ np.linalg.inv(search.T)
+    return PairResult(
+        transform=quality.transform,
+        fitness=quality.fitness,
+        inlier_rmse=quality.rmse,
+        overlap=quality.overlap,
+        information=quality.information,
+        sigma=quality.sigma,
+        levels=levels_record(src, tgt, levels),
+        seconds=clock.total,
+        source_kind=src.kind,
+        target_kind=tgt.kind,
+        source_offset=[float(v) for v in src.frame.offset],
+        target_offset=[float(v) for v in tgt.frame.offset],
+        coarse=search.coarse,
+        confidence=None if verdict is None else verdict.confidence,
+        judge=None if verdict is None else _judge_record(verdict, src, tgt),
+        timings={
+            **({"coarse_skipped": "stored pose verified"} if search.skipped else {}),
+            "coarse": spans["coarse"],
+            "levels_icp": spans["levels_icp"],
+            "final_icp": spans["final_icp"],
+            "final_iterations": fine.iterations,
+            "final_planes": "source" if fine.reverse else "target",
+            "judge": spans["judge"],
+            "quality": spans["quality"],
+            "correction_deg": rotation_deg(moved),
+            "correction_m": float(np.linalg.norm(moved[:3, 3])),
+        },
+        config=config.model_dump(),
+    )
+
+
+class _Clock:
+    """Seconds each step took, from the registration's start."""
+
+    def __init__(self) -> None:
+        self.start = self.last = time.perf_counter()
+        self.spans: dict[str, float] = {}
+
+    def mark(self, step: str) -> None:
+        now = time.perf_counter()
+        self.spans[step], self.last = now - self.last, now
+
+    @property
+    def total(self) -> float:
+        return self.last - self.start
+
+
+def _silent(msg: str) -> None:
+    pass
+
+
+def _candidates(hypotheses: list[dict], start: np.ndarray) -> list[tuple[np.ndarray, str]]:
+    """Rival poses: every hypothesis (refined ones first, by score), then the start as handed over."""
+    order = sorted(
+        range(len(hypotheses)),
+        key=lambda i: (
+            not hypotheses[i].get("refined", False),
+            -float(hypotheses[i].get("score") or 0.0),
+        ),
+    )
+    out = [
+        (
+            np.asarray(hypotheses[i]["transform"], dtype=float),
+            f"{hypotheses[i].get('generator', 'coarse')} hypothesis {i}",
+        )
+        for i in order
+    ]
+    return out + [(start, "start")]
+
+
+def _stored_record(check: dict) -> dict:
+    """verify_stored's figures for PairResult.coarse (no transform: the result has it)."""
+    keep = ("verified", "failed", "correction_deg", "correction_m", "sharpness", "score", "seconds")
+    return {k: check[k] for k in keep}
+
+
+def _judge_record(verdict: Verdict, src: PreparedCloud, tgt: PreparedCloud) -> dict:
+    """The judge's figures for PairResult, the rival's transform in file coordinates."""
+    d = verdict.to_dict()
+    if verdict.rival_transform is not None:
+        d["rival_transform"] = to_global_transform(
+            verdict.rival_transform, src.frame, tgt.frame
+        ).tolist()
+    return d
