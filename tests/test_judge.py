@@ -10,8 +10,10 @@ from helpers import SIM_PAIR_MAX_DEG, SIM_PAIR_MAX_M, assert_one_line_error, inv
 from typer.testing import CliRunner
 
 from plotmosaic.align import judge, scene
+from plotmosaic.align.fine import FineResult
 from plotmosaic.align.pipeline import PairResult, blunt_fit, prepare_pair, register_prepared
 from plotmosaic.align.prepare import prepare_cloud
+from plotmosaic.align.register import recover
 from plotmosaic.cli import app
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import RegistrationFailed
@@ -308,13 +310,11 @@ def test_boxed_view_refused_when_a_copy_fits_as_well(boxed):
 
 
 def test_retry_takes_the_sharper_basin_pose_and_never_a_wrong_one(pair):
-    """pipeline._recover: a near miss (2.5 deg / 0.3 m off, truth withheld) is refused by its basin;
+    """register.recover: a near miss (2.5 deg / 0.3 m off, truth withheld) is refused by its basin;
     the one retry from the basin's sharper pose lands on the truth with a higher confidence and is
     kept. A wrong pose offered as the better one (40 deg / 3 m off) is finished and judged too, loses
     to the first pose, and the first pose and its verdict stand."""
     import dataclasses
-
-    from plotmosaic.align.pipeline import _recover
 
     ps, pt, T_true, _, cfg = pair
     jc, c = cfg.judge, judge.centre(ps, cfg.judge)
@@ -323,14 +323,16 @@ def test_retry_takes_the_sharper_basin_pose_and_never_a_wrong_one(pair):
     v = judge.judge(ps, pt, near, [], jc)
     assert v.basin_transform is not None and v.confidence < cfg.min_confidence
     empty = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), 0, False)
-    T2, *_, v2 = _recover(ps, pt, cfg, [], (near, *empty), v, lambda msg: None)
+    judged = recover(ps, pt, cfg, [], FineResult(near, *empty), v, lambda msg: None)
+    T2, v2 = judged.fine.T, judged.verdict
     deg, m = judge.separation(T2, T, c)
     assert deg < SIM_PAIR_MAX_DEG and m < SIM_PAIR_MAX_M, (deg, m)  # recovered: the truth
     assert v2.confidence >= cfg.min_confidence and v2.confidence > v.confidence, v2
     right = judge.judge(ps, pt, T, [], jc)
     wrong = _turned(T, c, 40.0, [3.0, 0.0, 0.0])
     offered = dataclasses.replace(right, basin_transform=wrong)
-    T3, *_, v3 = _recover(ps, pt, cfg, [], (T, *empty), offered, lambda msg: None)
+    judged = recover(ps, pt, cfg, [], FineResult(T, *empty), offered, lambda msg: None)
+    T3, v3 = judged.fine.T, judged.verdict
     assert np.array_equal(T3, T) and v3 is offered  # the wrong pose is not taken
 
 

@@ -17,7 +17,7 @@ from plotmosaic.align.fine import FineResult, final_icp
 from plotmosaic.align.floors import blunt_fit, check_quality
 from plotmosaic.align.level_icp import incremental_steps
 from plotmosaic.align.prepare import PreparedCloud, prepare_cloud
-from plotmosaic.align.register import global_search, recover, register_prepared
+from plotmosaic.align.register import global_search, register_prepared
 from plotmosaic.align.result import METHOD, PairResult
 from plotmosaic.config.align import KINDS, AlignConfig, default_levels
 from plotmosaic.errors import InputError
@@ -151,10 +151,3 @@ def align_files(
         str(Path(target_path).resolve()),
     )
     return result
-
-
-def _recover(src, tgt, config: AlignConfig, candidates, fine: tuple, verdict, say):
-    """`register.recover` on the fine stage as the tuple (T, p, q, n, iterations, reverse), as
-    tests/test_judge.py calls it; returns (T, p, q, n, iterations, reverse, verdict)."""
-    judged = recover(src, tgt, config, candidates, FineResult(*fine), verdict, say)
-    return (*judged.fine, judged.verdict)

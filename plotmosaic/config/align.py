@@ -250,7 +250,7 @@ class AlignConfig(BaseModel):
     final_schedule: list[IcpStage] = Field(
         default_factory=_final_schedule, min_length=1, description="stages of the final ICP"
     )
-    # the fine stage's last, tight stage where both clouds are dense (align/pipeline.final_icp), x the
+    # the fine stage's last, tight stage where both clouds are dense (align/fine.final_icp), x the
     # judge's scale factor; on sparse clouds it would be looser than the last stage and is left out
     # (docs/method.md#fine-stage-settings)
     final_polish_distance: float = Field(
