@@ -1,10 +1,13 @@
 """The `plotmosaic` command: a thin typer layer over the library.
 
-Each subcommand lives in plotmosaic/commands/<name>.py; this file only assembles them.
+Each subcommand lives in plotmosaic/commands/<name>.py; this file only names them. A command's
+module (and the stage it drives, with numpy, Open3D, GTSAM, ...) is imported when that command
+runs, so `plotmosaic info` or `--version` does not pay for every stage.
 """
 
 from __future__ import annotations
 
+import importlib
 import os
 import sys
 
@@ -15,18 +18,6 @@ from typer._click import exceptions as click_errors
 from typer.core import TyperGroup
 
 from plotmosaic import __version__
-from plotmosaic.commands import (
-    align,
-    bench,
-    config_command,
-    demo,
-    info,
-    manifest_from,
-    merge,
-    register,
-    report,
-    simulate,
-)
 from plotmosaic.errors import INTERRUPTED, InputError, exit_interrupted, interrupts
 
 HELP = """Targetless, GNSS-free registration of forest LiDAR scans into one georeferenced cloud.
@@ -45,9 +36,41 @@ Typical run on a plot scanned from five positions, with an ALS tile over the reg
 """
 
 
+# command name -> (module, function) under plotmosaic.commands, in the order `--help` lists them
+COMMANDS = {
+    "align": ("align", "align_command"),
+    "register-plot": ("register", "register_plot_command"),
+    "tie-to-als": ("register", "tie_to_als_command"),
+    "merge": ("merge", "merge_command"),
+    "simulate": ("simulate", "simulate_command"),
+    "bench": ("bench", "bench_command"),
+    "report": ("report", "report_command"),
+    "demo": ("demo", "demo_command"),
+    "info": ("info", "info_command"),
+    "manifest-from": ("manifest_from", "manifest_from_command"),
+    "config": ("config_command", "config_command"),
+}
+
+
 class OneLineErrors(TyperGroup):
     """Bad options, arguments and unreadable files end as one `error:` line and exit 2, as every
     other bad input does, instead of click's usage block."""
+
+    def list_commands(self, ctx) -> list[str]:
+        return list(COMMANDS)
+
+    def get_command(self, ctx, name: str):
+        """The command, its module imported now (only the command that runs pays for its stage)."""
+        if name not in COMMANDS:
+            return None
+        module, function = COMMANDS[name]
+        one = typer.Typer(add_completion=False, rich_markup_mode=None)
+        try:
+            loaded = importlib.import_module(f"plotmosaic.commands.{module}")
+        except KeyboardInterrupt:  # click would end it as a silent exit 130
+            exit_interrupted()
+        one.command(name)(getattr(loaded, function))
+        return typer.main.get_command(one)
 
     def main(self, *args, standalone_mode: bool = True, **kwargs):
         try:  # not standalone, click returns a typer.Exit's code instead of exiting
@@ -92,19 +115,6 @@ def _root(
     ),
 ) -> None:
     pass
-
-
-app.command("align")(align.align_command)
-app.command("register-plot")(register.register_plot_command)
-app.command("tie-to-als")(register.tie_to_als_command)
-app.command("merge")(merge.merge_command)
-app.command("simulate")(simulate.simulate_command)
-app.command("bench")(bench.bench_command)
-app.command("report")(report.report_command)
-app.command("demo")(demo.demo_command)
-app.command("info")(info.info_command)
-app.command("manifest-from")(manifest_from.manifest_from_command)
-app.command("config")(config_command.config_command)
 
 
 def main() -> None:
