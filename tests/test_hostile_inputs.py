@@ -377,6 +377,17 @@ def thinned_manifest(tmp_path: Path, sim, scans: list[str], step: int = 4) -> Pa
     return manifest
 
 
+def register_plot_in_own_group(manifest: Path, out: Path, stderr) -> subprocess.Popen:
+    """`register-plot -j 2` as a terminal's foreground job: its own process group, so a signal to
+    the group reaches the command and its workers, as Ctrl-C does."""
+    return subprocess.Popen(
+        [*PLOTMOSAIC, "register-plot", str(manifest), "--out", str(out), "-j", "2"],
+        stdout=subprocess.DEVNULL,
+        stderr=stderr,
+        start_new_session=True,
+    )
+
+
 def children(pid: int) -> set[int]:
     out = set()
     for stat in Path("/proc").glob("[0-9]*/stat"):
@@ -416,12 +427,7 @@ def pairs_line(output: str) -> tuple[int, int]:
 def test_sigkill_register_plot_leaves_no_orphans_and_resumes(small_sim, tmp_path):
     manifest = thinned_manifest(tmp_path, small_sim, ["P1-S0", "P1-S1", "P1-S2"])
     out = tmp_path / "reg"
-    proc = subprocess.Popen(
-        [*PLOTMOSAIC, "register-plot", str(manifest), "--out", str(out), "-j", "2"],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        start_new_session=True,
-    )
+    proc = register_plot_in_own_group(manifest, out, stderr=subprocess.DEVNULL)
     workers: set[int] = set()
 
     def first_pair_cached() -> bool:
@@ -730,12 +736,7 @@ def test_ctrl_c_in_the_first_seconds_of_the_worker_pool(small_sim, tmp_path, mom
     `interrupted`, exit 130, no traceback from any worker, no process left."""
     manifest = thinned_manifest(tmp_path, small_sim, ["P1-S0", "P1-S1", "P1-S2"])
     out = tmp_path / "reg"
-    proc = subprocess.Popen(
-        [*PLOTMOSAIC, "register-plot", str(manifest), "--out", str(out), "-j", "2"],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        start_new_session=True,
-    )
+    proc = register_plot_in_own_group(manifest, out, stderr=subprocess.PIPE)
     if moment == "workers starting":  # both spawned, the parent past its forks, workers importing
         ready = lambda: len(_workers(proc.pid)) >= 2 and not _ignores_sigint(proc.pid)  # noqa: E731
     else:
