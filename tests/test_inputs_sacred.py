@@ -294,3 +294,18 @@ def test_register_and_tie_write_only_the_names_they_claim(plot):
     assert tie.exit_code == 0, tie.output
     names = tie_plan(m, reg / "poses.json", None, geo, False).names
     assert {n for n in os.listdir(geo) if n != RECORD} <= set(names)
+
+
+def test_merge_never_writes_over_an_e57_project_it_reads(tmp_path):
+    """A manifest scan inside an E57 project (`plot.e57`, `scan = 1`) reads the E57 file itself."""
+    rng = np.random.default_rng(0)
+    scans = [(f"s{k}", rng.uniform(-5, 5, (500, 3)), np.eye(4), {}) for k in range(2)]
+    e57 = write_e57(tmp_path / "plot.e57", scans)
+    (tmp_path / "m.toml").write_text(
+        '[[scans]]\nid = "a"\npath = "plot.e57"\nscan = 0\n'
+        '[[scans]]\nid = "b"\npath = "plot.e57"\nscan = 1\n'
+    )
+    poses = {"frame": "plot", "scans": {s: {"transform": np.eye(4).tolist()} for s in "ab"}}
+    (tmp_path / "poses.json").write_text(json.dumps(poses))
+    args = ["merge", tmp_path / "m.toml", "--poses", tmp_path / "poses.json", "--out", e57]
+    refused(tmp_path, [*args, "--force"], str(e57), "scan 'a'", "input")

@@ -79,7 +79,8 @@ def inputs_of(paths: Iterable[tuple[Path | str | None, str]]) -> tuple[Input, ..
 def manifest_inputs(manifest) -> tuple[Input, ...]:
     """The manifest file, its scans and its ALS tiles."""
     found = [(manifest.source, "manifest")] if manifest.source is not None else []
-    found += [(manifest.resolve(s.path), f"scan {s.id!r}") for s in manifest.scans]
+    # a scan inside an E57 project is `plot.e57#3`: the file itself is the input
+    found += [(manifest.resolve(s.file), f"scan {s.id!r}") for s in manifest.scans]
     found += [(manifest.resolve(t.path), "ALS tile") for t in manifest.als]
     return inputs_of(found)
 
