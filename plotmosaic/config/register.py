@@ -84,6 +84,11 @@ class PoseGraphConfig(BaseModel):
     max_iterations: int = Field(
         100, ge=1, le=10_000, description="Levenberg-Marquardt iterations per solve"
     )
+    # ICP information gives an edge's shape, not its scale: where loops observe it, each edge
+    # group's information is scaled by its residuals (graph/covariance.py); 0 keeps it as is
+    calibration_rounds: int = Field(
+        3, ge=0, le=20, description="rounds of scaling edge noise by the residuals (re-solve each)"
+    )
 
 
 def graph_align_config() -> AlignConfig:
