@@ -42,6 +42,7 @@ COMMANDS = {
     "register-plot": ("register", "register_plot_command"),
     "tie-to-als": ("register", "tie_to_als_command"),
     "merge": ("merge", "merge_command"),
+    "export": ("export", "export_command"),
     "simulate": ("simulate", "simulate_command"),
     "bench": ("bench", "bench_command"),
     "report": ("report", "report_command"),
