@@ -358,9 +358,9 @@ def test_near_rival_still_sliding_into_the_pose_is_the_pose(pair):
     calls = []
     refine = judge.refine
 
-    def counted(src, tgt, A, config, into=None):
+    def counted(src, tgt, A, config, into=None, memo=None):
         calls.append(judge.separation(np.asarray(A), T, c)[0])
-        return refine(src, tgt, A, config, into)
+        return refine(src, tgt, A, config, into, memo)
 
     judge.refine = counted
     try:

@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 from plotmosaic.align import features3d, slices, stemmap
 from plotmosaic.align.icp import evaluate, point_to_plane_icp
 from plotmosaic.align.levelling import Vertical, rotate, vertical_hypotheses
+from plotmosaic.align.memo import CloudMemo, PairMemo
 from plotmosaic.align.normals import local_shape
 from plotmosaic.align.peaks import angle_diff, distinct_peaks
 from plotmosaic.align.rasters import (
@@ -136,15 +137,19 @@ def _stems(lv: _Levelled, config: CoarseConfig) -> stemmap.StemMap:
 
 
 def _prepared(
-    cloud, config: CoarseConfig, seed: int, airborne: bool, upright: bool, limit: int
+    cloud,
+    config: CoarseConfig,
+    seed: int,
+    airborne: bool,
+    upright: bool,
+    limit: int,
+    memo: CloudMemo,
 ) -> _Base:
-    """`_base`, remembered on the cloud object: in a plot each scan takes part in several pairs."""
+    """`_base`, kept in the cloud's memo: in a plot each scan takes part in several pairs."""
     key = (config.model_dump_json(), seed, airborne, upright, limit)
-    memo = cloud.__dict__.setdefault("_coarse_levelled", {})
-    if key not in memo:
-        memo.clear()  # one entry is enough and keeps memory bounded
-        memo[key] = _base(cloud, config, np.random.default_rng(seed), airborne, upright, limit)
-    return memo[key]
+    return memo.coarse.get(
+        key, lambda: _base(cloud, config, np.random.default_rng(seed), airborne, upright, limit)
+    )
 
 
 def _weights(source_kind: str, target_kind: str, config: CoarseConfig) -> dict[str, float]:
@@ -547,6 +552,7 @@ def coarse_align(
     config: CoarseConfig | None = None,
     seed: int = 0,
     prior: np.ndarray | None = None,
+    memo: PairMemo | None = None,
 ) -> CoarseResult:
     """Global alignment of two prepared clouds (anything with local `points` and a `kind`).
 
@@ -558,8 +564,10 @@ def coarse_align(
     The first vertical pair is searched and verified first; the other pairs only when its best pose
     is not already settled (`_settled`): clearly ahead of its distinct rivals, fitting well and found
     by two generators independently. Its rivals stay in the hypotheses for the judge.
+    `memo`: the pair's, where each cloud's levelled sample is kept.
     """
     config = config or CoarseConfig()
+    memo = memo or PairMemo()
     start = time.perf_counter()
     rng = np.random.default_rng(seed)
     # An airborne target (ALS/ULS) is georeferenced: its z is the vertical, while its ground normals
@@ -568,7 +576,7 @@ def coarse_align(
     # airborne), each searched.
     src, tgt = both(
         lambda job: _prepared(*job),
-        (source, config, seed, source.kind in AIRBORNE, False, config.max_verticals),
+        (source, config, seed, source.kind in AIRBORNE, False, config.max_verticals, memo.source),
         (
             target,
             config,
@@ -576,6 +584,7 @@ def coarse_align(
             target.kind in AIRBORNE,
             target.kind in AIRBORNE,
             config.max_target_verticals,
+            memo.target,
         ),
     )
     pairs = _vertical_pairs(src, tgt, config)

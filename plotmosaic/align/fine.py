@@ -9,6 +9,7 @@ import numpy as np
 
 from plotmosaic.align import judge as judge_mod
 from plotmosaic.align.icp import Mirror, point_to_plane_icp
+from plotmosaic.align.memo import PairMemo
 from plotmosaic.align.prepare import PreparedCloud
 from plotmosaic.config.align import AlignConfig, IcpStage
 from plotmosaic.io.frame import inverse
@@ -33,7 +34,9 @@ class FineResult:
         return tuple(self)[i]
 
 
-def fine_schedule(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig):
+def fine_schedule(
+    src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig, memo: PairMemo | None = None
+):
     """(stages, Tukey floor) of the final ICP: `final_schedule`, then a tight polish stage
     (final_polish_*) with a narrower kernel: a 10 cm last stage with a 10 cm kernel leaves TLS pairs
     0.03 deg off in yaw, and pairs the near half of a stem or branch seen by one scanner with the
@@ -45,7 +48,7 @@ def fine_schedule(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig):
     fixed = (
         src.kind in config.final_polish_fixed_kinds and tgt.kind in config.final_polish_fixed_kinds
     )
-    f = 1.0 if fixed else judge_mod.scale_factor(src, tgt, config.judge)
+    f = 1.0 if fixed else judge_mod.scale_factor(src, tgt, config.judge, memo)
     d = config.final_polish_distance * f
     stages = list(config.final_schedule)
     if config.final_polish_iterations == 0 or not stages or d >= stages[-1].max_distance:
@@ -55,13 +58,19 @@ def fine_schedule(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig):
 
 
 def final_icp(
-    src: PreparedCloud, tgt: PreparedCloud, T: np.ndarray, config: AlignConfig
+    src: PreparedCloud,
+    tgt: PreparedCloud,
+    T: np.ndarray,
+    config: AlignConfig,
+    memo: PairMemo | None = None,
 ) -> FineResult:
     """Final point-to-plane ICP with the planes of the denser cloud, or of both for two clouds of
     `final_symmetric_kinds` of comparable density (neither side `final_reverse_ratio` sparser), with
     the side test where both scanners are known."""
-    s_sp, t_sp = judge_mod.spacing(src, config.judge), judge_mod.spacing(tgt, config.judge)
-    schedule, kernel = fine_schedule(src, tgt, config)
+    memo = memo or PairMemo()
+    s_sp = judge_mod.spacing(src, config.judge, memo.source)
+    t_sp = judge_mod.spacing(tgt, config.judge, memo.target)
+    schedule, kernel = fine_schedule(src, tgt, config, memo)
     # both scanners known (align/viewpoint.py): matches between the two faces of a stem are left out
     views = (
         None if src.viewpoint is None or tgt.viewpoint is None else (src.viewpoint, tgt.viewpoint)

@@ -16,7 +16,6 @@ Every transform here maps source-local to target-local coordinates.
 from __future__ import annotations
 
 import time
-import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -24,6 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from plotmosaic.align import scene
 from plotmosaic.align.icp import nearest, point_to_plane_icp
+from plotmosaic.align.memo import CloudMemo, PairMemo
 from plotmosaic.align.sampling import sample
 from plotmosaic.config.align import IcpStage
 from plotmosaic.config.judge import JudgeConfig
@@ -40,37 +40,40 @@ class _Samples:
     centre: np.ndarray  # centroid of the cloud's points: where pose separations are measured
 
 
-def _samples(cloud, config: JudgeConfig) -> _Samples:
-    """Seeded samples of a prepared cloud, remembered on it (a scan takes part in several pairs)."""
+def _samples(cloud, config: JudgeConfig, memo: CloudMemo | None) -> _Samples:
+    """Seeded samples of a prepared cloud, kept in `memo` (a scan takes part in several pairs)."""
     key = config.model_dump_json(
         include={"profile_points", "structure_max_planarity", "rival_points"}
     )
-    memo = cloud.__dict__.setdefault("_judge_samples", {})
-    if key not in memo:
-        memo.clear()
-        rng = np.random.default_rng(20_261_201)
-        pts = cloud.level_points
-        planarity = np.nan_to_num(np.asarray(cloud.features)[:, 1], nan=1.0)
-        flat = planarity >= config.structure_max_planarity
-        every = pts[sample(len(pts), config.profile_points, rng)]
-        struct = pts[~flat]
-        struct = struct[sample(len(struct), config.profile_points, rng)]
-        probe = pts[sample(len(pts), 2_000, rng)]
-        d, _ = cloud.tree.query(probe, k=2)
-        spacing = float(np.median(d[:, 1])) if len(probe) > 1 else config.reference_spacing
-        fine = cloud.fine_points[sample(len(cloud.fine_points), config.rival_points, rng)]
-        memo[key] = _Samples(every, struct, spacing, fine, cloud.points.mean(axis=0))
-    return memo[key]
+    return (memo or CloudMemo()).judge.get(key, lambda: _draw_samples(cloud, config))
 
 
-def spacing(cloud, config: JudgeConfig) -> float:
+def _draw_samples(cloud, config: JudgeConfig) -> _Samples:
+    rng = np.random.default_rng(20_261_201)
+    pts = cloud.level_points
+    planarity = np.nan_to_num(np.asarray(cloud.features)[:, 1], nan=1.0)
+    flat = planarity >= config.structure_max_planarity
+    every = pts[sample(len(pts), config.profile_points, rng)]
+    struct = pts[~flat]
+    struct = struct[sample(len(struct), config.profile_points, rng)]
+    probe = pts[sample(len(pts), 2_000, rng)]
+    d, _ = cloud.tree.query(probe, k=2)
+    spacing = float(np.median(d[:, 1])) if len(probe) > 1 else config.reference_spacing
+    fine = cloud.fine_points[sample(len(cloud.fine_points), config.rival_points, rng)]
+    return _Samples(every, struct, spacing, fine, cloud.points.mean(axis=0))
+
+
+def spacing(cloud, config: JudgeConfig, memo: CloudMemo | None = None) -> float:
     """Median nearest-neighbour spacing (m) of a prepared cloud's delta0 points."""
-    return _samples(cloud, config).spacing
+    return _samples(cloud, config, memo).spacing
 
 
-def scale_factor(src, tgt, config: JudgeConfig) -> float:
+def scale_factor(src, tgt, config: JudgeConfig, memo: PairMemo | None = None) -> float:
     """How much the profile distances stretch: the sparser cloud is judged at its own resolution."""
-    spacing = max(_samples(src, config).spacing, _samples(tgt, config).spacing)
+    memo = memo or PairMemo()
+    spacing = max(
+        _samples(src, config, memo.source).spacing, _samples(tgt, config, memo.target).spacing
+    )
     return float(np.clip(spacing / config.reference_spacing, 1.0, config.max_scale_factor))
 
 
@@ -81,13 +84,14 @@ def _shares(points: np.ndarray, tree, T: np.ndarray, scales: np.ndarray) -> list
     return [float(np.mean(d <= s)) for s in scales]
 
 
-def profile(src, tgt, T: np.ndarray, config: JudgeConfig) -> dict:
+def profile(src, tgt, T: np.ndarray, config: JudgeConfig, memo: PairMemo | None = None) -> dict:
     """Residual profile of pose T: shares of points within each scale, structure and all, both directions.
 
     `score` is the mean share over the scales and the two directions on structure points.
     """
-    s, t = _samples(src, config), _samples(tgt, config)
-    scales = np.asarray(config.scales) * scale_factor(src, tgt, config)
+    memo = memo or PairMemo()
+    s, t = _samples(src, config, memo.source), _samples(tgt, config, memo.target)
+    scales = np.asarray(config.scales) * scale_factor(src, tgt, config, memo)
     Ti = inverse(T)
     out = {
         "scales": [float(v) for v in scales],
@@ -120,23 +124,29 @@ def near(A: np.ndarray, B: np.ndarray, centre: np.ndarray, config: JudgeConfig) 
     return m <= k * config.distinct_m and deg <= k * config.distinct_deg
 
 
-def centre(cloud, config: JudgeConfig) -> np.ndarray:
-    """Centroid of a prepared cloud's points (remembered): pose separations are measured there."""
-    return _samples(cloud, config).centre
+def centre(cloud, config: JudgeConfig, memo: CloudMemo | None = None) -> np.ndarray:
+    """Centroid of a prepared cloud's points: pose separations are measured there."""
+    return _samples(cloud, config, memo).centre
 
 
 def refine(
-    src, tgt, T: np.ndarray, config: JudgeConfig, into: np.ndarray | None = None
+    src,
+    tgt,
+    T: np.ndarray,
+    config: JudgeConfig,
+    into: np.ndarray | None = None,
+    memo: PairMemo | None = None,
 ) -> np.ndarray:
     """A rival's short robust point-to-plane ICP, the same for every rival (distances x the scale
     factor), one stage at a time (the same steps as all stages in one call). `into`: a pose this
     rival would only duplicate; the refinement stops once it is within half the distinct radius
     of it after a stage (the later, narrower stages move it centimetres)."""
-    f = scale_factor(src, tgt, config)
+    memo = memo or PairMemo()
+    f = scale_factor(src, tgt, config, memo)
     A = np.asarray(T, dtype=float)
     for k, (d, n) in enumerate(config.rival_schedule):
         res = point_to_plane_icp(
-            _samples(src, config).fine,
+            _samples(src, config, memo.source).fine,
             tgt.points,
             tgt.target_normals,
             A,
@@ -147,29 +157,26 @@ def refine(
         )
         A = res.T
         if into is not None and k < len(config.rival_schedule) - 1:
-            deg, m = separation(A, into, centre(src, config))
+            deg, m = separation(A, into, centre(src, config, memo.source))
             if m <= 0.5 * config.distinct_m and deg <= 0.5 * config.distinct_deg:
                 break
     return A
 
 
-def _rival_memo(src, tgt, config: JudgeConfig) -> dict:
-    """Refined rivals by start pose, remembered on the source for this target: every path of a pair
-    (and the second verdict after a better rival) refines and scores a hypothesis once."""
-    key = config.model_dump_json()
-    memo = src.__dict__.get("_judge_rivals")
-    if memo is None or memo[0]() is not tgt or memo[1] != key:
-        memo = (weakref.ref(tgt), key, {})  # the target by weak reference, as global_search does
-        src.__dict__["_judge_rivals"] = memo
-    return memo[2]
+def _rival_table(config: JudgeConfig, memo: PairMemo) -> dict:
+    """Refined rivals by start pose, kept for the pair: every path of a pair (and the second verdict
+    after a better rival) refines and scores a start once."""
+    return memo.rivals.get(config.model_dump_json(), dict)
 
 
-def _refined(src, tgt, starts: list[np.ndarray], T: np.ndarray, config: JudgeConfig) -> list:
+def _refined(
+    src, tgt, starts: list[np.ndarray], T: np.ndarray, config: JudgeConfig, memo: PairMemo
+) -> list:
     """(refined rival, its profile or None when it ran into T) for each start; the missing ones
     refined two at a time (each its own ICP: the same result as one after the other). A rival that
     ends distinct but `near` T is refined again: a weakly held direction can leave it sliding."""
-    table = _rival_memo(src, tgt, config)
-    c = centre(src, config)
+    table = _rival_table(config, memo)
+    c = centre(src, config, memo.source)
     todo = []
     for A0 in starts:
         key = np.asarray(A0, dtype=float).tobytes()
@@ -179,12 +186,13 @@ def _refined(src, tgt, starts: list[np.ndarray], T: np.ndarray, config: JudgeCon
             todo.append((key, A0))
 
     def run(job):
-        A = refine(src, tgt, job[1], config, into=T)
+        A = refine(src, tgt, job[1], config, into=T, memo=memo)
         for _ in range(config.near_rival_passes):
             if not distinct(A, T, c, config) or not near(A, T, c, config):
                 break
-            A = refine(src, tgt, A, config, into=T)  # still sliding into T, or settled beside it
-        return A, None if not distinct(A, T, c, config) else profile(src, tgt, A, config)
+            # still sliding into T, or settled beside it
+            A = refine(src, tgt, A, config, into=T, memo=memo)
+        return A, None if not distinct(A, T, c, config) else profile(src, tgt, A, config, memo)
 
     for (key, _), done in zip(todo, in_two_threads(run, todo)):
         table[key] = done
@@ -212,17 +220,20 @@ def neighbours(T: np.ndarray, centre: np.ndarray, factor: float, config: JudgeCo
     return out
 
 
-def basin(src, tgt, T: np.ndarray, config: JudgeConfig) -> list:
+def basin(src, tgt, T: np.ndarray, config: JudgeConfig, memo: PairMemo | None = None) -> list:
     """(refined start, its profile) for each of T's `neighbours`, refined like a rival (to the end:
-    where it lands is the point), remembered per pair with the rivals."""
-    table = _rival_memo(src, tgt, config)
-    starts = neighbours(T, centre(src, config), scale_factor(src, tgt, config), config)
+    where it lands is the point), kept for the pair with the rivals."""
+    memo = memo or PairMemo()
+    table = _rival_table(config, memo)
+    starts = neighbours(
+        T, centre(src, config, memo.source), scale_factor(src, tgt, config, memo), config
+    )
     keys = [b"basin" + np.asarray(A0, dtype=float).tobytes() for A0 in starts]
     todo = [(k, A0) for k, A0 in zip(keys, starts) if k not in table]
 
     def run(job):
-        A = refine(src, tgt, job[1], config)
-        return A, profile(src, tgt, A, config)
+        A = refine(src, tgt, job[1], config, memo=memo)
+        return A, profile(src, tgt, A, config, memo)
 
     for (key, _), done in zip(todo, in_two_threads(run, todo)):
         table[key] = done
@@ -312,21 +323,23 @@ def judge(
     T: np.ndarray,
     candidates: list[tuple[np.ndarray, str]],
     config: JudgeConfig,
+    memo: PairMemo | None = None,
 ) -> Verdict:
     """Score pose T against the distinct rivals among `candidates` ((transform, where from), source local ->
     target local), each refined first; a rival that ends within the distinct radius of T is T itself.
     T's `basin` starts that end sharper than T (`sharper_neighbours`) are rivals of the fine margin too;
     rivals blunter than `blunt_min_sharpness` are rivals of the fine margin only, not of the score.
-    Refined rivals are remembered per pair (`_refined`). A source or target that is not a forest
+    Refined rivals are kept in the pair's `memo` (`_refined`). A source or target that is not a forest
     scene (`scene.check`) is refused first (RegistrationFailed): no pose between them is right."""
-    scene.check(src, tgt, config)
+    memo = memo or PairMemo()
+    scene.check(src, tgt, config, memo)
     t0 = time.perf_counter()
-    c = centre(src, config)
-    mine = profile(src, tgt, T, config)
+    c = centre(src, config, memo.source)
+    mine = profile(src, tgt, T, config, memo)
     best, best_T, best_name, best_prof, table, profs = 0.0, None, None, None, [], []
     fine_best, fine_name = 0.0, None
     shortlist = _shortlist(T, candidates, c, config)
-    refined = _refined(src, tgt, [A0 for A0, _ in shortlist], T, config)
+    refined = _refined(src, tgt, [A0 for A0, _ in shortlist], T, config, memo)
     for (_, name), (A, prof) in zip(shortlist, refined):
         deg, m = separation(A, T, c)
         if m <= config.distinct_m and deg <= config.distinct_deg:
@@ -351,7 +364,7 @@ def judge(
             best, best_T, best_name, best_prof = prof["score"], A, name, prof
         if fine > fine_best:
             fine_best, fine_name = fine, name
-    near = basin(src, tgt, T, config) if config.basin_neighbours else []
+    near = basin(src, tgt, T, config, memo) if config.basin_neighbours else []
     sharper = sharper_neighbours(mine, [q for _, q in near], config)
     basin_T, basin_best = None, 0.0
     for k, (A, prof) in enumerate(near):
@@ -419,12 +432,15 @@ def sharpness(prof: dict) -> float:
     return float(near / far) if far > 0 else 0.0
 
 
-def verify_stored(src, tgt, T: np.ndarray, A: np.ndarray, config: JudgeConfig) -> dict:
+def verify_stored(
+    src, tgt, T: np.ndarray, A: np.ndarray, config: JudgeConfig, memo: PairMemo | None = None
+) -> dict:
     """Does the stored pose T (source local -> target local) hold? A, the fine ICP from it, must
     barely move it and fit sharply (`sharpness`) with at least `min_score`. Returns the figures and
     `verified`; `failed` names the checks that did not pass."""
-    deg, m = separation(A, T, centre(src, config))
-    prof = profile(src, tgt, A, config)
+    memo = memo or PairMemo()
+    deg, m = separation(A, T, centre(src, config, memo.source))
+    prof = profile(src, tgt, A, config, memo)
     sharp = sharpness(prof)
     checks = {
         "correction": deg <= config.stored_max_correction_deg

@@ -5,7 +5,6 @@ floors. All geometry runs in local frames; the result is in the files' own coord
 from __future__ import annotations
 
 import time
-import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -13,12 +12,13 @@ import numpy as np
 
 from plotmosaic.align import judge as judge_mod
 from plotmosaic.align import scene
-from plotmosaic.align.coarse import coarse_align
+from plotmosaic.align.coarse import CoarseResult, coarse_align
 from plotmosaic.align.fine import FineResult, final_icp
 from plotmosaic.align.floors import check_quality
 from plotmosaic.align.icp import evaluate, information_matrix
 from plotmosaic.align.judge import Verdict
 from plotmosaic.align.level_icp import LevelResult, level_stage, levels_record, no_level_stage
+from plotmosaic.align.memo import PairMemo
 from plotmosaic.align.prepare import PreparedCloud
 from plotmosaic.align.result import PairResult
 from plotmosaic.align.sampling import sample
@@ -36,23 +36,26 @@ def register_prepared(
     seed: int = 0,
     progress: Say | None = None,
     stored: bool = False,
+    memo: PairMemo | None = None,
 ) -> PairResult:
     """Registration of two prepared clouds; `init` (source file -> target file) is a prior for the
     coarse stage, or the start itself with the coarse stage off. `stored`: `init` is a pose stored
     in the scan files (E57 `use_pose`): when it verifies (judge.verify_stored) the search is skipped,
-    else it is a prior like any other."""
+    else it is a prior like any other. `memo`: what this pair computes once, kept by its owner
+    across calls (a run registering a scan in several pairs); a fresh one by default."""
     say = progress or _silent
+    memo = memo or PairMemo()
     clock = _Clock()
     if config.judge.enabled:  # the judge refuses a scene that is not a forest: before the search
-        scene.check(src, tgt, config.judge)
+        scene.check(src, tgt, config.judge, memo)
     T = to_local_transform(
         np.eye(4) if init is None else np.asarray(init, dtype=float), src.frame, tgt.frame
     )
     start = T.copy()
     check = None
     if stored and init is not None and config.judge.enabled:
-        check = verify_stored_pose(src, tgt, T, config, say)
-    search = search_pose(src, tgt, config, T, init is not None, seed, check, say)
+        check = verify_stored_pose(src, tgt, T, config, say, memo)
+    search = search_pose(src, tgt, config, T, init is not None, seed, check, say, memo)
     clock.mark("coarse")
     rng = np.random.default_rng(seed)
     if search.skipped:  # the stored pose's fine ICP stands: no level stage, no second fine stage
@@ -63,9 +66,9 @@ def register_prepared(
         levels = level_stage(src, tgt, config, search.T, search.coarse is not None, rng)
         clock.mark("levels_icp")
         say("final ICP")
-        fine = final_icp(src, tgt, levels.T, config)
+        fine = final_icp(src, tgt, levels.T, config, memo)
     clock.mark("final_icp")
-    judged = judge_pose(src, tgt, config, fine, start, search, say)
+    judged = judge_pose(src, tgt, config, fine, start, search, say, memo)
     clock.mark("judge")
     say("quality")
     quality = measure(src, tgt, config, judged.fine, rng)
@@ -115,13 +118,18 @@ class Quality:
 
 
 def verify_stored_pose(
-    src: PreparedCloud, tgt: PreparedCloud, T: np.ndarray, config: AlignConfig, say: Say
+    src: PreparedCloud,
+    tgt: PreparedCloud,
+    T: np.ndarray,
+    config: AlignConfig,
+    say: Say,
+    memo: PairMemo,
 ) -> StoredCheck:
     """The fine stage from the stored pose is the check: a right one barely moves and fits sharply."""
     say("verifying the stored pose")
     t = time.perf_counter()
-    fine = final_icp(src, tgt, T, config)
-    check = judge_mod.verify_stored(src, tgt, T, fine.T, config.judge)
+    fine = final_icp(src, tgt, T, config, memo)
+    check = judge_mod.verify_stored(src, tgt, T, fine.T, config.judge, memo)
     check["seconds"] = time.perf_counter() - t
     return StoredCheck(fine, check["verified"], _stored_record(check))
 
@@ -135,6 +143,7 @@ def search_pose(
     seed: int,
     check: StoredCheck | None,
     say: Say,
+    memo: PairMemo,
 ) -> Search:
     """The coarse stage, around `T` when a start was given, else from anywhere; nothing after a
     verified stored pose. A local result (--init, --no-coarse) takes its rivals from the global search."""
@@ -148,9 +157,9 @@ def search_pose(
         # ICP alone from a guess 10 deg / 2 m off can settle in a wrong minimum that still looks fit
         say("coarse alignment")
         if has_init:
-            cres = coarse_align(src, tgt, config.coarse, seed, prior=T)
+            cres = coarse_align(src, tgt, config.coarse, seed, prior=T, memo=memo)
         else:
-            cres = global_search(src, tgt, config, seed)
+            cres = global_search(src, tgt, config, seed, memo)
         T = np.asarray(cres.transform, dtype=float)
         coarse = cres.to_dict()
         hypotheses = list(cres.hypotheses)
@@ -159,20 +168,24 @@ def search_pose(
     rivals = config.judge.enabled and config.judge.global_rivals
     if rivals and not skipped and (has_init or not config.coarse.enabled):
         say("searching for rival poses")
-        hypotheses += global_search(src, tgt, config, seed).hypotheses
+        hypotheses += global_search(src, tgt, config, seed, memo).hypotheses
     return Search(T, coarse, hypotheses, skipped)
 
 
-def global_search(src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig, seed: int):
-    """The coarse stage from anywhere (no prior), remembered per pair: the default path's pose and the
-    rivals of a local result (--no-coarse, --init) are the same search."""
+def global_search(
+    src: PreparedCloud,
+    tgt: PreparedCloud,
+    config: AlignConfig,
+    seed: int,
+    memo: PairMemo | None = None,
+) -> CoarseResult:
+    """The coarse stage from anywhere (no prior), kept in the pair's memo: the default path's pose
+    and the rivals of a local result (--no-coarse, --init) are the same search."""
+    memo = memo or PairMemo()
     key = (config.coarse.model_dump_json(exclude={"enabled"}), seed)
-    memo = src.__dict__.get("_global_search")
-    if memo is None or memo[0]() is not tgt or memo[1] != key:
-        # one pair kept, the target by weak reference: a cache of prepared clouds stays the only owner
-        memo = (weakref.ref(tgt), key, coarse_align(src, tgt, config.coarse, seed, prior=None))
-        src.__dict__["_global_search"] = memo
-    return memo[2]
+    return memo.search.get(
+        key, lambda: coarse_align(src, tgt, config.coarse, seed, prior=None, memo=memo)
+    )
 
 
 def judge_pose(
@@ -183,6 +196,7 @@ def judge_pose(
     start: np.ndarray,
     search: Search,
     say: Say,
+    memo: PairMemo,
 ) -> Judged:
     """The judge's verdict on the pose against every hypothesis and the start; after a search, one
     retry from a better pose the judge found (`recover`)."""
@@ -190,10 +204,10 @@ def judge_pose(
         return Judged(fine, None)
     say("judging the pose against its rivals")
     candidates = _candidates(search.hypotheses, start)
-    verdict = judge_mod.judge(src, tgt, fine.T, candidates, config.judge)
+    verdict = judge_mod.judge(src, tgt, fine.T, candidates, config.judge, memo)
     if search.skipped:
         return Judged(fine, verdict)
-    return recover(src, tgt, config, candidates, fine, verdict, say)
+    return recover(src, tgt, config, candidates, fine, verdict, say, memo)
 
 
 def recover(
@@ -204,6 +218,7 @@ def recover(
     fine: FineResult,
     verdict: Verdict,
     say: Say,
+    memo: PairMemo | None = None,
 ) -> Judged:
     """At most one retry when the judge found a better pose than the final ICP's: a distinct rival
     that scores better (only with the coarse stage on: after --no-coarse a distinct pose is not the
@@ -216,9 +231,10 @@ def recover(
     if better is None:
         return Judged(fine, verdict)
     say("final ICP from a better rival" if rival else "final ICP from the pose's sharper basin")
-    second_fine = final_icp(src, tgt, better, config)
+    memo = memo or PairMemo()
+    second_fine = final_icp(src, tgt, better, config, memo)
     second = judge_mod.judge(
-        src, tgt, second_fine.T, candidates + [(fine.T, "first pose")], config.judge
+        src, tgt, second_fine.T, candidates + [(fine.T, "first pose")], config.judge, memo
     )
     keep = second.score > verdict.score if rival else second.confidence > verdict.confidence
     return Judged(second_fine, second) if keep else Judged(fine, verdict)

@@ -21,6 +21,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from plotmosaic.align.memo import CloudMemo, PairMemo
 from plotmosaic.config.judge import JudgeConfig
 from plotmosaic.errors import RegistrationFailed
 
@@ -34,32 +35,32 @@ class SceneFigures:
     points: int  # level points the figures come from
 
 
-def figures(cloud, config: JudgeConfig) -> SceneFigures:
-    """The scene figures of a prepared cloud (remembered on it: a scan takes part in several pairs)."""
+def figures(cloud, config: JudgeConfig, memo: CloudMemo | None = None) -> SceneFigures:
+    """The scene figures of a prepared cloud, kept in `memo` (a scan takes part in several pairs)."""
     key = config.model_dump_json(include={"scene", "structure_max_planarity"})
-    memo = cloud.__dict__.setdefault("_scene_figures", {})
-    if key not in memo:
-        memo.clear()
-        pts = np.asarray(cloud.level_points, dtype=float)
-        f = np.asarray(cloud.features, dtype=float)
-        valid = np.isfinite(f[:, :2]).all(axis=1)
-        extent = 0.0
-        if len(pts) >= 3:
-            centred = pts - pts.mean(axis=0)
-            _, _, axes = np.linalg.svd(centred[:: max(1, len(pts) // 50_000)], full_matrices=False)
-            proj = centred @ axes.T
-            lo, hi = np.percentile(proj, [2, 98], axis=0)
-            extent = float(np.max(hi - lo))
-        n = max(1, int(valid.sum()))
-        flat = valid & (np.nan_to_num(f[:, 1]) >= config.structure_max_planarity)
-        memo[key] = SceneFigures(
-            extent_m=extent,
-            linear_share=float((f[valid, 0] >= config.scene.linearity).sum() / n),
-            flat_share=float(flat.sum() / n),
-            crossing_share=float(_crossing(np.asarray(cloud.normals)[flat], config).sum() / n),
-            points=len(pts),
-        )
-    return memo[key]
+    return (memo or CloudMemo()).scene.get(key, lambda: _figures(cloud, config))
+
+
+def _figures(cloud, config: JudgeConfig) -> SceneFigures:
+    pts = np.asarray(cloud.level_points, dtype=float)
+    f = np.asarray(cloud.features, dtype=float)
+    valid = np.isfinite(f[:, :2]).all(axis=1)
+    extent = 0.0
+    if len(pts) >= 3:
+        centred = pts - pts.mean(axis=0)
+        _, _, axes = np.linalg.svd(centred[:: max(1, len(pts) // 50_000)], full_matrices=False)
+        proj = centred @ axes.T
+        lo, hi = np.percentile(proj, [2, 98], axis=0)
+        extent = float(np.max(hi - lo))
+    n = max(1, int(valid.sum()))
+    flat = valid & (np.nan_to_num(f[:, 1]) >= config.structure_max_planarity)
+    return SceneFigures(
+        extent_m=extent,
+        linear_share=float((f[valid, 0] >= config.scene.linearity).sum() / n),
+        flat_share=float(flat.sum() / n),
+        crossing_share=float(_crossing(np.asarray(cloud.normals)[flat], config).sum() / n),
+        points=len(pts),
+    )
 
 
 def _crossing(normals: np.ndarray, config: JudgeConfig) -> np.ndarray:
@@ -90,14 +91,15 @@ def problems(s: SceneFigures, config: JudgeConfig) -> list[str]:
     return out
 
 
-def check(src, tgt, config: JudgeConfig) -> None:
+def check(src, tgt, config: JudgeConfig, memo: PairMemo | None = None) -> None:
     """Raise RegistrationFailed (exit 3), naming the cloud and its figures, when the source or the
     target is not a forest scene; nothing when the check is off (`scene.enabled`)."""
     if not config.scene.enabled:
         return
+    memo = memo or PairMemo()
     found = []
-    for role, cloud in (("source", src), ("target", tgt)):
-        why = problems(figures(cloud, config), config)
+    for role, cloud, held in (("source", src, memo.source), ("target", tgt, memo.target)):
+        why = problems(figures(cloud, config, held), config)
         if why:
             found.append(f"the {role} is not a forest scene: " + ", ".join(why))
     if found:
