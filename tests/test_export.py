@@ -4,6 +4,7 @@ held against `plotmosaic merge` of the same inputs on the small simulated plot."
 import json
 import shutil
 import subprocess
+from pathlib import Path
 
 import copclib
 import laspy
@@ -11,12 +12,14 @@ import numpy as np
 import pye57
 import pytest
 from helpers import assert_one_line_error, invoke
+from scipy.spatial.transform import Rotation
 
 from plotmosaic.config.merge import MergeConfig
+from plotmosaic.io import PointCloud, write_cloud
 from plotmosaic.io.frame import apply_transform
 from plotmosaic.io.las import read_cloud
-from plotmosaic.manifest import load_manifest
-from plotmosaic.poses import load_poses
+from plotmosaic.manifest import Manifest, Plot, Scan, dump_manifest, load_manifest
+from plotmosaic.poses import Poses, ScanPose, load_poses
 from plotmosaic.stages.export import write_copc
 from plotmosaic.stages.merge import merge_scans
 
@@ -216,3 +219,28 @@ def test_an_earlier_export_is_replaced_only_with_force(inputs, tmp_path):
     (folder / "P1-S0.txt").write_text("mine")  # a file the user made, named as a matrix
     assert_one_line_error(_export(inputs, "matrices", folder, "--force"), "not replacing it")
     assert (folder / "P1-S0.txt").read_text() == "mine"
+
+
+def test_e57_keeps_millimetres_of_a_scan_stored_in_utm(tmp_path):
+    """A scan file in UTM coordinates: the E57 stores it about a whole-km origin folded into the
+    pose (pye57 writes float32 points), and pose @ points gives back the merged coordinates."""
+    rng = np.random.default_rng(3)
+    xyz = rng.uniform([470_210, 3_810_140, 2_095], [470_250, 3_810_180, 2_125], (5_000, 3))
+    write_cloud(tmp_path / "utm.laz", PointCloud(xyz))
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_euler("z", 0.3).as_matrix()
+    pose[:3, 3] = [12.5, -3.25, 0.5]
+    plot = Plot(id="P1", crs="EPSG:26912", scans=[Scan(id="utm", path=Path("utm.laz"))])
+    (tmp_path / "m.toml").write_text(dump_manifest(Manifest(plots=[plot])))
+    Poses({"utm": ScanPose(pose, plot="P1")}, frame="crs").save(tmp_path / "p.json")
+    out = tmp_path / "utm.e57"
+    result = _export((tmp_path / "m.toml", tmp_path / "p.json"), "e57", out)
+    assert result.exit_code == 0, result.output
+    e57 = pye57.E57(str(out))
+    header, data = e57.get_header(0), e57.read_scan_raw(0)
+    local = np.column_stack([data["cartesianX"], data["cartesianY"], data["cartesianZ"]])
+    assert np.abs(local).max() < 1000  # about the origin, not at UTM magnitudes
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = header.rotation_matrix, header.translation
+    stored = read_cloud(tmp_path / "utm.laz").xyz
+    assert np.abs(apply_transform(T, local) - apply_transform(pose, stored)).max() < 0.0005

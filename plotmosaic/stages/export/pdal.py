@@ -76,7 +76,7 @@ def pipeline(plan: ExportPlan, cloud: Path) -> dict:
     )
     writer = {
         "type": "writers.copc" if is_copc(cloud) else "writers.las",
-        "filename": str(cloud),
+        "filename": str(cloud.absolute()),
         "inputs": ["merged"],
         "tag": "write",
         **{f"scale_{a}": float(v) for a, v in zip("xyz", header.scales)},
