@@ -1,6 +1,7 @@
-"""LAS/LAZ 1.2-1.4 reading and writing with laspy (lazrs backend); the reading entry points
+"""LAS/LAZ 1.2-1.4 reading with laspy (lazrs backend); the reading entry points
 (`read_header_info`, `iter_chunks`, `read_cloud`, `open_las`) also take E57 scans (io/e57.py, also
 `FILE.e57#INDEX`) and PLY files (io/ply.py), dispatched on the suffix, so every caller reads them.
+Writing is io/las_write.py and the in-memory types io/cloud.py; both are re-exported here.
 
 Coordinates are always float64 in the file's own coordinate system; attributes are kept
 as their LAS dtypes. Reading goes chunk by chunk so memory stays bounded by what is kept.
@@ -9,9 +10,8 @@ as their LAS dtypes. Reading goes chunk by chunk so memory stays bounded by what
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field
-from functools import cached_property, partial
+from collections.abc import Iterable, Iterator
+from functools import partial
 from pathlib import Path
 
 import laspy
@@ -21,73 +21,25 @@ from pyproj import CRS
 from plotmosaic.config.merge import CHUNK_SIZE
 from plotmosaic.errors import InputError, short_error
 from plotmosaic.io import e57, ply
-from plotmosaic.io.atomic import atomic_output
+from plotmosaic.io.cloud import RGB, STANDARD_ATTRIBUTES, HeaderInfo, PointCloud
+from plotmosaic.io.las_write import las_offsets, make_header, make_record, write_cloud
 from plotmosaic.io.paths import check_input_file
 
-# Standard attributes carried through the tool (LAS dimension name -> dtype).
-STANDARD_ATTRIBUTES: dict[str, np.dtype] = {
-    "intensity": np.dtype(np.uint16),
-    "return_number": np.dtype(np.uint8),
-    "number_of_returns": np.dtype(np.uint8),
-    "classification": np.dtype(np.uint8),
-    "gps_time": np.dtype(np.float64),
-    "red": np.dtype(np.uint16),
-    "green": np.dtype(np.uint16),
-    "blue": np.dtype(np.uint16),
-    "point_source_id": np.dtype(np.uint16),
-}
-RGB = ("red", "green", "blue")
-
-
-@dataclass
-class PointCloud:
-    """Points in file coordinates (float64) with optional per-point attributes and a CRS."""
-
-    xyz: np.ndarray
-    attrs: dict[str, np.ndarray] = field(default_factory=dict)
-    crs: CRS | None = None
-
-    def __post_init__(self) -> None:
-        self.xyz = np.ascontiguousarray(self.xyz, dtype=np.float64).reshape(-1, 3)
-        for name, values in self.attrs.items():
-            if len(values) != len(self.xyz):
-                raise ValueError(
-                    f"attribute {name!r} has {len(values)} values for {len(self.xyz)} points"
-                )
-
-    def __len__(self) -> int:
-        return len(self.xyz)
-
-    def select(self, index: np.ndarray) -> PointCloud:
-        return PointCloud(self.xyz[index], {k: v[index] for k, v in self.attrs.items()}, self.crs)
-
-
-@dataclass(frozen=True)
-class HeaderInfo:
-    """What a file's header says. `box`: (mins, maxs), or a function giving them (E57 / PLY without
-    trusted bounds: one streamed pass), called on the first use of `mins` / `maxs` only."""
-
-    path: Path
-    point_count: int
-    point_format: int
-    version: str
-    box: tuple[np.ndarray, np.ndarray] | Callable[[], tuple[np.ndarray, np.ndarray]]
-    crs: CRS | None
-    dimensions: tuple[str, ...]
-
-    @cached_property
-    def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        lo, hi = self.box() if callable(self.box) else self.box
-        return np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
-
-    @property
-    def mins(self) -> np.ndarray:
-        return self._bounds[0]
-
-    @property
-    def maxs(self) -> np.ndarray:
-        return self._bounds[1]
-
+__all__ = [
+    "RGB",
+    "STANDARD_ATTRIBUTES",
+    "HeaderInfo",
+    "PointCloud",
+    "file_format",
+    "iter_chunks",
+    "las_offsets",
+    "make_header",
+    "make_record",
+    "open_las",
+    "read_cloud",
+    "read_header_info",
+    "write_cloud",
+]
 
 LAS_SUFFIXES = (".las", ".laz")
 READ_SUFFIXES = (".las", ".laz", ".e57", ".ply")
@@ -369,83 +321,3 @@ class CloudRecordReader:
                 OTHER_SCALE,
             )
             yield make_record(header, chunk.xyz, chunk.attrs)
-
-
-# ---------------------------------------------------------------- writing
-
-
-def las_offsets(mins: np.ndarray) -> np.ndarray:
-    """Offsets rounded down to 1 km: int32 at 1 mm then spans +-2000 km around them."""
-    return np.floor(np.asarray(mins, dtype=np.float64) / 1000.0) * 1000.0
-
-
-def make_header(
-    attribute_names: Iterable[str],
-    extra_dims: dict[str, np.dtype] | None = None,
-    crs: CRS | None = None,
-    offsets: np.ndarray | None = None,
-    scale: float = 0.001,
-) -> laspy.LasHeader:
-    """A LAS 1.4 header (PF 6, or 7 when RGB is present) for the given attributes."""
-    names = set(attribute_names)
-    point_format = 7 if all(c in names for c in RGB) else 6
-    header = laspy.LasHeader(point_format=point_format, version="1.4")
-    header.scales = np.array([scale, scale, scale])
-    header.offsets = np.zeros(3) if offsets is None else np.asarray(offsets, dtype=np.float64)
-    for name, dtype in (extra_dims or {}).items():
-        header.add_extra_dim(laspy.ExtraBytesParams(name=name, type=np.dtype(dtype)))
-    if crs is not None:
-        header.add_crs(CRS.from_user_input(crs))
-    return header
-
-
-def make_record(
-    header: laspy.LasHeader, xyz: np.ndarray, attrs: dict[str, np.ndarray]
-) -> laspy.ScaleAwarePointRecord:
-    """Points for `header` from float64 xyz and attribute arrays (unknown attributes are dropped)."""
-    record = laspy.ScaleAwarePointRecord.zeros(len(xyz), header=header)
-    xyz = np.asarray(xyz, dtype=np.float64)
-    span = np.abs(xyz - header.offsets).max(axis=0) / header.scales if len(xyz) else np.zeros(3)
-    if np.any(span >= 2**31 - 1):
-        raise InputError("coordinates do not fit the LAS integer range at this scale/offset")
-    record.x, record.y, record.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    dims = set(header.point_format.dimension_names)
-    for name, values in attrs.items():
-        if name in dims:
-            record[name] = values
-    return record
-
-
-def _extra_dims(cloud: PointCloud) -> dict[str, np.dtype]:
-    return {n: v.dtype for n, v in cloud.attrs.items() if n not in STANDARD_ATTRIBUTES}
-
-
-def write_cloud(
-    path: str | Path,
-    cloud: PointCloud,
-    crs: CRS | None = None,
-    scale: float = 0.001,
-    force: bool = True,
-    chunk_size: int = CHUNK_SIZE,
-) -> Path:
-    """Write a cloud as LAS/LAZ 1.4 (compression from the suffix), atomically."""
-    path = Path(path)
-    if path.suffix.lower() not in (".las", ".laz"):
-        raise InputError(f"{path}: output must end in .las or .laz")
-    if len(cloud) and not np.isfinite(cloud.xyz).all():
-        raise InputError(f"{path}: refusing to write NaN or infinite coordinates")
-    crs = crs if crs is not None else cloud.crs
-    mins = cloud.xyz.min(axis=0) if len(cloud) else np.zeros(3)
-    header = make_header(cloud.attrs.keys(), _extra_dims(cloud), crs, las_offsets(mins), scale)
-    with atomic_output(path, force=force) as tmp:
-        with laspy.open(
-            tmp, mode="w", header=header, do_compress=path.suffix.lower() == ".laz"
-        ) as writer:
-            for start in range(0, len(cloud), chunk_size):
-                part = slice(start, start + chunk_size)
-                writer.write_points(
-                    make_record(
-                        header, cloud.xyz[part], {k: v[part] for k, v in cloud.attrs.items()}
-                    )
-                )
-    return path
