@@ -80,7 +80,8 @@ def slices(sim: Path, out: Path, moved: str, width: int) -> None:
     from plotmosaic.config.report import ReportConfig
     from plotmosaic.io.las import read_cloud
     from plotmosaic.poses import load_poses
-    from plotmosaic.report.build import collect, origin_of
+    from plotmosaic.report.build import collect
+    from plotmosaic.report.figures import origin_of
     from plotmosaic.report.slice import ring_spread
     from plotmosaic.report.views import plot_breast_slice, scan_colours
 

@@ -1,4 +1,4 @@
-"""`plotmosaic report`: pictures and an index page for a pair and for a register-plot folder."""
+"""`plotmosaic report`: an align result's report, and a run's report written again in its folder."""
 
 from __future__ import annotations
 
@@ -44,6 +44,14 @@ def test_report_for_a_pair(tmp_path):
                 "overlap": 0.8,
                 "source_kind": "tls",
                 "target_kind": "tls",
+                "seconds": 12.5,
+                "timings": {
+                    "coarse": 3.0,
+                    "final_icp": 1.5,
+                    "final_iterations": 70,
+                    "correction_deg": 0.4,
+                    "correction_m": 0.03,
+                },
             }
         )
     )
@@ -63,7 +71,7 @@ def test_report_for_a_pair(tmp_path):
         ],
     )
     assert result.exit_code == 0, result.output
-    index = out / "index.md"
+    index = out / "report.md"
     linked = _linked_pngs(index)
     assert {
         "before.png",
@@ -76,7 +84,20 @@ def test_report_for_a_pair(tmp_path):
     assert (out / "report.html").is_file() and "report.html" in result.output
     _check_pngs(out, linked)
     text = index.read_text()
-    assert "fitness: 0.9100" in text and f"{T[0, 3]: .6f}" in text
+    assert "fitness: 0.9100" in text and f"{T[0, 3]: .9f}" in text
+    assert not (out / "index.md").exists()
+    page = (out / "report.html").read_text()
+    # the transform in a user's words; the time table holds times only
+    assert "rotation: " in page and "the source&#x27;s centre moves by" in page
+    time_table = page[page.index("How long each stage took") :]
+    assert "coarse" in time_table and "final_icp" in time_table
+    for measure in ("final_iterations", "correction_deg", "correction_m"):
+        assert measure not in time_table
+    for png in ("before.png", "after.png"):  # shown on the page, not only written
+        assert png.split(".")[0].capitalize() in page
+    # the cloud-to-cloud figure rests on thousands of points
+    rows = re.findall(r"<td>source s</td><td>target t</td><td>(\d+)</td>", page)
+    assert rows and int(rows[0]) >= 2000, rows
 
 
 def test_report_on_a_result_that_names_its_clouds(tmp_path):
@@ -163,14 +184,21 @@ def test_report_for_a_register_plot_folder(tmp_path):
     reg.mkdir()
     (reg / "graph.json").write_text(json.dumps(graph_to_json(G)))
     Poses({n: ScanPose(T, "P1") for n, T in sol.poses.items()}).save(reg / "poses.json")
-    result = CliRunner().invoke(app, ["report", str(reg), "--points", "5000"])
+    result = CliRunner().invoke(app, ["report", str(reg)])
     assert result.exit_code == 0, result.output
-    out = reg / "report"
-    linked = _linked_pngs(out / "index.md")
-    assert {
-        f"P1_{n}.png"
-        for n in ("before", "after", "slice", "graph", "levels", "breast_slice", "map", "distances")
-    } <= set(linked)
-    assert (out / "report.html").is_file()
-    _check_pngs(out, linked)
-    assert "| S1 | S0 |" in (out / "index.md").read_text()
+    # one report per run: written again in the run's folder, no second page or 3D view
+    assert not (reg / "report").exists()
+    linked = _linked_pngs(reg / "report.md")
+    assert {f"P1_{n}.png" for n in ("graph", "breast_slice", "map", "distances", "scans")} <= set(
+        linked
+    )
+    assert (reg / "report.html").is_file()
+    _check_pngs(reg, linked)
+    assert "| S1 | S0 |" in (reg / "report.md").read_text()
+    assert sorted(p.name for p in tmp_path.rglob("report.html")) == ["report.html"]
+    assert len(list(tmp_path.rglob("view3d.html"))) <= 1
+    # a second run replaces the run's own report (it is the run's, not the user's)
+    result = CliRunner().invoke(app, ["report", str(reg)])
+    assert result.exit_code == 0, result.output
+    result = CliRunner().invoke(app, ["report", str(reg), "--out", str(tmp_path / "x")])
+    assert result.exit_code == 2 and "--out" in result.output

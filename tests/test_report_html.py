@@ -211,7 +211,7 @@ def test_warnings_in_plain_words():
     import networkx as nx
 
     from plotmosaic.config.report import ReportConfig
-    from plotmosaic.report.build import warnings_for
+    from plotmosaic.report.warnings import warnings_for
 
     G = nx.Graph()
     G.add_edge("S1", "S2", source="S1", target="S2")

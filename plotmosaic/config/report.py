@@ -105,6 +105,12 @@ class DistanceConfig(BaseModel):
     neighbours: int = Field(
         6, ge=3, le=64, description="points of the other scan that define its local plane"
     )
+    spacing_factor: float = Field(
+        1.5,
+        ge=0,
+        le=10,
+        description="a sparse target's local plane reaches this many times its median spacing",
+    )
     colour_max: float = Field(
         0.05, gt=0, le=1, description="top of the distance colour scale (m): 5 cm shows cm errors"
     )
@@ -116,6 +122,40 @@ class DistanceConfig(BaseModel):
     )
 
 
+class AlsFitConfig(BaseModel):
+    """The georeferenced page's comparison of the placed scans with the ALS."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    margin: float = Field(
+        5.0, ge=0, le=100, description="ALS kept this far (m) around the plot's ground model"
+    )
+    min_als_points: int = Field(
+        100, ge=1, le=1_000_000, description="fewer ALS returns over the plot: no comparison drawn"
+    )
+    canopy_cell: float = Field(
+        2.0, gt=0.2, le=20, description="cell of the canopy-top comparison (m): a crown's size"
+    )
+    canopy_min_height: float = Field(
+        2.0,
+        ge=0,
+        le=50,
+        description="a cell is canopy where both tops are this high above ground (m)",
+    )
+    top_band: float = Field(
+        1.0,
+        gt=0,
+        le=10,
+        description="the TLS sees a cell's top when it has points this close below it (m)",
+    )
+    top_points: int = Field(
+        5, ge=1, le=10_000, description="fewest TLS points in that band for the TLS top to count"
+    )
+    colour_max: float = Field(
+        0.3, gt=0, le=5, description="ends of the ground-difference colour scale (+- m)"
+    )
+
+
 class ReportConfig(BaseModel):
     """Pictures and pages of the registration report."""
 
@@ -124,6 +164,9 @@ class ReportConfig(BaseModel):
     slice: SliceConfig = Field(default_factory=SliceConfig, description="breast-height slice")
     distance: DistanceConfig = Field(
         default_factory=DistanceConfig, description="cloud-to-cloud distances"
+    )
+    als_fit: AlsFitConfig = Field(
+        default_factory=AlsFitConfig, description="fit of the placed scans to the ALS"
     )
     picture_points: int = Field(
         20_000, ge=1000, le=1_000_000, description="points per scan in the overview pictures"
@@ -169,4 +212,10 @@ class ReportConfig(BaseModel):
         gt=0,
         le=1,
         description="a scan's median distance to neighbours above this (m) is flagged",
+    )
+    weak_ground_offset: float = Field(
+        0.15,
+        gt=0,
+        le=5,
+        description="a plot's median ground offset from the ALS above this (m) is flagged",
     )

@@ -28,13 +28,22 @@ def thin(xyz: np.ndarray, voxel: float, cap: int, rng: np.random.Generator) -> n
     return xyz[idx]
 
 
+def spacing(tree: cKDTree, xyz: np.ndarray, k: int, sample: int = 2000) -> float:
+    """Median distance from a point of the cloud to its k-th neighbour (over an even sample):
+    how far the local plane's points reach in this cloud (an airborne cloud's is decimetres)."""
+    if len(xyz) <= k:
+        return 0.0
+    d, _ = tree.query(xyz[:: max(1, len(xyz) // sample)], k=k + 1)
+    return float(np.median(d[:, -1]))
+
+
 def edge_distances(
     source: str, target: str, clouds: dict[str, np.ndarray], trees: dict, cfg: DistanceConfig
 ) -> dict:
     """Distance of each source point to the plane through its nearest target points, in the overlap.
 
     The overlap is where the target is dense around the source point (all `neighbours` within
-    `neighbourhood`): elsewhere a nearest-neighbour distance measures the other scan's point spacing
+    `neighbourhood`, or within the target's own spacing where it is sparser, as an ALS tile): elsewhere a nearest-neighbour distance measures the other scan's point spacing
     (foliage, far ground), not the registration. The local plane (CloudCompare's C2C with a local
     model) takes the target's sampling out of the figure, so a few millimetres mean aligned.
     """
@@ -42,7 +51,10 @@ def edge_distances(
         trees[target] = cKDTree(clouds[target])
     src = clouds[source]
     tgt = clouds[target]
-    _, idx = trees[target].query(src, k=cfg.neighbours, distance_upper_bound=cfg.neighbourhood)
+    radius = max(
+        cfg.neighbourhood, cfg.spacing_factor * spacing(trees[target], tgt, cfg.neighbours)
+    )
+    _, idx = trees[target].query(src, k=cfg.neighbours, distance_upper_bound=radius)
     ok = (idx < len(tgt)).all(axis=1)
     p, nb = src[ok], tgt[idx[ok]]
     centre = nb.mean(axis=1)

@@ -15,7 +15,8 @@ table{border-collapse:collapse;margin:.6em 0;font-size:.88em} td,th{border:1px s
 th{background:#f2f2f2} td:first-child,th:first-child{text-align:left}
 .summary{background:#f7f9fc;border:1px solid #d5deeb;padding:.6em 1.2em;border-radius:6px}
 .warn{color:#9a3b00} .ok{color:#1d6b2a} figure{margin:1em 0} figcaption{font-size:.9em;color:#555}
-img{max-width:100%;border:1px solid #eee}
+img{max-width:100%;border:1px solid #eee} .read{color:#333;font-style:italic}
+pre{background:#f7f7f7;padding:.5em;font-size:.9em}
 """
 
 
@@ -23,12 +24,14 @@ def esc(text: object) -> str:
     return html.escape(str(text))
 
 
-def image(png: Path, caption: str) -> str:
-    """A figure with the PNG inlined (data URI), so the page needs no other file."""
+def image(png: Path, caption: str, read: str = "") -> str:
+    """A figure with the PNG inlined (data URI), so the page needs no other file; `read` is one
+    line on how to read it."""
     data = base64.b64encode(Path(png).read_bytes()).decode("ascii")
+    how = f'<br><span class="read">How to read: {esc(read)}</span>' if read else ""
     return (
         f'<figure><img src="data:image/png;base64,{data}" alt="{esc(caption)}">'
-        f"<figcaption>{esc(caption)}</figcaption></figure>"
+        f"<figcaption>{esc(caption)}{how}</figcaption></figure>"
     )
 
 

@@ -1,0 +1,279 @@
+"""tie-to-als's report (report.md and report.html, georeferenced): how each plot sits on the ALS.
+
+Rendered from a `TieRun`: built by tie-to-als from its result, or by `plotmosaic report` from the
+folder the run wrote (poses.json, graph.json, plots/*_als.laz), so both write the same page. The
+page leads with the fit to the ALS (ground, canopy, per scan), then each plot's breast-height
+slice and map; edge residuals that are zero by construction (no loop: one anchor per plot) are
+left out."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import networkx as nx
+import numpy as np
+
+from plotmosaic.config.register import PoseGraphConfig
+from plotmosaic.config.report import ReportConfig
+from plotmosaic.io.atomic import write_text_atomic
+from plotmosaic.io.frame import inverse, pose_error
+from plotmosaic.report.build import build_report
+from plotmosaic.report.collect import read_scan
+from plotmosaic.report.model import ReportInput, Stage
+from plotmosaic.report.sections import has_loop
+from plotmosaic.report.tables import (
+    edge_table,
+    fmt,
+    md_figures,
+    pair_seconds,
+    pose_table,
+    recorded,
+    residual_summary,
+)
+
+ALS_MARGIN = 40.0  # ALS kept this far (m) around the scanners: the map, the fit, the 3D layer
+
+
+@dataclass(frozen=True, kw_only=True)
+class AnchorRow:
+    """One plot's registration to the ALS, as the run recorded it."""
+
+    plot: str
+    reference: str
+    status: str
+    fitness: float | None = None
+    inlier_rmse: float | None = None
+    overlap: float | None = None
+    crop: str = ""
+    error: str | None = None
+    residual: dict | None = None
+
+
+@dataclass(frozen=True, kw_only=True)
+class TieRun:
+    """What tie-to-als's report shows; `None` where the folder does not record it."""
+
+    out: Path
+    graph: nx.Graph
+    anchors: tuple[AnchorRow, ...]
+    poses: dict[str, np.ndarray]  # ALS CRS
+    sigmas: dict[str, np.ndarray]
+    plots: dict[str, list[str]]
+    paths: dict[str, Path]
+    offset: np.ndarray
+    als_xyz: np.ndarray | None  # the ALS around the scanners
+    source: str
+    unplaced: tuple[str, ...] = ()
+    computed: int | None = None
+    seconds: float | None = None
+    stages: tuple[Stage, ...] = ()
+    judged_in: dict[str, tuple[str, str]] = field(default_factory=dict)
+
+
+def als_near(als_xyz: np.ndarray, poses: dict[str, np.ndarray], margin: float = ALS_MARGIN):
+    """ALS points within `margin` of the scanners' bounding box; None with too few."""
+    if not len(als_xyz) or not poses:
+        return None
+    xy = np.array([T[:2, 3] for T in poses.values()])
+    lo, hi = xy.min(axis=0) - margin, xy.max(axis=0) + margin
+    keep = np.all((als_xyz[:, :2] >= lo) & (als_xyz[:, :2] <= hi), axis=1)
+    return als_xyz[keep] if keep.sum() >= 100 else None
+
+
+def anchor_rows(G: nx.Graph, anchors: tuple[AnchorRow, ...]) -> list[str]:
+    loop = has_loop(G)
+    head = "| plot | reference scan | status | fitness | inlier RMSE (cm) | overlap | ALS crop |"
+    rows = [
+        head + (" anchor residual (cm / deg) |" if loop else ""),
+        "|---" * (8 if loop else 7) + "|",
+    ]
+    for a in anchors:
+        status = a.status if a.status == "ok" else f"failed: {a.error}"
+        row = (
+            f"| {a.plot} | {a.reference} | {status} | {fmt(a.fitness, 1, 3)} | {fmt(a.inlier_rmse, 100, 2)} "
+            f"| {fmt(a.overlap, 1, 3)} | {a.crop} |"
+        )
+        if loop:
+            r = a.residual
+            row += " - |" if not r else f" {r['translation'] * 100:.2f} / {r['rotation_deg']:.3f} |"
+        rows.append(row)
+    return rows
+
+
+def anchor_fact(a: AnchorRow, loop: bool) -> str:
+    if a.status != "ok":
+        return f"plot {a.plot} -> ALS: failed ({a.error})"
+    r = a.residual
+    off = (
+        f", {r['translation'] * 100:.2f} cm / {r['rotation_deg']:.3f} deg off the joint solution"
+        if r and loop
+        else ""
+    )
+    return (
+        f"plot {a.plot} -> ALS (through {a.reference}): fitness {fmt(a.fitness, 1, 3)}, "
+        f"inlier RMSE {fmt(a.inlier_rmse, 100, 1)} cm{off}"
+    )
+
+
+def _stages(run: TieRun) -> list[Stage]:
+    secs, n = pair_seconds(run.graph, anchors_only=True)
+    now = "" if run.computed is None else f" ({run.computed} run now)"
+    return [
+        Stage(
+            "plot -> ALS registration", secs, f"sum of the per-pair times of {n} anchor pairs{now}"
+        ),
+        Stage(
+            "tie-to-als until this report",
+            run.seconds,
+            "ALS crop, plot -> ALS pairs, region pose graph, poses.json",
+        ),
+        *run.stages,
+    ]
+
+
+def render_tie(
+    run: TieRun,
+    cfg: ReportConfig,
+    min_confidence: float,
+    seed: int,
+    reader: Callable[[Path], np.ndarray],
+) -> Path:
+    """report.md and report.html (with the run's view3d.html) of a tie-to-als run."""
+    loop = has_loop(run.graph)
+    anchors = anchor_rows(run.graph, run.anchors)
+    poses = pose_table([s for ids in run.plots.values() for s in ids], run.poses, run.sigmas)
+    edges = edge_table(run.graph)
+    inp = ReportInput(
+        title="tie-to-als report (georeferenced)",
+        out=run.out,
+        graph=run.graph,
+        poses=run.poses,
+        paths=run.paths,
+        plots=run.plots,
+        reader=reader,
+        stages=tuple(_stages(run)),
+        unplaced=run.unplaced,
+        tables_md=(
+            ("Anchors (plot -> ALS)", anchors),
+            ("Poses (ALS CRS)", poses),
+            ("Edges", edges),
+        ),
+        facts=(
+            f"manifest: {run.source}",
+            "frame: the ALS CRS",
+            *(anchor_fact(a, loop) for a in run.anchors),
+        ),
+        als_xyz=run.als_xyz,
+        judged_in=run.judged_in,
+        min_confidence=min_confidence,
+        bundle=residual_summary(run.graph),
+        overview=True,
+    )
+    _, figures = build_report(inp, cfg, seed)
+    lines = [
+        "# tie-to-als report",
+        "",
+        f"- manifest: `{run.source}`",
+        f"- region solved in ALS CRS minus offset ({', '.join(f'{v:.0f}' for v in run.offset)})",
+        f"- plot -> ALS registrations: {len(run.anchors)}"
+        + ("" if run.computed is None else f" ({run.computed} run now, rest cached)"),
+        "",
+        "The same in one page, with the fit to the ALS, the breast-height slice and a map over the "
+        "ALS canopy height: [report.html](report.html)",
+        "",
+    ]
+    if run.unplaced:
+        lines += [f"**Not placed**: {', '.join(run.unplaced)}", ""]
+    for p in run.plots:
+        lines += [f"## Plot {p}", ""]
+        if p in run.judged_in:
+            href, why = run.judged_in[p]
+            lines += [f"{why}: its cloud-to-cloud distances are in [{href}]({href}).", ""]
+        lines += md_figures(figures, p)
+    lines += ["## Anchors (plot -> ALS)", "", *anchors, "", "## Poses (ALS CRS)", "", *poses, ""]
+    lines += ["## Edges", "", *edges, ""]
+    return write_text_atomic(run.out / "report.md", "\n".join(lines))
+
+
+def rigid_plots(result, earlier, earlier_report: Path | None, cfg) -> dict[str, tuple[str, str]]:
+    """Plots the region solve moved as one piece (each scan's pose relative to the plot's reference
+    as register-plot left it, within the report's rigid tolerance): their distances are the earlier report's."""
+    if earlier is None or earlier_report is None or not Path(earlier_report).is_file():
+        return {}
+    after = result.poses
+    out = {}
+    for a in result.anchors:
+        ref = a.reference
+        scans = [s for s in after.scans if after.scans[s].plot == a.plot]
+        if (
+            a.status != "ok"
+            or ref not in earlier.scans
+            or any(s not in earlier.scans for s in scans)
+        ):
+            continue
+        worst_t = worst_r = 0.0
+        for s in scans:
+            before = inverse(earlier.transform(ref)) @ earlier.transform(s)
+            now = inverse(after.transform(ref)) @ after.transform(s)
+            r, t = pose_error(now, before)
+            worst_t, worst_r = max(worst_t, t), max(worst_r, r)
+        if worst_t <= cfg.rigid_translation and worst_r <= cfg.rigid_rotation_deg:
+            out[a.plot] = (
+                os.path.relpath(earlier_report, result.out),
+                f"The region solve moved plot {a.plot} as one piece (its scans relative to {ref} "
+                f"changed by at most {worst_t * 1000:.2f} mm / {worst_r:.4f} deg)",
+            )
+    return out
+
+
+def _row(a) -> AnchorRow:
+    return AnchorRow(
+        plot=a.plot,
+        reference=a.reference,
+        status=a.status,
+        fitness=a.fitness,
+        inlier_rmse=a.inlier_rmse,
+        overlap=a.overlap,
+        crop=a.crop,
+        error=a.error,
+        residual=a.residual,
+    )
+
+
+def write_tie_report(
+    result,
+    manifest,
+    als,
+    config,
+    seed: int,
+    reader: Callable[[Path], np.ndarray] | None = None,
+    earlier=None,
+    earlier_report: Path | None = None,
+) -> Path:
+    """report.md and report.html of tie-to-als's result. `earlier` (register-plot's poses) and
+    `earlier_report` (its report.html): a plot the region solve moved rigidly keeps that report's
+    cloud-to-cloud distances (linked); its fit to the ALS and its slice are drawn here."""
+    cfg = getattr(config, "report", None) or ReportConfig()
+    graph_cfg = getattr(config, "graph", None) or PoseGraphConfig()
+    poses = {k: v.transform for k, v in result.poses.scans.items()}
+    run = TieRun(
+        out=result.out,
+        graph=result.graph,
+        anchors=tuple(_row(a) for a in result.anchors),
+        poses=poses,
+        sigmas={k: v.sigma for k, v in result.poses.scans.items()},
+        plots={p.id: [s.id for s in p.scans] for p in manifest.plots},
+        paths={s.id: manifest.resolve(s.path) for s in manifest.scans},
+        offset=np.asarray(result.offset, float),
+        als_xyz=als_near(als.xyz, poses),
+        source=str(manifest.source),
+        unplaced=tuple(result.unplaced),
+        computed=result.computed,
+        seconds=result.seconds,
+        stages=tuple(recorded(result)),
+        judged_in=rigid_plots(result, earlier, earlier_report, cfg),
+    )
+    return render_tie(run, cfg, graph_cfg.min_confidence, seed, reader or read_scan)
