@@ -5,7 +5,7 @@ finds the poses, and the stored one is only offered as a prior (`stored_pose`), 
 exports store identity. Coordinates come out as float64 whatever the file stores (float,
 double or scaled integers: libE57 converts), spherical scans are converted to cartesian,
 and points flagged invalid (missing returns) are dropped. Intensity and colour are mapped to
-the LAS names and ranges (uint16) that merge writes.
+the LAS names and ranges (uint16) that merge writes. The header (XML) side is io/e57_header.py.
 
 A manifest names one scan of a multi-scan file as the reference path `FILE.e57#INDEX`
 (`scan_ref`), so every reader of a path (`io.las.read_cloud`, `iter_chunks`, ...) gets it.
@@ -21,7 +21,30 @@ from pathlib import Path
 import numpy as np
 
 from plotmosaic.errors import InputError, short_error
-from plotmosaic.io.paths import check_input_file
+from plotmosaic.io.e57_header import (
+    E57Scan,
+    describe,
+    field_range,
+    libe57,
+    limits,
+    open_file,
+    scan_nodes,
+)
+
+__all__ = [
+    "CHUNK_SIZE",
+    "E57Scan",
+    "attribute_names",
+    "is_e57",
+    "iter_e57_chunks",
+    "list_scans",
+    "resolve_scan",
+    "scan_list_text",
+    "scan_ref",
+    "select_scan",
+    "split_scan_ref",
+    "stored_pose",
+]
 
 CHUNK_SIZE = 1_000_000
 _REF = re.compile(r"^(?P<file>.*\.e57)#(?P<index>\d+)$", re.IGNORECASE)
@@ -48,148 +71,15 @@ def split_scan_ref(path: str | Path) -> tuple[Path, int | None]:
     return Path(path), None
 
 
-@dataclass(frozen=True)
-class E57Scan:
-    """One scan of an E57 file, as its header describes it."""
-
-    index: int
-    name: str | None
-    guid: str | None
-    point_count: int
-    fields: tuple[str, ...]
-    pose: np.ndarray | None  # 4x4 scan -> file frame, None when the file stores none
-    bounds: tuple[np.ndarray, np.ndarray] | None  # cartesianBounds (scan frame), when stored
-    pose_problem: str | None = (
-        None  # why a stored pose was unusable (an error only where the pose is used)
-    )
-
-    @property
-    def label(self) -> str:
-        return f"scan {self.index}" + (f" ({self.name!r})" if self.name else "")
-
-
-def _libe57():
-    from pye57 import libe57  # deferred: the C++ library loads only when an E57 file is read
-
-    return libe57
-
-
-def _open(path: Path):
-    libe57 = _libe57()
-    check_input_file(path, "E57 file")
-    try:
-        return libe57.ImageFile(str(path), "r")
-    except Exception as exc:  # libE57 raises E57Exception (bad checksum, bad header, ...)
-        raise InputError(f"{path}: not a readable E57 file ({short_error(exc)})") from None
-
-
-def _number(node) -> float:
-    """The value of an E57 numeric node (float, integer or scaled integer)."""
-    libe57 = _libe57()
-    for cast, getter in (
-        (libe57.FloatNode, "value"),
-        (libe57.ScaledIntegerNode, "scaledValue"),
-        (libe57.IntegerNode, "value"),
-    ):
-        try:
-            return float(getattr(cast(node), getter)())
-        except Exception:
-            continue
-    raise ValueError(f"{node.pathName()}: not a number")
-
-
-def _child(node, name: str):
-    return node.get(name) if node.isDefined(name) else None
-
-
-def _string(node, name: str) -> str | None:
-    child = _child(node, name)
-    return None if child is None else str(_libe57().StringNode(child).value())
-
-
-def _pose(node) -> np.ndarray | None:
-    """4x4 from the scan's pose (unit quaternion w, x, y, z + translation); None when absent."""
-    pose = _child(node, "pose")
-    if pose is None:
-        return None
-    pose = _libe57().StructureNode(pose)
-    T = np.eye(4)
-    rot = _child(pose, "rotation")
-    if rot is not None:
-        rot = _libe57().StructureNode(rot)
-        w, x, y, z = (_number(rot.get(k)) for k in ("w", "x", "y", "z"))
-        q = np.array([w, x, y, z])
-        norm = np.linalg.norm(q)
-        if not np.isfinite(norm) or abs(norm - 1.0) > 1e-3:
-            raise ValueError(f"rotation quaternion is not a unit quaternion (norm {norm:.6g})")
-        w, x, y, z = q / norm
-        T[:3, :3] = [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    tr = _child(pose, "translation")
-    if tr is not None:
-        tr = _libe57().StructureNode(tr)
-        T[:3, 3] = [_number(tr.get(k)) for k in ("x", "y", "z")]
-    if not np.isfinite(T).all():
-        raise ValueError("pose is not finite")
-    return T
-
-
-def _bounds(node) -> tuple[np.ndarray, np.ndarray] | None:
-    b = _child(node, "cartesianBounds")
-    if b is None:
-        return None
-    b = _libe57().StructureNode(b)
-    try:
-        lo = np.array([_number(b.get(f"{a}Minimum")) for a in "xyz"])
-        hi = np.array([_number(b.get(f"{a}Maximum")) for a in "xyz"])
-    except Exception:
-        return None
-    ok = np.isfinite(lo).all() and np.isfinite(hi).all() and (hi >= lo).all()
-    return (lo, hi) if ok else None
-
-
-def _scan_nodes(imf, path: Path) -> list:
-    libe57 = _libe57()
-    root = imf.root()
-    if not root.isDefined("data3D"):
-        return []
-    data3d = libe57.VectorNode(root.get("data3D"))
-    return [libe57.StructureNode(data3d.get(i)) for i in range(data3d.childCount())]
-
-
-def _describe(node, index: int) -> E57Scan:
-    libe57 = _libe57()
-    points = libe57.CompressedVectorNode(node.get("points"))
-    proto = libe57.StructureNode(points.prototype())
-    fields = tuple(proto.get(i).elementName() for i in range(proto.childCount()))
-    try:
-        pose, problem = _pose(node), None
-    except Exception as exc:  # the points are still usable: registration does not need the pose
-        pose, problem = None, short_error(exc)
-    return E57Scan(
-        index,
-        _string(node, "name"),
-        _string(node, "guid"),
-        int(points.childCount()),
-        fields,
-        pose,
-        _bounds(node),
-        problem,
-    )
-
-
 def list_scans(path: str | Path) -> list[E57Scan]:
     """Every scan of an E57 file, from its XML section (no points read)."""
     path = Path(path)
-    imf = _open(path)
+    imf = open_file(path)
     try:
         scans = []
-        for i, node in enumerate(_scan_nodes(imf, path)):
+        for i, node in enumerate(scan_nodes(imf, path)):
             try:
-                scans.append(_describe(node, i))
+                scans.append(describe(node, i))
             except Exception as exc:
                 raise InputError(
                     f"{path}: scan {i}: unreadable header ({short_error(exc)})"
@@ -264,105 +154,117 @@ def attribute_names(scan: E57Scan) -> list[str]:
     return [las_names[f] for f in _wanted(scan.fields, True)]
 
 
-def _limits(
-    node, group: str, lo_name: str, hi_name: str, default: tuple[float, float]
-) -> tuple[float, float]:
-    g = _child(node, group)
-    if g is not None:
-        g = _libe57().StructureNode(g)
-        try:
-            lo, hi = _number(g.get(lo_name)), _number(g.get(hi_name))
-            if np.isfinite(lo) and np.isfinite(hi) and hi > lo:
-                return lo, hi
-        except Exception:
-            pass
-    return default
-
-
-def _field_range(proto, name: str) -> tuple[float, float]:
-    """The value range a field's prototype declares (what the limits default to)."""
-    libe57 = _libe57()
-    node = proto.get(name)
-    for cast, lo, hi in (
-        (libe57.ScaledIntegerNode, "scaledMinimum", "scaledMaximum"),
-        (libe57.IntegerNode, "minimum", "maximum"),
-        (libe57.FloatNode, "minimum", "maximum"),
-    ):
-        try:
-            n = cast(node)
-            a, b = float(getattr(n, lo)()), float(getattr(n, hi)())
-            if np.isfinite(a) and np.isfinite(b) and b > a:
-                return a, b
-        except Exception:
-            continue
-    return 0.0, 1.0
-
-
 def _to_uint16(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """Values mapped from [lo, hi] to the LAS range 0..65535; NaN (flagged invalid) becomes 0."""
     scaled = (np.asarray(values, dtype=np.float64) - lo) * (65535.0 / (hi - lo))
     return np.nan_to_num(np.clip(np.rint(scaled), 0, 65535), nan=0.0).astype(np.uint16)
 
 
+@dataclass(frozen=True)
+class _Fields:
+    """What a read of one scan's points fetches, and how each field becomes a LAS value."""
+
+    coords: tuple[str, str, str]  # _XYZ or _RAE
+    state: str  # the invalid-state field of those coordinates (read when the scan has it)
+    extra: list[str]  # intensity / colour / normal fields
+    flags: dict[str, str]  # field -> its per-point "no value" flag (such values are written as 0)
+    ranges: dict[str, tuple[float, float]]  # intensity / colour field -> what maps to 0..65535
+
+
+def _fields(where: str, scan: E57Scan, node, proto, attributes: bool | Iterable[str]) -> _Fields:
+    if all(f in scan.fields for f in _XYZ):
+        coords, state = _XYZ, "cartesianInvalidState"
+    elif all(f in scan.fields for f in _RAE):
+        coords, state = _RAE, "sphericalInvalidState"
+    else:
+        raise InputError(
+            f"{where}: neither cartesian nor spherical coordinates (fields: {', '.join(scan.fields)})"
+        )
+    extra = _wanted(scan.fields, attributes)
+    flags = {
+        f: flag
+        for f, flag in (("intensity", "isIntensityInvalid"), ("colorRed", "isColorInvalid"))
+        if f in extra and flag in scan.fields
+    }
+    if "colorRed" in flags:
+        flags.update({"colorGreen": "isColorInvalid", "colorBlue": "isColorInvalid"})
+    ranges = {}
+    if "intensity" in extra:
+        ranges["intensity"] = limits(
+            node,
+            "intensityLimits",
+            "intensityMinimum",
+            "intensityMaximum",
+            field_range(proto, "intensity"),
+        )
+    for f in _RGB:
+        if f in extra:
+            ranges[f] = limits(
+                node, "colorLimits", f"{f}Minimum", f"{f}Maximum", field_range(proto, f)
+            )
+    return _Fields(coords=coords, state=state, extra=extra, flags=flags, ranges=ranges)
+
+
+def _buffers(fields: _Fields, scan: E57Scan, n: int) -> dict[str, np.ndarray]:
+    """The arrays libE57 reads a block of `n` points into, one per field."""
+    arrays = {f: np.empty(n, np.float64) for f in fields.coords}
+    arrays.update({f: np.empty(n, np.float64) for f in fields.extra})
+    if fields.state in scan.fields:
+        arrays[fields.state] = np.empty(n, np.int8)
+    for flag in set(fields.flags.values()):
+        arrays[flag] = np.empty(n, np.int8)
+    return arrays
+
+
+def _block(
+    fields: _Fields, arrays: dict[str, np.ndarray], got: int
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The valid points of the `got` just read: xyz (cartesian) and LAS attributes."""
+    keep = slice(0, got)
+    state = fields.state
+    valid = arrays[state][keep] == 0 if state in arrays else np.ones(got, bool)
+    c = [arrays[f][keep][valid] for f in fields.coords]
+    if (
+        fields.coords is _RAE
+    ):  # E57 spherical: azimuth from +x towards +y, elevation from the xy plane
+        r, az, el = c
+        c = [r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)]
+    attrs = {}
+    for f in fields.extra:
+        v = arrays[f][keep][valid]
+        if f in fields.flags:
+            v = np.where(arrays[fields.flags[f]][keep][valid] != 0, np.nan, v)
+        if f == "intensity":
+            attrs["intensity"] = _to_uint16(v, *fields.ranges["intensity"])
+        elif f in _RGB:
+            attrs[_RGB[f]] = _to_uint16(v, *fields.ranges[f])
+        else:
+            attrs[_NORMALS[f]] = v.astype(np.float32)
+    return np.column_stack(c), attrs
+
+
 def iter_e57_chunks(
     path: str | Path, chunk_size: int = CHUNK_SIZE, attributes: bool | Iterable[str] = True
 ) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
     """Yield one scan's valid points as (xyz float64, attributes) blocks (scan frame), reading block by block."""
-    libe57 = _libe57()
+    lib = libe57()
     file, index = split_scan_ref(path)
-    imf = _open(file)
+    imf = open_file(file)
     try:
-        nodes = _scan_nodes(imf, file)
-        scan = select_scan(file, index, [_describe(n, i) for i, n in enumerate(nodes)])
+        nodes = scan_nodes(imf, file)
+        scan = select_scan(file, index, [describe(n, i) for i, n in enumerate(nodes)])
         node = nodes[scan.index]
         where = f"{file}: {scan.label}"
         if scan.point_count == 0:
             raise InputError(f"{where}: contains no points")
-        points = libe57.CompressedVectorNode(node.get("points"))
-        proto = libe57.StructureNode(points.prototype())
-        if all(f in scan.fields for f in _XYZ):
-            coords, state = _XYZ, "cartesianInvalidState"
-        elif all(f in scan.fields for f in _RAE):
-            coords, state = _RAE, "sphericalInvalidState"
-        else:
-            raise InputError(
-                f"{where}: neither cartesian nor spherical coordinates (fields: {', '.join(scan.fields)})"
-            )
-        extra = _wanted(scan.fields, attributes)
+        points = lib.CompressedVectorNode(node.get("points"))
+        proto = lib.StructureNode(points.prototype())
+        fields = _fields(where, scan, node, proto, attributes)
         n = max(1, min(chunk_size, scan.point_count))
-        arrays = {f: np.empty(n, np.float64) for f in coords}
-        arrays.update({f: np.empty(n, np.float64) for f in extra})
-        if state in scan.fields:
-            arrays[state] = np.empty(n, np.int8)
-        # per-point "no value" flags of intensity / colour: such values are written as 0
-        flags = {
-            f: flag
-            for f, flag in (("intensity", "isIntensityInvalid"), ("colorRed", "isColorInvalid"))
-            if f in extra and flag in scan.fields
-        }
-        if "colorRed" in flags:
-            flags.update({"colorGreen": "isColorInvalid", "colorBlue": "isColorInvalid"})
-        for flag in set(flags.values()):
-            arrays[flag] = np.empty(n, np.int8)
-        ilim = (
-            _limits(
-                node,
-                "intensityLimits",
-                "intensityMinimum",
-                "intensityMaximum",
-                _field_range(proto, "intensity"),
-            )
-            if "intensity" in extra
-            else None
-        )
-        clim = {
-            f: _limits(node, "colorLimits", f"{f}Minimum", f"{f}Maximum", _field_range(proto, f))
-            for f in _RGB
-            if f in extra
-        }
-        buffers = libe57.VectorSourceDestBuffer()
+        arrays = _buffers(fields, scan, n)
+        buffers = lib.VectorSourceDestBuffer()
         for name, array in arrays.items():
-            buffers.append(libe57.SourceDestBuffer(imf, name, array, n, True, True))
+            buffers.append(lib.SourceDestBuffer(imf, name, array, n, True, True))
         try:
             reader = points.reader(buffers)
         except Exception as exc:
@@ -377,26 +279,7 @@ def iter_e57_chunks(
                     ) from None
                 if got == 0:
                     break
-                keep = slice(0, got)
-                valid = arrays[state][keep] == 0 if state in arrays else np.ones(got, bool)
-                c = [arrays[f][keep][valid] for f in coords]
-                if (
-                    coords is _RAE
-                ):  # E57 spherical: azimuth from +x towards +y, elevation from the xy plane
-                    r, az, el = c
-                    c = [r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)]
-                attrs = {}
-                for f in extra:
-                    v = arrays[f][keep][valid]
-                    if f in flags:
-                        v = np.where(arrays[flags[f]][keep][valid] != 0, np.nan, v)
-                    if f == "intensity":
-                        attrs["intensity"] = _to_uint16(v, *ilim)
-                    elif f in _RGB:
-                        attrs[_RGB[f]] = _to_uint16(v, *clim[f])
-                    else:
-                        attrs[_NORMALS[f]] = v.astype(np.float32)
-                yield np.column_stack(c), attrs
+                yield _block(fields, arrays, got)
         finally:
             reader.close()
     finally:
