@@ -11,6 +11,7 @@ from helpers import SIM_PAIR_MAX_DEG
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
+from plotmosaic.align.pipeline import align_files
 from plotmosaic.cli import app
 from plotmosaic.io.las import PointCloud, read_cloud, write_cloud
 from plotmosaic.poses import load_poses
@@ -51,8 +52,9 @@ def test_align_writes_result_and_levels(pair, tmp_path):
         src, tgt, "--init", init, "--no-coarse", "--out", out, "--save-levels", tmp_path / "levels"
     )
     assert res.exit_code == 0, res.output
-    assert "fitness" in res.output and "rotation" in res.output
+    assert "fitness" in res.output and "confidence" in res.output
     data = json.loads(out.read_text())
+    check_user_figures(res.output, data, src, out)
     for key in (
         "transform",
         "fitness",
@@ -79,6 +81,45 @@ def test_align_writes_result_and_levels(pair, tmp_path):
     # a previous RESULT.json is a valid --init
     again = invoke(src, tgt, "--init", out, "--no-coarse")
     assert again.exit_code == 0, again.output
+
+
+def check_user_figures(output: str, data: dict, src, out) -> None:
+    """The printout and RESULT.json say what the pose does to the source, in figures a user can check."""
+    T = np.asarray(data["transform"])
+    xyz = read_cloud(src, attributes=False).xyz
+    centre = (xyz.min(axis=0) + xyz.max(axis=0)) / 2
+    moves = T[:3, :3] @ centre + T[:3, 3] - centre
+    np.testing.assert_allclose(data["source_centre"], centre, atol=1e-9)
+    np.testing.assert_allclose(data["motion_at_centre_m"], moves, atol=1e-9)
+    angle = Rotation.from_matrix(T[:3, :3]).magnitude()
+    assert data["rotation_deg"] == pytest.approx(np.degrees(angle), abs=1e-6)
+    assert f"rotation: {data['rotation_deg']:.4f} deg" in output
+    assert f"dx {moves[0]:+.4f}, dy {moves[1]:+.4f}, dz {moves[2]:+.4f} m" in output
+    assert f"{T[0, 3]:+.4f}" not in output  # the translation about the file origin is not printed
+    # timings hold seconds only; what the steps did is under `steps`
+    for value in data["timings"].values():
+        seconds = value.values() if isinstance(value, dict) else [value]
+        assert all(isinstance(v, float) and v >= 0 for v in seconds), data["timings"]
+    assert {"correction_deg", "correction_m", "final_iterations"} <= set(data["steps"])
+    # neither kind given: both detected, each printed with why
+    assert data["source_kind"] == data["target_kind"] == "tls"
+    assert set(data["detected_kinds"]) == {"source", "target"}
+    assert "source kind: tls (detected: ground-based" in output
+    assert "target kind: tls (detected: ground-based" in output
+    matrix = out.with_name(f"{out.stem}.matrix.txt")
+    np.testing.assert_array_equal(np.loadtxt(matrix), T)
+    assert f"matrix: {matrix}" in output and "source file -> target file" in output
+
+
+@pytest.mark.slow
+def test_real_pair_kinds_detected_as_given(spanner_dir):
+    """UAS -> ALS with no kinds: detected uls -> als, the same confidence as with the kinds given."""
+    src, tgt = spanner_dir / "UAS_Clip.laz", spanner_dir / "ALS_Clip.laz"
+    found = align_files(src, tgt)
+    given = align_files(src, tgt, "uls", "als")
+    assert (found.source_kind, found.target_kind) == ("uls", "als"), found.detected_kinds
+    assert found.confidence == given.confidence and given.detected_kinds == {}
+    np.testing.assert_array_equal(found.transform, given.transform)
 
 
 def test_non_overlapping_pair_exits_3(pair, tmp_path):

@@ -15,12 +15,14 @@ import numpy as np
 from plotmosaic.align.figures import save_levels as write_levels
 from plotmosaic.align.fine import FineResult, final_icp
 from plotmosaic.align.floors import blunt_fit, check_quality
+from plotmosaic.align.kinds import KindDetection, detect_kind
 from plotmosaic.align.level_icp import incremental_steps
 from plotmosaic.align.prepare import PreparedCloud, prepare_cloud
 from plotmosaic.align.register import global_search, register_prepared
 from plotmosaic.align.result import METHOD, PairResult
 from plotmosaic.config.align import KINDS, AlignConfig, default_levels
 from plotmosaic.errors import InputError
+from plotmosaic.io.frame import column_bounds
 from plotmosaic.io.las import PointCloud, read_cloud
 from plotmosaic.parallel import both
 
@@ -40,11 +42,40 @@ __all__ = [
 ]
 
 
+# entries register_prepared records in its timings that are not seconds: they go to `steps`
+STEP_ENTRIES = (
+    "coarse_skipped",
+    "final_iterations",
+    "final_planes",
+    "correction_deg",
+    "correction_m",
+)
+
+
 def _kind(kind: str, which: str) -> str:
     k = str(kind).lower()
     if k not in KINDS:
         raise InputError(f"{which} kind {kind!r} not one of {', '.join(KINDS)}")
     return k
+
+
+def pair_kinds(
+    source: PointCloud,
+    target: PointCloud,
+    source_kind: str | None,
+    target_kind: str | None,
+    config: AlignConfig,
+    seed: int = 0,
+) -> tuple[str, str, dict[str, KindDetection]]:
+    """Both kinds: a given kind stands, a missing one (None) is detected from its cloud."""
+    detected = {
+        role: detect_kind(cloud.xyz, config.kinds, config.viewpoint, seed)
+        for role, cloud, kind in (("source", source, source_kind), ("target", target, target_kind))
+        if kind is None
+    }
+    sk = detected["source"].kind if source_kind is None else _kind(source_kind, "source")
+    tk = detected["target"].kind if target_kind is None else _kind(target_kind, "target")
+    return sk, tk, detected
 
 
 def prepare_pair(
@@ -68,8 +99,8 @@ def prepare_pair(
 def align_clouds(
     source: PointCloud,
     target: PointCloud,
-    source_kind: str = "tls",
-    target_kind: str = "tls",
+    source_kind: str | None = "tls",
+    target_kind: str | None = "tls",
     config: AlignConfig | None = None,
     init: np.ndarray | None = None,
     levels_source: int | None = None,
@@ -80,12 +111,16 @@ def align_clouds(
 ) -> PairResult:
     """Register `source` onto `target`; the result maps source file coordinates to target file coordinates.
 
-    `save_levels`: a folder for the levels as LAZ + PNG (written before ICP, so also on failure).
+    A kind given as None is detected from its cloud (align/kinds.py). `save_levels`: a folder for
+    the levels as LAZ + PNG (written before ICP, so also on failure).
     """
     config = config or AlignConfig()
     t0 = time.perf_counter()
     say = progress or (lambda msg: None)
-    sk, tk = _kind(source_kind, "source"), _kind(target_kind, "target")
+    if source_kind is None or target_kind is None:
+        say("detecting sensor kinds")
+    sk, tk, detected = pair_kinds(source, target, source_kind, target_kind, config, seed)
+    t_kinds = time.perf_counter() - t0
     say("preparing source and target")
     src, tgt = prepare_pair(
         source,
@@ -102,12 +137,17 @@ def align_clouds(
         write_levels(save_levels, src, tgt, source.crs, target.crs)
     t1 = time.perf_counter()
     result = register_prepared(src, tgt, config, init, seed, progress)
+    steps = {k: v for k, v in result.timings.items() if k in STEP_ENTRIES}
     result.timings = {
-        "prepare": t1 - t0,
+        **({"detect_kinds": t_kinds} if detected else {}),
+        "prepare": t1 - t0 - t_kinds,
         "prepare_source": src.seconds,
         "prepare_target": tgt.seconds,
-        **result.timings,
+        **{k: v for k, v in result.timings.items() if k not in STEP_ENTRIES},
     }
+    result.steps = {**result.steps, **steps}
+    result.source_centre = [float(v) for v in column_bounds(source.xyz).mean(axis=1)]
+    result.detected_kinds = {role: d.to_dict() for role, d in detected.items()}
     result.seconds = time.perf_counter() - t0
     return result
 
@@ -115,8 +155,8 @@ def align_clouds(
 def align_files(
     source_path,
     target_path,
-    source_kind: str = "tls",
-    target_kind: str = "tls",
+    source_kind: str | None = None,
+    target_kind: str | None = None,
     config: AlignConfig | None = None,
     init: np.ndarray | None = None,
     levels_source: int | None = None,
@@ -125,7 +165,7 @@ def align_files(
     progress: Callable[[str], None] | None = None,
     save_levels: Path | None = None,
 ) -> PairResult:
-    """`align_clouds` on two LAS/LAZ files (coordinates only)."""
+    """`align_clouds` on two point-cloud files (coordinates only); a kind not given is detected."""
     t0 = time.perf_counter()
     say = progress or (lambda msg: None)
     say("reading source and target")

@@ -1,5 +1,6 @@
 """A pair's registration result: the pose in file coordinates, its quality figures and
-information, and its JSON form (written by `plotmosaic align`, read by `report` and register-plot)."""
+information, and its JSON form (written by `plotmosaic align`, read by `report` and register-plot;
+its fields: docs/formats.md#resultjson)."""
 
 from __future__ import annotations
 
@@ -11,8 +12,15 @@ import numpy as np
 
 from plotmosaic import __version__
 from plotmosaic.io.atomic import write_text_atomic
+from plotmosaic.io.frame import rotation_deg
 
 METHOD = "forestalign"
+
+
+def motion_at(T: np.ndarray, point) -> list[float]:
+    """Where `T` moves `point` minus where it was: [dx, dy, dz]."""
+    T, p = np.asarray(T, dtype=float), np.asarray(point, dtype=float)
+    return [float(v) for v in T[:3, :3] @ p + T[:3, 3] - p]
 
 
 @dataclass
@@ -32,7 +40,11 @@ class PairResult:
     coarse: dict | None = None
     confidence: float | None = None  # the judge's: margin over the best distinct rival pose, 0-1
     judge: dict | None = None  # the judge's profile figures of this pose and of its best rival
-    timings: dict = field(default_factory=dict)
+    timings: dict = field(default_factory=dict)  # seconds per step only
+    steps: dict = field(default_factory=dict)  # what the steps did, in their units (not seconds)
+    # the centre of the source's bounding box as read, source file coordinates (None: not known)
+    source_centre: list | None = None
+    detected_kinds: dict = field(default_factory=dict)  # "source"/"target": kind, reason, evidence
     config: dict = field(default_factory=dict)
     method: str = METHOD
     version: str = __version__
@@ -41,10 +53,22 @@ class PairResult:
     )
     target_path: str | None = None
 
+    @property
+    def rotation_deg(self) -> float:
+        return rotation_deg(self.transform)
+
+    @property
+    def motion_at_centre_m(self) -> list[float] | None:
+        """[dx, dy, dz] the source's bounding-box centre moves (source -> target)."""
+        return None if self.source_centre is None else motion_at(self.transform, self.source_centre)
+
     def to_dict(self) -> dict:
         return {
             "method": self.method,
             "version": self.version,
+            "rotation_deg": self.rotation_deg,
+            "motion_at_centre_m": self.motion_at_centre_m,
+            "source_centre": self.source_centre,
             "transform": np.asarray(self.transform, dtype=float).tolist(),
             "fitness": self.fitness,
             "inlier_rmse": self.inlier_rmse,
@@ -54,8 +78,10 @@ class PairResult:
             "levels": self.levels,
             "seconds": self.seconds,
             "timings": self.timings,
+            "steps": self.steps,
             "source_kind": self.source_kind,
             "target_kind": self.target_kind,
+            "detected_kinds": self.detected_kinds,
             "source_offset": list(self.source_offset),
             "target_offset": list(self.target_offset),
             "confidence": self.confidence,
@@ -87,6 +113,9 @@ class PairResult:
             confidence=d.get("confidence"),
             judge=d.get("judge"),  # absent from results cached before the judge
             timings=d.get("timings", {}),
+            steps=d.get("steps", {}),
+            source_centre=d.get("source_centre"),
+            detected_kinds=d.get("detected_kinds", {}),
             config=d.get("config", {}),
             method=d.get("method", METHOD),
             version=d.get("version", __version__),

@@ -7,7 +7,6 @@ from pathlib import Path
 import numpy as np
 import typer
 from rich.console import Console
-from scipy.spatial.transform import Rotation
 
 from plotmosaic.align.pipeline import align_files
 from plotmosaic.align.prepare import MIN_POINTS
@@ -20,12 +19,15 @@ from plotmosaic.commands.common import (
 )
 from plotmosaic.config.align import DEFAULT_LEVELS, KINDS, MAX_LEVELS
 from plotmosaic.errors import InputError
-from plotmosaic.io.atomic import check_output_dir, check_output_file
+from plotmosaic.io.atomic import check_output_dir, check_output_file, write_text_atomic
 from plotmosaic.io.las import read_header_info
 from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed, inputs_of
 from plotmosaic.poses import read_json, rigid_matrix
 
 LEVEL_NAMES = ("source_levels.laz", "target_levels.laz", "levels.png")  # what --save-levels writes
+MATRIX_DIRECTION = (
+    "source file -> target file coordinates: p_target = M @ [x, y, z, 1] of the source"
+)
 
 
 def load_init(path: Path) -> np.ndarray:
@@ -44,7 +46,7 @@ def check_point_counts(files) -> None:
             )
 
 
-_KIND_HELP = " | ".join(KINDS)
+_KIND_HELP = f"{' | '.join(KINDS)}; default: detected from the cloud (printed with why)"
 _LEVELS_HELP = ", ".join(f"{k} {v}" for k, v in DEFAULT_LEVELS.items())
 
 
@@ -55,10 +57,22 @@ def config_used_path(out: Path | None, save_levels: Path | None) -> Path | None:
     return save_levels / CONFIG_USED if save_levels is not None else None
 
 
+def matrix_path(out: Path | None) -> Path | None:
+    """The 4x4 as text beside RESULT.json (RESULT.matrix.txt), when there is one."""
+    return None if out is None else out.with_name(f"{out.stem}.matrix.txt")
+
+
+def matrix_text(T: np.ndarray) -> str:
+    """Four lines of four numbers (CloudCompare reads it); float64 in its shortest exact form, so a
+    georeferenced translation keeps every digit."""
+    return "".join(" ".join(repr(float(v)) for v in row) + "\n" for row in np.asarray(T))
+
+
 def output_plan(source, target, init, config, out, save_levels, force) -> OutputPlan:
-    """What `align` writes (RESULT.json, its settings, the levels folder) and what it reads."""
+    """What `align` writes (RESULT.json, its matrix, its settings, the levels folder) and reads."""
     used = config_used_path(out, save_levels)
     names = LEVEL_NAMES + ((CONFIG_USED,) if out is None else ())
+    beside = (out, matrix_path(out), used) if out is not None else ()
     return OutputPlan(
         "align",
         inputs_of(
@@ -69,34 +83,91 @@ def output_plan(source, target, init, config, out, save_levels, force) -> Output
                 (config, "--config file"),
             ]
         ),
-        files=tuple(p for p in (out, used if out is not None else None) if p is not None),
+        files=tuple(beside),
         folder=save_levels,
         names=names if save_levels is not None else (),
         force=force,
     )
 
 
-def summary_lines(result) -> list[str]:
+def kind_lines(result) -> list[str]:
+    """One line a cloud: its kind, and why (the detection's figures, or the option that gave it)."""
+    lines = []
+    for role, kind in (("source", result.source_kind), ("target", result.target_kind)):
+        found = result.detected_kinds.get(role)
+        why = f"detected: {found['reason']}" if found else f"given by --{role}-kind"
+        lines.append(f"{role} kind: {kind} ({why})")
+    return lines
 
-    T = result.transform
-    rx, ry, rz = Rotation.from_matrix(T[:3, :3]).as_euler("xyz", degrees=True)
+
+def summary_lines(result) -> list[str]:
+    """What the pose does to the source, in figures a user can check, then its quality."""
     steps = ", ".join(
         f"{s['source_levels']}->{s['target_levels']}" for s in result.levels.get("steps", [])
     )
-    return [
-        f"rotation (x, y, z) deg: {rx:+.4f} {ry:+.4f} {rz:+.4f}",
-        f"translation (m):        {T[0, 3]:+.4f} {T[1, 3]:+.4f} {T[2, 3]:+.4f}",
-        f"fitness {result.fitness:.3f}, inlier RMSE {result.inlier_rmse * 100:.1f} cm, overlap {result.overlap:.3f} "
-        f"(at 25 cm); levels {steps}; {result.seconds:.1f} s",
+    confidence = "" if result.confidence is None else f", confidence {result.confidence:.2f}"
+    lines = [f"rotation: {result.rotation_deg:.4f} deg"]
+    if result.motion_at_centre_m is not None:
+        dx, dy, dz = result.motion_at_centre_m
+        lines.append(
+            f"the source's bounding-box centre moves (source -> target): dx {dx:+.4f}, "
+            f"dy {dy:+.4f}, dz {dz:+.4f} m ({np.linalg.norm([dx, dy, dz]):.4f} m)"
+        )
+    return lines + [
+        f"fitness {result.fitness:.3f}, inlier RMSE {result.inlier_rmse * 100:.1f} cm, "
+        f"overlap {result.overlap:.3f} (at 25 cm){confidence}; levels {steps}; "
+        f"{result.seconds:.1f} s",
     ]
+
+
+def check_options(source_kind, target_kind, levels_source, levels_target, complexity) -> None:
+    """Each option's value in its range: one `error:` line otherwise."""
+    for kind, which in ((source_kind, "--source-kind"), (target_kind, "--target-kind")):
+        if kind is not None and kind.lower() not in KINDS:
+            raise InputError(f"{which} {kind!r}: expected one of {', '.join(KINDS)}")
+    for k, which in ((levels_source, "--levels-source"), (levels_target, "--levels-target")):
+        if k is not None and not 1 <= k <= MAX_LEVELS:
+            raise InputError(f"{which} {k}: expected 1 to {MAX_LEVELS} levels")
+    if complexity is not None and complexity not in ("vmf", "vmf+eigen"):
+        raise InputError(f"--complexity {complexity!r}: expected vmf or vmf+eigen")
+
+
+def check_files(source: Path, target: Path, plan: OutputPlan, used: Path | None) -> OutputPlan:
+    """The inputs readable and large enough, the outputs writable: before any work."""
+    check_point_counts([(source, "SOURCE"), (target, "TARGET")])
+    plan = check_outputs(plan)
+    for path in (*plan.files, *([used] if used is not None else [])):
+        check_output_file(path)
+    if plan.folder is not None:
+        check_output_dir(plan.folder)
+    return plan
+
+
+def write_outputs(result, settings, out: Path | None, save_levels: Path | None) -> list[str]:
+    """RESULT.json, its 4x4 and the settings used; the lines that name them."""
+    lines = []
+    if out is not None:
+        result.save(out)
+        write_text_atomic(matrix_path(out), matrix_text(result.transform))
+        lines += [f"result: {out}", f"matrix: {matrix_path(out)} (4x4, {MATRIX_DIRECTION})"]
+    else:
+        lines.append("pass --out RESULT.json to keep the transform (and its 4x4 as text)")
+    used = config_used_path(out, save_levels)
+    if used is not None:
+        write_config_used(used, settings, "align")
+    if save_levels is not None:
+        lines.append(f"levels: {save_levels}/source_levels.laz, target_levels.laz, levels.png")
+    if used is not None:
+        lines.append(f"settings used: {used}")
+    return lines
 
 
 @handle_errors
 def align_command(
-    source: Path = typer.Argument(..., help="Source LAS/LAZ (moved onto the target)."),
-    target: Path = typer.Argument(..., help="Target LAS/LAZ (kept fixed)."),
-    source_kind: str = typer.Option(KINDS[0], "--source-kind", help=_KIND_HELP),
-    target_kind: str = typer.Option(KINDS[0], "--target-kind", help=_KIND_HELP),
+    source: Path = typer.Argument(..., help="Source cloud (moved onto the target)."),
+    target: Path = typer.Argument(..., help="Target cloud (kept fixed)."),
+    source_kind: str | None = typer.Option(None, "--source-kind", help=_KIND_HELP),
+    target_kind: str | None = typer.Option(None, "--target-kind", help=_KIND_HELP),
     levels_source: int | None = typer.Option(
         None,
         "--levels-source",
@@ -113,7 +184,7 @@ def align_command(
     out: Path | None = typer.Option(
         None,
         "--out",
-        help=f"Write RESULT.json here (and the settings used as RESULT.{CONFIG_USED} beside it).",
+        help=f"Write RESULT.json here, its 4x4 as RESULT.matrix.txt (source -> target) and the settings used as RESULT.{CONFIG_USED} beside it.",
     ),
     save_levels: Path | None = typer.Option(
         None,
@@ -140,32 +211,18 @@ def align_command(
         help="Write into a --save-levels folder that holds other files (they are left untouched).",
     ),
 ) -> None:
-    """Register SOURCE onto TARGET with ForestAlign; print the transform and its quality figures.
+    """Register SOURCE onto TARGET with ForestAlign; print the rotation, the motion of the source's
+    centre, the kinds and the quality figures.
 
     Exit 0 on success, 2 on bad input, 3 when the pair cannot be registered (the message shows why).
     """
-    for kind, which in ((source_kind, "--source-kind"), (target_kind, "--target-kind")):
-        if kind.lower() not in KINDS:
-            raise InputError(f"{which} {kind!r}: expected one of {', '.join(KINDS)}")
-    for k, which in ((levels_source, "--levels-source"), (levels_target, "--levels-target")):
-        if k is not None and not 1 <= k <= MAX_LEVELS:
-            raise InputError(f"{which} {k}: expected 1 to {MAX_LEVELS} levels")
-    if complexity is not None and complexity not in ("vmf", "vmf+eigen"):
-        raise InputError(f"--complexity {complexity!r}: expected vmf or vmf+eigen")
+    check_options(source_kind, target_kind, levels_source, levels_target, complexity)
     settings = run_settings(
         config, {"align": {"complexity": complexity, "coarse": {"enabled": coarse}}}
     )
-    used = config_used_path(out, save_levels)
     T0 = load_init(init) if init is not None else None
-    check_point_counts([(source, "SOURCE"), (target, "TARGET")])
-    plan = check_outputs(output_plan(source, target, init, config, out, save_levels, force))
-    if out is not None:
-        check_output_file(out)
-    if save_levels is not None:
-        check_output_dir(save_levels)
-    if used is not None:
-        check_output_file(used)
-
+    plan = output_plan(source, target, init, config, out, save_levels, force)
+    plan = check_files(source, target, plan, config_used_path(out, save_levels))
     console = Console(stderr=True)
     with claimed(plan), console.status("aligning") as status:
         result = align_files(
@@ -181,16 +238,7 @@ def align_command(
             progress=lambda msg: status.update(msg),
             save_levels=save_levels,
         )
-    if out is not None:
-        result.save(out)
-    if used is not None:
-        write_config_used(used, settings, "align")
+    written = write_outputs(result, settings, out, save_levels)
     typer.echo(f"aligned {source.name} -> {target.name}")
-    for line in summary_lines(result):
+    for line in kind_lines(result) + summary_lines(result) + written:
         typer.echo("  " + line)
-    if out is not None:
-        typer.echo(f"  result: {out}")
-    if save_levels is not None:
-        typer.echo(f"  levels: {save_levels}/source_levels.laz, target_levels.laz, levels.png")
-    if used is not None:
-        typer.echo(f"  settings used: {used}")

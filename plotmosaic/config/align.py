@@ -8,6 +8,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from plotmosaic.config.coarse import CoarseConfig
 from plotmosaic.config.judge import JudgeConfig
+from plotmosaic.config.kinds import KindConfig
 
 KINDS = ("tls", "mls", "uls", "als")  # sensor kinds: terrestrial, mobile, UAV, airborne
 # complexity levels K of one cloud: the level schedule repeats its last entry beyond 3, and more
@@ -333,4 +334,8 @@ class AlignConfig(BaseModel):
     )
     stray: StrayConfig = Field(
         default_factory=StrayConfig, description="stray points dropped before any grid"
+    )
+    kinds: KindConfig = Field(
+        default_factory=KindConfig,
+        description="a cloud's sensor kind from its points, where no kind is given",
     )
