@@ -40,6 +40,7 @@ GRID_BITS = 7
 GRID = 1 << GRID_BITS  # cells along a node's edge
 LEAF_POINTS = 100_000  # a region holding at most this many points is one node
 PAGE_LEVELS = 4  # octree levels per hierarchy page
+STREAM_SHARE = 3  # a streamed block is this share of the budget: picking and spilling copy it often
 _CHILD = np.array([4, 2, 1])  # octant label of a child from its index bits (x, y, z)
 
 
@@ -175,7 +176,15 @@ def _streamed(
     for label in sorted(spill):
         b = spill[label]
         child = (key[0] + 1, *(2 * k + ((label >> s) & 1) for k, s in zip(key[1:], (2, 1, 0))))
-        _region(nodes, cube, child, b.count, _file_blocks(b.path, dtype, budget), folder, budget)
+        _region(
+            nodes,
+            cube,
+            child,
+            b.count,
+            _file_blocks(b.path, dtype, budget // STREAM_SHARE),
+            folder,
+            budget,
+        )
         b.path.unlink()
 
 
@@ -236,7 +245,9 @@ def _octree(merged: Path, tmp: Path, folder: Path, summary: MergeSummary, budget
         budget = max(LEAF_POINTS, tile_points(MergeConfig(tile_memory_mb=budget_mb), base, 1))
         writer = copclib.FileWriter(str(tmp), _config(copclib, header, cube, summary.crs))
         nodes = _Nodes(writer, copclib, advance)
-        blocks = (base_records(c.array, base) for c in reader.chunk_iterator(budget))
+        blocks = (
+            base_records(c.array, base) for c in reader.chunk_iterator(budget // STREAM_SHARE)
+        )
         _region(nodes, cube, (0, 0, 0, 0), int(header.point_count), blocks, folder, budget)
         if np.isfinite(nodes.gps[0]):
             gps = writer.copc_config.copc_extents.gps_time
