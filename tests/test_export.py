@@ -11,7 +11,7 @@ import laspy
 import numpy as np
 import pye57
 import pytest
-from helpers import assert_one_line_error, invoke
+from helpers import assert_one_line_error, invoke, write_e57
 from scipy.spatial.transform import Rotation
 
 from plotmosaic.config.merge import MergeConfig
@@ -244,3 +244,24 @@ def test_e57_keeps_millimetres_of_a_scan_stored_in_utm(tmp_path):
     T[:3, :3], T[:3, 3] = header.rotation_matrix, header.translation
     stored = read_cloud(tmp_path / "utm.laz").xyz
     assert np.abs(apply_transform(T, local) - apply_transform(pose, stored)).max() < 0.0005
+
+
+def test_scans_in_an_e57_project_export_to_e57_but_not_to_pdal(tmp_path):
+    rng = np.random.default_rng(5)
+    clouds = [rng.uniform(-20, 20, (3_000, 3)) for _ in range(2)]
+    write_e57(
+        tmp_path / "plot.e57", [(f"s{k}", xyz, np.eye(4), {}) for k, xyz in enumerate(clouds)]
+    )
+    scans = [Scan(id=f"s{k}", path=Path("plot.e57"), scan=k) for k in range(2)]
+    (tmp_path / "m.toml").write_text(dump_manifest(Manifest(plots=[Plot(id="P1", scans=scans)])))
+    pose = np.eye(4)
+    pose[:3, 3] = [1.0, 2.0, 3.0]
+    Poses({"s0": ScanPose(np.eye(4)), "s1": ScanPose(pose)}).save(tmp_path / "p.json")
+    inputs = (tmp_path / "m.toml", tmp_path / "p.json")
+    assert_one_line_error(_export(inputs, "pdal", tmp_path / "x.json"), "plot.e57", "E57")
+    result = _export(inputs, "e57", tmp_path / "out.e57")
+    assert result.exit_code == 0, result.output
+    e57 = pye57.E57(str(tmp_path / "out.e57"))
+    assert e57.scan_count == 2 and np.allclose(e57.get_header(1).translation, [1, 2, 3])
+    data = e57.read_scan_raw(1)
+    assert np.abs(data["cartesianX"] - clouds[1][:, 0]).max() < 1e-5
