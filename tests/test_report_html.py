@@ -156,11 +156,10 @@ def test_report_html_is_self_contained(small_sim, tmp_path):
         src = img["src"]
         assert src.startswith("data:image/png;base64,")
         assert base64.b64decode(src.split(",", 1)[1])[:8] == b"\x89PNG\r\n\x1a\n"
-    # tables: time, stems, distances, per scan, poses, edges
-    assert page.tables >= 6
+    # tables: time, distances, per scan, poses, edges (the stems' when the slice holds stems)
+    assert page.tables >= 5
     for title in (
         "How long each stage took",
-        "stems in the breast-height slice",
         "cloud-to-cloud distances of the kept edges",
         "per scan after the joint solve",
         "Plot P1: poses",
@@ -168,7 +167,7 @@ def test_report_html_is_self_contained(small_sim, tmp_path):
     ):
         assert title in text, title
     # summary first, in plain words, with the dropped pair named
-    assert text.index("Summary") < text.index("How long each stage took")
+    assert text.index("Summary") < text.index("Tables") < text.index("How long each stage took")
     assert "scans placed: 5 of 5" in text
     assert "edge P1-S1-P1-S3 dropped" in text and "cm /" in text
     assert "bundle error" in text and "worst edge" in text

@@ -115,7 +115,7 @@ class DistanceConfig(BaseModel):
         0.05, gt=0, le=1, description="top of the distance colour scale (m): 5 cm shows cm errors"
     )
     edge_figures: int = Field(
-        12,
+        4,
         ge=0,
         le=200,
         description="edges drawn (the worst by median distance); all are in the table",

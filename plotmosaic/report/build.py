@@ -108,7 +108,7 @@ def _pictures(page: H.Page, inp: ReportInput, views_, figs: list[Figure], view3d
 def _tables(page: H.Page, inp: ReportInput, views_) -> None:
     page.heading("Tables")
     for v in views_:
-        if v.thinned:
+        if v.stems:
             page.raw(stem_table(v, origin_of(v.thinned)))
         for t in distance_tables(v) + als_table(v):
             page.raw(t)

@@ -3,20 +3,16 @@
 Top/side views of placed scans come from `plotmosaic.report.pictures` and the pose-graph map
 from `plotmosaic.report.views`; this module adds a thin vertical slice (where misalignment shows as
 doubled stems and ground) and the structural-complexity levels of a prepared cloud.
-Everything is matplotlib with the Agg backend, metres on equal-aspect axes.
+Everything is matplotlib (Agg, imported on first use), metres on equal-aspect axes.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from plotmosaic.io.pictures import savefig  # noqa: E402
+from plotmosaic.io.pictures import pyplot, savefig
 
 
 def subsample(xyz: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -44,8 +40,8 @@ def plot_slice(
     origin = origin_of(clouds) if origin is None else origin
     allxyz = np.vstack(list(clouds.values()))
     yc = float(np.median(allxyz[:, 1]))
-    fig, ax = plt.subplots(figsize=(13, 5))
-    cmap = plt.get_cmap("tab10" if len(clouds) <= 10 else "tab20")
+    fig, ax = pyplot().subplots(figsize=(13, 5))
+    cmap = pyplot().get_cmap("tab10" if len(clouds) <= 10 else "tab20")
     for n, (name, xyz) in enumerate(clouds.items()):
         band = xyz[np.abs(xyz[:, 1] - yc) <= width / 2] - origin
         ax.scatter(
@@ -76,7 +72,7 @@ def plot_levels(
     `clouds` maps a name to (points, levels) in the cloud's local frame.
     """
     rng = np.random.default_rng(seed)
-    fig, axes = plt.subplots(
+    fig, axes = pyplot().subplots(
         len(clouds),
         2,
         figsize=(13, 5.2 * len(clouds)),
@@ -85,7 +81,7 @@ def plot_levels(
     )
     for row, (name, (xyz, levels)) in zip(axes, clouds.items()):
         k = int(levels.max()) + 1 if len(levels) else 1
-        colours = plt.get_cmap("viridis")(np.linspace(0, 0.9, k))
+        colours = pyplot().get_cmap("viridis")(np.linspace(0, 0.9, k))
         idx = subsample(np.arange(len(xyz)), max_points, rng)
         # the paper finds ground / stems / foliage for K = 3 on TLS; say only what the data say
         names = [

@@ -4,13 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from plotmosaic.io.pictures import savefig  # noqa: E402
+from plotmosaic.io.pictures import pyplot, savefig
 
 
 def dots(ax, x, y, s: float, color, **kwargs):
@@ -24,8 +20,10 @@ def plot_scans(
 ) -> Path:
     """Top and side view of every placed scan (points already in the common frame), one colour per scan."""
     origin = np.zeros(3) if origin is None else origin
-    fig, (top, side) = plt.subplots(1, 2, figsize=(13, 5.5), gridspec_kw={"width_ratios": [1, 1.3]})
-    cmap = plt.get_cmap("tab10" if len(clouds) <= 10 else "tab20")
+    fig, (top, side) = pyplot().subplots(
+        1, 2, figsize=(13, 5.5), gridspec_kw={"width_ratios": [1, 1.3]}
+    )
+    cmap = pyplot().get_cmap("tab10" if len(clouds) <= 10 else "tab20")
     for n, (name, xyz) in enumerate(clouds.items()):
         xyz = xyz - origin
         colour = (

@@ -1,6 +1,6 @@
 """Figures of the HTML report: breast-height slice with zoomed stems, distance maps, the plot map.
 
-matplotlib with the Agg backend; coordinates are drawn in metres from `origin` (a round corner of a
+matplotlib (Agg, imported on first use); coordinates are drawn in metres from `origin` (a round corner of a
 UTM plot), colours are one per scan in the order given.
 """
 
@@ -8,20 +8,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import networkx as nx
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import networkx as nx  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.patches import Circle, Rectangle  # noqa: E402
-
-from plotmosaic.io.pictures import savefig  # noqa: E402
-from plotmosaic.report.slice import Ground, Stem, cell_minima, ground_model  # noqa: E402
+from plotmosaic.io.pictures import pyplot, savefig
+from plotmosaic.report.slice import Ground, Stem, cell_minima, ground_model
 
 
 def scan_colours(names: list[str]) -> dict[str, tuple]:
-    cmap = plt.get_cmap("tab10" if len(names) <= 10 else "tab20")
+    cmap = pyplot().get_cmap("tab10" if len(names) <= 10 else "tab20")
     return {n: cmap(k % cmap.N) for k, n in enumerate(names)}
 
 
@@ -40,7 +35,7 @@ def plot_breast_slice(
     n_in = len(chosen)
     cols = 2 if n_in > 1 else 1
     rows_in = max(1, (n_in + cols - 1) // cols)
-    fig = plt.figure(figsize=(9 + 4.2 * cols, max(8.5, 4.2 * rows_in)))
+    fig = pyplot().figure(figsize=(9 + 4.2 * cols, max(8.5, 4.2 * rows_in)))
     gs = fig.add_gridspec(rows_in, 2 + cols, width_ratios=[1.1, 1.1] + [1] * cols)
     ax = fig.add_subplot(gs[:, :2])
     for name, xyz in slices.items():
@@ -56,7 +51,9 @@ def plot_breast_slice(
     for k, st in enumerate(chosen):
         c = st.centre - origin[:2]
         h = st.radius + 0.15
-        ax.add_patch(Rectangle((c[0] - h, c[1] - h), 2 * h, 2 * h, fill=False, ec="black", lw=0.8))
+        ax.add_patch(
+            pyplot().Rectangle((c[0] - h, c[1] - h), 2 * h, 2 * h, fill=False, ec="black", lw=0.8)
+        )
         ax.text(c[0] + h, c[1] + h, f" {k + 1}", fontsize=9, weight="bold")
     ax.set_aspect("equal")
     ax.set_title(title)
@@ -82,7 +79,7 @@ def _stem_inset(ax, st: Stem, colours: dict, origin: np.ndarray, number: int) ->
             color=colours.get(name, "grey"),
             label=name if name in st.arcs else None,
         )
-    ax.add_patch(Circle(tuple(c), st.radius, fill=False, ls="--", lw=0.7, ec="black"))
+    ax.add_patch(pyplot().Circle(tuple(c), st.radius, fill=False, ls="--", lw=0.7, ec="black"))
     ax.set_xlim(c[0] - h, c[0] + h)
     ax.set_ylim(c[1] - h, c[1] + h)
     ax.set_aspect("equal")
@@ -111,7 +108,7 @@ def plot_edge_distances(
     bar for all maps (they share the 0 - colour_max scale), fixed margins instead of a tight-box pass."""
     n = max(1, len(edges))
     height = 4.3 * n
-    fig, axes = plt.subplots(
+    fig, axes = pyplot().subplots(
         n,
         2,
         figsize=(12, height),
@@ -119,7 +116,7 @@ def plot_edge_distances(
         gridspec_kw={"width_ratios": [1, 1.25], "hspace": 0.45},
     )
     fig.subplots_adjust(left=0.07, right=0.86, top=1 - 0.45 / height, bottom=0.55 / height)
-    cmap = plt.get_cmap("turbo")
+    cmap = pyplot().get_cmap("turbo")
     sc = None
     for (hist, top), e in zip(axes, edges):
         d = e["distances"]
@@ -173,7 +170,7 @@ def _distance_raster(xy: np.ndarray, d: np.ndarray, cell: float) -> tuple[np.nda
 def plot_scan_distances(path: Path, medians: dict[str, float], spreads: dict[str, float]) -> Path:
     """Per scan: median distance to its neighbours after the joint solve, and the ring spread of its stems."""
     names = list(medians)
-    fig, ax = plt.subplots(figsize=(max(6, 0.6 * len(names) + 3), 4.2))
+    fig, ax = pyplot().subplots(figsize=(max(6, 0.6 * len(names) + 3), 4.2))
     x = np.arange(len(names))
     ax.bar(
         x - 0.2, [medians[n] * 100 for n in names], 0.4, label="median distance to neighbours (cm)"
@@ -222,7 +219,7 @@ def plot_map(
 
     `background` is (image, extent in the same frame as positions, label): canopy height or hillshade.
     """
-    fig, ax = plt.subplots(figsize=(9, 8))
+    fig, ax = pyplot().subplots(figsize=(9, 8))
     if background is not None:
         img, ext, label = background
         e = (ext[0] - origin[0], ext[1] - origin[0], ext[2] - origin[1], ext[3] - origin[1])
