@@ -2,9 +2,11 @@
 
     python benchmarks/render_report.py demo-output/georeferenced/report.html --out docs/report_page.png
     python benchmarks/render_report.py --slices SIM_DIR --out docs/report_slice_doubled.png
+    python benchmarks/render_report.py --als-fit SIM_DIR --raise 0.10
 
 The second form takes a `plotmosaic simulate` folder, draws the breast-height slice at the true
-poses and with one scan moved by 5 cm / 0.2 deg, and prints the ring spreads of both.
+poses and with one scan moved by 5 cm / 0.2 deg, and prints the ring spreads of both. The third
+prints the georeferenced page's fit to the ALS at the true poses and with each plot raised.
 
 Needs Debian's `chromium` (apt-get install -y chromium). The page is opened from its file (no
 server), which also checks that it is self-contained. The screenshot is shrunk with Pillow to
@@ -127,6 +129,35 @@ def slices(sim: Path, out: Path, moved: str, width: int) -> None:
     print(f"wrote {out}: {both.width}x{both.height}, {out.stat().st_size / 1e3:.0f} kB")
 
 
+def als_fit(sim: Path, raise_m: float) -> None:
+    """The fit to the ALS at the true poses and with the plot raised by `raise_m`: prints the
+    ground and canopy-top medians and NMADs the georeferenced page shows."""
+    from plotmosaic.config.report import ReportConfig
+    from plotmosaic.io.las import read_cloud
+    from plotmosaic.poses import load_poses
+    from plotmosaic.report.collect import collect, with_als_fit
+
+    truth = load_poses(sim / "ground_truth.json")
+    paths = {k: sim / v.plot / f"{k}.laz" for k, v in truth.scans.items()}
+    raw = {p: read_cloud(p, attributes=False).xyz for p in paths.values()}
+    als = read_cloud(sim / "als" / "als.laz", attributes=False).xyz
+    cfg = ReportConfig()
+    for plot in sorted({v.plot for v in truth.scans.values()}):
+        ids = sorted(k for k, v in truth.scans.items() if v.plot == plot)
+        for dz in (0.0, raise_m):
+            poses = {k: truth.transform(k).copy() for k in ids}
+            for T in poses.values():
+                T[2, 3] += dz
+            t0 = time.perf_counter()
+            v = with_als_fit(collect(plot, ids, paths, poses, raw.__getitem__, cfg, 0), als, cfg)
+            g, c = v.als.ground, v.als.canopy
+            print(
+                f"plot {plot} raised {dz * 100:+.0f} cm: ground {g.median * 100:+.1f} cm, NMAD "
+                f"{g.nmad * 100:.1f} cm ({g.count} cells); canopy top {c.median:+.2f} m, NMAD "
+                f"{c.nmad:.2f} m ({c.count} cells); {time.perf_counter() - t0:.1f} s"
+            )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("page", type=Path, nargs="?", help="a report.html")
@@ -138,6 +169,12 @@ def main() -> None:
     ap.add_argument(
         "--moved", default="P1-S2", help="with --slices: the scan moved by 5 cm / 0.2 deg"
     )
+    ap.add_argument(
+        "--als-fit",
+        type=Path,
+        help="a `plotmosaic simulate` folder: the fit to the ALS at the truth and raised",
+    )
+    ap.add_argument("--raise", dest="raise_m", type=float, default=0.10, help="with --als-fit (m)")
     ap.add_argument("--out", type=Path, default=Path("docs/report_page.png"))
     ap.add_argument(
         "--window",
@@ -152,6 +189,9 @@ def main() -> None:
     args = ap.parse_args()
     if args.slices is not None:
         slices(args.slices, args.out, args.moved, args.width)
+        return
+    if args.als_fit is not None:
+        als_fit(args.als_fit, args.raise_m)
         return
     if args.page is None or not args.page.is_file():
         sys.exit(f"error: {args.page}: no such file")

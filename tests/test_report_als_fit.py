@@ -115,7 +115,7 @@ def _tie_run(sim, truth, out, raw, als) -> TieRun:
         paths=dict(sim.scan_paths),
         offset=np.zeros(3),
         als_xyz=als,
-        source="test",
+        source="manifest: test",
     )
 
 

@@ -50,7 +50,7 @@ class RegisterRun:
     graph: nx.Graph
     plots: tuple[PlotRun, ...]
     paths: dict[str, Path]
-    source: str  # the manifest (or the folder) the run came from
+    source: str  # where the scans came from, as a summary line ("manifest: ..." or "folder: ...")
     pairs: int | None = None
     computed: int | None = None
     failed: tuple[dict, ...] = ()
@@ -82,7 +82,7 @@ def run_of(result, manifest) -> RegisterRun:
         graph=G,
         plots=plots,
         paths={n: Path(G.nodes[n]["path"]) for n in G.nodes if "path" in G.nodes[n]},
-        source=str(manifest.source),
+        source=f"manifest: {manifest.source}",
         pairs=result.pairs,
         computed=result.computed,
         failed=tuple(result.failed),
@@ -113,7 +113,7 @@ def _stages(run: RegisterRun) -> list[Stage]:
 def _head(run: RegisterRun) -> list[str]:
     G = run.graph
     kept = sum(1 for *_, e in G.edges(data=True) if not e.get("dropped"))
-    lines = ["# register-plot report", "", f"- manifest: `{run.source}`"]
+    lines = ["# register-plot report", "", f"- {run.source}"]
     if run.pairs is not None:
         cached = (
             ""
@@ -210,7 +210,7 @@ def render_register(
         unplaced=tuple(run.unplaced),
         failed=run.failed,
         tables_md=tuple(tables),
-        facts=(f"manifest: {run.source}", "frame: the plot frame (each plot's reference scan)"),
+        facts=(run.source, "frame: the plot frame (each plot's reference scan)"),
         min_confidence=min_confidence,
         bundle=residual_summary(run.graph),
         overview=True,

@@ -65,7 +65,7 @@ def _scans(directory: Path, G: nx.Graph, poses: Poses, manifest: Path | None):
     if manifest is not None:
         m = load_manifest(manifest)
         paths = {s.id: m.resolve(s.path) for s in m.scans}
-        return paths, {p.id: [s.id for s in p.scans] for p in m.plots}, str(m.source)
+        return paths, {p.id: [s.id for s in p.scans] for p in m.plots}, f"manifest: {m.source}"
     paths, plots = {}, {}
     for n, attrs in G.nodes(data=True):
         if attrs.get("kind") == "als" and "path" not in attrs:
@@ -79,7 +79,7 @@ def _scans(directory: Path, G: nx.Graph, poses: Poses, manifest: Path | None):
             poses.scans[n].plot if n in poses.scans and poses.scans[n].plot else attrs.get("plot")
         )
         plots.setdefault(str(plot), []).append(n)
-    return paths, plots, str(directory)
+    return paths, plots, f"folder: {directory} (the scans graph.json records)"
 
 
 def _reader(directory: Path, poses: Poses, paths: dict[str, Path]):

@@ -65,7 +65,7 @@ class TieRun:
     paths: dict[str, Path]
     offset: np.ndarray
     als_xyz: np.ndarray | None  # the ALS around the scanners
-    source: str
+    source: str  # where the scans came from, as a summary line ("manifest: ..." or "folder: ...")
     unplaced: tuple[str, ...] = ()
     computed: int | None = None
     seconds: float | None = None
@@ -162,7 +162,7 @@ def render_tie(
             ("Edges", edges),
         ),
         facts=(
-            f"manifest: {run.source}",
+            run.source,
             "frame: the ALS CRS",
             *(anchor_fact(a, loop) for a in run.anchors),
         ),
@@ -176,7 +176,7 @@ def render_tie(
     lines = [
         "# tie-to-als report",
         "",
-        f"- manifest: `{run.source}`",
+        f"- {run.source}",
         f"- region solved in ALS CRS minus offset ({', '.join(f'{v:.0f}' for v in run.offset)})",
         f"- plot -> ALS registrations: {len(run.anchors)}"
         + ("" if run.computed is None else f" ({run.computed} run now, rest cached)"),
@@ -269,7 +269,7 @@ def write_tie_report(
         paths={s.id: manifest.resolve(s.path) for s in manifest.scans},
         offset=np.asarray(result.offset, float),
         als_xyz=als_near(als.xyz, poses),
-        source=str(manifest.source),
+        source=f"manifest: {manifest.source}",
         unplaced=tuple(result.unplaced),
         computed=result.computed,
         seconds=result.seconds,
