@@ -8,14 +8,92 @@ import typer
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from plotmosaic.commands.common import handle_errors
-from plotmosaic.config.simulate import grid_layout
+from plotmosaic.config.simulate import SimulationConfig, grid_layout
 from plotmosaic.errors import InputError
 from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed, inputs_of
 from plotmosaic.simulate.from_cloud import cut_cloud_to_folder, parse_positions
-from plotmosaic.simulate.run import make_config, simulate
+from plotmosaic.simulate.run import SimulationResult, make_config, simulate
 from plotmosaic.simulate.scene import plot_ids
 
 _WRITES = ("manifest.toml", "ground_truth.json")  # besides one folder per plot (simulate/run.py)
+
+# the options (declared here so the command reads as what it does)
+_OUTDIR = typer.Argument(..., help="Output folder (must be empty unless --force).")
+_PRESET = typer.Option(
+    None,
+    "--preset",
+    help="small (default) | paper | region | grassland | prepost | large | region10 | understorey",
+)
+_SEED = typer.Option(0, "--seed", help="Random seed: the same seed gives the same files.")
+_POINTS = typer.Option(None, "--points-per-scan", help="Target points per TLS scan.")
+_STEP = typer.Option(
+    None, "--angular-step", help="TLS angular step in degrees (overrides --points-per-scan)."
+)
+_RANGE = typer.Option(None, "--max-range", help="TLS maximum range (m).")
+_ALS = typer.Option(None, "--als-density", help="ALS returns per m2.")
+_TREES = typer.Option(None, "--tree-density", help="Trees per hectare.")
+_CONIFERS = typer.Option(None, "--conifer-fraction", help="Share of conifers (0-1).")
+_SHRUBS = typer.Option(None, "--shrub-density", help="Shrubs per hectare.")
+_GRASS = typer.Option(None, "--grass-density", help="Grass tufts per m2.")
+_FLAT = typer.Option(
+    None, "--flat-terrain/--sloped-terrain", help="Near-flat terrain (the hard case)."
+)
+_GRID = typer.Option(
+    None,
+    "--scan-grid",
+    min=1,
+    help="Scan positions on an N x N grid per plot (replaces the preset's layout).",
+)
+_GRID_SPACING = typer.Option(
+    18.0, "--scan-spacing", help="With --scan-grid: metres between grid positions."
+)
+_APPROX = typer.Option(
+    False, "--approx-positions", help="Write noisy approximate scanner positions (CRS frame)."
+)
+_APPROX_SIGMA = typer.Option(None, "--approx-sigma", help="Noise of the approximate positions (m).")
+_FIGURES = typer.Option(False, "--figures", help="Also write PNG pictures to OUTDIR/figures.")
+_FORCE = typer.Option(
+    False,
+    "--force",
+    help="Write into a non-empty OUTDIR (files no simulate run wrote are left untouched).",
+)
+_CLOUD = typer.Option(
+    None,
+    "--from-cloud",
+    help="Cut virtual scans out of this real cloud (LAS/LAZ) instead of simulating.",
+)
+_POSITIONS = typer.Option(
+    None,
+    "--positions",
+    help="--from-cloud: scanner positions 'x,y;x,y' (or x,y,z), cloud coordinates.",
+)
+_VIEWS = typer.Option(
+    None, "--views", min=1, help="--from-cloud: this many positions on a grid around the centre..."
+)
+_SPACING = typer.Option(None, "--spacing", help="--from-cloud: ...this far apart (m).")
+_FULL_DENSITY = typer.Option(
+    None,
+    "--full-density-range",
+    help="--from-cloud: points beyond it kept with probability (r0/r)^2 (m).",
+)
+_NOISE = typer.Option(None, "--range-noise", help="--from-cloud: range noise std (m), default 0.")
+_VOXEL = typer.Option(
+    None, "--occupancy-voxel", help="--from-cloud: occupancy voxel for the line of sight (m)."
+)
+
+# simulator options that are settings of the config (make_config's names)
+_SETTINGS = {
+    "--points-per-scan": "points_per_scan",
+    "--angular-step": "angular_step",
+    "--als-density": "als_density",
+    "--tree-density": "tree_density",
+    "--conifer-fraction": "conifer_fraction",
+    "--shrub-density": "shrub_density",
+    "--grass-density": "grass_density",
+    "--flat-terrain": "flat_terrain",
+    "--approx-positions": "approx_positions",
+    "--approx-sigma": "approx_sigma_m",
+}
 
 
 def simulate_plan(outdir: Path, plots: list[str], force: bool, cloud: Path | None = None):
@@ -32,106 +110,54 @@ def simulate_plan(outdir: Path, plots: list[str], force: bool, cloud: Path | Non
 
 @handle_errors
 def simulate_command(
-    outdir: Path = typer.Argument(..., help="Output folder (must be empty unless --force)."),
-    preset: str | None = typer.Option(
-        None,
-        "--preset",
-        help="small (default) | paper | region | grassland | prepost | large | region10 | understorey",
-    ),
-    seed: int = typer.Option(0, "--seed", help="Random seed: the same seed gives the same files."),
-    points_per_scan: int | None = typer.Option(
-        None, "--points-per-scan", help="Target points per TLS scan."
-    ),
-    angular_step: float | None = typer.Option(
-        None, "--angular-step", help="TLS angular step in degrees (overrides --points-per-scan)."
-    ),
-    max_range: float | None = typer.Option(None, "--max-range", help="TLS maximum range (m)."),
-    als_density: float | None = typer.Option(None, "--als-density", help="ALS returns per m2."),
-    tree_density: float | None = typer.Option(None, "--tree-density", help="Trees per hectare."),
-    conifer_fraction: float | None = typer.Option(
-        None, "--conifer-fraction", help="Share of conifers (0-1)."
-    ),
-    shrub_density: float | None = typer.Option(None, "--shrub-density", help="Shrubs per hectare."),
-    grass_density: float | None = typer.Option(None, "--grass-density", help="Grass tufts per m2."),
-    flat_terrain: bool | None = typer.Option(
-        None, "--flat-terrain/--sloped-terrain", help="Near-flat terrain (the hard case)."
-    ),
-    scan_grid: int | None = typer.Option(
-        None,
-        "--scan-grid",
-        min=1,
-        help="Scan positions on an N x N grid per plot (replaces the preset's layout).",
-    ),
-    scan_spacing: float = typer.Option(
-        18.0, "--scan-spacing", help="With --scan-grid: metres between grid positions."
-    ),
-    approx_positions: bool = typer.Option(
-        False, "--approx-positions", help="Write noisy approximate scanner positions (CRS frame)."
-    ),
-    approx_sigma: float | None = typer.Option(
-        None, "--approx-sigma", help="Noise of the approximate positions (m)."
-    ),
-    figures: bool = typer.Option(
-        False, "--figures", help="Also write PNG pictures to OUTDIR/figures."
-    ),
-    force: bool = typer.Option(
-        False,
-        "--force",
-        help="Write into a non-empty OUTDIR (files no simulate run wrote are left untouched).",
-    ),
-    from_cloud: Path | None = typer.Option(
-        None,
-        "--from-cloud",
-        help="Cut virtual scans out of this real cloud (LAS/LAZ) instead of simulating.",
-    ),
-    positions: str | None = typer.Option(
-        None,
-        "--positions",
-        help="--from-cloud: scanner positions 'x,y;x,y' (or x,y,z), cloud coordinates.",
-    ),
-    views: int | None = typer.Option(
-        None,
-        "--views",
-        min=1,
-        help="--from-cloud: this many positions on a grid around the centre...",
-    ),
-    spacing: float | None = typer.Option(
-        None, "--spacing", help="--from-cloud: ...this far apart (m)."
-    ),
-    full_density_range: float | None = typer.Option(
-        None,
-        "--full-density-range",
-        help="--from-cloud: points beyond it kept with probability (r0/r)^2 (m).",
-    ),
-    range_noise: float | None = typer.Option(
-        None, "--range-noise", help="--from-cloud: range noise std (m), default 0."
-    ),
-    occupancy_voxel: float | None = typer.Option(
-        None, "--occupancy-voxel", help="--from-cloud: occupancy voxel for the line of sight (m)."
-    ),
+    outdir: Path = _OUTDIR,
+    preset: str | None = _PRESET,
+    seed: int = _SEED,
+    points_per_scan: int | None = _POINTS,
+    angular_step: float | None = _STEP,
+    max_range: float | None = _RANGE,
+    als_density: float | None = _ALS,
+    tree_density: float | None = _TREES,
+    conifer_fraction: float | None = _CONIFERS,
+    shrub_density: float | None = _SHRUBS,
+    grass_density: float | None = _GRASS,
+    flat_terrain: bool | None = _FLAT,
+    scan_grid: int | None = _GRID,
+    scan_spacing: float = _GRID_SPACING,
+    approx_positions: bool = _APPROX,
+    approx_sigma: float | None = _APPROX_SIGMA,
+    figures: bool = _FIGURES,
+    force: bool = _FORCE,
+    from_cloud: Path | None = _CLOUD,
+    positions: str | None = _POSITIONS,
+    views: int | None = _VIEWS,
+    spacing: float | None = _SPACING,
+    full_density_range: float | None = _FULL_DENSITY,
+    range_noise: float | None = _NOISE,
+    occupancy_voxel: float | None = _VOXEL,
 ) -> None:
     """Simulate a forest plot: terrain, trees, understory; TLS scans, an ALS tile, ground truth and a manifest."""
     if outdir.exists() and not outdir.is_dir():
         raise InputError(f"{outdir}: exists and is not a folder")
     if outdir.is_dir() and any(outdir.iterdir()) and not force:
         raise InputError(f"{outdir}: folder is not empty (use --force to write into it)")
+    simulator_only = {  # None: not given
+        "--preset": preset,
+        "--points-per-scan": points_per_scan,
+        "--angular-step": angular_step,
+        "--als-density": als_density,
+        "--tree-density": tree_density,
+        "--conifer-fraction": conifer_fraction,
+        "--shrub-density": shrub_density,
+        "--grass-density": grass_density,
+        "--flat-terrain": flat_terrain,
+        "--approx-positions": approx_positions or None,
+        "--scan-grid": scan_grid,
+        "--approx-sigma": approx_sigma,
+        "--figures": figures or None,
+    }
     if from_cloud is not None:
-        given = {
-            "--preset": preset,
-            "--points-per-scan": points_per_scan,
-            "--angular-step": angular_step,
-            "--als-density": als_density,
-            "--tree-density": tree_density,
-            "--conifer-fraction": conifer_fraction,
-            "--shrub-density": shrub_density,
-            "--grass-density": grass_density,
-            "--flat-terrain": flat_terrain,
-            "--approx-positions": approx_positions or None,
-            "--scan-grid": scan_grid,
-            "--approx-sigma": approx_sigma,
-            "--figures": figures or None,
-        }
-        clash = [name for name, value in given.items() if value is not None]
+        clash = [name for name, value in simulator_only.items() if value is not None]
         if clash:
             raise InputError(f"--from-cloud: {clash[0]} applies to the simulator only")
         plan = check_outputs(simulate_plan(outdir, ["P1"], force, from_cloud))
@@ -151,23 +177,17 @@ def simulate_command(
         return
     if positions is not None or views is not None or spacing is not None:
         raise InputError("--positions/--views/--spacing need --from-cloud")
-    overrides = dict(
-        points_per_scan=points_per_scan,
-        angular_step=angular_step,
-        max_range=max_range,
-        als_density=als_density,
-        tree_density=tree_density,
-        conifer_fraction=conifer_fraction,
-        shrub_density=shrub_density,
-        grass_density=grass_density,
-        flat_terrain=flat_terrain,
-        approx_positions=approx_positions or None,
-        approx_sigma_m=approx_sigma,
-        scan_layout=None if scan_grid is None else grid_layout(scan_grid, scan_spacing),
-    )
-    config = make_config(
-        preset or "small", **overrides
-    )  # before the progress bar: a bad preset is one clean line
+    settings = {_SETTINGS[name]: v for name, v in simulator_only.items() if name in _SETTINGS}
+    layout = None if scan_grid is None else grid_layout(scan_grid, scan_spacing)
+    # before the progress bar: a bad preset is one clean line
+    config = make_config(preset or "small", max_range=max_range, scan_layout=layout, **settings)
+    _simulate(outdir, config, seed, figures, force)
+
+
+def _simulate(
+    outdir: Path, config: SimulationConfig, seed: int, figures: bool, force: bool
+) -> None:
+    """Run the simulator under a progress bar, then say what it wrote."""
     plan = check_outputs(simulate_plan(outdir, plot_ids(config), force))
     columns = [
         TextColumn("{task.description:<14}"),
@@ -182,6 +202,10 @@ def simulate_command(
             bar.update(task, description=what, completed=done, total=total)
 
         result = simulate(outdir, seed=seed, figures=figures, progress=progress, config=config)
+    _echo_simulation(result, outdir, seed)
+
+
+def _echo_simulation(result: SimulationResult, outdir: Path, seed: int) -> None:
     n_tls = sum(v for k, v in result.points.items() if k != "als")
     scans = [k for k in result.points if k != "als"]
     typer.echo(

@@ -16,10 +16,11 @@ API (all coordinates float64; UTM clouds are processed in a local frame around a
         one LAZ per view (<plot>/<plot>-S<i>.laz, in its own frame), ground_truth.json (Poses: view -> cloud
         file frame, frame "crs" when the cloud has a CRS) and manifest.toml, as `simulate` writes them.
 
-Physics: a point is seen when it is within range, survives the range thinning (kept with probability
-(r0/r)^2 beyond r0, seeded) and the ray from the scanner to it crosses no occupied voxel of the cloud's
-occupancy grid before it. Near the point itself occupancy is ignored over a tolerance that grows at grazing
-incidence (from the local surface normal), so a far patch of ground is not hidden by its own neighbours.
+Physics (simulate/sightlines.py): a point is seen when it is within range, survives the range thinning (kept
+with probability (r0/r)^2 beyond r0, seeded) and the ray from the scanner to it crosses no occupied voxel of
+the cloud's occupancy grid before it. Near the point itself occupancy is ignored over a tolerance that grows
+at grazing incidence (from the local surface normal), so a far patch of ground is not hidden by its own
+neighbours.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from plotmosaic.manifest import Manifest, Plot, Scan, dump_manifest
 from plotmosaic.poses import Poses, ScanPose
 from plotmosaic.simulate.run import scan_path
 from plotmosaic.simulate.scene import scan_id
+from plotmosaic.simulate.sightlines import occupancy_grid, surface_normals, visible
 from plotmosaic.simulate.tls import random_pose
 
 RING_RADII = (
@@ -177,80 +179,6 @@ def _frame_rotation(rng: np.random.Generator, max_tilt_deg: float) -> np.ndarray
     return random_pose(np.zeros(3), TlsConfig(max_tilt_deg=max_tilt_deg), rng)[:3, :3]
 
 
-def _normals(tree: cKDTree, local: np.ndarray, query: np.ndarray, k: int) -> np.ndarray:
-    """Unit normals (smallest principal axis of the k nearest cloud points) at `query`, chunked."""
-    out = np.empty((len(query), 3))
-    k = min(k, len(local))
-    for start in range(0, len(query), 100_000):
-        q = query[start : start + 100_000]
-        _, idx = tree.query(q, k=k)
-        nb = local[idx] - local[idx].mean(axis=1, keepdims=True)
-        cov = np.einsum("mki,mkj->mij", nb, nb)
-        _, vec = np.linalg.eigh(cov)
-        out[start : start + 100_000] = vec[:, :, 0]
-    return out
-
-
-@dataclass
-class _Grid:
-    occupied: np.ndarray  # flat bool
-    origin: np.ndarray
-    shape: tuple[int, int, int]
-    voxel: float
-
-
-def _grid(local: np.ndarray, lo: np.ndarray, hi: np.ndarray, cfg: CutConfig) -> _Grid:
-    """Dense occupancy of the cloud inside [lo, hi]; the voxel grows until the grid fits `max_grid_cells`."""
-    voxel = cfg.voxel
-    span = np.maximum(hi - lo, voxel)
-    while np.prod(np.ceil(span / voxel) + 1) > cfg.max_grid_cells:
-        voxel *= 1.25
-    shape = tuple(int(v) for v in np.ceil(span / voxel) + 1)
-    inside = np.all((local >= lo) & (local <= hi), axis=1)
-    ijk = np.floor((local[inside] - lo) / voxel).astype(np.int64)
-    occupied = np.zeros(int(np.prod(shape)), dtype=bool)
-    occupied[(ijk[:, 0] * shape[1] + ijk[:, 1]) * shape[2] + ijk[:, 2]] = True
-    return _Grid(occupied, lo, shape, voxel)
-
-
-def _visible(
-    grid: _Grid, scanner: np.ndarray, pts: np.ndarray, tol: np.ndarray, cfg: CutConfig
-) -> np.ndarray:
-    """True where the ray scanner -> point crosses no occupied voxel between min_range and r - tol."""
-    d = pts - scanner
-    r = np.linalg.norm(d, axis=1)
-    u = d / np.maximum(r, 1e-9)[:, None]
-    stop = r - tol  # march up to here
-    seen = np.ones(len(pts), dtype=bool)
-    step = grid.voxel / 2.0
-    order = np.argsort(stop)  # similar ray lengths in one chunk: little padding
-
-    def steps(length: float) -> int:
-        return max(1, int(np.ceil((length - cfg.min_range) / step)))
-
-    shape = np.array(grid.shape)
-    start = 0
-    while start < len(order):
-        sel = order[start : start + max(1, cfg.chunk_samples // steps(stop[order[start]]))]
-        while len(sel) > 1 and len(sel) * steps(stop[sel[-1]]) > cfg.chunk_samples:
-            sel = sel[: len(sel) // 2]
-        start += len(sel)
-        if stop[sel[-1]] <= cfg.min_range:
-            continue  # these rays end inside the free zone around the scanner: nothing can block them
-        n_steps = steps(stop[sel[-1]])
-        t = (cfg.min_range + step * np.arange(n_steps)).astype(np.float32)
-        p = (scanner - grid.origin).astype(np.float32) + u[sel, None, :].astype(np.float32) * t[
-            None, :, None
-        ]
-        ijk = np.floor(p / np.float32(grid.voxel)).astype(np.int32)
-        ok = np.all((ijk >= 0) & (ijk < shape), axis=2) & (t[None, :] < stop[sel, None])
-        flat = (ijk[..., 0].astype(np.int64) * shape[1] + ijk[..., 1]) * shape[2] + ijk[..., 2]
-        hit = np.zeros(ok.shape, dtype=bool)
-        hit[ok] = grid.occupied[flat[ok]]
-        seen[sel] = ~hit.any(axis=1)
-    return seen
-
-
 # ---------------------------------------------------------------- the cut
 
 
@@ -305,9 +233,9 @@ def _cut_one(
     reach = cfg.max_range if cfg.max_range is not None else float(r.max())
     lo = np.maximum(local.min(axis=0), scanner - reach)
     hi = np.minimum(local.max(axis=0), scanner + reach)
-    grid = _grid(local, lo, hi, cfg)
+    grid = occupancy_grid(local, lo, hi, cfg)
     cand_pts = local[idx]
-    normals = _normals(tree, local, cand_pts, cfg.normal_neighbours)
+    normals = surface_normals(tree, local, cand_pts, cfg.normal_neighbours)
     ray = cand_pts - scanner
     cos = np.abs(np.einsum("ij,ij->i", normals, ray)) / np.maximum(
         np.linalg.norm(ray, axis=1), 1e-9
@@ -316,7 +244,7 @@ def _cut_one(
     tol = np.minimum(
         cfg.tolerance + grid.voxel / np.maximum(cos, 1e-3), max(cfg.max_tolerance, cfg.tolerance)
     )
-    seen = _visible(grid, scanner, cand_pts, tol, cfg)
+    seen = visible(grid, scanner, cand_pts, tol, cfg)
     idx = idx[seen]
     if len(idx) < cfg.min_points:
         raise InputError(

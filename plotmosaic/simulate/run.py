@@ -122,6 +122,36 @@ def als_extent(world: World) -> tuple[float, float, float, float]:
     )
 
 
+@dataclass(frozen=True, kw_only=True)
+class _Streams:
+    """The run's random streams, one per use, all from the seed."""
+
+    pose: np.random.Generator
+    tls: np.random.Generator
+    als: np.random.Generator
+    approx: np.random.Generator
+    figures: np.random.Generator
+
+
+@dataclass(frozen=True, kw_only=True)
+class _TlsScans:
+    """What scanning every site gave: files, true poses, manifest entries and picture samples."""
+
+    scan_paths: dict[str, Path]
+    poses: dict[str, ScanPose]
+    points: dict[str, int]
+    samples: dict[str, PointCloud]
+    plots: dict[str, list[Scan]]
+    scenes: dict[bool, Scene]  # ray casters built so far, by "after the fire"
+
+
+@dataclass(frozen=True, kw_only=True)
+class _AlsTile:
+    cloud: PointCloud  # UTM
+    path: Path
+    extent: tuple[float, float, float, float]  # local frame
+
+
 def simulate(
     outdir: str | Path,
     preset: str = "small",
@@ -137,12 +167,51 @@ def simulate(
     cfg = config if config is not None else make_config(preset, **overrides)
     world = build_world(cfg, seed)
     seconds = {"world": time.perf_counter() - t_start}
-    rng_pose, rng_tls, rng_als, rng_approx, rng_fig = (
-        np.random.default_rng(s) for s in np.random.SeedSequence([seed, 1]).spawn(5)
+    rngs = [np.random.default_rng(s) for s in np.random.SeedSequence([seed, 1]).spawn(5)]
+    streams = _Streams(pose=rngs[0], tls=rngs[1], als=rngs[2], approx=rngs[3], figures=rngs[4])
+    total = len(world.sites) + 1
+    t0 = time.perf_counter()
+    tls = _scan_sites(world, outdir, streams, figures, progress)
+    seconds["tls"] = time.perf_counter() - t0
+    if progress:
+        progress("ALS", total - 1, total)
+    t0 = time.perf_counter()
+    als = _scan_als_tile(world, tls.scenes, outdir, streams.als)
+    seconds["als"] = time.perf_counter() - t0
+    if progress:
+        progress("done", total, total)
+    manifest_path, truth_path = _write_manifest_and_truth(outdir, world, tls)
+    extent = als.extent
+    area = (extent[2] - extent[0]) * (extent[3] - extent[1])
+    result = SimulationResult(
+        outdir=outdir,
+        manifest_path=manifest_path,
+        ground_truth_path=truth_path,
+        scan_paths=tls.scan_paths,
+        als_paths=[als.path],
+        figures=[],
+        config=cfg,
+        seed=seed,
+        points={**tls.points, "als": len(als.cloud)},
+        als_density=len(als.cloud) / area,
+        als_extent=extent,
+        seconds=seconds,
     )
-    origin = world.origin
-    to_world = translation(origin)
+    if figures:
+        t0 = time.perf_counter()
+        als_sample = _sample(als.cloud, streams.figures)
+        result.figures = make_figures(outdir / "figures", world, tls.samples, tls.poses, als_sample)
+        seconds["figures"] = time.perf_counter() - t0
+    seconds["total"] = time.perf_counter() - t_start
+    return result
 
+
+def _scan_sites(
+    world: World, outdir: Path, streams: _Streams, figures: bool, progress: Progress | None
+) -> _TlsScans:
+    """Scan every site in turn and write its LAZ (scanner frame); poses in UTM."""
+    cfg = world.config
+    to_world = translation(world.origin)
     scenes: dict[bool, Scene] = {}
     scan_paths: dict[str, Path] = {}
     poses: dict[str, ScanPose] = {}
@@ -150,90 +219,75 @@ def simulate(
     samples: dict[str, PointCloud] = {}
     plots: dict[str, list[Scan]] = {}
     total = len(world.sites) + 1
-    t0 = time.perf_counter()
     for k, site in enumerate(world.sites):
         if progress:
             progress(f"scan {site.scan_id}", k, total)
         post = site.post and world.post_mesh is not None
         if post not in scenes:
             scenes[post] = Scene(world.mesh_for(site))
-        pose_local = scanner_pose(world, site.xy, rng_pose)
-        cloud = scan_tls(scenes[post], pose_local, cfg.tls, rng_tls, t0=1000.0 + 600.0 * k)
+        pose_local = scanner_pose(world, site.xy, streams.pose)
+        cloud = scan_tls(scenes[post], pose_local, cfg.tls, streams.tls, t0=1000.0 + 600.0 * k)
         rel = scan_path(site.plot_id, site.scan_id)
         scan_paths[site.scan_id] = write_cloud(outdir / rel, cloud)
         T = to_world @ pose_local  # scanner frame -> UTM, float64
         poses[site.scan_id] = ScanPose(T, plot=site.plot_id)
         points[site.scan_id] = len(cloud)
         if figures:
-            samples[site.scan_id] = _sample(cloud, rng_fig)
+            samples[site.scan_id] = _sample(cloud, streams.figures)
         approx = None
         if cfg.approx_positions:
-            approx = tuple(float(v) for v in T[:3, 3] + rng_approx.normal(0, cfg.approx_sigma_m, 3))
-        first = not plots.get(site.plot_id)
+            noise = streams.approx.normal(0, cfg.approx_sigma_m, 3)
+            approx = tuple(float(v) for v in T[:3, 3] + noise)
         scan = Scan(
             id=site.scan_id,
             path=rel,
             kind="tls",
-            reference=first,
+            reference=not plots.get(site.plot_id),
             approx_position=approx,
             approx_position_frame="crs",
         )
         plots.setdefault(site.plot_id, []).append(scan)
-    seconds["tls"] = time.perf_counter() - t0
+    return _TlsScans(
+        scan_paths=scan_paths,
+        poses=poses,
+        points=points,
+        samples=samples,
+        plots=plots,
+        scenes=scenes,
+    )
 
-    if progress:
-        progress("ALS", total - 1, total)
-    t0 = time.perf_counter()
-    if False not in scenes:
-        scenes[False] = Scene(world.mesh)
+
+def _scan_als_tile(
+    world: World, scenes: dict[bool, Scene], outdir: Path, rng: np.random.Generator
+) -> _AlsTile:
+    """The ALS tile over the sites (the scene before any fire), written in UTM with its CRS."""
+    scene = scenes[False] if False in scenes else Scene(world.mesh)
     extent = als_extent(world)
-    als = scan_als(scenes[False], world.terrain, extent, cfg.als, rng_als)
-    als_world = PointCloud(als.xyz + origin, als.attrs)
-    als_path = write_cloud(outdir / ALS_PATH, als_world, crs=CRS.from_epsg(CRS_EPSG))
-    area = (extent[2] - extent[0]) * (extent[3] - extent[1])
-    points["als"] = len(als)
-    seconds["als"] = time.perf_counter() - t0
-    if progress:
-        progress("done", total, total)
+    als = scan_als(scene, world.terrain, extent, world.config.als, rng)
+    als_world = PointCloud(als.xyz + world.origin, als.attrs)
+    path = write_cloud(outdir / ALS_PATH, als_world, crs=CRS.from_epsg(CRS_EPSG))
+    return _AlsTile(cloud=als_world, path=path, extent=extent)
 
+
+def _write_manifest_and_truth(outdir: Path, world: World, tls: _TlsScans) -> tuple[Path, Path]:
+    """manifest.toml (plots + the ALS tile) and ground_truth.json (every TLS pose, UTM)."""
+    cfg, seed, origin = world.config, world.seed, world.origin
     crs = f"EPSG:{CRS_EPSG}"
     manifest = Manifest(
         name=f"simulated {cfg.name} (seed {seed})",
-        plots=[Plot(id=pid, crs=crs, scans=scans) for pid, scans in plots.items()],
+        plots=[Plot(id=pid, crs=crs, scans=scans) for pid, scans in tls.plots.items()],
         als=[AlsTile(path=ALS_PATH)],
     )
     manifest_path = write_text_atomic(outdir / "manifest.toml", dump_manifest(manifest))
     truth = Poses(
-        scans=poses,
+        scans=tls.poses,
         frame="crs",
         crs=crs_wkt(),
         extra={
             "simulation": {"preset": cfg.name, "seed": seed, "origin": [float(v) for v in origin]}
         },
     )
-    truth_path = truth.save(outdir / "ground_truth.json")
-
-    result = SimulationResult(
-        outdir=outdir,
-        manifest_path=manifest_path,
-        ground_truth_path=truth_path,
-        scan_paths=scan_paths,
-        als_paths=[als_path],
-        figures=[],
-        config=cfg,
-        seed=seed,
-        points=points,
-        als_density=len(als) / area,
-        als_extent=extent,
-        seconds=seconds,
-    )
-    if figures:
-        t0 = time.perf_counter()
-        als_sample = _sample(als_world, rng_fig)
-        result.figures = make_figures(outdir / "figures", world, samples, poses, als_sample)
-        seconds["figures"] = time.perf_counter() - t0
-    seconds["total"] = time.perf_counter() - t_start
-    return result
+    return manifest_path, truth.save(outdir / "ground_truth.json")
 
 
 def _sample(cloud: PointCloud, rng: np.random.Generator) -> PointCloud:

@@ -15,7 +15,7 @@ import open3d as o3d
 from plotmosaic.config.simulate import SimulationConfig
 from plotmosaic.simulate.mesh import Mesh, concat
 from plotmosaic.simulate.terrain import Terrain, make_terrain
-from plotmosaic.simulate.trees import Vegetation, make_vegetation
+from plotmosaic.simulate.vegetation import Vegetation, make_vegetation
 
 
 @dataclass

@@ -1,5 +1,5 @@
-"""Vegetation meshes: trees (tapered, leaning stems; branches; conifer or broadleaf crowns made of
-many small randomly oriented foliage elements), shrubs, grass tufts and fallen logs.
+"""Trees: tapered, leaning stems with branches, and conifer or broadleaf crowns made of many small
+randomly oriented foliage elements; where they stand, and how detailed each is.
 
 Foliage is deliberately a cloud of small elements: normals there are random, while ground and
 stems are smooth. That contrast is what the structural-complexity grouping lives on.
@@ -7,27 +7,14 @@ stems are smooth. That contrast is what the structural-complexity grouping lives
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from plotmosaic.config.simulate import ForestConfig
-from plotmosaic.simulate.mesh import (
-    FOLIAGE,
-    UNDERSTORY,
-    WOODY,
-    Mesh,
-    concat,
-    random_elements,
-    tubes,
-    unit,
-)
+from plotmosaic.simulate.mesh import FOLIAGE, WOODY, Mesh, random_elements, tubes, unit
 from plotmosaic.simulate.terrain import Terrain
-
-SHRUB_IDS = 1_000_000  # owner ids: trees from 0, shrubs from here, grass tufts from GRASS_IDS
-GRASS_IDS = 2_000_000
-LOG_IDS = 3_000_000
 
 
 @dataclass
@@ -43,16 +30,7 @@ class Tree:
     detailed: bool
 
 
-@dataclass
-class Vegetation:
-    mesh: Mesh
-    trees: list[Tree] = field(default_factory=list)
-    # owner ids of shrubs and saplings, and of grass tufts (what a surface fire can remove)
-    shrub_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
-    grass_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
-
-
-def _place(
+def place(
     n: int, extent, min_dist: np.ndarray, avoid: np.ndarray, clearance: float, rng
 ) -> np.ndarray:
     """Up to n positions, uniform with a minimum spacing (greedy dart throwing), away from `avoid`."""
@@ -93,7 +71,7 @@ def _stem_radius(h: np.ndarray, dbh: float, total: float) -> np.ndarray:
     return np.maximum(r, 0.01)
 
 
-def _conifer(
+def conifer_meshes(
     tree: Tree, z0: float, cfg: ForestConfig, rng, owner: int, stubs: bool = True
 ) -> list[Mesh]:
     sides = cfg.stem_sides if tree.detailed else 8
@@ -164,7 +142,7 @@ def _conifer(
     return meshes
 
 
-def _broadleaf(tree: Tree, z0: float, cfg: ForestConfig, rng, owner: int) -> list[Mesh]:
+def broadleaf_meshes(tree: Tree, z0: float, cfg: ForestConfig, rng, owner: int) -> list[Mesh]:
     sides = cfg.stem_sides if tree.detailed else 8
     base = np.array([tree.x, tree.y, z0 - 0.3])
     bow = unit(np.cross(tree.lean, rng.normal(size=3))) * rng.uniform(0, 0.015) * tree.height
@@ -241,7 +219,7 @@ def make_trees(
     lo, hi = cfg.dbh_range_m
     dbh = np.clip(np.exp(rng.normal(np.log(cfg.dbh_median_m), 0.45, n)), lo, hi)
     dbh = np.sort(dbh)[::-1]  # place big trees first so spacing follows crown size
-    xy = _place(n, extent, 1.2 + 6.0 * dbh, avoid, cfg.clearance_m, rng)
+    xy = place(n, extent, 1.2 + 6.0 * dbh, avoid, cfg.clearance_m, rng)
     trees = []
     for k, (x, y) in enumerate(xy):
         d = dbh[k]
@@ -265,7 +243,7 @@ def make_trees(
             if conifer
             else (0.22 * height + 1.0 + 2.0 * d)
         )
-        near = not _far(np.array([[x, y]]), plot_centres, cfg)[0]
+        near = not far(np.array([[x, y]]), plot_centres, cfg)[0]
         trees.append(
             Tree(
                 float(x),
@@ -282,178 +260,8 @@ def make_trees(
     return trees
 
 
-def _shrubs(terrain: Terrain, xy: np.ndarray, coarse: np.ndarray, cfg: ForestConfig, rng) -> Mesh:
-    meshes = []
-    for k, (x, y) in enumerate(xy):
-        h = rng.uniform(0.5, 2.0)
-        r = rng.uniform(0.4, 1.2)
-        z = terrain.height(np.array([x]), np.array([y]))[0]
-        factor = cfg.coarse_factor if coarse[k] else 1
-        m = max(4, cfg.shrub_elements // factor)
-        d = unit(rng.normal(size=(m, 3))) * rng.random((m, 1)) ** (1 / 3)
-        pts = np.array([x, y, z + h / 2]) + d * [r, r, h / 2]
-        meshes.append(
-            random_elements(
-                pts,
-                rng.uniform(*cfg.leaf_size_m, m) * np.sqrt(factor),
-                rng,
-                UNDERSTORY,
-                SHRUB_IDS + k,
-                quads=True,
-            )
-        )
-        s = int(rng.integers(3, 6))  # a few thin stems
-        base = np.column_stack(
-            [x + rng.normal(0, 0.1, s), y + rng.normal(0, 0.1, s), np.full(s, z - 0.05)]
-        )
-        top = base + unit(rng.normal(0, 0.3, (s, 3)) + [0, 0, 1]) * h * 0.8
-        meshes.append(
-            tubes(
-                np.stack([base, top], 1),
-                np.tile([0.012, 0.005], (s, 1)),
-                4,
-                UNDERSTORY,
-                np.full(s, SHRUB_IDS + k),
-                cap=False,
-            )
-        )
-    return concat(meshes)
-
-
-def _grass(terrain: Terrain, xy: np.ndarray, coarse: np.ndarray, cfg: ForestConfig, rng) -> Mesh:
-    """Bunchgrass tufts of thin upright blades; far from the plots fewer, wider blades (same cover)."""
-    n = len(xy)
-    if n == 0:
-        return Mesh.empty()
-    blades = np.where(coarse, max(1, cfg.grass_blades // cfg.coarse_factor), cfg.grass_blades)
-    widen = np.where(coarse, cfg.grass_blades / blades, 1.0)
-    tuft = np.repeat(np.arange(n), blades)
-    m = len(tuft)
-    base_xy = xy[tuft] + rng.normal(0, 0.06, (m, 2))
-    base = np.column_stack([base_xy, terrain.height(base_xy[:, 0], base_xy[:, 1]) - 0.02])
-    tip = base + unit(rng.normal(0, 0.35, (m, 3)) + [0, 0, 1]) * rng.uniform(
-        *cfg.grass_height_m, (m, 1)
-    )
-    half = rng.uniform(*cfg.blade_width_m, (m, 1)) / 2 * widen[tuft, None]
-    side = unit(np.column_stack([rng.normal(size=(m, 2)), np.zeros(m)])) * half
-    return Mesh.soup(np.stack([base - side, base + side, tip], 1), UNDERSTORY, GRASS_IDS + tuft)
-
-
-def _saplings(
-    terrain: Terrain, xy: np.ndarray, coarse: np.ndarray, cfg: ForestConfig, rng, first_id: int
-) -> Mesh:
-    """Young conifers (understory): a thin stem with a narrow cone of branches and needles."""
-    meshes = []
-    for k, (x, y) in enumerate(xy):
-        height = rng.uniform(1.5, 5.0)
-        tree = Tree(
-            float(x),
-            float(y),
-            rng.uniform(0.02, 0.06),
-            height,
-            True,
-            np.array([0.0, 0.0, 1.0]),
-            rng.uniform(0.2, 0.8),
-            rng.uniform(0.4, 1.2),
-            not coarse[k],
-        )
-        z0 = terrain.height(np.array([x]), np.array([y]))[0]
-        for m in _conifer(tree, z0, cfg, rng, first_id + k, stubs=False):
-            m.labels[:] = UNDERSTORY
-            meshes.append(m)
-    return concat(meshes)
-
-
-def _logs(
-    terrain: Terrain,
-    xy: np.ndarray,
-    avoid: np.ndarray,
-    rng,
-    length_m=(2.5, 10.0),
-    radius_m=(0.08, 0.3),
-    sides=12,
-    first_id=LOG_IDS,
-) -> Mesh:
-    meshes = []
-    for k, (x, y) in enumerate(xy):
-        length, r, a = rng.uniform(*length_m), rng.uniform(*radius_m), rng.uniform(0, np.pi)
-        t = np.linspace(0, 1, 7)
-        px = x + t * length * np.cos(a)
-        py = y + t * length * np.sin(a)
-        if len(avoid) and cKDTree(avoid).query(np.column_stack([px, py]))[0].min() < 1.2:
-            continue  # the surveyor would not set the tripod on a log
-        path = np.column_stack([px, py, terrain.height(px, py) + r * 0.8])
-        meshes.append(tubes(path[None], np.full((1, 7), r), sides, WOODY, [first_id + k]))
-    return concat(meshes)
-
-
-def _far(xy: np.ndarray, plot_centres: np.ndarray, cfg: ForestConfig) -> np.ndarray:
+def far(xy: np.ndarray, plot_centres: np.ndarray, cfg: ForestConfig) -> np.ndarray:
     """Objects beyond `detail_radius_m` of every plot centre get coarse geometry (only ALS sees them)."""
     if len(xy) == 0:
         return np.zeros(0, bool)
     return cKDTree(plot_centres).query(xy)[0] > cfg.detail_radius_m
-
-
-def make_vegetation(
-    terrain: Terrain, extent, plot_centres: np.ndarray, scan_xy: np.ndarray, cfg: ForestConfig, rng
-) -> Vegetation:
-    """Every plant and log of the scene as one labelled mesh."""
-    trees = make_trees(terrain, extent, plot_centres, scan_xy, cfg, rng)
-    meshes = []
-    for k, tree in enumerate(trees):
-        z0 = terrain.height(np.array([tree.x]), np.array([tree.y]))[0]
-        meshes += (_conifer if tree.conifer else _broadleaf)(tree, z0, cfg, rng, k)
-    area = (extent[2] - extent[0]) * (extent[3] - extent[1])
-    n_shrubs = int(round(cfg.shrubs_per_ha * area / 1e4))
-    shrub_xy = (
-        _place(n_shrubs, extent, np.full(1, 1.0), scan_xy, cfg.clearance_m, rng)
-        if n_shrubs
-        else np.zeros((0, 2))
-    )
-    meshes.append(_shrubs(terrain, shrub_xy, _far(shrub_xy, plot_centres, cfg), cfg, rng))
-    n_sap = int(round(cfg.saplings_per_ha * area / 1e4))
-    sap_xy = (
-        _place(n_sap, extent, np.full(1, 1.5), scan_xy, cfg.clearance_m, rng)
-        if n_sap
-        else np.zeros((0, 2))
-    )
-    meshes.append(
-        _saplings(
-            terrain, sap_xy, _far(sap_xy, plot_centres, cfg), cfg, rng, SHRUB_IDS + len(shrub_xy)
-        )
-    )
-    shrub_ids = SHRUB_IDS + np.arange(len(shrub_xy) + len(sap_xy), dtype=np.int32)
-    # Grass grows in patches: tuft centres cluster around random patch centres.
-    n_tufts = int(round(cfg.grass_tufts_per_m2 * area))
-    patches = max(1, n_tufts // 30)
-    pc = np.column_stack(
-        [rng.uniform(extent[0], extent[2], patches), rng.uniform(extent[1], extent[3], patches)]
-    )
-    tuft_xy = pc[rng.integers(0, patches, n_tufts)] + rng.normal(0, 1.5, (n_tufts, 2))
-    inside = (
-        (tuft_xy[:, 0] > extent[0])
-        & (tuft_xy[:, 0] < extent[2])
-        & (tuft_xy[:, 1] > extent[1])
-        & (tuft_xy[:, 1] < extent[3])
-    )
-    tuft_xy = tuft_xy[inside]
-    if len(scan_xy) and len(tuft_xy):
-        tuft_xy = tuft_xy[
-            cKDTree(scan_xy).query(tuft_xy)[0] > 0.5
-        ]  # the tripod stands on bare ground
-    meshes.append(_grass(terrain, tuft_xy, _far(tuft_xy, plot_centres, cfg), cfg, rng))
-    n_logs = int(round(cfg.logs_per_ha * area / 1e4))
-    log_xy = np.column_stack(
-        [rng.uniform(extent[0], extent[2], n_logs), rng.uniform(extent[1], extent[3], n_logs)]
-    )
-    meshes.append(_logs(terrain, log_xy, scan_xy, rng))
-    n_debris = int(round(cfg.debris_per_ha * area / 1e4))  # fallen branches
-    debris_xy = np.column_stack(
-        [rng.uniform(extent[0], extent[2], n_debris), rng.uniform(extent[1], extent[3], n_debris)]
-    )
-    meshes.append(
-        _logs(terrain, debris_xy, scan_xy, rng, (0.5, 3.0), (0.02, 0.06), 6, LOG_IDS + n_logs)
-    )
-    return Vegetation(
-        concat(meshes), trees, shrub_ids, GRASS_IDS + np.arange(len(tuft_xy), dtype=np.int32)
-    )
