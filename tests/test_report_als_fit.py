@@ -2,17 +2,21 @@
 
 from __future__ import annotations
 
+import json
 from html.parser import HTMLParser
 
 import networkx as nx
 import numpy as np
 import pytest
+from typer.testing import CliRunner
 
 from plotmosaic.bench.protocol import params_to_matrix
+from plotmosaic.cli import app
 from plotmosaic.config.register import PoseGraphConfig
 from plotmosaic.config.report import ReportConfig
-from plotmosaic.io.las import read_cloud
-from plotmosaic.poses import load_poses
+from plotmosaic.graph.posegraph import graph_to_json
+from plotmosaic.io.las import PointCloud, read_cloud, write_cloud
+from plotmosaic.poses import Poses, ScanPose, load_poses
 from plotmosaic.report.align_page import motion_of
 from plotmosaic.report.als_fit import spread
 from plotmosaic.report.collect import collect, with_als_fit
@@ -149,3 +153,29 @@ def test_georeferenced_page_leads_with_the_fit_to_the_als(small_sim, plot_data, 
     assert sorted(p.name for p in views3d) in (["report.html"], ["report.html", "view3d.html"])
     if (tmp_path / "view3d.html").is_file():  # plotly installed: the ALS is a layer of it
         assert "ALS (click to hide)" in (tmp_path / "view3d.html").read_text()
+
+
+def test_report_dir_rewrites_a_georeferenced_run_in_place(small_sim, plot_data, tmp_path):
+    """`plotmosaic report DIR` on a tie-to-als folder: its own report.html again, with the fit to
+    the ALS read from the run's ALS crop (plots/<plot>_als.laz)."""
+    truth, raw, als = plot_data
+    run = _tie_run(small_sim, truth, tmp_path, raw, als)
+    geo = tmp_path / "geo"
+    (geo / "plots").mkdir(parents=True)
+    (geo / "graph.json").write_text(json.dumps(graph_to_json(run.graph)))
+    anchors = {"P1": {"reference": "P1-S0", "status": "ok", "fitness": 0.5, "crop": "buffer"}}
+    extra = {"offset": [0.0, 0.0, 0.0], "unplaced": [], "anchors": anchors}
+    scans = {s: ScanPose(T, "P1") for s, T in truth.items()}
+    Poses(scans, frame="crs", crs="EPSG:32612", extra=extra).save(geo / "poses.json")
+    write_cloud(geo / "plots" / "P1_als.laz", PointCloud(als))
+    (geo / "config-used.toml").write_text("[report]\nview3d_points = 0\n")
+    result = CliRunner().invoke(app, ["report", str(geo)])
+    assert result.exit_code == 0, result.output
+    page = _Page()
+    page.feed((geo / "report.html").read_text())
+    assert any("minus the ALS ground" in c for c in page.captions), page.captions
+    assert (geo / "P1_ground_vs_als.png").is_file() and (geo / "report.md").is_file()
+    assert not (geo / "view3d.html").exists()  # the run's own [report] settings: no 3D view
+    assert not (geo / "report").exists() and not (geo / "index.md").exists()
+    text = " ".join(page.text)
+    assert f"folder: {geo}" in text and "manifest:" not in text
