@@ -157,7 +157,7 @@ def _canopy(
     clouds: dict[str, np.ndarray], als_xyz: np.ndarray, als_ground: Ground, cfg: AlsFitConfig
 ) -> tuple[Raster, Raster, dict[str, np.ndarray]]:
     """TLS and ALS canopy tops (above the ALS ground) on the cells where both see the top, and each
-    scan's top minus the ALS top on the cells where that scan sees the top."""
+    scan's top minus the ALS top on the cells where that scan sees the plot's top."""
     a_cells, a_top, _ = _tops(als_xyz, cfg.canopy_cell, cfg.top_band)
     empty = Raster(x0=0.0, y0=0.0, cell=cfg.canopy_cell, z=np.full((1, 1), np.nan))
     if not clouds or not len(a_cells):
@@ -188,8 +188,12 @@ def _canopy(
         s_cells, s_top, s_near = _tops(xyz, cfg.canopy_cell, cfg.top_band)
         a = _lookup(a_cells, a_top, s_cells)
         g = als_ground.at((s_cells + 0.5) * cfg.canopy_cell)
+        # the scan sees the top where its top is the plot's (within the band): elsewhere the
+        # other scans see higher and this one's top is occlusion
+        plot_top = _lookup(t_cells, t_top, s_cells)
         ok = (
             (s_near >= cfg.top_points)
+            & (s_top >= plot_top - cfg.top_band)
             & (a - g >= cfg.canopy_min_height)
             & (s_top - g >= cfg.canopy_min_height)
         )

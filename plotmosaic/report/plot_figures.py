@@ -53,8 +53,8 @@ def als_figures(v: PlotView, origin: np.ndarray, inp: ReportInput, cfg: ReportCo
                 "where both see the top",
                 png=plot_canopy(out / f"{v.plot}_canopy_vs_als.png", fit, origin),
                 read="Points on the 1:1 line and a map without red/blue pairs on the crowns mean the "
-                "crowns are where the ALS sees them; a red/blue pair on one crown is a shift "
-                "towards the red side.",
+                "crowns are where the ALS sees them (sparse ALS returns miss some apexes: a few "
+                "decimetres above 0 is usual); a red/blue pair on one crown is a shift towards red.",
             )
         )
     if fit.scans:
