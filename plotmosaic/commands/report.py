@@ -116,7 +116,7 @@ def report_command(
             raise InputError(
                 "give a register-plot output folder, or --pair RESULT.json SOURCE TARGET"
             )
-        if out is not None:
+        if out is not None and out.resolve() != directory.resolve():
             raise InputError(
                 f"{directory}: a run's report is written again in its own folder; --out is for an "
                 "align result"
