@@ -12,7 +12,7 @@ from plotmosaic.align.kinds import DEFAULT_KIND, KindEvidence, decide, detect_ki
 from plotmosaic.align.pipeline import pair_kinds
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.config.kinds import KindConfig
-from plotmosaic.io.las import PointCloud, read_cloud
+from plotmosaic.io.las import read_cloud
 from plotmosaic.poses import load_poses
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -119,9 +119,9 @@ def test_decision_follows_the_thresholds():
 
 
 def test_given_kind_overrides_detection(small_sim):
-    als = read_cloud(small_sim.als_paths[0], attributes=False)
-    scan = read_cloud(small_sim.scan_paths["P1-S0"], attributes=False)
+    als = read_cloud(small_sim.als_paths[0], attributes=False).xyz
+    scan = read_cloud(small_sim.scan_paths["P1-S0"], attributes=False).xyz
     sk, tk, detected = pair_kinds(als, scan, "TLS", None, CONFIG)
     assert (sk, tk) == ("tls", "tls") and set(detected) == {"target"}
-    sk, tk, detected = pair_kinds(als, PointCloud(scan.xyz), None, "mls", CONFIG)
+    sk, tk, detected = pair_kinds(als, None, None, "mls", CONFIG)
     assert (sk, tk) == ("als", "mls") and set(detected) == {"source"}

@@ -4,7 +4,7 @@ Airborne clouds are seen from above: every cell of their footprint gets returns,
 (a scan line, not a station), and a canopy hides the understorey from them. Among them, uls is dense
 and als sparse. A ground-based cloud is tls when it sees the ground densely (tripod stations, one or
 merged) and mls when little ground comes back (a mobile scanner's narrow vertical field grazes it).
-Thresholds: config/kinds.py; figures measured on the real clips: docs/formats.md#sensor-kinds.
+Thresholds: config/kinds.py; figures measured on every input: benchmarks/results/kinds.md.
 """
 
 from __future__ import annotations

@@ -17,12 +17,11 @@ from plotmosaic.align.fine import FineResult, final_icp
 from plotmosaic.align.floors import blunt_fit, check_quality
 from plotmosaic.align.kinds import KindDetection, detect_kind
 from plotmosaic.align.level_icp import incremental_steps
-from plotmosaic.align.prepare import PreparedCloud, prepare_cloud
+from plotmosaic.align.prepare import MIN_POINTS, PreparedCloud, prepare_cloud, robust_points
 from plotmosaic.align.register import global_search, register_prepared
 from plotmosaic.align.result import METHOD, PairResult
 from plotmosaic.config.align import KINDS, AlignConfig, default_levels
 from plotmosaic.errors import InputError
-from plotmosaic.io.frame import column_bounds
 from plotmosaic.io.las import PointCloud, read_cloud
 from plotmosaic.parallel import both
 
@@ -60,22 +59,34 @@ def _kind(kind: str, which: str) -> str:
 
 
 def pair_kinds(
-    source: PointCloud,
-    target: PointCloud,
+    source: np.ndarray,
+    target: np.ndarray,
     source_kind: str | None,
     target_kind: str | None,
     config: AlignConfig,
     seed: int = 0,
 ) -> tuple[str, str, dict[str, KindDetection]]:
-    """Both kinds: a given kind stands, a missing one (None) is detected from its cloud."""
+    """Both kinds: a given kind stands, a missing one (None) is detected from its points (stray
+    points already dropped: one far point would widen the cloud it is judged on)."""
     detected = {
-        role: detect_kind(cloud.xyz, config.kinds, config.viewpoint, seed)
-        for role, cloud, kind in (("source", source, source_kind), ("target", target, target_kind))
+        role: detect_kind(xyz, config.kinds, config.viewpoint, seed)
+        for role, xyz, kind in (("source", source, source_kind), ("target", target, target_kind))
         if kind is None
     }
     sk = detected["source"].kind if source_kind is None else _kind(source_kind, "source")
     tk = detected["target"].kind if target_kind is None else _kind(target_kind, "target")
     return sk, tk, detected
+
+
+def _robust(
+    cloud: PointCloud, config: AlignConfig, name: str
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The points without stray ones and their (3, 2) bounds; a cloud too small to register is
+    left to prepare_cloud, which names it."""
+    if len(cloud) < MIN_POINTS:
+        return cloud.xyz, None
+    xyz, _, bounds = robust_points(cloud.xyz, config.stray, name)
+    return xyz, bounds
 
 
 def prepare_pair(
@@ -117,9 +128,12 @@ def align_clouds(
     config = config or AlignConfig()
     t0 = time.perf_counter()
     say = progress or (lambda msg: None)
+    # the source's bounding box as registration sees it (stray points dropped, as prepare does)
+    src_xyz, src_bounds = _robust(source, config, "source")
     if source_kind is None or target_kind is None:
         say("detecting sensor kinds")
-    sk, tk, detected = pair_kinds(source, target, source_kind, target_kind, config, seed)
+    tgt_xyz = _robust(target, config, "target")[0] if target_kind is None else None
+    sk, tk, detected = pair_kinds(src_xyz, tgt_xyz, source_kind, target_kind, config, seed)
     t_kinds = time.perf_counter() - t0
     say("preparing source and target")
     src, tgt = prepare_pair(
@@ -139,14 +153,15 @@ def align_clouds(
     result = register_prepared(src, tgt, config, init, seed, progress)
     steps = {k: v for k, v in result.timings.items() if k in STEP_ENTRIES}
     result.timings = {
-        **({"detect_kinds": t_kinds} if detected else {}),
+        "kinds": t_kinds,  # the source's bounds, and the kinds not given
         "prepare": t1 - t0 - t_kinds,
         "prepare_source": src.seconds,
         "prepare_target": tgt.seconds,
         **{k: v for k, v in result.timings.items() if k not in STEP_ENTRIES},
     }
     result.steps = {**result.steps, **steps}
-    result.source_centre = [float(v) for v in column_bounds(source.xyz).mean(axis=1)]
+    if src_bounds is not None:
+        result.source_centre = [float(v) for v in src_bounds.mean(axis=1)]
     result.detected_kinds = {role: d.to_dict() for role, d in detected.items()}
     result.seconds = time.perf_counter() - t0
     return result

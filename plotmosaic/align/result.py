@@ -1,6 +1,6 @@
 """A pair's registration result: the pose in file coordinates, its quality figures and
 information, and its JSON form (written by `plotmosaic align`, read by `report` and register-plot;
-its fields: docs/formats.md#resultjson)."""
+its fields: docs/formats.md#aligns-result)."""
 
 from __future__ import annotations
 
@@ -42,7 +42,7 @@ class PairResult:
     judge: dict | None = None  # the judge's profile figures of this pose and of its best rival
     timings: dict = field(default_factory=dict)  # seconds per step only
     steps: dict = field(default_factory=dict)  # what the steps did, in their units (not seconds)
-    # the centre of the source's bounding box as read, source file coordinates (None: not known)
+    # the centre of the source's bounding box (stray points dropped), source file coordinates
     source_centre: list | None = None
     detected_kinds: dict = field(default_factory=dict)  # "source"/"target": kind, reason, evidence
     config: dict = field(default_factory=dict)

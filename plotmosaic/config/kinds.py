@@ -1,6 +1,6 @@
 """Settings of sensor-kind detection (align/kinds.py): which of tls / mls / uls / als a cloud looks like.
 
-Calibration on the real clips and the simulator's presets: docs/formats.md#sensor-kinds.
+Calibration on the real clips and the simulator's presets: benchmarks/results/kinds.md.
 """
 
 from __future__ import annotations
