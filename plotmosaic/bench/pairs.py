@@ -60,18 +60,13 @@ def _crop_around(als: PointCloud, xyz: np.ndarray, margin: float) -> PointCloud:
     return als.select(keep)
 
 
-def manifest_pairs(
-    manifest: Manifest, poses: Poses, which: str, max_pairs: int | None = None
-) -> list[BenchPair]:
-    """Pairs of a simulated (or surveyed) plot with known poses.
-
-    tls-tls: every ground scan onto its plot's reference scan. tls-als: every plot's reference
-    scan onto the ALS (cropped around the scan's true footprint). prepost: scan i of the second
-    plot onto scan i of the first (the simulator's PRE/POST plots). all: tls-tls + tls-als.
-    """
+def _pair_specs(
+    manifest: Manifest, which: str, max_pairs: int | None
+) -> list[tuple[str, str | None]]:
+    """(source id, target id or None = the ALS) of every pair of the set `which`."""
     if which not in PAIR_SETS:
         raise InputError(f"--pairs: {which!r} not one of {', '.join(PAIR_SETS)}")
-    specs: list[tuple[str, str | None]] = []  # (source id, target id or None = ALS)
+    specs: list[tuple[str, str | None]] = []
     if which in ("tls-tls", "all"):
         for plot in manifest.plots:
             ref = plot.reference
@@ -97,6 +92,19 @@ def manifest_pairs(
         specs = specs[:max_pairs]
     if not specs:
         raise InputError(f"{manifest.source}: no {which} pairs in this manifest")
+    return specs
+
+
+def manifest_pairs(
+    manifest: Manifest, poses: Poses, which: str, max_pairs: int | None = None
+) -> list[BenchPair]:
+    """Pairs of a simulated (or surveyed) plot with known poses.
+
+    tls-tls: every ground scan onto its plot's reference scan. tls-als: every plot's reference
+    scan onto the ALS (cropped around the scan's true footprint). prepost: scan i of the second
+    plot onto scan i of the first (the simulator's PRE/POST plots). all: tls-tls + tls-als.
+    """
+    specs = _pair_specs(manifest, which, max_pairs)
     clouds: dict[str, PointCloud] = {}
 
     def cloud(scan_id: str) -> PointCloud:

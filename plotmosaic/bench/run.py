@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from plotmosaic.bench.failures import plot_failure
-from plotmosaic.bench.methods import PairInput, available, run_method
+from plotmosaic.bench.methods import MethodOutput, PairInput, available, run_method
 from plotmosaic.bench.overlap import crop_to_overlap, overlap_fraction
 from plotmosaic.bench.protocol import (
     PARAMS,
@@ -116,53 +116,59 @@ def run_bench(
                     truth = np.linalg.inv(P)
                     job = PairInput(moved, tgt, pair.source_kind, pair.target_kind)
                     for method in methods:
-                        bar.update(
-                            task,
-                            description=f"{pair.name} {'' if wanted is None else f'~{wanted:g}% '}{method} trial {i + 1}/{config.trials}",
-                        )
+                        label = f"{pair.name} {'' if wanted is None else f'~{wanted:g}% '}{method} trial {i + 1}/{config.trials}"
+                        bar.update(task, description=label)
                         out = run_method(method, job, config.methods_config, seed=config.seed + i)
                         err = pose_error(out.transform, truth, centre)
-                        ok = bool(
-                            is_success(
-                                err, config.success_rotation_deg, config.success_translation_m
-                            )[0]
-                        )
-                        rows.append(
-                            {
-                                "pair": pair.name,
-                                "overlap_wanted": wanted,
-                                "overlap": achieved,
-                                "method": method,
-                                "trial": i,
-                                **{f"init_{name}": float(v) for name, v in zip(PARAMS, p)},
-                                **{name: float(v) for name, v in zip(PARAMS, err)},
-                                "success": ok,
-                                "failed": out.failed,
-                                "seconds": out.seconds,
-                                "note": out.note,
-                                "confidence": out.confidence,
-                                "picture": "",
-                            }
-                        )
+                        row = _row(pair.name, wanted, achieved, method, i, p, err, out, config)
+                        rows.append(row)
                         if (
                             failures is not None
                             and method == "forestalign"
-                            and not ok
+                            and not row["success"]
                             and pictures < max_failure_pictures
                         ):
                             pictures += 1
-                            rows[-1]["picture"] = _failure_picture(
-                                rows[-1], moved, tgt, out.transform, truth, Path(failures)
+                            row["picture"] = _failure_picture(
+                                row, moved, tgt, out.transform, truth, Path(failures)
                             ).name
                         bar.advance(task)
                         if log:
-                            r = rows[-1]
                             log(
-                                f"{pair.name} {'' if wanted is None else f'~{wanted:g}% '}{method} trial {i + 1}/{config.trials}: "
-                                f"rotation {float(rotation_angle(err)[0]):.3f} deg, translation {np.linalg.norm(err[3:]):.3f} m, "
-                                f"{'success' if r['success'] else 'miss'}{' (failed)' if r['failed'] else ''}, {r['seconds']:.1f} s"
+                                f"{label}: rotation {float(rotation_angle(err)[0]):.3f} deg, translation {np.linalg.norm(err[3:]):.3f} m, "
+                                f"{'success' if row['success'] else 'miss'}{' (failed)' if row['failed'] else ''}, {row['seconds']:.1f} s"
                             )
     return BenchResult(rows, config, skipped, [p.name for p in pairs])
+
+
+def _row(
+    pair: str,
+    wanted: float | None,
+    achieved: float,
+    method: str,
+    trial: int,
+    start: np.ndarray,
+    err: np.ndarray,
+    out: MethodOutput,
+    config: BenchConfig,
+) -> dict:
+    """One trial of one method: its start, its error (six parameters), success and what it said."""
+    ok = bool(is_success(err, config.success_rotation_deg, config.success_translation_m)[0])
+    return {
+        "pair": pair,
+        "overlap_wanted": wanted,
+        "overlap": achieved,
+        "method": method,
+        "trial": trial,
+        **{f"init_{name}": float(v) for name, v in zip(PARAMS, start)},
+        **{name: float(v) for name, v in zip(PARAMS, err)},
+        "success": ok,
+        "failed": out.failed,
+        "seconds": out.seconds,
+        "note": out.note,
+        "confidence": out.confidence,
+        "picture": "",
+    }
 
 
 def _failure_picture(

@@ -18,6 +18,7 @@ from plotmosaic.commands.common import (
     write_config_used,
 )
 from plotmosaic.config.merge import MergeConfig
+from plotmosaic.config.settings import Settings
 from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import check_output_dir, check_output_file
 from plotmosaic.io.outputs import OutputPlan, check_outputs, inputs_of, manifest_inputs
@@ -85,18 +86,8 @@ def merge_command(
         "tile_size": tile_size,
         "tile_memory_mb": memory_mb,
     }
-    try:  # options over the file's [merge]; a bad option is named as the option
-        merge = MergeConfig.model_validate(
-            settings.merge.model_dump() | {k: v for k, v in given.items() if v is not None}
-        )
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        msg = err["msg"].removeprefix("Value error, ")
-        if not err["loc"]:  # a check across options names them itself
-            raise InputError(msg) from None
-        name = {"tile_memory_mb": "memory_mb"}.get(str(err["loc"][0]), str(err["loc"][0]))
-        raise InputError(f"--{name.replace('_', '-')}: {msg}") from None
-    settings = settings.model_copy(update={"merge": merge})
+    settings = _with_options(settings, given)
+    merge = settings.merge
     used = out / CONFIG_USED if merge.tiles else out.with_name(f"{out.stem}.{CONFIG_USED}")
     loaded = load_manifest(manifest)
     check_outputs(output_plan(loaded, poses, config, out, used, merge.tiles))
@@ -113,6 +104,22 @@ def merge_command(
     write_config_used(used, settings, "merge")
     print_summary(summary)
     typer.echo(f"settings used: {used}")
+
+
+def _with_options(settings: Settings, given: dict) -> Settings:
+    """The settings with the given options over the file's [merge]; a bad option is named as the option."""
+    try:
+        merge = MergeConfig.model_validate(
+            settings.merge.model_dump() | {k: v for k, v in given.items() if v is not None}
+        )
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        msg = err["msg"].removeprefix("Value error, ")
+        if not err["loc"]:  # a check across options names them itself
+            raise InputError(msg) from None
+        name = {"tile_memory_mb": "memory_mb"}.get(str(err["loc"][0]), str(err["loc"][0]))
+        raise InputError(f"--{name.replace('_', '-')}: {msg}") from None
+    return settings.model_copy(update={"merge": merge})
 
 
 def output_plan(manifest, poses: Path, config: Path | None, out: Path, used: Path, tiles: bool):

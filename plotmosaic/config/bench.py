@@ -31,6 +31,14 @@ PROTOCOLS = {
     "beyond": Protocol(name="beyond", roll=10, pitch=10, yaw=180, tx=25, ty=25, tz=25),
 }
 
+# The real-data suite's protocols (benchmarks/bench_real.py). paper: as above; beyond: any heading,
+# +-20 m (tilts as the paper); true: the source handed over in its true pose (the control)
+SUITE_PROTOCOLS: dict[str, Protocol] = {
+    "paper": PROTOCOLS["paper"],
+    "beyond": Protocol(name="beyond", roll=45, pitch=45, yaw=180, tx=20, ty=20, tz=20),
+    "true": Protocol(name="true", roll=0, pitch=0, yaw=0, tx=0, ty=0, tz=0),
+}
+
 
 class IcpConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
