@@ -172,7 +172,7 @@ class TieOptions(BaseModel):
     # one anchor a plot: no loop shows its error, so the spread of the ALS fit over blocks of
     # ground left out one at a time is its covariance (stages/tie_to_als/anchor_fit.py)
     anchor_block: float = Field(
-        10.0, gt=0, le=1000, description="side (m) of the blocks of the anchor's jackknife"
+        10.0, gt=0, le=1000, description="largest side (m) of the blocks of the anchor's jackknife"
     )
     anchor_max_distance: float = Field(
         0.3, gt=0, le=10, description="ALS points farther (m) from the TLS surfaces are not matched"
