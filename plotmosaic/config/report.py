@@ -213,6 +213,12 @@ class ReportConfig(BaseModel):
         le=1,
         description="a scan's median distance to neighbours above this (m) is flagged",
     )
+    als_margin: float = Field(
+        40.0,
+        ge=0,
+        le=1000,
+        description="ALS kept this far (m) around the scanners: map background, fit, 3D layer",
+    )
     weak_ground_offset: float = Field(
         0.15,
         gt=0,

@@ -124,7 +124,7 @@ def _als(directory: Path, plots: dict[str, list[str]]) -> np.ndarray | None:
     return np.vstack(xyz) if xyz else None
 
 
-def _tie_run(directory: Path, G, poses: Poses, paths, plots, source) -> TieRun:
+def _tie_run(directory: Path, G, poses: Poses, paths, plots, source, margin: float) -> TieRun:
     anchors = poses.extra.get("anchors") or {}
     fields = (
         "reference",
@@ -151,7 +151,7 @@ def _tie_run(directory: Path, G, poses: Poses, paths, plots, source) -> TieRun:
         plots=plots,
         paths=paths,
         offset=np.asarray(poses.extra.get("offset") or [0.0, 0.0, 0.0], float),
-        als_xyz=None if als is None else als_near(als, T),
+        als_xyz=None if als is None else als_near(als, T, margin),
         source=source,
         unplaced=tuple(poses.extra.get("unplaced") or ()),
     )
@@ -172,7 +172,7 @@ def rerender(directory: str | Path, manifest: str | Path | None = None, seed: in
     settings = _settings(directory)
     min_conf = settings.posegraph.min_confidence
     if poses.frame == "crs":
-        run = _tie_run(directory, G, poses, paths, plots, source)
+        run = _tie_run(directory, G, poses, paths, plots, source, settings.report.als_margin)
         return render_tie(run, settings.report, min_conf, seed, read_scan)
     run = _register_run(directory, G, poses, paths, plots, source)
     return render_register(run, settings.report, min_conf, seed, _reader(directory, poses, paths))

@@ -34,8 +34,6 @@ from plotmosaic.report.tables import (
     residual_summary,
 )
 
-ALS_MARGIN = 40.0  # ALS kept this far (m) around the scanners: the map, the fit, the 3D layer
-
 
 @dataclass(frozen=True, kw_only=True)
 class AnchorRow:
@@ -73,7 +71,7 @@ class TieRun:
     judged_in: dict[str, tuple[str, str]] = field(default_factory=dict)
 
 
-def als_near(als_xyz: np.ndarray, poses: dict[str, np.ndarray], margin: float = ALS_MARGIN):
+def als_near(als_xyz: np.ndarray, poses: dict[str, np.ndarray], margin: float):
     """ALS points within `margin` of the scanners' bounding box; None with too few."""
     if not len(als_xyz) or not poses:
         return None
@@ -268,7 +266,7 @@ def write_tie_report(
         plots={p.id: [s.id for s in p.scans] for p in manifest.plots},
         paths={s.id: manifest.resolve(s.path) for s in manifest.scans},
         offset=np.asarray(result.offset, float),
-        als_xyz=als_near(als.xyz, poses),
+        als_xyz=als_near(als.xyz, poses, cfg.als_margin),
         source=f"manifest: {manifest.source}",
         unplaced=tuple(result.unplaced),
         computed=result.computed,
