@@ -294,3 +294,73 @@ def test_graph_placed_scans_get_their_neighbours_verified_first(tmp_path):
     assert max(d for _, d in degree) <= config.pairs.max_per_scan
     assert degree["s5"] == 8  # capped: s5 had 7 pairs, one more neighbour at most
     assert frozenset(("s14", "s13")) in got and frozenset(("s11", "s7")) in got
+
+
+def test_spanning_first_takes_pairs_in_order_one_per_join():
+    from plotmosaic.graph.pairs import spanning_first
+
+    pairs = [("a", "b"), ("b", "c"), ("a", "c"), ("c", "d"), ("d", "b")]
+    assert spanning_first(pairs) == [0, 1, 3]  # (a, c) and (d, b) close loops
+    assert spanning_first(pairs, joined=[("a", "c")]) == [0, 3]
+    assert spanning_first([]) == []
+
+
+def _jobs_of(tmp_path, n, placed=None):
+    """A plot of `n` scans (tiny files: no registration) and its planned pair jobs."""
+    from plotmosaic.config.register import RegisterConfig
+    from plotmosaic.manifest import Manifest
+    from plotmosaic.stages.register_plot import plan_jobs
+
+    for k in range(n):
+        (tmp_path / f"s{k}.laz").write_bytes(bytes([k]) * 10)
+    plot = Plot(id="P", scans=[Scan(id=f"s{k}", path=f"s{k}.laz") for k in range(n)])
+    manifest = Manifest(plots=[plot], source=tmp_path / "m.toml")
+    return manifest, plan_jobs(manifest, RegisterConfig(), 0, tmp_path, placed)
+
+
+def test_a_small_plot_runs_a_spanning_tree_first_and_its_verified_priors_lead(tmp_path):
+    import networkx as nx
+
+    from plotmosaic.stages.register_plot import tree_first
+
+    manifest, jobs = _jobs_of(tmp_path, 5)
+    first, deferred = tree_first(manifest, jobs, {}, set())
+    # no positions: a star around the first scan (the plan's order), the other six pairs wait
+    assert [(j.source, j.target) for j in first] == [(f"s{k}", "s0") for k in range(1, 5)]
+    assert len(deferred) == 6 and not any(j.stored or j.init is not None for j in deferred)
+    assert {j.key for j in first} | {j.key for j in deferred} == {j.key for j in jobs}
+    # positions (e.g. stored poses): the nearest scans first; a verified prior before any search
+    poses = _exact_grid(3)
+    placed = {f"s{k}": poses[f"s{k}"] for k in range(5)}
+    manifest, jobs = _jobs_of(tmp_path, 5, placed)
+    first, deferred = tree_first(manifest, jobs, placed, {"s3", "s4"})
+    tree = nx.Graph([(j.source, j.target) for j in first])
+    assert nx.is_tree(tree) and tree.number_of_nodes() == 5
+    assert (first[0].source, first[0].target) == ("s4", "s3") and first[0].stored
+    for j in first[1:]:
+        d = np.linalg.norm((poses[j.source] - poses[j.target])[:2, 3])
+        assert d == pytest.approx(18.0)  # grid neighbours, no diagonal
+        assert not j.stored  # a prior not verified first: the search runs
+
+
+def test_loop_pairs_start_from_the_graph_and_pieces_are_joined_once(tmp_path):
+    from plotmosaic.stages.register_plot.grow import from_graph, joining
+    from plotmosaic.stages.register_plot.pairs import Pairs
+
+    manifest, jobs = _jobs_of(tmp_path, 5)
+    by_pair = {(j.source, j.target): j for j in jobs}
+    poses = {k: T for k, T in _exact_grid(3).items() if k in ("s0", "s1", "s2")}
+    ready = from_graph(jobs, poses)
+    assert {(j.source, j.target) for j in ready} == {("s1", "s0"), ("s2", "s0"), ("s2", "s1")}
+    for j in ready:
+        assert j.stored and j.key.startswith(by_pair[(j.source, j.target)].key + "-stored-")
+        assert np.allclose(poses[j.target] @ np.asarray(j.init), poses[j.source])
+    # s3 and s4 unplaced but verified together: one pair joins them to the placed piece
+    ok = by_pair[("s4", "s3")]
+    done = Pairs(jobs=[ok], records={ok.key: {"status": "ok"}}, computed=1)
+    rest = [j for j in jobs if (j.source, j.target) not in {("s1", "s0"), ("s4", "s3")}]
+    picked = joining(rest, poses, done)
+    assert [(j.source, j.target) for j in picked] == [("s3", "s0")]
+    failed = Pairs(jobs=[ok], records={ok.key: {"status": "failed"}}, computed=1)
+    picked = joining(rest, poses, failed)
+    assert [(j.source, j.target) for j in picked] == [("s3", "s0"), ("s4", "s0")]

@@ -87,6 +87,19 @@ def test_interrupted_run_resumes_without_redoing_pairs(runs):
         assert np.array_equal(a.transform(sid), b.transform(sid))
 
 
+def test_the_loop_pair_starts_from_the_spanning_tree(runs):
+    """S2 and S3 onto S0 by the global search (a star around the first scan); S3 -> S2 then starts
+    from the pose those two imply and is verified from there, no search."""
+    records = [json.loads(p.read_text()) for p in (runs["out"] / "pairs").glob("*.json")]
+    searched = {
+        (r["source"], r["target"]) for r in records if "coarse_skipped" not in r.get("timings", {})
+    }
+    assert searched == {("P1-S2", "P1-S0"), ("P1-S3", "P1-S0")}
+    (loop,) = [r for r in records if r.get("timings", {}).get("coarse_skipped")]
+    assert (loop["source"], loop["target"]) == ("P1-S3", "P1-S2") and loop["status"] == "ok"
+    assert loop["coarse"]["stored_pose"]["verified"]
+
+
 def test_poses_match_ground_truth(runs):
     truth = load_poses(runs["sim"].ground_truth_path)
     poses = load_poses(runs["out"] / "poses.json")

@@ -13,6 +13,7 @@ spacing apart: farther pairs share too little to verify, and each costs a full s
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from itertools import combinations
 
 import numpy as np
@@ -117,6 +118,19 @@ def neighbour_pairs(
     return sorted(chosen)
 
 
+def spanning_first(
+    pairs: Sequence[tuple[str, str]], joined: Sequence[tuple[str, str]] = ()
+) -> list[int]:
+    """Indices of `pairs` (scan ids) forming a spanning forest, taken in the order given (Kruskal):
+    each joins two scans not yet joined by an earlier one or by `joined`."""
+    ids = sorted({i for pair in (*pairs, *joined) for i in pair})
+    index = {i: k for k, i in enumerate(ids)}
+    comps = _Components(len(ids))
+    for a, b in joined:
+        comps.join(index[a], index[b])
+    return [k for k, (a, b) in enumerate(pairs) if comps.join(index[a], index[b])]
+
+
 def candidate_pairs(
     plot: Plot,
     max_distance: float | None = None,
@@ -135,66 +149,10 @@ def candidate_pairs(
     selection = selection or PairSelection()
     scans = plot.scans
     positions = positions if positions is not None else manifest_positions(plot)
-    known = positions is not None and all(s.id in positions for s in scans)
     placed = [s for s in scans if positions is not None and s.id in positions]
-    big = len(scans) > selection.all_pairs_up_to
-    if big and (len(placed) >= 3 or linked is not None):
-        order = {s.id: k for k, s in enumerate(scans)}
-        chosen: set[tuple[str, str]] = set()
-        if len(placed) >= 3:
-            xy = np.array([positions[s.id][:2] for s in placed])
-            far = reach_distance(xy, reach, max_distance)
-            chosen = {
-                (placed[i].id, placed[j].id)
-                for i, j in neighbour_pairs(xy, selection.neighbours, selection.max_per_scan, far)
-            }
-        else:
-            placed = []
-        has_position = {s.id for s in placed}
-        degree = {s.id: 0 for s in scans}
-        for a, b in chosen:
-            degree[a] += 1
-            degree[b] += 1
-        matched: set[str] = set()
-        # no position: the scans its signature matches, best first (when there are signatures)
-        for a, b in linked or []:
-            if a in has_position and b in has_position:
-                continue
-            pair = (a, b) if order[a] < order[b] else (b, a)
-            if (
-                a in order
-                and b in order
-                and pair not in chosen
-                and max(degree[a], degree[b]) < selection.max_per_scan
-            ):
-                chosen.add(pair)
-                degree[a] += 1
-                degree[b] += 1
-                matched.update(pair)
-        # else its neighbours in the manifest, which lists scans as they were taken (a walk
-        # through the plot), so pairs stay bounded; an unconfirmed scan is reported unplaced
-        for k, s in enumerate(scans):
-            if s.id in has_position or s.id in matched:
-                continue
-            span = min(
-                len(scans), selection.max_per_scan + 1
-            )  # not beyond the scans taken around it
-            near = (m for d in range(1, span) for m in (k - d, k + d) if 0 <= m < len(scans))
-            for m in near:  # nearest in the list first
-                if degree[s.id] >= selection.max_per_scan:
-                    break
-                a, b = sorted((k, m))
-                pair = (scans[a].id, scans[b].id)
-                if m != k and pair not in chosen and degree[scans[m].id] < selection.max_per_scan:
-                    chosen.add(pair)
-                    degree[s.id] += 1
-                    degree[scans[m].id] += 1
-        by_id = {s.id: s for s in scans}
-        return [
-            (by_id[j], by_id[i])
-            for i, j in sorted(chosen, key=lambda e: (order[e[0]], order[e[1]]))
-            if order[i] < order[j]
-        ]
+    if len(scans) > selection.all_pairs_up_to and (len(placed) >= 3 or linked is not None):
+        return _big_plot_pairs(plot, positions, selection, linked, max_distance, reach)
+    known = positions is not None and len(placed) == len(scans)
     pairs = []
     for target, source in combinations(scans, 2):
         if known and max_distance is not None:
@@ -203,3 +161,93 @@ def candidate_pairs(
                 continue
         pairs.append((source, target))
     return pairs
+
+
+def _big_plot_pairs(
+    plot: Plot,
+    positions: dict[str, np.ndarray] | None,
+    selection: PairSelection,
+    linked: list[tuple[str, str]] | None,
+    max_distance: float | None,
+    reach: float | None,
+) -> list[tuple[Scan, Scan]]:
+    """A big plot's pairs: placed scans with their neighbours, the others by signature or by
+    their neighbours in the manifest."""
+    scans = plot.scans
+    placed = [s for s in scans if positions is not None and s.id in positions]
+    order = {s.id: k for k, s in enumerate(scans)}
+    chosen: set[tuple[str, str]] = set()
+    if len(placed) >= 3:
+        xy = np.array([positions[s.id][:2] for s in placed])
+        far = reach_distance(xy, reach, max_distance)
+        chosen = {
+            (placed[i].id, placed[j].id)
+            for i, j in neighbour_pairs(xy, selection.neighbours, selection.max_per_scan, far)
+        }
+    else:
+        placed = []
+    has_position = {s.id for s in placed}
+    degree = {s.id: 0 for s in scans}
+    for a, b in chosen:
+        degree[a] += 1
+        degree[b] += 1
+    matched = _signature_links(linked or [], has_position, order, chosen, degree, selection)
+    _list_neighbours(scans, has_position | matched, chosen, degree, selection)
+    by_id = {s.id: s for s in scans}
+    return [
+        (by_id[j], by_id[i])
+        for i, j in sorted(chosen, key=lambda e: (order[e[0]], order[e[1]]))
+        if order[i] < order[j]
+    ]
+
+
+def _signature_links(
+    linked: list[tuple[str, str]],
+    has_position: set[str],
+    order: dict[str, int],
+    chosen: set[tuple[str, str]],
+    degree: dict[str, int],
+    selection: PairSelection,
+) -> set[str]:
+    """No position: the scans its signature matches, best first (added to `chosen`); the scans matched."""
+    matched: set[str] = set()
+    for a, b in linked:
+        if a in has_position and b in has_position:
+            continue
+        pair = (a, b) if order[a] < order[b] else (b, a)
+        if (
+            a in order
+            and b in order
+            and pair not in chosen
+            and max(degree[a], degree[b]) < selection.max_per_scan
+        ):
+            chosen.add(pair)
+            degree[a] += 1
+            degree[b] += 1
+            matched.update(pair)
+    return matched
+
+
+def _list_neighbours(
+    scans: list[Scan],
+    paired: set[str],
+    chosen: set[tuple[str, str]],
+    degree: dict[str, int],
+    selection: PairSelection,
+) -> None:
+    """Scans not in `paired`: their neighbours in the manifest, which lists scans as they were taken
+    (a walk through the plot), so pairs stay bounded; an unconfirmed scan is reported unplaced."""
+    span = min(len(scans), selection.max_per_scan + 1)  # not beyond the scans taken around it
+    for k, s in enumerate(scans):
+        if s.id in paired:
+            continue
+        near = (m for d in range(1, span) for m in (k - d, k + d) if 0 <= m < len(scans))
+        for m in near:  # nearest in the list first
+            if degree[s.id] >= selection.max_per_scan:
+                break
+            a, b = sorted((k, m))
+            pair = (scans[a].id, scans[b].id)
+            if m != k and pair not in chosen and degree[scans[m].id] < selection.max_per_scan:
+                chosen.add(pair)
+                degree[s.id] += 1
+                degree[scans[m].id] += 1

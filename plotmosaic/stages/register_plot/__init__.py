@@ -12,7 +12,13 @@ from pathlib import Path
 
 from plotmosaic.config.register import RegisterConfig
 from plotmosaic.manifest import Manifest
-from plotmosaic.stages.register_plot.grow import graph_poses, grow, grow_jobs, position_jobs
+from plotmosaic.stages.register_plot.grow import (
+    close_loops,
+    graph_poses,
+    grow,
+    grow_jobs,
+    position_jobs,
+)
 from plotmosaic.stages.register_plot.pairs import (
     EDGE_FIELDS,
     _pair_job,
@@ -25,7 +31,7 @@ from plotmosaic.stages.register_plot.pairs import (
     start_run,
 )
 from plotmosaic.stages.register_plot.place import als_anchor_edges, place, place_scans
-from plotmosaic.stages.register_plot.plan import match_signatures, plan, plan_jobs
+from plotmosaic.stages.register_plot.plan import match_signatures, plan, plan_jobs, tree_first
 from plotmosaic.stages.register_plot.solve import PlotResult, solve, solve_plot
 from plotmosaic.stages.register_plot.write import RegisterResult, write
 
@@ -36,6 +42,7 @@ __all__ = [
     "_pair_job",
     "als_anchor_edges",
     "anchor_id",
+    "close_loops",
     "compute_pairs",
     "graph_poses",
     "grow_jobs",
@@ -47,6 +54,7 @@ __all__ = [
     "prepare_scans",
     "register_plot",
     "solve_plot",
+    "tree_first",
 ]
 
 
@@ -83,7 +91,8 @@ def register_plot(
     prepare(run)  # every scan read once, and a bad one named, before any pair
     priors = place(run)  # big plots' scans on the ALS tile; poses stored in the scans
     planned = plan(run, priors)  # candidate pairs by position, by signature where none
-    pairs = run_jobs(run, planned.jobs)
+    pairs = run_jobs(run, planned.jobs)  # a spanning tree of them, by the global search
+    pairs = close_loops(run, priors, planned.deferred, pairs)  # the rest from the tree's poses
     pairs = grow(run, priors, planned.ranks, pairs)  # more pairs where the graph allows
     solved = solve(run, priors, pairs)  # one pose graph, each plot solved in its own frame
     return write(run, priors, pairs, solved, start)

@@ -1,7 +1,9 @@
-"""Grow: more pairs in bounded rounds, where the verified pairs so far place scans or leave a plot in pieces."""
+"""Grow: the plan's pairs beyond its spanning tree from the poses the tree implies, then more pairs in
+bounded rounds, where the verified pairs so far place scans or leave a plot in pieces."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import networkx as nx
@@ -9,7 +11,8 @@ import numpy as np
 
 from plotmosaic.config.register import RegisterConfig
 from plotmosaic.graph.executor import PairJob, with_stored_poses
-from plotmosaic.graph.pairs import neighbour_pairs, reach_distance
+from plotmosaic.graph.pairs import neighbour_pairs, reach_distance, spanning_first
+from plotmosaic.graph.placement import prior
 from plotmosaic.graph.posegraph import build_graph
 from plotmosaic.graph.signature import grow_candidates
 from plotmosaic.manifest import Manifest
@@ -18,8 +21,6 @@ from plotmosaic.stages.register_plot.pairs import (
     Pairs,
     Run,
     _pair_job,
-    _priors,
-    _signature_config,
     anchor_id,
     run_jobs,
 )
@@ -63,7 +64,7 @@ def position_jobs(
     """Neighbour pairs of a big plot's scans that the pose graph places (graph_poses), not tried yet:
     at most `reach` x the scan spacing apart, their prior from the graph and verified first (a chain
     of verified pairs is as good a prior as two ALS placements), at most `max_per_scan` pairs a scan."""
-    reach = _priors(config).reach
+    reach = config.placed_priors.reach
     config_json = config.align.model_dump_json()
     tried = {frozenset((j.source, j.target)) for j in job_list}
     degree = _degrees(job_list)
@@ -109,7 +110,7 @@ def grow_jobs(
     """Pairs to add where a plot's verified pairs leave it in pieces: the next signature-ranked partners.
 
     `anchored`: scans held by an ALS anchor (one piece with each other through the plot's ALS node)."""
-    sig = _signature_config(config)
+    sig = config.signature
     config_json = config.align.model_dump_json()
     tried = {frozenset((j.source, j.target)) for j in job_list}
     degree = _degrees(job_list)
@@ -159,11 +160,53 @@ def _signature_round(
     return with_stored_poses(jobs, priors.verify_first)
 
 
+def from_graph(jobs: list[PairJob], poses: dict[str, np.ndarray]) -> list[PairJob]:
+    """Jobs between scans the graph places, their prior the pose it implies, verified first."""
+    placed = [j for j in jobs if j.source in poses and j.target in poses]
+    rebased = [dataclasses.replace(j, init=prior(poses, j.source, j.target)) for j in placed]
+    return with_stored_poses(rebased, set(poses))
+
+
+def joining(jobs: list[PairJob], poses: dict[str, np.ndarray], pairs: Pairs) -> list[PairJob]:
+    """Jobs, in their order, that join what the graph leaves apart (the placed scans are one piece;
+    the others are joined by their verified pairs), one job for each join, as a spanning tree."""
+    placed = sorted(poses)
+    joined = list(zip(placed, placed[1:]))
+    joined += [
+        (j.source, j.target)
+        for j in pairs.jobs
+        if pairs.records.get(j.key, {}).get("status") == "ok"
+        and j.source not in poses
+        and j.target not in poses
+    ]
+    picked = spanning_first([(j.source, j.target) for j in jobs], joined)
+    return [jobs[k] for k in picked]
+
+
+def close_loops(run: Run, priors: Priors, deferred: list[PairJob], pairs: Pairs) -> Pairs:
+    """The planned pairs beyond the spanning tree (`deferred`, plain jobs): each pair between scans
+    the verified graph places starts from the pose the graph implies and is verified from there
+    (the fine ICP and the judge), the global search only when that fails; where the tree left scans
+    apart, one pair for each join runs as the tree's did, then the loop pairs it makes. Pairs inside
+    a piece the graph never places are not run (they could place nothing)."""
+    while deferred:
+        poses = graph_poses(run.manifest, run.config, pairs.jobs, pairs.records, priors.anchors)
+        ready = from_graph(deferred, poses) or with_stored_poses(
+            joining(deferred, poses, pairs), priors.verify_first
+        )
+        if not ready:
+            return pairs
+        running = {(j.source, j.target) for j in ready}
+        deferred = [j for j in deferred if (j.source, j.target) not in running]
+        pairs = run_jobs(run, ready, pairs)
+    return pairs
+
+
 def grow(run: Run, priors: Priors, ranks: dict[str, list[str]], pairs: Pairs) -> Pairs:
     """The plan grown in bounded rounds: neighbour pairs of the scans the verified graph places
     (priors verified first), else, where a plot is still in pieces, the next signature partners."""
-    grows = _signature_config(run.config).grow_rounds if ranks else 0
-    positions = _priors(run.config).position_rounds
+    grows = run.config.signature.grow_rounds if ranks else 0
+    positions = run.config.placed_priors.position_rounds
     while True:
         more = []
         if positions:

@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 
 from plotmosaic.config.register import RegisterConfig
-from plotmosaic.config.scale import PlacedPriors, SignatureConfig
 from plotmosaic.errors import InputError
 from plotmosaic.graph.cache import PairCache, pair_key
 from plotmosaic.graph.executor import PairJob, prepare_jobs_for, run_pairs
@@ -149,14 +148,6 @@ def _pair_job(
         prepared,
         prior(placed, source.id, target.id),
     )
-
-
-def _signature_config(config: RegisterConfig) -> SignatureConfig:
-    return getattr(config, "signature", None) or SignatureConfig()
-
-
-def _priors(config: RegisterConfig) -> PlacedPriors:
-    return getattr(config, "placed_priors", None) or PlacedPriors()
 
 
 def anchor_id(plot: Plot) -> str:

@@ -17,7 +17,6 @@ from plotmosaic.manifest import Manifest, Plot
 from plotmosaic.stages.register_plot.pairs import (
     EDGE_FIELDS,
     Run,
-    _priors,
     anchor_id,
     compute_pairs,
 )
@@ -112,11 +111,9 @@ def place(run: Run) -> Priors:
         if not any(s.id in placed for s in plot.scans):
             placed.update({s.id: stored[s.id] for s in plot.scans if s.id in stored})
             verify_first |= {s.id for s in plot.scans if s.id in stored}
-    priors = _priors(config)
-    if (
-        priors.verify_first
-    ):  # two sure ALS placements: their relative pose is as good as a stored one
-        verify_first |= sure_placements(placement, placement_records, priors.min_confidence)
+    sure = config.placed_priors
+    if sure.verify_first:  # two sure ALS placements: their relative pose is as good as a stored one
+        verify_first |= sure_placements(placement, placement_records, sure.min_confidence)
     from_als = set(placed) - set(stored)
     anchors = {
         plot.id: als_anchor_edges(plot, placement, placement_records, from_als)

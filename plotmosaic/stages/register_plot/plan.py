@@ -1,4 +1,5 @@
-"""Plan: the first pair jobs of every plot, by position, by signature where scans have no position."""
+"""Plan: the pair jobs of every plot, by position, by signature where scans have no position; a
+spanning tree of them runs first (grow.close_loops runs the rest from the poses the tree implies)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import numpy as np
 
 from plotmosaic.config.register import RegisterConfig
 from plotmosaic.graph.executor import PairJob, run_pairs, with_stored_poses
-from plotmosaic.graph.pairs import candidate_pairs, manifest_positions
+from plotmosaic.graph.pairs import candidate_pairs, manifest_positions, spanning_first
 from plotmosaic.graph.prepared import prepared_key
 from plotmosaic.graph.signature import (
     SignatureJob,
@@ -20,15 +21,17 @@ from plotmosaic.graph.signature import (
     similarity,
 )
 from plotmosaic.manifest import Manifest
-from plotmosaic.stages.register_plot.pairs import Run, _pair_job, _priors, _signature_config
+from plotmosaic.stages.register_plot.pairs import Run, _pair_job
 from plotmosaic.stages.register_plot.place import Priors
 
 
 @dataclass(frozen=True, kw_only=True)
 class Plan:
-    """The first pair jobs, and the signature ranks the grow rounds draw further partners from."""
+    """The first pair jobs (a spanning tree of the planned pairs), the rest (`deferred`, plain jobs:
+    their priors come from the tree's poses), and the signature ranks the grow rounds draw from."""
 
     jobs: list[PairJob]
+    deferred: list[PairJob]
     ranks: dict[str, list[str]]  # scan id -> other scans of its plot ranked by signature
 
 
@@ -47,7 +50,7 @@ def plan_jobs(
     prepared = None if prepared is None else str(prepared)
     placed = placed or {}
     linked = linked or {}
-    reach = _priors(config).reach
+    reach = config.placed_priors.reach
     jobs = []
     for plot in manifest.plots:
         positions = {s.id: placed[s.id][:3, 3] for s in plot.scans if s.id in placed} or None
@@ -63,7 +66,7 @@ def _signature_jobs(
 ) -> dict[str, SignatureJob]:
     """scan id -> its signature job, for every scan of these plots."""
     settings = config.align.model_dump_json()
-    sig = _signature_config(config).model_dump_json()
+    sig = config.signature.model_dump_json()
     folder = str(out / "prepared")
     jobs = {}
     for plot in plots:
@@ -91,7 +94,7 @@ def match_signatures(
 
     Returns (plot id -> linked scan pairs, scan id -> other scans of its plot ranked by signature).
     The scans are prepared here, into the cache their pairs load from (each still read once)."""
-    sig = _signature_config(config)
+    sig = config.signature
     if not sig.enabled:
         return {}, {}
     plots = [
@@ -130,8 +133,36 @@ def match_signatures(
     return linked, ranks
 
 
+def tree_first(
+    manifest: Manifest, jobs: list[PairJob], placed: dict[str, np.ndarray], verify_first: set[str]
+) -> tuple[list[PairJob], list[PairJob]]:
+    """(first, deferred): a spanning forest of each plot's planned pairs, verified priors first, then
+    the nearest scans (ALS placements or stored poses, else the manifest's positions), else in the
+    plan's order (a small plot without positions: a star around its first scan); the other pairs,
+    plain and in that order, start from the poses the tree implies."""
+    approx = {}
+    for plot in manifest.plots:
+        approx.update(manifest_positions(plot) or {})
+    xyz = {i: T[:3, 3] for i, T in placed.items()}
+    marked = with_stored_poses(jobs, verify_first)
+
+    def rank(k: int) -> tuple[bool, float]:
+        a, b = jobs[k].source, jobs[k].target
+        d = np.inf  # positions of a plot's scans are compared within one source (one frame)
+        for where in (xyz, approx):
+            if a in where and b in where:
+                d = np.linalg.norm(np.subtract(where[a], where[b]))
+                break
+        return not marked[k].stored, float(d)
+
+    order = sorted(range(len(jobs)), key=rank)
+    tree = {order[k] for k in spanning_first([(jobs[i].source, jobs[i].target) for i in order])}
+    return [marked[i] for i in order if i in tree], [jobs[i] for i in order if i not in tree]
+
+
 def plan(run: Run, priors: Priors) -> Plan:
-    """The first pair jobs: candidate pairs by position, signature links where there is none."""
+    """The pair jobs: candidate pairs by position, signature links where there is none; a spanning
+    tree of them first."""
     linked, ranks = match_signatures(
         run.manifest,
         run.config,
@@ -144,4 +175,5 @@ def plan(run: Run, priors: Priors) -> Plan:
         run.progress,
     )
     jobs = plan_jobs(run.manifest, run.config, run.seed, run.prepared, priors.placed, linked)
-    return Plan(jobs=with_stored_poses(jobs, priors.verify_first), ranks=ranks)
+    first, deferred = tree_first(run.manifest, jobs, priors.placed, priors.verify_first)
+    return Plan(jobs=first, deferred=deferred, ranks=ranks)
