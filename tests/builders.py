@@ -1,10 +1,18 @@
 """Synthetic scenes and pose graphs shared by several test modules (a test module never imports another)."""
 
-import gtsam
-import numpy as np
+from pathlib import Path
 
+import gtsam
+import laspy
+import numpy as np
+from pyproj import CRS
+
+from plotmosaic.config.merge import MergeConfig
 from plotmosaic.graph.posegraph import inverse
-from plotmosaic.io.las import PointCloud
+from plotmosaic.io.las import PointCloud, write_cloud
+from plotmosaic.manifest import AlsTile, Manifest, Plot, Scan, dump_manifest, load_manifest
+from plotmosaic.poses import Poses, ScanPose, load_poses
+from plotmosaic.stages.merge import MergeSummary, merge_scans
 
 UTM = np.array([470250.0, 3810150.0, 2100.0])
 
@@ -90,3 +98,109 @@ def synthetic_pose_graph(n_scans=5, seed=0, rot_noise_deg=0.002, trans_noise=0.0
         )
     nodes = {name: {"kind": "tls", "plot": "P1"} for name in truth}
     return truth, nodes, edges
+
+
+# ---------------------------------------------------------------- merge sites
+
+MERGE_SCAN_POINTS = 20_000
+MERGE_CRS = "EPSG:32612"
+
+
+def merge_scan_pose(rng, k: int) -> np.ndarray:
+    """A scanner pose in UTM (any heading, a slight tilt), scan k a few metres on from scan k - 1."""
+    yaw, tilt = rng.uniform(-np.pi, np.pi), rng.normal(0, 0.02, 2)
+    cz, sz = np.cos(yaw), np.sin(yaw)
+    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    Rx = np.array(
+        [[1, 0, 0], [0, np.cos(tilt[0]), -np.sin(tilt[0])], [0, np.sin(tilt[0]), np.cos(tilt[0])]]
+    )
+    Ry = np.array(
+        [[np.cos(tilt[1]), 0, np.sin(tilt[1])], [0, 1, 0], [-np.sin(tilt[1]), 0, np.cos(tilt[1])]]
+    )
+    T = np.eye(4)
+    T[:3, :3] = Rz @ Ry @ Rx
+    T[:3, 3] = [
+        470_000.0 + 15 * k + rng.uniform(0, 1),
+        3_810_000.0 + 10 * k + rng.uniform(0, 1),
+        2_100.0 + rng.uniform(0, 1),
+    ]
+    return T
+
+
+def merge_scan_cloud(rng, n: int, rgb: bool) -> PointCloud:
+    """A TLS-like scan in its scanner frame with the LAS attributes merge carries (+ RGB and an extra dim)."""
+    r = np.sqrt(rng.uniform(0, 25.0**2, n))
+    a = rng.uniform(0, 2 * np.pi, n)
+    xyz = np.column_stack([r * np.cos(a), r * np.sin(a), rng.uniform(-1.5, 20.0, n)])
+    nret = rng.integers(1, 4, n).astype(np.uint8)
+    attrs = {
+        "intensity": rng.integers(0, 65535, n).astype(np.uint16),
+        "number_of_returns": nret,
+        "return_number": (rng.integers(0, 3, n) % nret + 1).astype(np.uint8),
+        "classification": rng.choice(np.array([1, 2, 5], np.uint8), n),
+        "gps_time": np.sort(rng.uniform(1e5, 1e5 + 600, n)),
+    }
+    if rgb:
+        attrs.update(
+            {c: rng.integers(0, 65535, n).astype(np.uint16) for c in ("red", "green", "blue")}
+        )
+        attrs["label"] = rng.integers(0, 4, n).astype(
+            np.uint8
+        )  # an extra dimension, like the simulator's
+    return PointCloud(xyz, attrs)
+
+
+def merge_site(root: Path) -> Path:
+    """Three TLS scans in scanner frames (scan c has no RGB and no label), one ALS tile in UTM, true poses in the CRS."""
+    rng = np.random.default_rng(7)
+    ids = ["a", "b", "c"]
+    poses = {}
+    for k, sid in enumerate(ids):
+        write_cloud(root / f"{sid}.laz", merge_scan_cloud(rng, MERGE_SCAN_POINTS, rgb=sid != "c"))
+        poses[sid] = ScanPose(merge_scan_pose(rng, k), plot="P1")
+    # the ALS tile as an older LAS 1.2 point format 3 file
+    als = laspy.LasData(laspy.LasHeader(point_format=3, version="1.2"))
+    als.header.scales, als.header.offsets = [0.01] * 3, [470_000, 3_810_000, 0]
+    xyz = rng.uniform([469_980, 3_809_980, 2_095], [470_060, 3_810_060, 2_130], (5_000, 3))
+    als.x, als.y, als.z = xyz.T
+    als.classification = np.full(5_000, 2, np.uint8)
+    als.intensity = rng.integers(0, 4000, 5_000).astype(np.uint16)
+    als.write(root / "als.laz")
+    manifest = Manifest(
+        plots=[
+            Plot(
+                id="P1", crs=MERGE_CRS, scans=[Scan(id=sid, path=Path(f"{sid}.laz")) for sid in ids]
+            )
+        ],
+        als=[AlsTile(path=Path("als.laz"))],
+    )
+    (root / "manifest.toml").write_text(dump_manifest(manifest))
+    Poses(poses, frame="crs", crs=CRS.from_user_input(MERGE_CRS).to_wkt()).save(root / "poses.json")
+    return root
+
+
+def merge_big_site(root: Path) -> Path:
+    """Two scans of 400k points (no ALS): a merge that runs long enough to be interrupted."""
+    rng = np.random.default_rng(5)
+    poses = {}
+    for k, sid in enumerate("ab"):
+        write_cloud(root / f"{sid}.laz", merge_scan_cloud(rng, 400_000, rgb=True))
+        poses[sid] = ScanPose(merge_scan_pose(rng, k), plot="P1")
+    manifest = Manifest(
+        plots=[
+            Plot(
+                id="P1",
+                crs=MERGE_CRS,
+                scans=[Scan(id=sid, path=Path(f"{sid}.laz")) for sid in "ab"],
+            )
+        ]
+    )
+    (root / "manifest.toml").write_text(dump_manifest(manifest))
+    Poses(poses, frame="crs", crs=CRS.from_user_input(MERGE_CRS).to_wkt()).save(root / "poses.json")
+    return root
+
+
+def run_merge(site: Path, out: Path, **options) -> MergeSummary:
+    """merge_scans over a site's manifest and poses, in this process (force: a test reruns it)."""
+    manifest, poses = load_manifest(site / "manifest.toml"), load_poses(site / "poses.json")
+    return merge_scans(manifest, poses, out, MergeConfig(force=True, **options), progress=False)

@@ -1,39 +1,25 @@
 """`plotmosaic merge`: posed scans streamed into one georeferenced LAS 1.4 file."""
 
-import io
 import json
-import os
-import signal
-import subprocess
-import sys
-import time
-from pathlib import Path
 
 import laspy
 import numpy as np
 import pytest
+from builders import MERGE_CRS, MERGE_SCAN_POINTS, merge_site, run_merge
 from helpers import assert_one_line_error, invoke
 from pyproj import CRS
 
 import plotmosaic.stages.merge as merge_module
 from plotmosaic.config.merge import MergeConfig
-from plotmosaic.errors import InputError, interrupts
-from plotmosaic.io import PointCloud, write_cloud
+from plotmosaic.errors import InputError
+from plotmosaic.io import write_cloud
 from plotmosaic.io.frame import apply_transform
-from plotmosaic.io.las import make_header, make_record, read_cloud
-from plotmosaic.manifest import (
-    AlsTile,
-    Manifest,
-    Plot,
-    Scan,
-    dump_manifest,
-    load_manifest,
-)
-from plotmosaic.poses import Poses, ScanPose, load_poses
+from plotmosaic.io.las import read_cloud
+from plotmosaic.manifest import load_manifest
+from plotmosaic.poses import Poses, load_poses
 from plotmosaic.stages.merge import merge_scans, read_source_table
 
-N = 20_000
-UTM = "EPSG:32612"
+N, UTM = MERGE_SCAN_POINTS, MERGE_CRS
 ATTRS = (
     "intensity",
     "return_number",
@@ -47,82 +33,9 @@ ATTRS = (
 )
 
 
-def _pose(rng, k: int) -> np.ndarray:
-    yaw, tilt = rng.uniform(-np.pi, np.pi), rng.normal(0, 0.02, 2)
-    cz, sz = np.cos(yaw), np.sin(yaw)
-    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-    Rx = np.array(
-        [[1, 0, 0], [0, np.cos(tilt[0]), -np.sin(tilt[0])], [0, np.sin(tilt[0]), np.cos(tilt[0])]]
-    )
-    Ry = np.array(
-        [[np.cos(tilt[1]), 0, np.sin(tilt[1])], [0, 1, 0], [-np.sin(tilt[1]), 0, np.cos(tilt[1])]]
-    )
-    T = np.eye(4)
-    T[:3, :3] = Rz @ Ry @ Rx
-    T[:3, 3] = [
-        470_000.0 + 15 * k + rng.uniform(0, 1),
-        3_810_000.0 + 10 * k + rng.uniform(0, 1),
-        2_100.0 + rng.uniform(0, 1),
-    ]
-    return T
-
-
-def _scan_cloud(rng, n: int, rgb: bool) -> PointCloud:
-    r = np.sqrt(rng.uniform(0, 25.0**2, n))
-    a = rng.uniform(0, 2 * np.pi, n)
-    xyz = np.column_stack([r * np.cos(a), r * np.sin(a), rng.uniform(-1.5, 20.0, n)])
-    nret = rng.integers(1, 4, n).astype(np.uint8)
-    attrs = {
-        "intensity": rng.integers(0, 65535, n).astype(np.uint16),
-        "number_of_returns": nret,
-        "return_number": (rng.integers(0, 3, n) % nret + 1).astype(np.uint8),
-        "classification": rng.choice(np.array([1, 2, 5], np.uint8), n),
-        "gps_time": np.sort(rng.uniform(1e5, 1e5 + 600, n)),
-    }
-    if rgb:
-        attrs.update(
-            {c: rng.integers(0, 65535, n).astype(np.uint16) for c in ("red", "green", "blue")}
-        )
-        attrs["label"] = rng.integers(0, 4, n).astype(
-            np.uint8
-        )  # an extra dimension, like the simulator's
-    return PointCloud(xyz, attrs)
-
-
-def make_site(root: Path) -> Path:
-    """Three TLS scans in scanner frames (scan c has no RGB and no label), one ALS tile in UTM, true poses in the CRS."""
-    rng = np.random.default_rng(7)
-    ids = ["a", "b", "c"]
-    poses = {}
-    for k, sid in enumerate(ids):
-        write_cloud(root / f"{sid}.laz", _scan_cloud(rng, N, rgb=sid != "c"))
-        poses[sid] = ScanPose(_pose(rng, k), plot="P1")
-    # the ALS tile as an older LAS 1.2 point format 3 file
-    als = laspy.LasData(laspy.LasHeader(point_format=3, version="1.2"))
-    als.header.scales, als.header.offsets = [0.01] * 3, [470_000, 3_810_000, 0]
-    xyz = rng.uniform([469_980, 3_809_980, 2_095], [470_060, 3_810_060, 2_130], (5_000, 3))
-    als.x, als.y, als.z = xyz.T
-    als.classification = np.full(5_000, 2, np.uint8)
-    als.intensity = rng.integers(0, 4000, 5_000).astype(np.uint16)
-    als.write(root / "als.laz")
-    manifest = Manifest(
-        plots=[
-            Plot(id="P1", crs=UTM, scans=[Scan(id=sid, path=Path(f"{sid}.laz")) for sid in ids])
-        ],
-        als=[AlsTile(path=Path("als.laz"))],
-    )
-    (root / "manifest.toml").write_text(dump_manifest(manifest))
-    Poses(poses, frame="crs", crs=CRS.from_user_input(UTM).to_wkt()).save(root / "poses.json")
-    return root
-
-
 @pytest.fixture(scope="module")
 def site(tmp_path_factory):
-    return make_site(tmp_path_factory.mktemp("merge_site"))
-
-
-def _inputs(site):
-    return load_manifest(site / "manifest.toml"), load_poses(site / "poses.json")
+    return merge_site(tmp_path_factory.mktemp("merge_site"))
 
 
 def _expected(site, ids=("a", "b", "c")):
@@ -171,21 +84,16 @@ def test_merge_equals_posed_inputs(site, tmp_path):
     assert np.allclose(side["bounds"]["min"], xyz.min(axis=0), atol=0.001)
 
 
-def _merge(site, out, **options):
-    manifest, poses = _inputs(site)
-    return merge_scans(manifest, poses, out, MergeConfig(force=True, **options), progress=False)
-
-
 def _read(path):
     las = laspy.read(path)
     return np.column_stack([las.X, las.Y, las.Z]), np.asarray(las.point_source_id), las.header
 
 
 def test_voxel_thinning_is_deterministic_and_one_point_per_voxel(site, tmp_path):
-    full, full_ids, header = _read(_merge(site, tmp_path / "full.laz").out)
+    full, full_ids, header = _read(run_merge(site, tmp_path / "full.laz").out)
     step = 2000  # 2 m in mm units
     runs = [
-        _read(_merge(site, tmp_path / f"v{c}.laz", voxel=2.0, chunk_size=c).out)
+        _read(run_merge(site, tmp_path / f"v{c}.laz", voxel=2.0, chunk_size=c).out)
         for c in (3_000, 7_777, 1_000_000)
     ]
     ints, ids, h = runs[0]
@@ -204,11 +112,11 @@ def test_voxel_thinning_is_deterministic_and_one_point_per_voxel(site, tmp_path)
 
 
 def test_bbox_crop_and_als(site, tmp_path):
-    full = laspy.read(_merge(site, tmp_path / "full.laz").out)
+    full = laspy.read(run_merge(site, tmp_path / "full.laz").out)
     fullxyz = np.column_stack([full.x, full.y, full.z])
     bbox = (470_000.0, 3_810_000.0, 470_025.0, 3_810_030.0, 2_095.0, 2_110.0)
     lo, hi = np.array([bbox[0], bbox[1], bbox[4]]), np.array([bbox[2], bbox[3], bbox[5]])
-    summary = _merge(site, tmp_path / "crop.laz", bbox=bbox)
+    summary = run_merge(site, tmp_path / "crop.laz", bbox=bbox)
     inside = np.all(
         (fullxyz >= lo) & (fullxyz <= hi), axis=1
     )  # the crop applies to the written coordinates
@@ -217,7 +125,7 @@ def test_bbox_crop_and_als(site, tmp_path):
     assert np.array_equal(np.column_stack([las.x, las.y, las.z]), fullxyz[inside])
     assert np.array_equal(las.point_source_id, full.point_source_id[inside])
 
-    summary = _merge(site, tmp_path / "als.laz", include_als=True)
+    summary = run_merge(site, tmp_path / "als.laz", include_als=True)
     las = laspy.read(summary.out)
     als = read_cloud(site / "als.laz")
     part = las.point_source_id == 3  # ALS after the three scans
@@ -230,7 +138,7 @@ def test_bbox_crop_and_als(site, tmp_path):
 @pytest.mark.parametrize("error", [RuntimeError, KeyboardInterrupt])
 def test_failure_mid_write_leaves_earlier_output(site, tmp_path, monkeypatch, error):
     out = tmp_path / "merged.laz"
-    _merge(site, out)
+    run_merge(site, out)
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
     real, calls = merge_module.write_chunk, []
 
@@ -242,7 +150,7 @@ def test_failure_mid_write_leaves_earlier_output(site, tmp_path, monkeypatch, er
 
     monkeypatch.setattr(merge_module, "write_chunk", failing)
     with pytest.raises(error):
-        _merge(site, out, chunk_size=5_000)
+        run_merge(site, out, chunk_size=5_000)
     assert len(calls) == 2
     assert {
         p.name: p.read_bytes() for p in tmp_path.iterdir()
@@ -251,7 +159,7 @@ def test_failure_mid_write_leaves_earlier_output(site, tmp_path, monkeypatch, er
     fresh = tmp_path / "fresh" / "new.laz"
     calls.clear()
     with pytest.raises(error):
-        _merge(site, fresh, chunk_size=5_000)
+        run_merge(site, fresh, chunk_size=5_000)
     assert list(fresh.parent.iterdir()) == []
 
 
@@ -354,262 +262,3 @@ def test_als_tile_in_another_crs_is_refused(site, tmp_path):
             manifest, poses, tmp_path / "m.laz", MergeConfig(include_als=True), progress=False
         )
     assert not (tmp_path / "m.laz").exists()
-
-
-# ---------------------------------------------------------------- tiles
-
-
-def _first_per_voxel(ints: np.ndarray, step: int) -> np.ndarray:
-    """Reference: indices of the first point (in stream order) of each voxel of the whole cloud."""
-    _, first = np.unique(ints // step, axis=0, return_index=True)
-    return np.sort(first)
-
-
-def _rows(las) -> np.ndarray:
-    """Every point as one sortable row (coordinates, source, time): compares clouds as sets."""
-    rows = np.column_stack(
-        [las.X, las.Y, las.Z, las.point_source_id, np.asarray(las.gps_time).view(np.int64)]
-    )
-    return rows[np.lexsort(rows.T[::-1])]
-
-
-def test_first_in_voxel_packed_and_wide_paths_agree():
-    rng = np.random.default_rng(3)
-    ijk = rng.integers(0, 40, (5_000, 3))
-    want = np.sort(np.unique(ijk, axis=0, return_index=True)[1])
-    assert np.array_equal(merge_module.first_in_voxel(ijk), want)
-    wide = ijk.copy()
-    wide[wide[:, 0] == 7, 2] += (
-        1 << 62
-    )  # span too wide to pack: the lexsort path must give the same choice
-    assert np.array_equal(
-        merge_module.first_in_voxel(wide), np.sort(np.unique(wide, axis=0, return_index=True)[1])
-    )
-
-
-def test_tiled_thinning_equals_whole_cloud_thinning(site, tmp_path, monkeypatch):
-    full = laspy.read(_merge(site, tmp_path / "full.laz").out)
-    ints = np.column_stack([full.X, full.Y, full.Z])
-    step = 300  # 0.3 m
-    want = _first_per_voxel(ints, step)
-    one_tile = laspy.read(
-        _merge(site, tmp_path / "one.laz", voxel=0.3).out
-    )  # fits the default budget
-    assert np.array_equal(
-        np.column_stack([one_tile.X, one_tile.Y, one_tile.Z]), ints[want]
-    )  # stream order
-    assert np.array_equal(one_tile.point_source_id, full.point_source_id[want])
-
-    sub = laspy.ScaleAwarePointRecord(
-        full.points.array[want], full.header.point_format, full.header.scales, full.header.offsets
-    )
-    real_split, splits = merge_module._split, []
-    monkeypatch.setattr(merge_module, "_split", lambda *a: splits.append(1) or real_split(*a))
-    for name in (
-        "grid",
-        "cut",
-    ):  # many tiles from the start; one tile cut again and again to fit the budget
-        if name == "cut":
-            monkeypatch.setattr(merge_module, "auto_tile_edge", lambda *a: 1 << 40)
-        summary = _merge(
-            site, tmp_path / f"{name}.laz", voxel=0.3, tile_memory_mb=1, chunk_size=7_777
-        )  # ~7k points a tile
-        tiled = laspy.read(summary.out)
-        assert np.array_equal(
-            _rows(tiled), _rows(laspy.LasData(full.header, sub))
-        )  # the same winners, tile by tile
-        assert summary.points_out == len(want) == len(tiled.points)
-        assert [s.points_out for s in summary.sources] == list(
-            np.bincount(full.point_source_id[want], minlength=3)[:3]
-        )
-    assert len(splits) > 3  # the budget forced the single tile to be cut
-    assert not [p for p in tmp_path.iterdir() if ".tmp-" in p.name]  # spill folder removed
-
-
-def test_tiled_output_covers_every_point_once(site, tmp_path):
-    full = laspy.read(_merge(site, tmp_path / "full.laz").out)
-    result = _run(
-        site / "manifest.toml",
-        "--poses",
-        site / "poses.json",
-        "--out",
-        tmp_path / "tiles",
-        "--tiles",
-        "--tile-size",
-        "10",
-    )
-    assert result.exit_code == 0, result.output
-    index = json.loads((tmp_path / "tiles" / "index.json").read_text())
-    files = sorted(p.name for p in (tmp_path / "tiles").glob("*.laz"))
-    assert files == sorted(t["file"] for t in index["tiles"]) and len(files) > 4
-    parts = []
-    for tile in index["tiles"]:
-        las = laspy.read(tmp_path / "tiles" / tile["file"])
-        assert tile["file"] == f"tile_{tile['origin'][0]:.0f}_{tile['origin'][1]:.0f}.laz" and tile[
-            "points"
-        ] == len(las.points)
-        assert np.all(
-            (las.x >= tile["origin"][0]) & (las.x < tile["origin"][0] + 10)
-        )  # each point in its own tile
-        assert np.all((las.y >= tile["origin"][1]) & (las.y < tile["origin"][1] + 10))
-        assert (
-            las.header.parse_crs() is not None
-            and read_source_table(tmp_path / "tiles" / tile["file"])[0]["id"] == "a"
-        )
-        parts.append(np.asarray(las.points.array))
-    merged = laspy.ScaleAwarePointRecord(
-        np.concatenate(parts), full.header.point_format, full.header.scales, full.header.offsets
-    )
-    assert np.array_equal(
-        _rows(laspy.LasData(full.header, merged)), _rows(full)
-    )  # every point exactly once
-    assert index["points_out"] == 3 * N and [s["points_out"] for s in index["sources"]] == [N, N, N]
-
-    # with thinning, the tiles together are the whole-cloud thinning; --force replaces the folder
-    result = _run(
-        site / "manifest.toml",
-        "--poses",
-        site / "poses.json",
-        "--out",
-        tmp_path / "tiles",
-        "--tiles",
-        "--tile-size",
-        "10",
-        "--voxel",
-        "0.5",
-        "--force",
-    )
-    assert result.exit_code == 0, result.output
-    kept = sum(len(laspy.read(p).points) for p in (tmp_path / "tiles").glob("*.laz"))
-    assert kept == len(_first_per_voxel(np.column_stack([full.X, full.Y, full.Z]), 500))
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["full.laz", "full.laz.json", "tiles"]
-
-
-def test_tile_options_are_checked(site, tmp_path):
-    base = [site / "manifest.toml", "--poses", site / "poses.json", "--tiles"]
-    _one_line_error(
-        _run(*base, "--out", tmp_path / "t", "--tile-size", "10", "--voxel", "0.3"),
-        "--tile-size 10",
-        "--voxel 0.3",
-    )
-    _one_line_error(_run(*base, "--out", tmp_path / "t", "--tile-size", "0"), "--tile-size")
-    _one_line_error(_run(*base, "--out", tmp_path / "t", "--memory-mb", "0"), "--memory-mb")
-    (tmp_path / "mine").mkdir()
-    (tmp_path / "mine" / "notes.txt").write_text("keep")
-    _one_line_error(_run(*base, "--out", tmp_path / "mine", "--force"), "mine", "not a tile folder")
-    assert (tmp_path / "mine" / "notes.txt").read_text() == "keep" and not (tmp_path / "t").exists()
-
-
-# ---------------------------------------------------------------- interrupts
-
-
-class _RingingFile(io.BytesIO):
-    """A file that receives SIGINT while the LAZ codec writes compressed points into it."""
-
-    def write(self, data):
-        if len(data) > 1000 and not getattr(self, "rang", False):
-            self.rang = True
-            os.kill(os.getpid(), signal.SIGINT)
-        return super().write(data)
-
-
-def _write_laz(target) -> None:
-    header = make_header(["intensity"])
-    record = make_record(header, np.random.default_rng(0).uniform(0, 10, (200_000, 3)), {})
-    with laspy.open(target, mode="w", header=header, do_compress=True, closefd=False) as writer:
-        writer.write_points(record)
-        writer.write_points(record)
-
-
-def test_interrupt_inside_the_laz_codec_is_an_interrupt():
-    # Python's own Ctrl-C handler, in case an earlier test left another installed: a full-suite run
-    # once saw SIGINT not raise here (cause not reproduced), and lazrs then had nothing to report
-    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
-    try:
-        with pytest.raises(
-            Exception, match="Failed to call write"
-        ):  # what lazrs makes of a Ctrl-C on its own
-            _write_laz(_RingingFile())
-    finally:
-        signal.signal(signal.SIGINT, previous)
-    with pytest.raises(KeyboardInterrupt), interrupts.installed():
-        _write_laz(_RingingFile())
-
-
-@pytest.fixture(scope="module")
-def big_site(tmp_path_factory):
-    root = tmp_path_factory.mktemp("merge_big")
-    rng = np.random.default_rng(5)
-    poses = {}
-    for k, sid in enumerate("ab"):
-        write_cloud(root / f"{sid}.laz", _scan_cloud(rng, 400_000, rgb=True))
-        poses[sid] = ScanPose(_pose(rng, k), plot="P1")
-    manifest = Manifest(
-        plots=[
-            Plot(id="P1", crs=UTM, scans=[Scan(id=sid, path=Path(f"{sid}.laz")) for sid in "ab"])
-        ]
-    )
-    (root / "manifest.toml").write_text(dump_manifest(manifest))
-    Poses(poses, frame="crs", crs=CRS.from_user_input(UTM).to_wkt()).save(root / "poses.json")
-    return root
-
-
-def _bytes_in(path) -> int:
-    """Bytes written so far to a temporary file, or to the files of a temporary folder (0 if gone)."""
-    try:
-        files = list(path.iterdir()) if path.is_dir() else [path]
-        return sum(f.stat().st_size for f in files)
-    except FileNotFoundError:  # removed between listing and reading: the merge moved on
-        return 0
-
-
-@pytest.mark.parametrize(
-    "options, temporary, sig",
-    [
-        ([], ".m.laz.tmp-", signal.SIGINT),
-        (["--voxel", "0.01"], ".m.laz.spill.tmp-", signal.SIGINT),
-        ([], ".m.laz.tmp-", signal.SIGTERM),  # a killed batch job
-    ],
-)
-def test_interrupt_mid_merge_exits_130_and_leaves_nothing(
-    big_site, tmp_path, options, temporary, sig
-):
-    out = tmp_path / "out"
-    out.mkdir()
-    cmd = [
-        sys.executable,
-        "-m",
-        "plotmosaic",
-        "merge",
-        big_site / "manifest.toml",
-        "--poses",
-        big_site / "poses.json",
-        "--out",
-        out / "m.laz",
-    ]
-    proc = subprocess.Popen(
-        [str(c) for c in [*cmd, *options]],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    deadline = time.monotonic() + 60
-    while not any(temporary in p.name and _bytes_in(p) > 0 for p in out.iterdir()):
-        assert proc.poll() is None and time.monotonic() < deadline, (  # poll until it writes
-            proc.stderr.read() if proc.poll() is not None else "timeout"
-        )
-        time.sleep(0.005)
-    proc.send_signal(sig)
-    _, err = proc.communicate(timeout=60)
-    assert proc.returncode == 130, err
-    assert err.strip() == "interrupted"
-    assert list(out.iterdir()) == []  # no output, no temporaries
-
-
-def test_stable_order_packed_and_fallback_agree():
-    keys = np.random.default_rng(1).integers(0, 50, 10_000)
-    want = np.argsort(keys, kind="stable")
-    assert np.array_equal(merge_module.stable_order(keys, 6), want)
-    assert np.array_equal(
-        merge_module.stable_order(keys, 60), want
-    )  # too wide to pack with the index
