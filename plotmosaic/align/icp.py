@@ -172,25 +172,12 @@ def point_to_plane_icp(
                 ok, a, b, n = ok[seen], a[seen], b[seen], n[seen]
             if mirror is not None:
                 a, b, n = mirror.stacked(T, st.max_distance, a, b, n, views)
-            r = np.einsum("ij,ij->i", n, a - b)
-            wgt = np.where(np.abs(r) < k, (1 - (r / k) ** 2) ** 2, 0.0)  # Tukey
-            # residual as a function of a left perturbation about the moved centroid
-            c = T[:3, :3] @ centre + T[:3, 3]
-            J = np.hstack([np.cross(a - c, n) / scale, n])
-            Jw = J * wgt[:, None]
-            H, g = Jw.T @ J, Jw.T @ r
-            vals, vecs = np.linalg.eigh(H)
-            keep = vals > max(min_eig_ratio, 1e-9) * vals[-1]
-            step = -(vecs[:, keep] @ ((vecs[:, keep].T @ g) / vals[keep]))
-            step[:3] /= scale
-            Tc = np.eye(4)
-            Tc[:3, 3] = c
-            T = Tc @ _exp_se3(step) @ np.linalg.inv(Tc) @ T
+            T, step, rank = _gauss_newton_step(T, a, b, n, centre, scale, k, min_eig_ratio)
             result = IcpResult(
                 T,
                 float(len(ok) / len(source)),
                 float(np.sqrt(np.mean(d[ok] ** 2))),
-                int(keep.sum()),
+                rank,
                 ok,
                 j[ok],
                 iterations,
@@ -198,3 +185,31 @@ def point_to_plane_icp(
             if np.linalg.norm(step[:3]) * scale + np.linalg.norm(step[3:]) < tol:
                 break
     return result
+
+
+def _gauss_newton_step(
+    T: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
+    n: np.ndarray,
+    centre: np.ndarray,
+    scale: float,
+    k: float,
+    min_eig_ratio: float,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """One Tukey-weighted point-to-plane step from T (moved source `a` on target planes (b, n)):
+    (the new T, the step, how many directions it moved along)."""
+    r = np.einsum("ij,ij->i", n, a - b)
+    wgt = np.where(np.abs(r) < k, (1 - (r / k) ** 2) ** 2, 0.0)  # Tukey
+    # residual as a function of a left perturbation about the moved centroid
+    c = T[:3, :3] @ centre + T[:3, 3]
+    J = np.hstack([np.cross(a - c, n) / scale, n])
+    Jw = J * wgt[:, None]
+    H, g = Jw.T @ J, Jw.T @ r
+    vals, vecs = np.linalg.eigh(H)
+    keep = vals > max(min_eig_ratio, 1e-9) * vals[-1]
+    step = -(vecs[:, keep] @ ((vecs[:, keep].T @ g) / vals[keep]))
+    step[:3] /= scale
+    Tc = np.eye(4)
+    Tc[:3, 3] = c
+    return Tc @ _exp_se3(step) @ np.linalg.inv(Tc) @ T, step, int(keep.sum())

@@ -70,6 +70,9 @@ def prepare_cloud(
     seed: int = 0,
     name: str = "cloud",
 ) -> PreparedCloud:
+    """The cloud in its local frame: delta0 grid and its KD-tree, the final ICP's source sample, the
+    labelled level sample with its normals and shape features, and the scanner where it is known.
+    Every random draw comes from `seed`, in a fixed order."""
     t0 = time.perf_counter()
     if len(cloud) < MIN_POINTS:
         raise InputError(
@@ -82,6 +85,58 @@ def prepare_cloud(
         cloud.xyz, getattr(config, "stray", None) or StrayConfig(), name
     )
     frame = Frame.of_bounds(bounds)
+    points, fine_points = _grids(xyz, frame, bounds, config, rng, name)
+    tree = cKDTree(
+        points, balanced_tree=False, compact_nodes=False
+    )  # half the build time; points are in cube order
+    t1 = time.perf_counter()
+    lvs = _level_sample(points, tree, kind, config, rng)
+    t2 = time.perf_counter()
+    # the mixture is fitted at the delta0 cloud's density, as in the paper (each sample point weighs
+    # as many delta0 points as share its cube): on the even sample, far canopy fills most cubes and
+    # the components split foliage while ground (3 % of the cubes of a dense scan) gets none
+    lv = fit_levels(
+        lvs.normals,
+        lvs.features,
+        levels,
+        config.complexity,
+        config.vmf,
+        seed,
+        valid=lvs.counts >= 3,
+        weights=lvs.cube_sizes,
+    )
+    t3 = time.perf_counter()
+    # last of the seeded draws, so the samples above are the same whether a kind has a viewpoint or not
+    view = scanner_viewpoint(xyz, kind, config.viewpoint, rng)
+    return PreparedCloud(
+        frame=frame,
+        kind=kind,
+        points=points,
+        tree=tree,
+        level_points=lvs.points,
+        normals=lvs.normals,
+        features=lvs.features,
+        levels=lv.labels,
+        level_stats=lv.stats,
+        fine_points=fine_points,
+        target_normals=LazyNormals(points, tree, lvs.radius, config.normal_max_nn, lvs.stems),
+        normal_radius=lvs.radius,
+        input_points=len(cloud),
+        seconds={"voxel": t1 - t0, "normals": t2 - t1, "levels": t3 - t2},
+        stray_points=strays,
+        viewpoint=None if view is None else frame.to_local(view),
+    )
+
+
+def _grids(
+    xyz: np.ndarray,
+    frame: Frame,
+    bounds: np.ndarray,
+    config: AlignConfig,
+    rng: np.random.Generator,
+    name: str,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(delta0 voxel centroids in cube order, the final ICP's source sample), local coordinates."""
     grid = voxelize(
         xyz, config.voxel, frame.offset, bounds
     )  # local coordinates, no shifted copy of 8M points
@@ -94,13 +149,27 @@ def prepare_cloud(
     # whole cloud's delta grid without building that grid over all (8M) input points
     cubes = sample(len(points), config.final_max_source_points, rng)
     fine = voxel_centroids(frame.to_local(xyz[grid.members(cubes)]), config.final_voxel)
-    fine_points = fine[sample(len(fine), config.final_max_source_points, rng)]
-    del grid, fine
-    tree = cKDTree(
-        points, balanced_tree=False, compact_nodes=False
-    )  # half the build time; points are in cube order
-    t1 = time.perf_counter()
-    # levels on a sample that evens out the 1/r^2 density of TLS around the scanner
+    return points, fine[sample(len(fine), config.final_max_source_points, rng)]
+
+
+@dataclass(frozen=True, eq=False)
+class _LevelSample:
+    """The even sample the levels are fitted on, with its normals and shape features."""
+
+    points: np.ndarray
+    cube_sizes: np.ndarray  # delta0 points in each sample point's level cube
+    normals: np.ndarray
+    features: np.ndarray
+    counts: np.ndarray  # neighbours behind each normal
+    radius: float  # normal radius (wider for a sparse cloud)
+    stems: object  # circle-normal settings for a sparse ground scan's stems, or None
+
+
+def _level_sample(
+    points: np.ndarray, tree: cKDTree, kind: str, config: AlignConfig, rng: np.random.Generator
+) -> _LevelSample:
+    """The level sample: one point per level cube (evens out TLS's 1/r^2 density around the scanner),
+    its normals over a radius widened for a sparse cloud."""
     keep, cube_sizes = thin_with_counts(points, config.level_cell)
     chosen = sample(len(keep), config.level_max_points, rng)
     level_points, cube_sizes = points[keep[chosen]], cube_sizes[chosen]
@@ -120,41 +189,7 @@ def prepare_cloud(
     normals, features, counts = level_shape(
         support, support_tree, level_points, radius, config.level_max_nn
     )
-    t2 = time.perf_counter()
-    # the mixture is fitted at the delta0 cloud's density, as in the paper (each sample point weighs
-    # as many delta0 points as share its cube): on the even sample, far canopy fills most cubes and
-    # the components split foliage while ground (3 % of the cubes of a dense scan) gets none
-    lv = fit_levels(
-        normals,
-        features,
-        levels,
-        config.complexity,
-        config.vmf,
-        seed,
-        valid=counts >= 3,
-        weights=cube_sizes,
-    )
-    t3 = time.perf_counter()
-    # last of the seeded draws, so the samples above are the same whether a kind has a viewpoint or not
-    view = scanner_viewpoint(xyz, kind, config.viewpoint, rng)
-    return PreparedCloud(
-        frame=frame,
-        kind=kind,
-        points=points,
-        tree=tree,
-        level_points=level_points,
-        normals=normals,
-        features=features,
-        levels=lv.labels,
-        level_stats=lv.stats,
-        fine_points=fine_points,
-        target_normals=LazyNormals(points, tree, radius, config.normal_max_nn, stems),
-        normal_radius=radius,
-        input_points=len(cloud),
-        seconds={"voxel": t1 - t0, "normals": t2 - t1, "levels": t3 - t2},
-        stray_points=strays,
-        viewpoint=None if view is None else frame.to_local(view),
-    )
+    return _LevelSample(level_points, cube_sizes, normals, features, counts, radius, stems)
 
 
 def robust_points(

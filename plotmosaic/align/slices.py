@@ -58,48 +58,95 @@ def slice_search(
         k = np.searchsorted(edges, hag, side="right") - 1
         return np.where((k >= 0) & (k < n_layers), k, -1)
 
-    lay_s, lay_t = layers(src_hag), layers(tgt_hag)
     sxy, txy = src_points[:, :2], tgt_points[:, :2]
     centre = sxy.mean(axis=0)
     radius = float(np.linalg.norm(sxy - centre, axis=1).max())
-    cell = config.slice_cell
-    while True:
-        t_min = txy.min(axis=0) - cell
-        t_shape = tuple(np.ceil((txy.max(axis=0) + cell - t_min) / cell).astype(int) + 1)
-        s_side = int(np.ceil(2 * (radius + cell) / cell)) + 1
-        shape = tuple(fft.next_fast_len(t + s_side, real=True) for t in t_shape)
-        if max(shape) <= config.slice_max_fft:
-            break
-        cell *= config.cell_growth
-    s_origin = centre - radius - cell
-    T, t_seen = _images(txy, lay_t, n_layers, t_min, t_shape, cell)
+    search = _Correlation(
+        sxy - centre, layers(src_hag), txy, layers(tgt_hag), n_layers, centre, radius, config
+    )
+    yaws = [float(y) for y in np.arange(0.0, 2 * np.pi, np.radians(config.slice_yaw_deg))]
+    candidates = sorted(
+        (c for found in in_two_threads(search.peaks, yaws) for c in found),
+        key=lambda c: -c["score"],
+    )
+    return distinct_peaks(
+        candidates,
+        config.slice_distinct_yaw_deg,
+        config.slice_distinct_m,
+        config.slice_hypotheses,
+        centre=centre,
+        cell=search.cell,
+    )
 
-    def f(a):
-        return fft.rfft2(
-            a, s=shape, axes=(-2, -1), workers=1
-        )  # headings run in two threads instead
 
-    FT, FT_seen, FT_any = f(T), f(t_seen), f(T.sum(axis=0))
-    rel = sxy - centre
-    min_cells = config.slice_min_cells
-    r_sup = max(1, int(round(config.slice_suppression_m / cell)))
+class _Correlation:
+    """The target's slice images on a grid fine enough and no larger than `slice_max_fft`, their
+    transforms, and the best shifts of the source turned to a heading (`peaks`)."""
 
-    def to_t(k) -> np.ndarray:
+    def __init__(
+        self,
+        rel: np.ndarray,
+        lay_s: np.ndarray,
+        txy: np.ndarray,
+        lay_t: np.ndarray,
+        n_layers: int,
+        centre: np.ndarray,
+        radius: float,
+        config: CoarseConfig,
+    ) -> None:
+        cell = config.slice_cell
+        while True:
+            t_min = txy.min(axis=0) - cell
+            t_shape = tuple(np.ceil((txy.max(axis=0) + cell - t_min) / cell).astype(int) + 1)
+            s_side = int(np.ceil(2 * (radius + cell) / cell)) + 1
+            shape = tuple(fft.next_fast_len(t + s_side, real=True) for t in t_shape)
+            if max(shape) <= config.slice_max_fft:
+                break
+            cell *= config.cell_growth
+        self.rel, self.lay_s, self.n_layers, self.centre = rel, lay_s, n_layers, centre
+        self.cell, self.t_min, self.s_side, self.shape = cell, t_min, s_side, shape
+        self.s_origin = centre - radius - cell
+        self.config = config
+        T, t_seen = _images(txy, lay_t, n_layers, t_min, t_shape, cell)
+        self.FT, self.FT_seen, self.FT_any = self._f(T), self._f(t_seen), self._f(T.sum(axis=0))
+        self.r_sup = max(1, int(round(config.slice_suppression_m / cell)))
+
+    def _f(self, a):
+        # headings run in two threads instead of the FFT's own workers
+        return fft.rfft2(a, s=self.shape, axes=(-2, -1), workers=1)
+
+    def _to_t(self, k) -> np.ndarray:
+        shape = self.shape
         s = np.array([k[i] if k[i] < shape[i] // 2 else k[i] - shape[i] for i in range(2)])
-        return t_min - s_origin + s * cell
+        return self.t_min - self.s_origin + s * self.cell
 
-    def peaks(yaw: float) -> list[dict]:
+    def peaks(self, yaw: float) -> list[dict]:
+        """The best `slice_peaks_per_yaw` shifts of the source turned by `yaw`, each suppressing
+        its neighbourhood."""
+        config, rel, shape = self.config, self.rel, self.shape
+        min_cells = config.slice_min_cells
         c, s_ = np.cos(yaw), np.sin(yaw)
         xy = np.column_stack([c * rel[:, 0] - s_ * rel[:, 1], s_ * rel[:, 0] + c * rel[:, 1]])
-        S, s_seen = _images(xy + centre, lay_s, n_layers, s_origin, (s_side, s_side), cell)
+        S, s_seen = _images(
+            xy + self.centre,
+            self.lay_s,
+            self.n_layers,
+            self.s_origin,
+            (self.s_side, self.s_side),
+            self.cell,
+        )
         total = float(S.sum())
         if total < min_cells:
             return []
-        FS = np.conj(f(S))
+        FS = np.conj(self._f(S))
         # sum_x a(x) b(x + t) for every shift t is irfft(conj(A) B) (padded: no wrap-around)
         hits, n_s, n_t = fft.irfft2(
             np.stack(
-                [(FS * FT).sum(axis=0), FS.sum(axis=0) * FT_seen, np.conj(f(s_seen)) * FT_any]
+                [
+                    (FS * self.FT).sum(axis=0),
+                    FS.sum(axis=0) * self.FT_seen,
+                    np.conj(self._f(s_seen)) * self.FT_any,
+                ]
             ),
             s=shape,
             axes=(-2, -1),
@@ -114,6 +161,7 @@ def slice_search(
                 0.0,
             )
         found = []
+        r_sup = self.r_sup
         for _ in range(config.slice_peaks_per_yaw):
             k = np.unravel_index(int(np.argmax(score)), score.shape)
             if score[k] <= 0:
@@ -122,7 +170,7 @@ def slice_search(
                 {
                     "score": float(score[k]),
                     "yaw": yaw,
-                    "t_xy": to_t(k),
+                    "t_xy": self._to_t(k),
                     "overlap": float(min(n_s[k] / total, 1.0)),
                 }
             )
@@ -130,16 +178,3 @@ def slice_search(
             cols = np.arange(k[1] - r_sup, k[1] + r_sup + 1) % shape[1]
             score[np.ix_(rows, cols)] = -1.0
         return found
-
-    yaws = [float(y) for y in np.arange(0.0, 2 * np.pi, np.radians(config.slice_yaw_deg))]
-    candidates = sorted(
-        (c for found in in_two_threads(peaks, yaws) for c in found), key=lambda c: -c["score"]
-    )
-    return distinct_peaks(
-        candidates,
-        config.slice_distinct_yaw_deg,
-        config.slice_distinct_m,
-        config.slice_hypotheses,
-        centre=centre,
-        cell=cell,
-    )

@@ -1,0 +1,203 @@
+"""The coarse stage's order of work: level both clouds, generate starts under the first vertical
+pair, verify; the other vertical pairs and the slice search only when that pose has not settled."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from plotmosaic.align.coarse import verify as verification
+from plotmosaic.align.coarse.clouds import AIRBORNE, CoarseCloud, remembered, vertical_pairs
+from plotmosaic.align.coarse.fpfh import fpfh_matches, fpfh_starts
+from plotmosaic.align.coarse.raster import raster_starts, weights
+from plotmosaic.align.coarse.slices import slice_starts
+from plotmosaic.align.coarse.stems import stem_starts
+from plotmosaic.align.coarse.verify import GENERATORS, Verifier, unique_starts
+from plotmosaic.align.memo import PairMemo
+from plotmosaic.config.coarse import CoarseConfig
+from plotmosaic.parallel import both
+
+
+@dataclass
+class CoarseResult:
+    transform: np.ndarray  # 4x4, source local frame -> target local frame
+    confidence: float
+    hypotheses: list[dict] = field(default_factory=list)
+    seconds: float = 0.0
+    levelling: dict = field(default_factory=dict)
+    timing: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {
+            "transform": np.asarray(self.transform).tolist(),
+            "confidence": self.confidence,
+            "seconds": self.seconds,
+            "levelling": self.levelling,
+            "timing": self.timing,
+            "hypotheses": self.hypotheses,
+        }
+
+
+def _clock(timing: dict, name: str, t: float) -> None:
+    timing[name] = timing.get(name, 0.0) + time.perf_counter() - t
+
+
+class _Generators:
+    """The generators under some vertical pairs, each timed into `timing`; the FPFH matches (which
+    need no vertical) computed once."""
+
+    def __init__(
+        self,
+        src: CoarseCloud,
+        tgt: CoarseCloud,
+        weights: dict[str, float],
+        config: CoarseConfig,
+        prior: np.ndarray | None,
+        rng: np.random.Generator,
+        timing: dict,
+    ) -> None:
+        self.src, self.tgt, self.weights, self.config = src, tgt, weights, config
+        self.prior, self.rng, self.timing = prior, rng, timing
+        self.matches = None
+
+    def __call__(self, first: int, chosen) -> tuple[list[tuple], float | None]:
+        """(starts, raster cell) under the vertical pairs `chosen`, the first of which is pair `first`."""
+        src, tgt, config, timing = self.src, self.tgt, self.config, self.timing
+        t = time.perf_counter()
+        out, cell = raster_starts(src, tgt, chosen, self.weights, config, self.prior, first)
+        _clock(timing, "search", t)
+        if config.fpfh:
+            t = time.perf_counter()
+            if self.matches is None:
+                self.matches = fpfh_matches(src, tgt, config)
+            own = chosen[: max(0, config.fpfh_vertical_pairs - first)]
+            out += fpfh_starts(self.matches, own, config, self.rng, six_dof=first == 0)
+            _clock(timing, "fpfh", t)
+        if config.stems:
+            t = time.perf_counter()
+            out += stem_starts(src, tgt, chosen, config, self.rng)
+            _clock(timing, "stems", t)
+        return out, cell
+
+
+def coarse_align(
+    source,
+    target,
+    config: CoarseConfig | None = None,
+    seed: int = 0,
+    prior: np.ndarray | None = None,
+    memo: PairMemo | None = None,
+) -> CoarseResult:
+    """Global alignment of two prepared clouds (anything with local `points` and a `kind`).
+
+    Hypotheses come from three generators (forest rasters, FPFH matches, stem maps) under every
+    vertical hypothesis, and all go through one verification. `prior` (source local -> target
+    local, e.g. from --init): the raster search looks around it instead of everywhere, and the prior
+    itself is verified beside the hypotheses found, so a start that is already right stays.
+
+    The first vertical pair is searched and verified first; the other pairs only when its best pose
+    is not already settled (`verify.settled`): clearly ahead of its distinct rivals, fitting well and
+    found by two generators independently. Its rivals stay in the hypotheses for the judge.
+    `memo`: the pair's, where each cloud's levelled sample is kept.
+    """
+    config = config or CoarseConfig()
+    memo = memo or PairMemo()
+    start = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    src, tgt = _coarse_clouds(source, target, config, seed, memo)
+    pairs = vertical_pairs(src, tgt, config)
+    timing = {"levelling": time.perf_counter() - start}
+    prior = None if prior is None else np.asarray(prior, dtype=float)
+    airborne = source.kind in AIRBORNE or target.kind in AIRBORNE
+    verify = Verifier(src, tgt, airborne, config, rng)
+    # generators draw from their own stream: adding one changes no other
+    generate = _Generators(
+        src,
+        tgt,
+        weights(source.kind, target.kind, config),
+        config,
+        prior,
+        np.random.default_rng([seed, 1]),
+        timing,
+    )
+    starts, cell = generate(0, pairs[:1])
+    if prior is not None:
+        starts.append(
+            (prior, {"generator": "prior", "vertical": "prior", "prior": True})
+        )  # never merged away
+    starts = unique_starts(starts, config)
+    settled = False
+    if config.settle_early and len(pairs) > 1:
+        t = time.perf_counter()
+        # refined only when two generators' screened poses already agree: otherwise it cannot settle
+        if verify.agreed(starts):
+            results, confidence = verify(starts)
+            settled = verification.settled(results, confidence, config)
+        _clock(timing, "verify", t)
+    if not settled:
+        starts = _more_starts(generate, pairs, starts)
+        t = time.perf_counter()
+        results, confidence = verify(starts)
+        _clock(timing, "verify", t)
+    searched = pairs if len(pairs) == 1 or not settled else pairs[:1]
+    return CoarseResult(
+        transform=results[0]["T"],
+        confidence=confidence,
+        hypotheses=[
+            {k: v for k, v in r.items() if k != "T"} | {"transform": np.asarray(r["T"]).tolist()}
+            for r in results
+        ],
+        seconds=time.perf_counter() - start,
+        levelling={
+            "source": src.info,
+            "target": tgt.info,
+            "raster_cell": cell,
+            "vertical_pairs": [f"{a.name}/{b.name}" for a, b in searched],
+            "vertical_pairs_skipped": len(pairs) - len(searched),
+            "hypotheses_by_generator": {
+                g: sum(r["generator"] == g for r in results) for g in GENERATORS
+            },
+        },
+        timing=timing,
+    )
+
+
+def _coarse_clouds(
+    source, target, config: CoarseConfig, seed: int, memo: PairMemo
+) -> tuple[CoarseCloud, CoarseCloud]:
+    """Both clouds as the coarse stage sees them, the target seeded `seed + 1`. An airborne target
+    (ALS/ULS) is georeferenced: its z is the vertical, while its ground normals show the terrain's
+    slope and few stems correct them (docs/method.md#coarse-stage-settings). The source may come in
+    any orientation: several vertical hypotheses (z-up first when it is airborne), each searched."""
+    return both(
+        lambda job: remembered(*job),
+        (source, config, seed, source.kind in AIRBORNE, False, config.max_verticals, memo.source),
+        (
+            target,
+            config,
+            seed + 1,
+            target.kind in AIRBORNE,
+            target.kind in AIRBORNE,
+            config.max_target_verticals,
+            memo.target,
+        ),
+    )
+
+
+def _more_starts(generate: _Generators, pairs, starts: list[tuple]) -> list[tuple]:
+    """The starts with those of the other vertical pairs and of the slice search (only now: a
+    settled pair needs no finer search)."""
+    config = generate.config
+    if len(pairs) > 1:
+        more, _ = generate(1, pairs[1:])
+        starts = unique_starts(starts + more, config)
+    if config.slices:
+        t = time.perf_counter()
+        more = slice_starts(
+            generate.src, generate.tgt, pairs[: config.slice_vertical_pairs], config
+        )
+        starts = unique_starts(starts + more, config)
+        _clock(generate.timing, "slices", t)
+    return starts

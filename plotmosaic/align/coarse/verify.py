@@ -1,0 +1,243 @@
+"""Verification of the coarse stage's starts: screen every start with a short ICP, refine the best
+of each generator and the best overall with a quick robust ICP, and rank them by how many non-flat
+points (stems, branches, crowns: flat ground matches anywhere) find a partner; the gap to the best
+distinct runner-up is the confidence."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from plotmosaic.align.coarse.clouds import CoarseCloud
+from plotmosaic.align.icp import evaluate, point_to_plane_icp
+from plotmosaic.align.sampling import sample
+from plotmosaic.align.voxel import thin
+from plotmosaic.config.align import IcpStage
+from plotmosaic.config.coarse import CoarseConfig
+from plotmosaic.io.frame import pose_error
+from plotmosaic.parallel import in_two_threads
+
+GENERATORS = ("raster", "fpfh", "stems", "slices", "prior")
+
+
+def _refine(
+    src_pts: np.ndarray, tgt: tuple, T0: np.ndarray, distances: tuple[float, ...], iterations: int
+) -> np.ndarray:
+    """Quick robust point-to-plane ICP over shrinking correspondence distances (Tukey width = distance)."""
+    points, normals, tree = tgt
+    stages = [IcpStage(max_distance=d, iterations=iterations) for d in distances]
+    return point_to_plane_icp(
+        src_pts,
+        points,
+        normals,
+        T0,
+        stages,
+        tree=tree,
+        kernel_floor=0.0,
+        kernel_ratio=1.0,
+        tol=1e-4,
+    ).T
+
+
+def _score(structure: np.ndarray, tgt: tuple, T: np.ndarray, distance: float) -> float:
+    """Share of non-flat source points with a target partner: flat ground matches anywhere, stems do not."""
+    return evaluate(structure, tgt[2], T, distance)[0]
+
+
+def distinct(A: np.ndarray, B: np.ndarray, config: CoarseConfig) -> bool:
+    degrees, metres = pose_error(A, B)
+    return metres > config.distinct_m or degrees > config.distinct_deg
+
+
+def unique_starts(starts: list[tuple], config: CoarseConfig) -> list[tuple]:
+    """Starts without near-duplicates (the first kept; the generators that agreed with it noted in "agree")."""
+    out: list[tuple] = []
+    for T, h in starts:
+        for T2, h2 in out:
+            deg, m = pose_error(T, T2)
+            if (
+                m < config.start_duplicate_m
+                and deg < config.start_duplicate_deg
+                and not h.get("prior")
+            ):
+                h2.setdefault("agree", []).append(f"{h['generator']}:{h['vertical']}")
+                break
+        else:
+            out.append((T, h))
+    return out
+
+
+def _yaw_deg(T: np.ndarray) -> float:
+    return float(np.degrees(np.arctan2(T[1, 0], T[0, 0])))
+
+
+def support(results: list[dict], best: dict, config: CoarseConfig) -> set[str]:
+    """Generators whose own hypotheses reached `best`'s pose (screened or as a duplicate start)."""
+    out = set()
+    for r in results:
+        if not distinct(best["T"], r["T"], config):
+            out.add(r["generator"])
+            out.update(a.split(":")[0] for a in r.get("agree", []))
+    return out - {"prior"}
+
+
+def settled(results: list[dict], confidence: float, config: CoarseConfig) -> bool:
+    """The first vertical pair's best pose needs no other: ahead of its rivals, fitting, found twice."""
+    best = results[0]
+    return (
+        best["refined"]
+        and confidence >= config.settled_confidence
+        and (best["score"] or 0.0) >= config.settled_score
+        and len(support(results, best, config)) >= config.settled_generators
+    )
+
+
+_NONE = {
+    "T": None,
+    "refined": True,
+    "score": 0.0,
+    "screen_score": 0.0,
+    "raster_score": 0.0,
+    "yaw_deg": 0.0,
+    "overlap": 0.0,
+    "prior": False,
+    "generator": "none",
+    "vertical": "none",
+}
+
+
+def _row(pre: float, A: np.ndarray, h: dict, refined: bool, score: float | None) -> dict:
+    """One verified start as CoarseResult.hypotheses lists it (with its pose as "T")."""
+    return {
+        "T": A,
+        "refined": refined,
+        "score": score,
+        "screen_score": pre,
+        "raster_score": h.get("score"),  # None for other generators (strict JSON: no NaN)
+        "yaw_deg": float(np.degrees(h["yaw"])) if "yaw" in h else _yaw_deg(A),
+        "overlap": h.get("overlap"),
+        "prior": bool(h.get("prior", False)),
+        "generator": h["generator"],
+        "vertical": h["vertical"],
+    } | {k: h[k] for k in ("votes", "agree", "slice_score") if k in h}
+
+
+def _confidence(results: list[dict], config: CoarseConfig) -> float:
+    """1 - the best distinct refined runner-up's score / the best's (0 when the best scores 0)."""
+    best = results[0]
+    # only refined hypotheses compete: an unrefined one may be the best pose not yet converged
+    runner_up = next(
+        (r for r in results[1:] if r["refined"] and distinct(best["T"], r["T"], config)), None
+    )
+    second = runner_up["score"] if runner_up else 0.0
+    return float(1.0 - second / best["score"]) if best["score"] > 0 else 0.0
+
+
+class Verifier:
+    """Screens starts (short ICP), refines the best distinct ones, and ranks them; each start and each
+    refinement is computed once, so a second call with more starts only pays for the new ones."""
+
+    def __init__(
+        self, src: CoarseCloud, tgt: CoarseCloud, airborne: bool, config: CoarseConfig, rng
+    ):
+        self.config = config
+        d = config.verify_distance_airborne if airborne else config.verify_distance_ground
+        self.d = d
+        self.iterations = (
+            config.verify_iterations_airborne if airborne else config.verify_iterations
+        )
+        # verification in the clouds' local frames (each hypothesis carries its own verticals); one kept
+        # point (and its own normal: averaged axial normals cancel) per verify cube
+        keep = thin(tgt.points, config.verify_voxel)
+        self.tgt_v = (
+            tgt.points[keep],
+            tgt.normals[keep],
+            cKDTree(tgt.points[keep], balanced_tree=False, compact_nodes=False),
+        )
+        keep = thin(src.points, config.verify_voxel)
+        keep = keep[sample(len(keep), config.verify_points, rng)]
+        self.src_v = src.points[keep]
+        # non-flat under the source's first vertical: one fixed set, so every hypothesis is scored on the same points
+        up = src.verticals[0].up
+        flat_ok = np.abs(src.normals[keep] @ up) < config.structure_normal_z
+        self.structure = self.src_v[flat_ok]
+        few = sample(len(self.src_v), config.screen_points, rng)
+        self.src_few, self.structure_few = self.src_v[few], self.src_v[few][flat_ok[few]]
+        # id of a start's hypothesis dict -> (score, pose, dict)
+        self.screened: dict[int, tuple] = {}
+        self.refined: dict[int, tuple] = {}  # the same key -> (pose, score)
+
+    def _screen(self, start):
+        c, d = self.config, self.d
+        A = _refine(
+            self.src_few, self.tgt_v, start[0], (c.screen_distance_factor * d,), self.iterations
+        )
+        return _score(self.structure_few, self.tgt_v, A, c.screen_score_factor * d), A, start[1]
+
+    def _refine(self, A):
+        c, d = self.config, self.d
+        A = _refine(
+            self.src_v,
+            self.tgt_v,
+            A,
+            tuple(f * d for f in c.refine_distance_factors),
+            self.iterations,
+        )
+        return A, _score(self.structure, self.tgt_v, A, d)
+
+    def _screen_all(self, starts: list[tuple]) -> list[tuple]:
+        """(score, pose, dict) of every start screened, best first."""
+        new = [s for s in starts if id(s[1]) not in self.screened]
+        for s, r in zip(new, in_two_threads(self._screen, new)):
+            self.screened[id(s[1])] = r
+        return sorted((self.screened[id(s[1])] for s in starts), key=lambda r: -r[0])
+
+    def agreed(self, starts: list[tuple]) -> bool:
+        """Whether the best screened pose was reached by `settled_generators` generators."""
+        screened = self._screen_all(starts)
+        if not screened:
+            return False
+        rows = [
+            {"T": A, "generator": h["generator"], "agree": h.get("agree", [])}
+            for _, A, h in screened
+        ]
+        return len(support(rows, rows[0], self.config)) >= self.config.settled_generators
+
+    def _chosen(self, screened: list[tuple]) -> list[int]:
+        """Which screened poses to refine: the best of each generator first (so no generator's best
+        is lost to another's near-duplicates), then by score; distinct ones only, so the runner-up
+        is a real rival (screened poses have converged)."""
+        config = self.config
+        distinct_ones: list[int] = []
+        for i, (_, A, _) in enumerate(screened):
+            if all(distinct(A, screened[j][1], config) for j in distinct_ones):
+                distinct_ones.append(i)
+        chosen = [
+            k
+            for k in (
+                next((i for i in distinct_ones if screened[i][2]["generator"] == gen), None)
+                for gen in GENERATORS
+            )
+            if k is not None and screened[k][0] > 0
+        ]
+        rest = [i for i in distinct_ones if i not in chosen]
+        return sorted(chosen + rest[: max(0, config.refine_top - len(chosen))])
+
+    def __call__(self, starts: list[tuple]) -> tuple[list[dict], float]:
+        screened = self._screen_all(starts)
+        # independent ICPs, two at a time (KD-tree queries release the GIL)
+        todo = [i for i in self._chosen(screened) if id(screened[i][2]) not in self.refined]
+        for i, r in zip(todo, in_two_threads(self._refine, [screened[i][1] for i in todo])):
+            self.refined[id(screened[i][2])] = r
+        results = []
+        for pre, A, h in screened:
+            # every refined pose competes, also one refined before more starts came (more rivals)
+            refined = id(h) in self.refined
+            A, score = self.refined[id(h)] if refined else (A, None)
+            results.append(_row(pre, A, h, refined, score))
+        if not results:
+            results.append(_NONE | {"T": np.eye(4)})
+        results.sort(
+            key=lambda r: (not r["refined"], -(r["score"] if r["refined"] else r["screen_score"]))
+        )
+        return results, _confidence(results, self.config)

@@ -1,0 +1,146 @@
+"""Residual profiles: the share of a cloud's sample points within several distances of the other
+cloud at a pose, the figures the judge reads from them, and how far apart two poses are.
+
+Every transform here maps source-local to target-local coordinates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from plotmosaic.align.icp import nearest
+from plotmosaic.align.memo import CloudMemo, PairMemo
+from plotmosaic.align.sampling import sample
+from plotmosaic.config.judge import JudgeConfig
+from plotmosaic.io.frame import inverse, rotation_deg
+
+
+@dataclass
+class _Samples:
+    everything: np.ndarray  # profile sample of the cloud (its level points: even density)
+    structure: np.ndarray  # the non-flat part of it
+    spacing: float  # median nearest-neighbour spacing of the delta0 points (m)
+    fine: np.ndarray  # source points of a rival's refinement ICP
+    centre: np.ndarray  # centroid of the cloud's points: where pose separations are measured
+
+
+def samples(cloud, config: JudgeConfig, memo: CloudMemo | None) -> _Samples:
+    """Seeded samples of a prepared cloud, kept in `memo` (a scan takes part in several pairs)."""
+    key = config.model_dump_json(
+        include={"profile_points", "structure_max_planarity", "rival_points"}
+    )
+    return (memo or CloudMemo()).judge.get(key, lambda: _draw_samples(cloud, config))
+
+
+def _draw_samples(cloud, config: JudgeConfig) -> _Samples:
+    rng = np.random.default_rng(20_261_201)
+    pts = cloud.level_points
+    planarity = np.nan_to_num(np.asarray(cloud.features)[:, 1], nan=1.0)
+    flat = planarity >= config.structure_max_planarity
+    every = pts[sample(len(pts), config.profile_points, rng)]
+    struct = pts[~flat]
+    struct = struct[sample(len(struct), config.profile_points, rng)]
+    probe = pts[sample(len(pts), 2_000, rng)]
+    d, _ = cloud.tree.query(probe, k=2)
+    spacing = float(np.median(d[:, 1])) if len(probe) > 1 else config.reference_spacing
+    fine = cloud.fine_points[sample(len(cloud.fine_points), config.rival_points, rng)]
+    return _Samples(every, struct, spacing, fine, cloud.points.mean(axis=0))
+
+
+def spacing(cloud, config: JudgeConfig, memo: CloudMemo | None = None) -> float:
+    """Median nearest-neighbour spacing (m) of a prepared cloud's delta0 points."""
+    return samples(cloud, config, memo).spacing
+
+
+def scale_factor(src, tgt, config: JudgeConfig, memo: PairMemo | None = None) -> float:
+    """How much the profile distances stretch: the sparser cloud is judged at its own resolution."""
+    memo = memo or PairMemo()
+    spacing = max(
+        samples(src, config, memo.source).spacing, samples(tgt, config, memo.target).spacing
+    )
+    return float(np.clip(spacing / config.reference_spacing, 1.0, config.max_scale_factor))
+
+
+def _shares(points: np.ndarray, tree, T: np.ndarray, scales: np.ndarray) -> list[float]:
+    if len(points) == 0:
+        return [0.0] * len(scales)
+    d, _ = nearest(tree, points @ T[:3, :3].T + T[:3, 3], float(scales[-1]))
+    return [float(np.mean(d <= s)) for s in scales]
+
+
+def profile(src, tgt, T: np.ndarray, config: JudgeConfig, memo: PairMemo | None = None) -> dict:
+    """Residual profile of pose T: shares of points within each scale, structure and all, both directions.
+
+    `score` is the mean share over the scales and the two directions on structure points.
+    """
+    memo = memo or PairMemo()
+    s, t = samples(src, config, memo.source), samples(tgt, config, memo.target)
+    scales = np.asarray(config.scales) * scale_factor(src, tgt, config, memo)
+    Ti = inverse(T)
+    out = {
+        "scales": [float(v) for v in scales],
+        "structure_st": _shares(s.structure, tgt.tree, T, scales),
+        "structure_ts": _shares(t.structure, src.tree, Ti, scales),
+        "all_st": _shares(s.everything, tgt.tree, T, scales),
+        "all_ts": _shares(t.everything, src.tree, Ti, scales),
+    }
+    out["score"] = float(np.mean(out["structure_st"] + out["structure_ts"]))
+    out["score_all"] = float(np.mean(out["all_st"] + out["all_ts"]))
+    return out
+
+
+def separation(A: np.ndarray, B: np.ndarray, centre: np.ndarray) -> tuple[float, float]:
+    """(rotation deg, displacement m of the source point `centre`) between two poses."""
+    return rotation_deg(inverse(B) @ A), float(
+        np.linalg.norm((A[:3, :3] - B[:3, :3]) @ centre + A[:3, 3] - B[:3, 3])
+    )
+
+
+def distinct(A: np.ndarray, B: np.ndarray, centre: np.ndarray, config: JudgeConfig) -> bool:
+    deg, m = separation(A, B, centre)
+    return m > config.distinct_m or deg > config.distinct_deg
+
+
+def near(A: np.ndarray, B: np.ndarray, centre: np.ndarray, config: JudgeConfig) -> bool:
+    """Within `near_rival_radii` distinct radii (both rotation and displacement): A may be B's basin."""
+    deg, m = separation(A, B, centre)
+    k = config.near_rival_radii
+    return m <= k * config.distinct_m and deg <= k * config.distinct_deg
+
+
+def centre(cloud, config: JudgeConfig, memo: CloudMemo | None = None) -> np.ndarray:
+    """Centroid of a prepared cloud's points: pose separations are measured there."""
+    return samples(cloud, config, memo).centre
+
+
+def fine_share(prof: dict, config: JudgeConfig) -> float:
+    """Mean share of structure points within the `fine_scales` smallest scales, both directions:
+    where a right pose stands out (chance alignments gather points only at the wide scales)."""
+    k = config.fine_scales
+    return float(np.mean(prof["structure_st"][:k] + prof["structure_ts"][:k]))
+
+
+def fine_margin(prof: dict, rivals: list[dict], config: JudgeConfig) -> float:
+    """1 - the best rival's fine share / the pose's (1 without rivals, -1 when the pose has none)."""
+    mine = fine_share(prof, config)
+    best = max((fine_share(r, config) for r in rivals), default=0.0)
+    return 1.0 - best / mine if mine > 0 else -1.0
+
+
+def confidence(prof: dict, rivals: list[dict], config: JudgeConfig) -> float:
+    """The judge's confidence in pose `prof` over the distinct `rivals` (profiles), 0-1: its fine
+    margin, from the margin chance alignments reach (0) to `full_margin` (1)."""
+    m = fine_margin(prof, rivals, config)
+    return float(
+        np.clip((m - config.chance_margin) / (config.full_margin - config.chance_margin), 0, 1)
+    )
+
+
+def sharpness(prof: dict) -> float:
+    """Share within the smallest scale over share within the largest, structure points, both
+    directions: near 1 when the clouds coincide, low when they only come close by chance."""
+    near = prof["structure_st"][0] + prof["structure_ts"][0]
+    far = prof["structure_st"][-1] + prof["structure_ts"][-1]
+    return float(near / far) if far > 0 else 0.0

@@ -1,0 +1,230 @@
+"""The verdict on a pose: its profile against the distinct rivals' and its basin's, the margins and
+the confidence; and the check of a pose stored in the scan files.
+
+Every transform here maps source-local to target-local coordinates.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from plotmosaic.align import scene
+from plotmosaic.align.judge.profile import (
+    centre,
+    confidence,
+    distinct,
+    fine_margin,
+    fine_share,
+    profile,
+    separation,
+    sharpness,
+)
+from plotmosaic.align.judge.rivals import basin, refined, sharper_neighbours
+from plotmosaic.align.memo import PairMemo
+from plotmosaic.config.judge import JudgeConfig
+
+
+@dataclass
+class Verdict:
+    score: float  # judge score of the pose
+    rival_score: float  # of the best distinct rival as sharp as blunt_min_sharpness (0: none)
+    margin: float  # 1 - rival_score / score (negative: a rival fits better)
+    confidence: float  # from the fine margin (`confidence`), 0-1
+    fine_share: float  # of the pose (`fine_share`)
+    fine_rival_share: float  # the highest of the distinct rivals' (0 when none)
+    fine_margin: float  # 1 - fine_rival_share / fine_share
+    fine_rival_source: str | None
+    sharpness: float  # of the pose (`sharpness`): near 1 when the clouds coincide, low by chance
+    profile: dict
+    rival_profile: dict | None
+    rival_transform: np.ndarray | None  # source local -> target local
+    rival_source: str | None
+    candidates: int  # rivals refined and scored
+    distinct_rivals: int
+    seconds: float = 0.0
+    rivals: list[dict] = field(default_factory=list)
+    basin_share: float = 0.0  # highest fine share a basin start ended with (0 when none ran)
+    basin_transform: np.ndarray | None = None  # that start, refined, when it is a rival (sharper)
+
+    @property
+    def rival_better(self) -> bool:
+        return self.margin < 0
+
+    def to_dict(self) -> dict:
+        return {
+            "score": self.score,
+            "rival_score": self.rival_score,
+            "margin": self.margin,
+            "confidence": self.confidence,
+            "fine_share": self.fine_share,
+            "fine_rival_share": self.fine_rival_share,
+            "fine_margin": self.fine_margin,
+            "fine_rival_source": self.fine_rival_source,
+            "sharpness": self.sharpness,
+            "profile": self.profile,
+            "rival_profile": self.rival_profile,
+            "rival_transform": None
+            if self.rival_transform is None
+            else np.asarray(self.rival_transform).tolist(),
+            "rival_source": self.rival_source,
+            "candidates": self.candidates,
+            "distinct_rivals": self.distinct_rivals,
+            "seconds": self.seconds,
+            "rivals": self.rivals,
+            "basin_share": self.basin_share,
+            "basin_transform": None
+            if self.basin_transform is None
+            else np.asarray(self.basin_transform).tolist(),
+        }
+
+
+def _shortlist(
+    T: np.ndarray, candidates: list[tuple[np.ndarray, str]], centre: np.ndarray, config: JudgeConfig
+) -> list[tuple[np.ndarray, str]]:
+    """Candidates distinct from T and from each other, in the order given, at most `max_rivals`."""
+    kept: list[tuple[np.ndarray, str]] = []
+    for A, name in candidates:
+        A = np.asarray(A, dtype=float)
+        if len(kept) >= config.max_rivals:
+            break
+        if not np.isfinite(A).all() or not distinct(A, T, centre, config):
+            continue
+        if all(distinct(A, B, centre, config) for B, _ in kept):
+            kept.append((A, name))
+    return kept
+
+
+@dataclass
+class _Tally:
+    """What the judge gathers while it weighs the rivals and the basin."""
+
+    table: list[dict] = field(default_factory=list)  # Verdict.rivals
+    profs: list[dict] = field(default_factory=list)  # the distinct rivals' profiles
+    best: float = 0.0  # the best score of a rival sharp enough to be accepted itself
+    best_T: np.ndarray | None = None
+    best_name: str | None = None
+    best_prof: dict | None = None
+    fine_best: float = 0.0  # the highest fine share of any rival, the basin's included
+    fine_name: str | None = None
+    basin_T: np.ndarray | None = None  # the sharpest basin start that is a rival
+    basin_best: float = 0.0
+
+    def rival(self, name: str, A: np.ndarray, prof: dict, deg: float, m: float, config) -> None:
+        fine, sharp = fine_share(prof, config), sharpness(prof)
+        self.profs.append(prof)
+        self.table.append(
+            {
+                "from": name,
+                "distinct": True,
+                "deg": deg,
+                "m": m,
+                "score": prof["score"],
+                "fine": fine,
+                "sharpness": sharp,
+            }
+        )
+        # a rival too blunt to be accepted itself fits only by chance: it may not outscore the pose
+        # (docs/method.md#judge-settings), but it stays a rival of the fine margin
+        if prof["score"] > self.best and sharp >= config.blunt_min_sharpness:
+            self.best, self.best_T, self.best_name, self.best_prof = prof["score"], A, name, prof
+        if fine > self.fine_best:
+            self.fine_best, self.fine_name = fine, name
+
+    def basin_start(self, k: int, A: np.ndarray, fine: float, rival: bool, deg: float, m: float):
+        self.table.append(
+            {"from": f"basin {k}", "distinct": rival, "deg": deg, "m": m, "fine": fine}
+        )
+        if rival and fine > self.basin_best:
+            self.basin_T, self.basin_best = A, fine
+        if rival and fine > self.fine_best:
+            self.fine_best, self.fine_name = fine, f"the pose's own basin (start {k})"
+
+
+def judge(
+    src,
+    tgt,
+    T: np.ndarray,
+    candidates: list[tuple[np.ndarray, str]],
+    config: JudgeConfig,
+    memo: PairMemo | None = None,
+) -> Verdict:
+    """Score pose T against the distinct rivals among `candidates` ((transform, where from), source local ->
+    target local), each refined first; a rival that ends within the distinct radius of T is T itself.
+    T's `basin` starts that end sharper than T (`sharper_neighbours`) are rivals of the fine margin too;
+    rivals blunter than `blunt_min_sharpness` are rivals of the fine margin only, not of the score.
+    Refined rivals are kept in the pair's `memo` (`rivals.refined`). A source or target that is not a
+    forest scene (`scene.check`) is refused first (RegistrationFailed): no pose between them is right."""
+    memo = memo or PairMemo()
+    scene.check(src, tgt, config, memo)
+    t0 = time.perf_counter()
+    c = centre(src, config, memo.source)
+    mine = profile(src, tgt, T, config, memo)
+    tally = _Tally()
+    shortlist = _shortlist(T, candidates, c, config)
+    done = refined(src, tgt, [A0 for A0, _ in shortlist], T, config, memo)
+    for (_, name), (A, prof) in zip(shortlist, done):
+        deg, m = separation(A, T, c)
+        if m <= config.distinct_m and deg <= config.distinct_deg:
+            tally.table.append({"from": name, "distinct": False, "deg": deg, "m": m})
+        else:
+            tally.rival(name, A, prof, deg, m, config)
+    near = basin(src, tgt, T, config, memo) if config.basin_neighbours else []
+    sharper = sharper_neighbours(mine, [q for _, q in near], config)
+    for k, (A, prof) in enumerate(near):
+        deg, m = separation(A, T, c)
+        rival = any(prof is q for q in sharper)
+        tally.basin_start(k, A, fine_share(prof, config), rival, deg, m)
+    fine_rivals = tally.profs + sharper
+    score = mine["score"]
+    margin = 1.0 - tally.best / score if score > 0 else -1.0
+    return Verdict(
+        score=score,
+        rival_score=tally.best,
+        margin=float(margin),
+        confidence=confidence(mine, fine_rivals, config),
+        fine_share=fine_share(mine, config),
+        fine_rival_share=tally.fine_best,
+        fine_margin=fine_margin(mine, fine_rivals, config),
+        fine_rival_source=tally.fine_name,
+        sharpness=sharpness(mine),
+        profile=mine,
+        rival_profile=tally.best_prof,
+        rival_transform=tally.best_T,
+        rival_source=tally.best_name,
+        candidates=len(shortlist),
+        distinct_rivals=len(tally.profs),
+        seconds=time.perf_counter() - t0,
+        rivals=tally.table,
+        basin_share=max((fine_share(q, config) for _, q in near), default=0.0),
+        basin_transform=tally.basin_T,
+    )
+
+
+def verify_stored(
+    src, tgt, T: np.ndarray, A: np.ndarray, config: JudgeConfig, memo: PairMemo | None = None
+) -> dict:
+    """Does the stored pose T (source local -> target local) hold? A, the fine ICP from it, must
+    barely move it and fit sharply (`sharpness`) with at least `min_score`. Returns the figures and
+    `verified`; `failed` names the checks that did not pass."""
+    memo = memo or PairMemo()
+    deg, m = separation(A, T, centre(src, config, memo.source))
+    prof = profile(src, tgt, A, config, memo)
+    sharp = sharpness(prof)
+    checks = {
+        "correction": deg <= config.stored_max_correction_deg
+        and m <= config.stored_max_correction_m,
+        "sharpness": sharp >= config.stored_min_sharpness,
+        "score": prof["score"] >= config.min_score,
+    }
+    return {
+        "verified": all(checks.values()),
+        "failed": [k for k, ok in checks.items() if not ok],
+        "correction_deg": deg,
+        "correction_m": m,
+        "sharpness": sharp,
+        "score": prof["score"],
+        "profile": prof,
+    }
