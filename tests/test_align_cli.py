@@ -11,8 +11,9 @@ from helpers import SIM_PAIR_MAX_DEG
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
-from plotmosaic.align.pipeline import align_files
+from plotmosaic.align.pipeline import PairResult, align_files
 from plotmosaic.cli import app
+from plotmosaic.commands.align import kind_lines, summary_lines
 from plotmosaic.io.las import PointCloud, read_cloud, write_cloud
 from plotmosaic.poses import load_poses
 
@@ -120,6 +121,41 @@ def test_real_pair_kinds_detected_as_given(spanner_dir):
     assert (found.source_kind, found.target_kind) == ("uls", "als"), found.detected_kinds
     assert found.confidence == given.confidence and given.detected_kinds == {}
     np.testing.assert_array_equal(found.transform, given.transform)
+
+
+def test_printout_and_json_say_what_the_pose_does_to_the_source():
+    """A UTM pair turned 2 deg about z: the motion printed is the source centre's (cm), not the
+    translation of the file origin (km); the JSON carries the same figures at its top level."""
+    centre = np.array([470641.0, 3810235.0, 2296.0])
+    R = Rotation.from_euler("z", 2.0, degrees=True).as_matrix()
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = centre + [0.01, -0.02, 0.03] - R @ centre  # the centre moves by 1, -2, 3 cm
+    result = PairResult(
+        transform=T,
+        fitness=0.5,
+        inlier_rmse=0.1,
+        overlap=0.6,
+        information=np.eye(6),
+        levels={},
+        seconds=1.0,
+        source_kind="uls",
+        target_kind="als",
+        source_centre=centre.tolist(),
+        detected_kinds={"target": {"kind": "als", "reason": "airborne (figures)", "evidence": {}}},
+    )
+    text = "\n".join(kind_lines(result) + summary_lines(result))
+    assert "rotation: 2.0000 deg" in text
+    assert "dx +0.0100, dy -0.0200, dz +0.0300 m" in text
+    assert f"{T[0, 3]:+.4f}" not in text and f"{T[0, 3]:.1f}" not in text
+    assert "source kind: uls (given by --source-kind)" in text
+    assert "target kind: als (detected: airborne (figures))" in text
+    data = json.loads(json.dumps(result.to_dict()))
+    np.testing.assert_allclose(data["motion_at_centre_m"], [0.01, -0.02, 0.03], atol=1e-9)
+    assert data["rotation_deg"] == pytest.approx(2.0)
+    again = PairResult.from_dict(data)
+    assert again.source_centre == result.source_centre
+    assert again.detected_kinds == result.detected_kinds
 
 
 def test_non_overlapping_pair_exits_3(pair, tmp_path):

@@ -84,7 +84,7 @@ def column_shares(
     np.maximum.at(high, inverse, z)
     h = z - low[inverse]
     canopy = (high - low)[inverse] > config.min_canopy_m
-    lo, hi = config.understorey_band_m
+    lo, hi = config.understorey_from_m, config.understorey_to_m
     under = h[canopy]
     understorey = float(np.mean((under >= lo) & (under < hi))) if canopy.any() else float("nan")
     return understorey, float(np.mean(h < config.ground_band_m))
@@ -137,7 +137,7 @@ def decide(e: KindEvidence, config: KindConfig) -> KindDetection:
     hidden = e.understorey_share <= config.max_airborne_understorey  # NaN (no canopy): False
     under = "no canopy" if np.isnan(e.understorey_share) else f"{e.understorey_share:.3f}"
     figures = (
-        f"coverage {e.coverage:.2f}, densest 5 % of cells hold {e.dense_share:.2f}, "
+        f"top-down coverage {e.coverage:.2f}, densest 5 % of cells hold {e.dense_share:.2f}, "
         f"understorey share {under}"
     )
     if e.coverage >= config.min_airborne_coverage and (even or hidden):

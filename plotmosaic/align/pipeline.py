@@ -134,6 +134,7 @@ def align_clouds(
         say("detecting sensor kinds")
     tgt_xyz = _robust(target, config, "target")[0] if target_kind is None else None
     sk, tk, detected = pair_kinds(src_xyz, tgt_xyz, source_kind, target_kind, config, seed)
+    del src_xyz, tgt_xyz  # copies when stray points were dropped: not held through prepare
     t_kinds = time.perf_counter() - t0
     say("preparing source and target")
     src, tgt = prepare_pair(

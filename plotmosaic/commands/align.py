@@ -106,6 +106,8 @@ def summary_lines(result) -> list[str]:
         f"{s['source_levels']}->{s['target_levels']}" for s in result.levels.get("steps", [])
     )
     confidence = "" if result.confidence is None else f", confidence {result.confidence:.2f}"
+    at = result.config.get("quality_distance")
+    within = "" if at is None else f" (at {at * 100:g} cm)"
     lines = [f"rotation: {result.rotation_deg:.4f} deg"]
     if result.motion_at_centre_m is not None:
         dx, dy, dz = result.motion_at_centre_m
@@ -115,7 +117,7 @@ def summary_lines(result) -> list[str]:
         )
     return lines + [
         f"fitness {result.fitness:.3f}, inlier RMSE {result.inlier_rmse * 100:.1f} cm, "
-        f"overlap {result.overlap:.3f} (at 25 cm){confidence}; levels {steps}; "
+        f"overlap {result.overlap:.3f}{within}{confidence}; levels {steps}; "
         f"{result.seconds:.1f} s",
     ]
 

@@ -5,7 +5,7 @@ Calibration on the real clips and the simulator's presets: benchmarks/results/ki
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 
 class KindConfig(BaseModel):
@@ -51,8 +51,11 @@ class KindConfig(BaseModel):
         le=1,
         description="share of points in the understorey band under a canopy, at most: seen from above",
     )
-    understorey_band_m: tuple[float, float] = Field(
-        (0.5, 3.0), description="heights (m) above a column's lowest point counted as understorey"
+    understorey_from_m: float = Field(
+        0.5, ge=0, le=100, description="understorey band from (m above a column's lowest point)"
+    )
+    understorey_to_m: float = Field(
+        3.0, gt=0, le=100, description="understorey band up to (m above a column's lowest point)"
     )
     min_canopy_m: float = Field(
         3.0,
@@ -78,3 +81,9 @@ class KindConfig(BaseModel):
         le=1,
         description="share of a ground-based cloud on the ground, at most: mls (else tls)",
     )
+
+    @model_validator(mode="after")
+    def _band(self) -> KindConfig:
+        if self.understorey_from_m >= self.understorey_to_m:
+            raise ValueError("understorey_from_m must be below understorey_to_m")
+        return self
