@@ -63,7 +63,7 @@ def _check_file(path: Path) -> Path:
 
 
 # LAZ 1.4 (point formats 6-10) stores fields in separate layers: a coordinates-only read skips
-# decompressing intensity, GPS time, etc. (~20 % of the read time of a TLS scan); ignored otherwise
+# decompressing intensity, GPS time, etc. (a large share of a scan's read time); ignored otherwise
 XYZ_ONLY = laspy.DecompressionSelection.XY_RETURNS_CHANNEL | laspy.DecompressionSelection.Z
 
 
@@ -178,8 +178,8 @@ def read_cloud(
     for m, chunk, names, header in _las_records(path, attributes):
         if n + m > info.point_count:
             raise InputError(f"{path}: holds more points than its header says ({info.point_count})")
-        # scaled straight into the output columns: laspy's x/y/z arrays and a column_stack were two
-        # extra passes over every point, a large share of the Python-side read time
+        # scaled straight into the output columns: laspy's x/y/z arrays and a column_stack would be
+        # two extra passes over every point
         for i, raw in enumerate((chunk.X, chunk.Y, chunk.Z)):
             out = xyz[n : n + m, i]
             np.multiply(raw, header.scales[i], out=out)
