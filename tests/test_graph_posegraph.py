@@ -1,5 +1,7 @@
-"""The pose graph on synthetic edges: recovery, outlier rejection, disconnected scans, JSON round trip."""
+"""The pose graph on synthetic edges: recovery, outlier rejection, disconnected scans, JSON round trip,
+sigmas calibrated on the residuals."""
 
+import gtsam
 import numpy as np
 import pytest
 from builders import random_pose, synthetic_pose_graph
@@ -15,6 +17,7 @@ from plotmosaic.graph.posegraph import (
     optimise,
     pose_error,
 )
+from plotmosaic.graph.synthetic import grid_graph
 
 
 def test_recovers_poses_with_small_noise():
@@ -143,7 +146,7 @@ def test_unconfirmed_low_confidence_bridge_is_dropped():
     assert sol.unplaced == ["s4"]
     for name, T in truth.items():
         r, t = pose_error(sol.poses[name], T)
-        assert r < 0.01 and t < 0.001
+        assert r < 0.01 and t < 0.0015  # edges of 0.5 mm noise a component: ~2 sigma of the chain
 
 
 def test_many_unsure_wrong_corner_edges_do_not_outvote_the_right_ones():
@@ -163,3 +166,40 @@ def test_many_unsure_wrong_corner_edges_do_not_outvote_the_right_ones():
     for name, T in truth.items():
         r, t = pose_error(sol.poses[name], T)
         assert r < 0.01 and t < 0.002  # six edges left, 0.5 mm noise each
+
+
+def _coverage(rounds: int, rot_noise_deg: float, trans_noise: float) -> tuple[float, float]:
+    """(share of per-axis pose errors within 1 sigma, within 2 sigma) over a few noisy grids."""
+    z = []
+    for seed in range(3):
+        truth, nodes, edges, _ = grid_graph(
+            16, wrong_share=0, seed=seed, rot_noise_deg=rot_noise_deg, trans_noise=trans_noise
+        )
+        sol = optimise(
+            build_graph(nodes, edges), "s0000", PoseGraphConfig(calibration_rounds=rounds)
+        )
+        for name, T in truth.items():
+            if name != "s0000":  # the reference is the frame: no error
+                xi = gtsam.Pose3.Logmap(gtsam.Pose3(inverse(T) @ sol.poses[name]))
+                z.append(np.abs(xi) / sol.sigmas[name])
+    z = np.array(z)
+    return float(np.mean(z < 1)), float(np.mean(z < 2))
+
+
+@pytest.mark.parametrize("rot_noise_deg, trans_noise", [(0.05, 0.01), (0.002, 0.0005)])
+def test_calibrated_sigmas_cover_the_true_error(rot_noise_deg, trans_noise):
+    # edges 5x noisier, then 4x less noisy, than their floored information says
+    within_1, within_2 = _coverage(0, rot_noise_deg, trans_noise)
+    assert within_1 < 0.4 or within_1 > 0.95  # as the ICP information has it: off either way
+    within_1, within_2 = _coverage(3, rot_noise_deg, trans_noise)
+    assert 0.55 < within_1 < 0.85 and within_2 > 0.9, (within_1, within_2)
+
+
+def test_no_loop_no_calibration():
+    truth, nodes, edges = synthetic_pose_graph(n_scans=4, seed=5)
+    tree = [e for e in edges if e["target"] == "s0"]  # a star: nothing observes the edges' noise
+    sol = optimise(build_graph(nodes, tree), "s0")
+    assert sol.scales == {}
+    assert all(
+        np.isfinite(s).all() and s[3:].min() > 1e-4 for n, s in sol.sigmas.items() if n != "s0"
+    )

@@ -9,6 +9,9 @@ Outliers are found in three ways, because each alone misses cases: a cycle-consi
 triangles (before any solve, so a wrong edge cannot drag the initialisation), low-confidence edges
 that no consistent triangle confirms, then a residual test after a robust solve (drop the worst
 offender, re-solve, repeat).
+
+The scans' covariances come last: the kept edges' information scaled by their own residuals
+where loops observe them (graph/covariance.py), then one set of marginals.
 """
 
 from __future__ import annotations
@@ -20,6 +23,18 @@ import networkx as nx
 import numpy as np
 
 from plotmosaic.config.register import PoseGraphConfig
+from plotmosaic.graph.covariance import (  # noqa: F401  (condition_information, residual re-exported)
+    EdgeInformation,
+    JointCovariance,
+    condition_information,
+    marginal_covariances,
+    noise_model,
+    redundancy_dof,
+    residual,
+    sigmas_of,
+    update_scales,
+    variance_components,
+)
 from plotmosaic.io.frame import inverse, pose_error, rotation_deg  # noqa: F401  (re-exported)
 
 
@@ -112,38 +127,6 @@ def edge_transform(G: nx.Graph, a: str, b: str) -> np.ndarray:
 def kept(G: nx.Graph) -> nx.Graph:
     """View of the edges still in use."""
     return nx.subgraph_view(G, filter_edge=lambda u, v: not G.edges[u, v].get("dropped", False))
-
-
-# --- information conditioning ----------------------------------------------------------------------
-
-
-def condition_information(
-    info: np.ndarray | None, rmse: float | None, config: PoseGraphConfig
-) -> np.ndarray:
-    """A well-conditioned 6x6 information: sigmas floored, strongest/weakest ratio capped."""
-    floors = np.array(
-        [np.radians(config.min_sigma_rotation_deg)] * 3 + [config.min_sigma_translation] * 3
-    )
-    S = np.diag(floors)
-    A = None
-    if info is not None:
-        info = np.asarray(info, dtype=np.float64)
-        if info.shape == (6, 6) and np.isfinite(info).all():
-            A = (
-                S @ ((info + info.T) / 2.0) @ S
-            )  # in floor units: eigenvalue 1 <=> sigma at the floor
-    if A is not None:
-        w, V = np.linalg.eigh(A)
-        if w.max() <= 0:
-            A = None
-    if A is None:  # no usable information: a loose isotropic guess from the pair's RMSE
-        sigma_t = max(rmse or 0.0, 0.01)
-        sigma_r = np.radians(config.fallback_sigma_rotation_deg)
-        return np.diag([1 / sigma_r**2] * 3 + [1 / sigma_t**2] * 3)
-    cap = min(w.max(), 1.0)
-    w = np.clip(w, cap / config.max_information_ratio, cap)
-    Sinv = np.diag(1.0 / floors)
-    return Sinv @ (V * w) @ V.T @ Sinv
 
 
 # --- initialisation and cycle consistency ----------------------------------------------------------
@@ -285,64 +268,15 @@ def vote(
 @dataclass
 class Solution:
     poses: dict[str, np.ndarray]  # placed scans only
-    sigmas: dict[
-        str, np.ndarray
-    ]  # sqrt(diag(marginal covariance)): rx, ry, rz (rad), tx, ty, tz (m)
+    # sqrt(diag(marginal covariance)): rx, ry, rz (rad), tx, ty, tz (m), in the scan's own frame
+    sigmas: dict[str, np.ndarray]
     unplaced: list[str]  # scans with no kept edge path to the reference
     iterations: int = 0
     error_before: float = 0.0
     error_after: float = 0.0
     dropped: list[dict] = field(default_factory=list)  # {"source", "target", "reason"}
-
-
-def _noise(info: np.ndarray, config: PoseGraphConfig):
-    base = gtsam.noiseModel.Gaussian.Information(info)
-    if config.robust == "none":
-        return base
-    est = gtsam.noiseModel.mEstimator
-    kernel = (
-        est.Cauchy.Create(config.robust_k)
-        if config.robust == "cauchy"
-        else est.Huber.Create(config.robust_k)
-    )
-    return gtsam.noiseModel.Robust.Create(kernel, base)
-
-
-@dataclass
-class EdgeInformation:
-    """The conditioned information of a graph's edges, owned by one solve or optimisation: an
-    eigen-decomposition per edge, once, however often the edge is solved and tested."""
-
-    G: nx.Graph
-    config: PoseGraphConfig
-    held: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
-
-    def of(self, u: str, v: str) -> np.ndarray:
-        key = _edge_id(u, v)
-        if key not in self.held:
-            e = self.G.edges[u, v]
-            self.held[key] = condition_information(
-                e.get("information"), e.get("inlier_rmse"), self.config
-            )
-        return self.held[key]
-
-
-def residual(
-    G: nx.Graph, u: str, v: str, poses: dict[str, np.ndarray], information: EdgeInformation
-) -> dict:
-    """Residual of one edge at the given poses: rotation (deg), translation (m) and chi2 (conditioned info)."""
-    e = G.edges[u, v]
-    i, j = e["source"], e["target"]
-    E = (
-        inverse(e["transform"]) @ inverse(poses[j]) @ poses[i]
-    )  # identity when the edge is satisfied
-    xi = gtsam.Pose3.Logmap(_pose3(E))
-    info = information.of(u, v)
-    return {
-        "rotation_deg": rotation_deg(E),
-        "translation": float(np.linalg.norm(E[:3, 3])),
-        "chi2": float(xi @ info @ xi),
-    }
+    covariances: dict[str, np.ndarray] = field(default_factory=dict)  # 6x6, same order as sigmas
+    scales: dict = field(default_factory=dict)  # the edge groups' variance factors (Scales.as_dict)
 
 
 def _solve(G: nx.Graph, reference: str, config: PoseGraphConfig, information: EdgeInformation):
@@ -365,7 +299,10 @@ def _solve(G: nx.Graph, reference: str, config: PoseGraphConfig, information: Ed
         info = information.of(u, v)
         graph.add(
             gtsam.BetweenFactorPose3(
-                keys[e["target"]], keys[e["source"]], _pose3(e["transform"]), _noise(info, config)
+                keys[e["target"]],
+                keys[e["source"]],
+                _pose3(e["transform"]),
+                noise_model(info, config),
             )
         )
     params = gtsam.LevenbergMarquardtParams()
@@ -383,20 +320,26 @@ def _solve(G: nx.Graph, reference: str, config: PoseGraphConfig, information: Ed
     return sol, graph, result, keys
 
 
-def _add_sigmas(sol: Solution, graph, result, keys: dict) -> Solution:
-    """sqrt(diag(marginal covariance)) of every placed scan: one factorisation, after the last solve."""
-    marginals = gtsam.Marginals(graph, result)
-    sol.sigmas = {
-        name: np.sqrt(np.clip(np.diag(marginals.marginalCovariance(k)), 0, None))
-        for name, k in keys.items()
-    }
+def _calibrated(G: nx.Graph, reference: str, config: PoseGraphConfig, information, solved):
+    """The last solve again with each edge group's information scaled by its residuals (rounds of
+    variance components), then every placed scan's marginal covariance, once."""
+    sol, graph, result, keys = solved
+    if config.calibration_rounds and redundancy_dof(kept(G), set(keys)) > 0:
+        # plain least squares while calibrating: a robust kernel discounts the very residuals
+        # that show an edge group's noise too small (kept edges passed the outlier tests)
+        plain = config.model_copy(update={"robust": "none"})
+        for _ in range(config.calibration_rounds):
+            sol, graph, result, keys = _solve(G, reference, plain, information)
+            edges = [(u, v) for u, v in kept(G).edges() if u in keys and v in keys]
+            quad, red = variance_components(
+                G, edges, sol.poses, keys, JointCovariance(graph, result, keys), information
+            )
+            information.scales = update_scales(information.scales, quad, red)
+        sol, graph, result, keys = _solve(G, reference, config, information)
+    sol.covariances = marginal_covariances(graph, result, keys)
+    sol.sigmas = sigmas_of(sol.covariances)
+    sol.scales = information.scales.as_dict()
     return sol
-
-
-def solve(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None) -> Solution:
-    """Place every scan connected to `reference` (fixed at identity) with robust Levenberg-Marquardt."""
-    config = config or PoseGraphConfig()
-    return _add_sigmas(*_solve(G, reference, config, EdgeInformation(G, config)))
 
 
 def _drop(G: nx.Graph, u: str, v: str, reason: str, dropped: list[dict]) -> None:
@@ -410,8 +353,8 @@ def optimise(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None)
     """Cycle check, robust solve, drop the worst residual outlier and re-solve until none is left.
 
     Edge attributes are updated in place: dropped, drop_reason, residual_before (at the
-    spanning-tree initialisation), residual_after (at the final poses). The triangle vote runs
-    once and the marginals are computed once, after the last solve.
+    spanning-tree initialisation), residual_after (at the final poses, chi2 with the calibrated
+    information). The triangle vote runs once; the edge noise is calibrated after the last drop.
     """
     config = config or PoseGraphConfig()
     dropped: list[dict] = []
@@ -444,7 +387,7 @@ def optimise(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None)
             break
         _drop(G, *worst, "residual", dropped)
         residual_drops += 1
-    _add_sigmas(sol, graph, result, keys)
+    sol = _calibrated(G, reference, config, information, (sol, graph, result, keys))
     for u, v, e in G.edges(data=True):
         e["residual_after"] = (
             residual(G, u, v, sol.poses, information) if u in sol.poses and v in sol.poses else None

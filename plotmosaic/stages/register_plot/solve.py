@@ -42,19 +42,25 @@ def solve_plot(
     """(reference, solution) of one plot: its scans' subgraph, plus the ALS node when there are anchors.
 
     The ALS node and its edges live only in the solve; what the solve marks on the scan-to-scan
-    edges (dropped, residuals) is written back to G, and the ALS node is no pose of the result."""
+    edges (dropped, residuals) is written back to G, and the ALS node is no pose of the result.
+    The edge groups' variance factors go to G.graph["calibration"][plot id]."""
     ids = [s.id for s in plot.scans]
     sub = G.subgraph(ids)
     ref = _choose_reference(sub, plot)
     if not anchors:
-        return ref, optimise(sub, ref, config.graph)
-    H = add_edges(sub.copy(), anchors)
-    sol = optimise(H, ref, config.graph)
+        sol = optimise(sub, ref, config.graph)
+        G.graph.setdefault("calibration", {})[plot.id] = sol.scales
+        return ref, sol
+    H = sub.copy()
+    node = anchor_id(plot)
+    H.add_node(node, kind="als", plot=plot.id)  # its edges are a noise group of their own
+    sol = optimise(add_edges(H, anchors), ref, config.graph)
     for u, v in sub.edges():
         G.edges[u, v].update(H.edges[u, v])
-    node = anchor_id(plot)
+    G.graph.setdefault("calibration", {})[plot.id] = sol.scales
     sol.poses.pop(node, None)
     sol.sigmas.pop(node, None)
+    sol.covariances.pop(node, None)
     sol.unplaced = [n for n in sol.unplaced if n != node]
     return ref, sol
 

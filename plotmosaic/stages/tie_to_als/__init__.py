@@ -32,6 +32,7 @@ from plotmosaic.manifest import Manifest, Plot, load_manifest
 from plotmosaic.poses import Poses, ScanPose, load_poses
 from plotmosaic.report.runs import write_tie_report
 from plotmosaic.stages.register_plot.pairs import compute_pairs
+from plotmosaic.stages.tie_to_als.anchor_fit import fit_anchors
 from plotmosaic.stages.tie_to_als.clouds import (
     LAS_SCALE,
     as_stored,
@@ -189,7 +190,10 @@ def _tie_plots(
         jobs_list.append(job)
         anchors[plot.id] = Anchor(plot.id, ref, "pending", crop=how)
     records, computed = compute_pairs(jobs_list, cache, executor, jobs, scheduler, False, progress)
-    return Tied(jobs=jobs_list, records=records, computed=computed, anchors=anchors, refs=refs)
+    fits = fit_anchors(jobs_list, records, run.config)
+    return Tied(
+        jobs=jobs_list, records=records, computed=computed, anchors=anchors, refs=refs, fits=fits
+    )
 
 
 def _write(run: TieRun, G: nx.Graph, sol: Solution, tied: Tied, start: float) -> TieResult:
@@ -251,5 +255,5 @@ def tie_to_als(
     run = _start(manifest, poses_path, out, config, seed)
     tied = _tie_plots(run, jobs, executor, scheduler, progress)  # plot cloud -> ALS crop, each
     G = region_graph(run.manifest, run.poses, run.G_plot, run.als_frame, tied)
-    sol = solve_region(G, tied.anchors, run.config)  # the region, with the ALS node fixed
+    sol = solve_region(G, run.config)  # the region, with the ALS node fixed
     return _write(run, G, sol, tied, start)

@@ -16,8 +16,12 @@ from plotmosaic.io.frame import Frame, translation
 from plotmosaic.manifest import Manifest, Plot
 from plotmosaic.poses import Poses
 from plotmosaic.stages.register_plot.pairs import EDGE_FIELDS
+from plotmosaic.stages.tie_to_als.anchor_fit import AnchorFit
 
 ALS_NODE = "ALS"
+# added to a jackknife covariance before it is inverted (rad x 3, m x 3): blocks that agree exactly
+# must not make an anchor infinitely sure
+COVARIANCE_FLOOR = np.array([1e-6] * 3 + [1e-5] * 3)
 
 
 @dataclass
@@ -32,7 +36,11 @@ class Anchor:
     confidence: float | None = None
     error: str | None = None
     crop: str = "whole tile"
-    residual: dict | None = None  # anchor edge residual after the joint solve
+    # the ALS against the registered plot (AnchorFit.as_dict) and the pair's judge fine margin: what
+    # says how well the anchor holds (its edge residual is zero by construction: one anchor a plot)
+    fit: dict | None = None
+    fine_margin: float | None = None
+    residual: dict | None = None  # kept empty until the report no longer reads it
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -44,6 +52,7 @@ class Tied:
     computed: int
     anchors: dict[str, Anchor]  # plot id -> its anchor (updated by region_graph and solve_region)
     refs: dict[str, str]  # plot id -> its reference scan (plots with a placed scan)
+    fits: dict[str, AnchorFit]  # plot id -> the ALS against its registered plot (where measured)
 
 
 def _plot_reference(plot: Plot, poses: Poses, G: nx.Graph | None) -> str:
@@ -89,6 +98,7 @@ def _plot_edges(plot: Plot, poses: Poses, G: nx.Graph | None, ref: str) -> tuple
                 "overlap": 1.0,
                 "status": "ok",
                 "from_poses": True,
+                "posterior": sp.sigma is not None,  # register-plot's marginals: used as they are
             }
         )
     return nodes, edges
@@ -104,17 +114,25 @@ def _anchor_dict(a: Anchor) -> dict:
         "confidence": a.confidence,
         "error": a.error,
         "crop": a.crop,
-        "residual": a.residual,
+        "fine_margin": a.fine_margin,
+        **(a.fit or {}),
     }
 
 
-def _anchor_edge(rec: dict, anchor: Anchor, poses: Poses, als_frame: Frame) -> dict:
-    """The edge reference scan file -> ALS local frame of one plot's ALS result."""
+def _anchor_edge(
+    rec: dict, anchor: Anchor, fit: AnchorFit | None, poses: Poses, als_frame: Frame
+) -> dict:
+    """The edge reference scan file -> ALS local frame of one plot's ALS result; its information the
+    inverse of the anchor's jackknife covariance where measured (else the pair's ICP information,
+    floored like any pair's)."""
     T = np.asarray(rec["transform"], float)  # plot frame -> ALS CRS
     P_ref = poses.transform(anchor.reference)
-    # information moved onto the reference scan's tangent
-    info = np.asarray(rec["information"], float)
-    Ad = gtsam.Pose3(P_ref).AdjointMap()
+    info = (
+        np.asarray(rec["information"], float)
+        if fit is None
+        else np.linalg.inv(fit.covariance + np.diag(COVARIANCE_FLOOR**2))
+    )
+    Ad = gtsam.Pose3(P_ref).AdjointMap()  # information moved onto the reference scan's tangent
     edge = {k: rec.get(k) for k in EDGE_FIELDS}
     edge.update(
         source=anchor.reference,
@@ -122,6 +140,7 @@ def _anchor_edge(rec: dict, anchor: Anchor, poses: Poses, als_frame: Frame) -> d
         anchor=anchor.plot,
         transform=translation(-als_frame.offset) @ T @ P_ref,
         information=Ad.T @ info @ Ad,
+        posterior=fit is not None,
     )
     anchor.status, anchor.transform = "ok", T
     anchor.fitness, anchor.inlier_rmse, anchor.overlap, anchor.confidence = (
@@ -130,6 +149,8 @@ def _anchor_edge(rec: dict, anchor: Anchor, poses: Poses, als_frame: Frame) -> d
         rec.get("overlap"),
         rec.get("confidence"),
     )
+    anchor.fine_margin = (rec.get("judge") or {}).get("fine_margin")
+    anchor.fit = None if fit is None else fit.as_dict()
     return edge
 
 
@@ -154,7 +175,7 @@ def region_graph(
         if rec.get("status") != "ok":
             anchor.status, anchor.error = "failed", rec.get("error")
             continue
-        edges.append(_anchor_edge(rec, anchor, poses, als_frame))
+        edges.append(_anchor_edge(rec, anchor, tied.fits.get(job.source), poses, als_frame))
     if not any(a.status == "ok" for a in tied.anchors.values()):
         raise RegistrationFailed(
             "no plot could be registered to the ALS: "
@@ -163,12 +184,9 @@ def region_graph(
     return build_graph(nodes, edges)
 
 
-def solve_region(G: nx.Graph, anchors: dict[str, Anchor], config: TieConfig) -> Solution:
-    """The region solved with the ALS node fixed; each anchor's edge residual recorded."""
+def solve_region(G: nx.Graph, config: TieConfig) -> Solution:
+    """The region solved with the ALS node fixed: each scan's covariance its plot-frame one plus
+    its plot's anchor's, carried to the scan."""
     for _u, _v, e in G.edges(data=True):  # register-plot decisions stand; the rest is re-checked
         e["dropped"] = bool(e.get("dropped"))
-    sol = optimise(G, ALS_NODE, config.graph)
-    for a in anchors.values():
-        if a.status == "ok":
-            a.residual = G.edges[a.reference, ALS_NODE].get("residual_after")
-    return sol
+    return optimise(G, ALS_NODE, config.graph)

@@ -1,0 +1,241 @@
+"""Edge noise calibrated on the solve's own residuals, and the scans' marginal covariances.
+
+An ICP information matrix (J^T J / sigma^2 over thousands of correlated points) says how a pose is
+constrained, not how far off it is: floored and capped it is a shape, not a scale. Where the graph
+has loops, the edges' residuals measure that scale. Variance components (Förstner): the edges fall
+in groups (the kinds of the two scans, rotation or translation block), and each group's information
+is divided by its variance factor
+
+    s_g^2 = sum over the group's residual components of xi_k (P xi)_k / its redundancy r_g,
+    r_g   = sum over the same components of (P Q_vv)_kk,   Q_vv = P^-1 - C_pred,
+
+where C_pred is the covariance of the relative pose the solution predicts for that edge (the joint
+marginal of its two scans). Iterated a few times (each factor changes the others' redundancy), then
+the marginals of the last solve are the scans' covariances. A group without redundancy (a tree, or
+one anchor a plot) keeps its information: nothing observes its scale.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import gtsam
+import networkx as nx
+import numpy as np
+
+from plotmosaic.config.register import PoseGraphConfig
+from plotmosaic.io.frame import inverse, rotation_deg
+
+ROTATION, TRANSLATION = slice(0, 3), slice(3, 6)
+BLOCKS = {"rotation": ROTATION, "translation": TRANSLATION}
+# a variance factor is estimated only from this much redundancy (scalar dof): fewer leave it
+# a guess (its relative error is sqrt(2 / dof))
+MIN_REDUNDANCY = 6.0
+# one edge's squared whitened residual counts at most this much (chi2, 6 dof, p = 0.999): a wrong
+# edge the robust kernel already discounts must not inflate its whole group
+MAX_EDGE_CHI2 = 22.46
+
+
+def edge_group(G: nx.Graph, u: str, v: str) -> str:
+    """The kinds of an edge's two ends, sorted: "tls-tls", "als-tls", ..."""
+    kinds = sorted(str(G.nodes[n].get("kind", "unknown")) for n in (u, v))
+    return "-".join(kinds)
+
+
+@dataclass
+class Scales:
+    """Variance factor of each (group, block): the information of its edges is divided by it."""
+
+    factors: dict[tuple[str, str], float] = field(default_factory=dict)
+    redundancy: dict[tuple[str, str], float] = field(default_factory=dict)
+
+    def apply(self, group: str, info: np.ndarray) -> np.ndarray:
+        d = np.ones(6)
+        for block, sl in BLOCKS.items():
+            d[sl] = 1.0 / np.sqrt(self.factors.get((group, block), 1.0))
+        return info * np.outer(d, d)
+
+    def as_dict(self) -> dict:
+        """JSON form: "group/block" -> {"factor", "redundancy"}."""
+        return {
+            f"{g}/{b}": {"factor": f, "redundancy": self.redundancy.get((g, b), 0.0)}
+            for (g, b), f in sorted(self.factors.items())
+        }
+
+
+def condition_information(
+    info: np.ndarray | None, rmse: float | None, config: PoseGraphConfig
+) -> np.ndarray:
+    """A well-conditioned 6x6 information: sigmas floored, strongest/weakest ratio capped."""
+    floors = np.array(
+        [np.radians(config.min_sigma_rotation_deg)] * 3 + [config.min_sigma_translation] * 3
+    )
+    S = np.diag(floors)
+    A = None
+    if info is not None:
+        info = np.asarray(info, dtype=np.float64)
+        if info.shape == (6, 6) and np.isfinite(info).all():
+            A = (
+                S @ ((info + info.T) / 2.0) @ S
+            )  # in floor units: eigenvalue 1 <=> sigma at the floor
+    if A is not None:
+        w, V = np.linalg.eigh(A)
+        if w.max() <= 0:
+            A = None
+    if A is None:  # no usable information: a loose isotropic guess from the pair's RMSE
+        sigma_t = max(rmse or 0.0, 0.01)
+        sigma_r = np.radians(config.fallback_sigma_rotation_deg)
+        return np.diag([1 / sigma_r**2] * 3 + [1 / sigma_t**2] * 3)
+    cap = min(w.max(), 1.0)
+    w = np.clip(w, cap / config.max_information_ratio, cap)
+    Sinv = np.diag(1.0 / floors)
+    return Sinv @ (V * w) @ V.T @ Sinv
+
+
+@dataclass
+class EdgeInformation:
+    """The information of a graph's edges as solved, owned by one optimisation: an ICP information
+    conditioned once per edge (however often it is solved and tested), then scaled by its group's
+    variance factor. An edge marked `posterior` (a covariance already estimated, e.g. a pose from an
+    earlier solve) is used as it is."""
+
+    G: nx.Graph
+    config: PoseGraphConfig
+    scales: Scales = field(default_factory=Scales)
+    held: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
+
+    def of(self, u: str, v: str) -> np.ndarray:
+        key = (u, v) if u <= v else (v, u)
+        if key not in self.held:
+            e = self.G.edges[u, v]
+            self.held[key] = (
+                np.asarray(e["information"], dtype=np.float64)
+                if e.get("posterior")
+                else condition_information(e.get("information"), e.get("inlier_rmse"), self.config)
+            )
+        return self.scales.apply(edge_group(self.G, u, v), self.held[key])
+
+
+def noise_model(info: np.ndarray, config: PoseGraphConfig):
+    """GTSAM noise of an edge: Gaussian with this information, in the configured robust kernel."""
+    base = gtsam.noiseModel.Gaussian.Information(info)
+    if config.robust == "none":
+        return base
+    est = gtsam.noiseModel.mEstimator
+    kernel = (
+        est.Cauchy.Create(config.robust_k)
+        if config.robust == "cauchy"
+        else est.Huber.Create(config.robust_k)
+    )
+    return gtsam.noiseModel.Robust.Create(kernel, base)
+
+
+def residual(
+    G: nx.Graph, u: str, v: str, poses: dict[str, np.ndarray], information: EdgeInformation
+) -> dict:
+    """Residual of one edge at the given poses: rotation (deg), translation (m) and chi2 (conditioned info)."""
+    e = G.edges[u, v]
+    i, j = e["source"], e["target"]
+    E = (
+        inverse(e["transform"]) @ inverse(poses[j]) @ poses[i]
+    )  # identity when the edge is satisfied
+    xi = gtsam.Pose3.Logmap(gtsam.Pose3(E))
+    info = information.of(u, v)
+    return {
+        "rotation_deg": rotation_deg(E),
+        "translation": float(np.linalg.norm(E[:3, 3])),
+        "chi2": float(xi @ info @ xi),
+    }
+
+
+def redundancy_dof(G: nx.Graph, placed: set[str]) -> int:
+    """6 x (edges - spanning-tree edges) among the placed scans: zero when no loop observes a scale."""
+    H = G.subgraph(placed)
+    return 6 * (H.number_of_edges() - H.number_of_nodes() + nx.number_connected_components(H))
+
+
+class JointCovariance:
+    """The covariance of every placed pose at once: the inverse of the solve's dense Hessian (a
+    plot's graph: tens to hundreds of scans), read two scans at a time."""
+
+    def __init__(self, graph, result, keys: dict[str, int]):
+        ordering = gtsam.Ordering()
+        for k in keys.values():
+            ordering.push_back(k)
+        H, _ = graph.linearize(result).hessian(ordering)
+        self.C = np.linalg.inv(H)
+        self.at = {k: 6 * n for n, k in enumerate(keys.values())}
+
+    def block(self, a: int, b: int) -> np.ndarray:
+        i, j = self.at[a], self.at[b]
+        return self.C[i : i + 6, j : j + 6]
+
+    def relative(self, ki: int, kj: int, Z: np.ndarray) -> np.ndarray:
+        """Covariance of the right perturbation of Z = X_j^-1 X_i: delta_i - Ad(Z^-1) delta_j."""
+        A = np.hstack([np.eye(6), -gtsam.Pose3(inverse(Z)).AdjointMap()])
+        C = np.block(
+            [[self.block(ki, ki), self.block(ki, kj)], [self.block(kj, ki), self.block(kj, kj)]]
+        )
+        return A @ C @ A.T
+
+
+def variance_components(
+    G: nx.Graph,
+    edges: list[tuple[str, str]],
+    poses: dict[str, np.ndarray],
+    keys: dict[str, int],
+    joint: JointCovariance,
+    information,
+) -> tuple[dict, dict]:
+    """(quadratic form, redundancy) per (group, block) over `edges` at the solution `poses`;
+    `information.of(u, v)` is each edge's information as solved."""
+    quad: dict[tuple[str, str], float] = {}
+    red: dict[tuple[str, str], float] = {}
+    for u, v in edges:
+        e = G.edges[u, v]
+        i, j = e["source"], e["target"]
+        Z = inverse(poses[j]) @ poses[i]
+        xi = gtsam.Pose3.Logmap(gtsam.Pose3(inverse(e["transform"]) @ Z))
+        P = information.of(u, v)
+        chi2 = float(xi @ P @ xi)
+        if chi2 > MAX_EDGE_CHI2:
+            xi = xi * np.sqrt(MAX_EDGE_CHI2 / chi2)
+        Qvv = np.linalg.inv(P) - joint.relative(keys[i], keys[j], Z)
+        PQ = np.diag(P @ Qvv)
+        Pxi = P @ xi
+        g = edge_group(G, u, v)
+        for block, sl in BLOCKS.items():
+            quad[g, block] = quad.get((g, block), 0.0) + float(xi[sl] @ Pxi[sl])
+            red[g, block] = red.get((g, block), 0.0) + float(PQ[sl].sum())
+    return quad, red
+
+
+def update_scales(scales: Scales, quad: dict, red: dict) -> Scales:
+    """Each group's factors times their newly observed variance factors: a factor per block where
+    each block has the redundancy, one for the whole group where only both together have it, none
+    where the group has not (its information kept)."""
+    factors, redundancy = dict(scales.factors), dict(scales.redundancy)
+    redundancy.update(red)
+    for group in sorted({g for g, _ in red}):
+        keys = [(group, b) for b in BLOCKS]
+        r = [red.get(k, 0.0) for k in keys]
+        q = [quad.get(k, 0.0) for k in keys]
+        if min(r) >= MIN_REDUNDANCY:
+            observed = [qi / ri for qi, ri in zip(q, r, strict=True)]
+        elif sum(r) >= MIN_REDUNDANCY:
+            observed = [sum(q) / sum(r)] * len(keys)
+        else:
+            continue
+        for k, s2 in zip(keys, observed, strict=True):
+            factors[k] = float(np.clip(factors.get(k, 1.0) * np.clip(s2, 1e-4, 1e4), 1e-4, 1e6))
+    return Scales(factors=factors, redundancy=redundancy)
+
+
+def marginal_covariances(graph, result, keys: dict[str, int]) -> dict[str, np.ndarray]:
+    """6x6 marginal covariance of every placed scan (rx, ry, rz, tx, ty, tz in its own frame)."""
+    marginals = gtsam.Marginals(graph, result)
+    return {name: np.asarray(marginals.marginalCovariance(k)) for name, k in keys.items()}
+
+
+def sigmas_of(covariances: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    return {n: np.sqrt(np.clip(np.diag(C), 0, None)) for n, C in covariances.items()}
