@@ -1,8 +1,9 @@
 """register-plot and tie-to-als end to end on the `small` simulated plot.
 
 To keep the suite short the plot is cut to three neighbouring scans (S0 centre, S2 and S3 on the
-west side: three pairs). One run is interrupted after its first pair, resumed, and re-run; the
-same cache then serves the checks on poses, the outputs, the Dask executor and tie-to-als.
+west side: three pairs, two by the search and the third from their poses). One run is interrupted
+after its first pair, resumed, and re-run; the same cache then serves the checks on poses, the
+outputs, the Dask executor and tie-to-als.
 """
 
 import json
@@ -16,7 +17,7 @@ from plotmosaic.graph.cache import PairCache
 from plotmosaic.graph.posegraph import inverse, pose_error
 from plotmosaic.manifest import dump_manifest, load_manifest
 from plotmosaic.poses import load_poses
-from plotmosaic.stages.register_plot import plan_jobs, register_plot
+from plotmosaic.stages.register_plot import register_plot
 
 pytestmark = pytest.mark.slow
 SUBSET = ["P1-S0", "P1-S2", "P1-S3"]
@@ -138,35 +139,37 @@ def test_outputs_written(runs):
 
 
 def test_dask_executor_gives_the_same_edge(runs, tmp_path):
+    """The same plot through a Dask cluster, the tree's pairs cached from the local run: the scans
+    are prepared there and the loop pair registered there, to the local run's edge and poses."""
+    import shutil
+
     from dask.distributed import LocalCluster
 
-    manifest = subset_manifest(runs["sim"], ["P1-S0", "P1-S3"], tmp_path)
+    records = [json.loads(p.read_text()) for p in (runs["out"] / "pairs").glob("*.json")]
+    (local,) = [r for r in records if r.get("timings", {}).get("coarse_skipped")]
+    (tmp_path / "out" / "pairs").mkdir(parents=True)
+    for p in (runs["out"] / "pairs").glob("*.json"):
+        if p.stem != local["key"]:
+            shutil.copy(p, tmp_path / "out" / "pairs" / p.name)
     with LocalCluster(
         n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None
     ) as cluster:
         result = register_plot(
-            manifest,
+            runs["manifest"],
             tmp_path / "out",
             executor="dask",
             scheduler=cluster.scheduler_address,
             progress=False,
         )
     assert result.computed == 1
-    (job,) = plan_jobs(load_manifest(manifest), RegisterConfig(), 0)
-    local = PairCache(runs["out"] / "pairs").get(
-        job.key
-    )  # same files, settings and seed as the local run
-    remote = PairCache(tmp_path / "out" / "pairs").get(job.key)
-    assert local is not None and remote is not None and local["status"] == remote["status"]
-    if local["status"] == "ok":
-        assert np.allclose(local["transform"], remote["transform"], atol=1e-6)
-        assert local["fitness"] == pytest.approx(remote["fitness"], abs=1e-6)
-    # the same plot through the local pool (its pair from the local run's cache): the same poses
-    PairCache(tmp_path / "local" / "pairs").put(job.key, local)
-    here = register_plot(manifest, tmp_path / "local", jobs=1, progress=False)
-    assert here.computed == 0 and set(here.poses.scans) == set(result.poses.scans)
-    for sid in here.poses.scans:
-        assert np.allclose(here.poses.transform(sid), result.poses.transform(sid), atol=1e-6)
+    remote = PairCache(tmp_path / "out" / "pairs").get(local["key"])
+    assert remote is not None and local["status"] == remote["status"] == "ok"
+    assert np.allclose(local["transform"], remote["transform"], atol=1e-6)
+    assert local["fitness"] == pytest.approx(remote["fitness"], abs=1e-6)
+    here = runs["again"].poses
+    assert set(here.scans) == set(result.poses.scans) == set(SUBSET)
+    for sid in here.scans:
+        assert np.allclose(here.transform(sid), result.poses.transform(sid), atol=1e-6)
 
 
 def test_tie_to_als_georeferences_every_scan(runs, tmp_path, monkeypatch):
