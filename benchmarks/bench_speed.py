@@ -12,6 +12,8 @@ Cases (the targets of the speed issue are in benchmarks/results/speed.md):
   pair400k  `plotmosaic align` of the demo's P1-S1 onto P1-S0 (400k points each) from anywhere
   pair8m    the same at 8M points a scan
   demo      register-plot + tie-to-als + merge on the demo's plot (five 400k scans; simulate excluded)
+  plot400k  register-plot alone on the demo's plot (10 pairs: a spanning tree by the global search,
+            the loop pairs verified from the poses it implies)
   large1m   register-plot of the `large` preset (36 scans) at 1M points a scan
 
 Measure on a quiet machine (nothing else running) or compare CPU seconds only.
@@ -114,9 +116,11 @@ def chain(work: Path, jobs: int) -> tuple[Run, Run]:
     return total, read_floor(sorted(sim.rglob("*.laz")))
 
 
-def large(work: Path, jobs: int) -> tuple[Run, Run]:
-    sim = simulated(work, "large1m", "large", 1_000_000)
-    out = work / "large1m-reg"
+def register(work: Path, jobs: int, preset: str, points: int) -> tuple[Run, Run]:
+    """register-plot alone on a simulated plot, beside reading its scans."""
+    name = f"{preset}{points // 1000}k"
+    sim = simulated(work, name, preset, points)
+    out = work / f"{name}-reg"
     run = timed(
         [*PLOTMOSAIC, "register-plot", str(sim / "manifest.toml"), "--out", str(out)]
         + ["-j", str(jobs), "--force"]
@@ -127,7 +131,7 @@ def large(work: Path, jobs: int) -> tuple[Run, Run]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, required=True, help="folder for the simulated inputs")
-    ap.add_argument("--cases", default="pair400k,pair8m,demo,large1m")
+    ap.add_argument("--cases", default="pair400k,pair8m,demo,plot400k,large1m")
     ap.add_argument("-j", "--jobs", type=int, default=os.cpu_count() or 1)
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
@@ -135,7 +139,8 @@ def main() -> None:
         "pair400k": lambda: pair(a.work, 400_000),
         "pair8m": lambda: pair(a.work, 8_000_000),
         "demo": lambda: chain(a.work, a.jobs),
-        "large1m": lambda: large(a.work, a.jobs),
+        "plot400k": lambda: register(a.work, a.jobs, "paper", 400_000),
+        "large1m": lambda: register(a.work, a.jobs, "large", 1_000_000),
     }
     print("| case | wall (s) | CPU (s) | peak (MB) | read floor wall (s) | wall / floor |")
     print("|---|---|---|---|---|---|")
