@@ -111,6 +111,15 @@ def scan_position(T: np.ndarray, cloud: np.ndarray | None) -> np.ndarray:
     return p if inside else np.median(cloud, axis=0)
 
 
+def als_under(
+    als_xyz: np.ndarray, clouds: dict[str, np.ndarray], margin: float = 0.0
+) -> np.ndarray:
+    """ALS returns over the clouds' extent (x, y), widened by `margin`."""
+    xy = np.vstack([p[:, :2] for p in clouds.values()])
+    lo, hi = xy.min(axis=0) - margin, xy.max(axis=0) + margin
+    return als_xyz[np.all((als_xyz[:, :2] >= lo) & (als_xyz[:, :2] <= hi), axis=1)]
+
+
 def sample(clouds: dict[str, np.ndarray], n: int, seed: int) -> dict[str, np.ndarray]:
     """At most n points of each cloud, a seeded random subset in the clouds' order."""
     rng = np.random.default_rng(seed)

@@ -8,7 +8,7 @@ import numpy as np
 from plotmosaic.config.report import ReportConfig
 from plotmosaic.report import views
 from plotmosaic.report.als_pictures import plot_canopy, plot_ground_difference, plot_scan_residuals
-from plotmosaic.report.collect import sample, scan_position
+from plotmosaic.report.collect import als_under, sample, scan_position
 from plotmosaic.report.figures import origin_of
 from plotmosaic.report.model import Figure, PlotView, ReportInput
 from plotmosaic.report.pictures import plot_scans
@@ -152,30 +152,20 @@ def overview_figure(
     v: PlotView, origin: np.ndarray, inp: ReportInput, cfg: ReportConfig, seed: int
 ) -> list:
     small = sample(v.thinned, cfg.picture_points, seed)
-    als = _als_under(inp.als_xyz, small)
-    if als is not None:  # the ALS the plot was placed on, in grey behind the scans
+    als = None if inp.als_xyz is None else als_under(inp.als_xyz, small)
+    if als is not None and len(als):  # the ALS the plot was placed on, in grey behind the scans
         small = {"ALS": als, **small}
     return [
         Figure(
             plot=v.plot,
             caption=f"Plot {v.plot}: placed scans from above and from the side, one colour per scan"
-            + (", the ALS around them in grey" if als is not None else ""),
+            + (", the ALS around them in grey" if "ALS" in small else ""),
             png=plot_scans(
                 inp.out / f"{v.plot}_scans.png", small, f"plot {v.plot}: placed scans", origin
             ),
             read="The dense view cannot show centimetres: it shows a scan far off or upside down.",
         )
     ]
-
-
-def _als_under(als_xyz: np.ndarray | None, clouds: dict[str, np.ndarray]) -> np.ndarray | None:
-    """ALS points over the scans' extent (x, y), for the overview behind them."""
-    if als_xyz is None or not clouds:
-        return None
-    xyz = np.vstack(list(clouds.values()))
-    lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
-    keep = np.all((als_xyz[:, :2] >= lo) & (als_xyz[:, :2] <= hi), axis=1)
-    return als_xyz[keep] if keep.any() else None
 
 
 def plot_figures(

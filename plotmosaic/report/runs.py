@@ -25,6 +25,7 @@ from plotmosaic.report.register_page import (
     write_register_report,
 )
 from plotmosaic.report.tie_page import (
+    ANCHOR_FIELDS,
     AnchorRow,
     TieRun,
     als_near,
@@ -126,18 +127,10 @@ def _als(directory: Path, plots: dict[str, list[str]]) -> np.ndarray | None:
 
 def _tie_run(directory: Path, G, poses: Poses, paths, plots, source, margin: float) -> TieRun:
     anchors = poses.extra.get("anchors") or {}
-    fields = (
-        "reference",
-        "status",
-        "fitness",
-        "inlier_rmse",
-        "overlap",
-        "crop",
-        "error",
-        "residual",
-    )
     rows = tuple(
-        AnchorRow(plot=p, **{k: a.get(k) for k in fields if a.get(k) is not None})
+        AnchorRow(
+            **{k: v for k, v in {**a, "plot": p}.items() if k in ANCHOR_FIELDS and v is not None}
+        )
         for p, a in anchors.items()
     )
     T = {s: sp.transform for s, sp in poses.scans.items()}

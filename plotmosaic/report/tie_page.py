@@ -8,6 +8,7 @@ left out."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -227,18 +228,11 @@ def rigid_plots(result, earlier, earlier_report: Path | None, cfg) -> dict[str, 
     return out
 
 
+ANCHOR_FIELDS = tuple(f.name for f in dataclasses.fields(AnchorRow))
+
+
 def _row(a) -> AnchorRow:
-    return AnchorRow(
-        plot=a.plot,
-        reference=a.reference,
-        status=a.status,
-        fitness=a.fitness,
-        inlier_rmse=a.inlier_rmse,
-        overlap=a.overlap,
-        crop=a.crop,
-        error=a.error,
-        residual=a.residual,
-    )
+    return AnchorRow(**{k: getattr(a, k) for k in ANCHOR_FIELDS})
 
 
 def write_tie_report(

@@ -12,10 +12,11 @@ import numpy as np
 
 from plotmosaic.config.report import ReportConfig
 from plotmosaic.io.atomic import write_text_atomic
-from plotmosaic.report.collect import sample
+from plotmosaic.report.collect import als_under, sample
 from plotmosaic.report.views import scan_colours
 
 BYTES_PER_POINT = 21  # three float32 coordinates as plotly writes them (base64), with the framing
+ALS_AROUND = 10.0  # ALS shown this far (m) around the scans: the ground they stand on
 
 
 def _rgb(c) -> str:
@@ -80,15 +81,12 @@ def write_3d_view(
         return None
     origin = np.floor(np.min([p.min(axis=0) for p in clouds.values()], axis=0))
     small = sample(clouds, per, seed)
-    als = None if als_xyz is None else sample({"ALS": _under(als_xyz, clouds)}, per, seed)["ALS"]
+    als = (
+        None
+        if als_xyz is None
+        else sample({"ALS": als_under(als_xyz, clouds, ALS_AROUND)}, per, seed)["ALS"]
+    )
     text = _figure(go, small, als, origin).to_html(include_plotlyjs=True, full_html=True)
     if len(text) > cfg.view3d_max_mb * 1e6:
         return None
     return write_text_atomic(path, text)
-
-
-def _under(als_xyz: np.ndarray, clouds: dict[str, np.ndarray], margin: float = 10.0) -> np.ndarray:
-    """ALS returns over the clouds' extent (x, y) and a margin around it."""
-    xy = np.vstack([p[:, :2] for p in clouds.values()])
-    lo, hi = xy.min(axis=0) - margin, xy.max(axis=0) + margin
-    return als_xyz[np.all((als_xyz[:, :2] >= lo) & (als_xyz[:, :2] <= hi), axis=1)]
