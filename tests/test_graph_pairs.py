@@ -5,10 +5,14 @@ import pytest
 from typer.testing import CliRunner
 
 from plotmosaic.cli import app
+from plotmosaic.config.register import RegisterConfig
 from plotmosaic.graph.cache import PairCache, file_hash, pair_key
 from plotmosaic.graph.executor import PairJob, run_pairs
-from plotmosaic.graph.pairs import candidate_pairs
-from plotmosaic.manifest import Plot, Scan
+from plotmosaic.graph.pairs import candidate_pairs, spanning_first
+from plotmosaic.manifest import Manifest, Plot, Scan
+from plotmosaic.stages.register_plot import plan_jobs, tree_first
+from plotmosaic.stages.register_plot.grow import from_graph, joining
+from plotmosaic.stages.register_plot.pairs import Pairs
 
 
 def _plot(positions):
@@ -297,8 +301,6 @@ def test_graph_placed_scans_get_their_neighbours_verified_first(tmp_path):
 
 
 def test_spanning_first_takes_pairs_in_order_one_per_join():
-    from plotmosaic.graph.pairs import spanning_first
-
     pairs = [("a", "b"), ("b", "c"), ("a", "c"), ("c", "d"), ("d", "b")]
     assert spanning_first(pairs) == [0, 1, 3]  # (a, c) and (d, b) close loops
     assert spanning_first(pairs, joined=[("a", "c")]) == [0, 3]
@@ -307,10 +309,6 @@ def test_spanning_first_takes_pairs_in_order_one_per_join():
 
 def _jobs_of(tmp_path, n, placed=None):
     """A plot of `n` scans (tiny files: no registration) and its planned pair jobs."""
-    from plotmosaic.config.register import RegisterConfig
-    from plotmosaic.manifest import Manifest
-    from plotmosaic.stages.register_plot import plan_jobs
-
     for k in range(n):
         (tmp_path / f"s{k}.laz").write_bytes(bytes([k]) * 10)
     plot = Plot(id="P", scans=[Scan(id=f"s{k}", path=f"s{k}.laz") for k in range(n)])
@@ -320,8 +318,6 @@ def _jobs_of(tmp_path, n, placed=None):
 
 def test_a_small_plot_runs_a_spanning_tree_first_and_its_verified_priors_lead(tmp_path):
     import networkx as nx
-
-    from plotmosaic.stages.register_plot import tree_first
 
     manifest, jobs = _jobs_of(tmp_path, 5)
     first, deferred = tree_first(manifest, jobs, {}, set())
@@ -344,9 +340,6 @@ def test_a_small_plot_runs_a_spanning_tree_first_and_its_verified_priors_lead(tm
 
 
 def test_loop_pairs_start_from_the_graph_and_pieces_are_joined_once(tmp_path):
-    from plotmosaic.stages.register_plot.grow import from_graph, joining
-    from plotmosaic.stages.register_plot.pairs import Pairs
-
     manifest, jobs = _jobs_of(tmp_path, 5)
     by_pair = {(j.source, j.target): j for j in jobs}
     poses = {k: T for k, T in _exact_grid(3).items() if k in ("s0", "s1", "s2")}
