@@ -8,6 +8,7 @@ import typing
 
 import numpy as np
 import pytest
+from helpers import assert_one_line_error, invoke
 from pydantic import BaseModel
 
 from plotmosaic.commands.common import run_settings
@@ -18,7 +19,6 @@ from plotmosaic.config.settings import Settings, dump_settings, load_settings, s
 from plotmosaic.errors import InputError
 from plotmosaic.manifest import Scan
 from plotmosaic.poses import load_poses
-from tests.helpers import assert_one_line_error, invoke
 
 FAST = """
 [align]
