@@ -107,7 +107,15 @@ def _tie_run(sim, truth, out, raw, als) -> TieRun:
         G.add_edge(s, ids[0], source=s, target=ids[0], from_poses=True, residual_after=zero)
     G.add_edge(ids[0], "ALS", source=ids[0], target="ALS", anchor=True, residual_after=zero)
     anchor = AnchorRow(
-        plot="P1", reference=ids[0], status="ok", fitness=0.5, inlier_rmse=0.1, residual=zero
+        plot="P1",
+        reference=ids[0],
+        status="ok",
+        fitness=0.5,
+        inlier_rmse=0.1,
+        fine_margin=0.9,
+        als_offset_median_m=-0.004,
+        als_offset_nmad_m=0.03,
+        residual=zero,
     )
     return TieRun(
         out=out,
@@ -143,6 +151,8 @@ def test_georeferenced_page_leads_with_the_fit_to_the_als(small_sim, plot_data, 
     # one anchor per plot: residuals zero by construction are not shown as quality figures
     assert "off the joint solution" not in text and "anchor residual" not in text
     assert "bundle error" not in text and "worst edge" not in text
+    # the anchor's own figures instead: the ALS against the TLS surfaces, the fine margin
+    assert "ALS returns -0.4 cm off the TLS surfaces" in text and "fine margin 0.90" in text
     assert "held by one edge only" not in text  # the scans are held to the reference by design
     # summary, the pictures that decide, tables, times last
     first_picture = text.index("ground height of the placed scans")
@@ -163,7 +173,17 @@ def test_report_dir_rewrites_a_georeferenced_run_in_place(small_sim, plot_data, 
     geo = tmp_path / "geo"
     (geo / "plots").mkdir(parents=True)
     (geo / "graph.json").write_text(json.dumps(graph_to_json(run.graph)))
-    anchors = {"P1": {"reference": "P1-S0", "status": "ok", "fitness": 0.5, "crop": "buffer"}}
+    anchors = {
+        "P1": {
+            "reference": "P1-S0",
+            "status": "ok",
+            "fitness": 0.5,
+            "crop": "buffer",
+            "fine_margin": 0.8,
+            "als_offset_median_m": 0.002,
+            "jackknife_blocks": 25,
+        }
+    }
     extra = {"offset": [0.0, 0.0, 0.0], "unplaced": [], "anchors": anchors}
     scans = {s: ScanPose(T, "P1") for s, T in truth.items()}
     Poses(scans, frame="crs", crs="EPSG:32612", extra=extra).save(geo / "poses.json")
@@ -179,3 +199,4 @@ def test_report_dir_rewrites_a_georeferenced_run_in_place(small_sim, plot_data, 
     assert not (geo / "report").exists() and not (geo / "index.md").exists()
     text = " ".join(page.text)
     assert f"folder: {geo}" in text and "manifest:" not in text
+    assert "ALS returns +0.2 cm off the TLS surfaces" in text and "fine margin 0.80" in text

@@ -133,6 +133,12 @@ class AlsFitConfig(BaseModel):
     min_als_points: int = Field(
         100, ge=1, le=1_000_000, description="fewer ALS returns over the plot: no comparison drawn"
     )
+    ground_reach: float = Field(
+        20.0,
+        gt=0,
+        le=500,
+        description="ground compared within this distance (m) of a scanner: farther, TLS sees understorey",
+    )
     canopy_cell: float = Field(
         2.0, gt=0.2, le=20, description="cell of the canopy-top comparison (m): a crown's size"
     )

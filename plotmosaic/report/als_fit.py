@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from plotmosaic.config.report import AlsFitConfig
 from plotmosaic.report.slice import Ground, cell_keys, cell_minima, ground_model
@@ -131,17 +132,33 @@ def _lookup(cells: np.ndarray, values: np.ndarray, want: np.ndarray) -> np.ndarr
     return out
 
 
-def _ground_difference(tls: Ground, als: Ground) -> tuple[Raster, np.ndarray]:
+def _near(xy: np.ndarray, stations: np.ndarray, reach: float) -> np.ndarray:
+    """Whether each (x, y) lies within `reach` of a scanner: farther, a TLS scan's lowest point in a
+    cell is mostly understorey seen over the ground, not the ground."""
+    if not len(stations):
+        return np.zeros(len(xy), bool)
+    d, _ = cKDTree(stations[:, :2]).query(xy, k=1)
+    return d <= reach
+
+
+def _ground_difference(
+    tls: Ground, als: Ground, stations: np.ndarray, reach: float
+) -> tuple[Raster, np.ndarray]:
     xy = _centres(tls)
     seen = tls.seen.ravel() if tls.seen is not None else np.ones(len(xy), bool)
-    both = seen & _seen_at(als, xy)
+    both = seen & _seen_at(als, xy) & _near(xy, stations, reach)
     diff = np.where(both, tls.z.ravel() - als.at(xy), np.nan)
     raster = Raster(x0=tls.x0, y0=tls.y0, cell=tls.cell, z=diff.reshape(tls.z.shape))
     return raster, diff[both]
 
 
 def _scan_ground(
-    minima: tuple[np.ndarray, np.ndarray], tls: Ground, als: Ground, spike: float
+    minima: tuple[np.ndarray, np.ndarray],
+    tls: Ground,
+    als: Ground,
+    spike: float,
+    station: np.ndarray,
+    reach: float,
 ) -> Spread:
     """A scan's lowest point per cell minus the ALS ground, on cells where that point is ground
     (within `spike` of the plot's ground model) and the ALS saw the ground too."""
@@ -149,7 +166,7 @@ def _scan_ground(
     if not len(cells):
         return spread(np.zeros(0))
     xy = (cells + 0.5) * tls.cell
-    ok = (zmin <= tls.at(xy) + spike) & _seen_at(als, xy)
+    ok = (zmin <= tls.at(xy) + spike) & _seen_at(als, xy) & _near(xy, station[None, :2], reach)
     return spread(zmin[ok] - als.at(xy[ok]))
 
 
@@ -206,13 +223,15 @@ def als_fit(
     plot: str,
     ground: Ground,
     scan_minima: dict[str, tuple[np.ndarray, np.ndarray]],
+    stations: dict[str, np.ndarray],
     clouds: dict[str, np.ndarray],
     als_xyz: np.ndarray,
     spike: float,
     cfg: AlsFitConfig,
 ) -> AlsFit | None:
     """The plot's fit to the ALS. `ground`: the plot's TLS ground model; `scan_minima`: each scan's
-    lowest point per ground cell (integer cells of `ground.cell`); `clouds`: the placed (thinned)
+    lowest point per ground cell (integer cells of `ground.cell`); `stations`: each scanner's
+    position; `clouds`: the placed (thinned)
     scans; `als_xyz`: ALS returns around the plot. None when the ALS has no points over the plot."""
     x0, x1, y0, y1 = ground.extent
     m = cfg.margin
@@ -226,13 +245,15 @@ def als_fit(
     if len(als_xyz) < cfg.min_als_points:
         return None
     als_ground = ground_model(cell_minima(als_xyz, ground.cell), ground.cell, spike)
-    diff, values = _ground_difference(ground, als_ground)
+    reach = cfg.ground_reach
+    at = np.array([stations[s] for s in scan_minima]).reshape(-1, 3)
+    diff, values = _ground_difference(ground, als_ground, at, reach)
     tls_top, als_top, canopy_scans = _canopy(clouds, als_xyz, als_ground, cfg)
     canopy = spread(tls_top.z - als_top.z)
     scans = tuple(
         ScanFit(
             scan=s,
-            ground=_scan_ground(scan_minima[s], ground, als_ground, spike),
+            ground=_scan_ground(scan_minima[s], ground, als_ground, spike, stations[s], reach),
             canopy=spread(canopy_scans.get(s, np.zeros(0))),
         )
         for s in scan_minima

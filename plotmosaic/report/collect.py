@@ -43,7 +43,7 @@ def collect(
     """One read per placed scan; the slice, stems and thinned clouds of the plot."""
     rng = np.random.default_rng(seed)
     minima = (np.zeros((0, 2), np.int64), np.zeros(0))
-    low, thinned, per_scan = {}, {}, {}
+    low, thinned, per_scan, stations = {}, {}, {}, {}
     for sid in scans:
         if sid not in poses or sid not in paths:
             continue
@@ -55,8 +55,11 @@ def collect(
         low[sid] = thin(low_stratum(xyz, cfg.slice, floor), cfg.slice.stratum_voxel, len(xyz), rng)
         del floor
         thinned[sid] = thin(xyz, cfg.distance.voxel, cfg.distance.max_points, rng)
+        stations[sid] = scan_position(poses[sid], thinned[sid])
         del xyz
-    view = PlotView(plot=plot, scans=tuple(scans), thinned=thinned, scan_minima=per_scan)
+    view = PlotView(
+        plot=plot, scans=tuple(scans), thinned=thinned, scan_minima=per_scan, stations=stations
+    )
     if not low:
         return view
     ground = ground_model(minima, cfg.slice.dtm_cell, cfg.slice.dtm_spike)
@@ -93,6 +96,7 @@ def with_als_fit(view: PlotView, als_xyz: np.ndarray | None, cfg: ReportConfig) 
         plot=view.plot,
         ground=view.ground,
         scan_minima=view.scan_minima,
+        stations=view.stations,
         clouds=view.thinned,
         als_xyz=als_xyz,
         spike=cfg.slice.dtm_spike,

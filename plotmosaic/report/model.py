@@ -44,6 +44,7 @@ class PlotView:
     stems: list[Stem] = field(default_factory=list)
     thinned: dict[str, np.ndarray] = field(default_factory=dict)
     scan_minima: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    stations: dict[str, np.ndarray] = field(default_factory=dict)  # each scanner's position
     edges: list[dict] = field(default_factory=list)  # per kept edge: distances and their figures
     medians: dict[str, float] = field(default_factory=dict)
     als: AlsFit | None = None

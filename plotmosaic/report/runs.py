@@ -25,10 +25,9 @@ from plotmosaic.report.register_page import (
     write_register_report,
 )
 from plotmosaic.report.tie_page import (
-    ANCHOR_FIELDS,
-    AnchorRow,
     TieRun,
     als_near,
+    anchor_row,
     render_tie,
     rigid_plots,
     write_tie_report,
@@ -127,12 +126,7 @@ def _als(directory: Path, plots: dict[str, list[str]]) -> np.ndarray | None:
 
 def _tie_run(directory: Path, G, poses: Poses, paths, plots, source, margin: float) -> TieRun:
     anchors = poses.extra.get("anchors") or {}
-    rows = tuple(
-        AnchorRow(
-            **{k: v for k, v in {**a, "plot": p}.items() if k in ANCHOR_FIELDS and v is not None}
-        )
-        for p, a in anchors.items()
-    )
+    rows = tuple(anchor_row({**a, "plot": p}) for p, a in anchors.items())
     T = {s: sp.transform for s, sp in poses.scans.items()}
     als = _als(directory, plots)
     return TieRun(

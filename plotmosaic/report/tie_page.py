@@ -48,7 +48,10 @@ class AnchorRow:
     overlap: float | None = None
     crop: str = ""
     error: str | None = None
-    residual: dict | None = None
+    fine_margin: float | None = None  # the judge's margin of the pair's fine pose
+    als_offset_median_m: float | None = None  # ALS returns minus the TLS surfaces, median (m)
+    als_offset_nmad_m: float | None = None
+    residual: dict | None = None  # the anchor edge's after the joint solve (zero without a loop)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -84,16 +87,20 @@ def als_near(als_xyz: np.ndarray, poses: dict[str, np.ndarray], margin: float):
 
 def anchor_rows(G: nx.Graph, anchors: tuple[AnchorRow, ...]) -> list[str]:
     loop = has_loop(G)
-    head = "| plot | reference scan | status | fitness | inlier RMSE (cm) | overlap | ALS crop |"
+    head = (
+        "| plot | reference scan | status | fitness | inlier RMSE (cm) | overlap | fine margin "
+        "| ALS - TLS surfaces, median (cm) | NMAD (cm) | ALS crop |"
+    )
     rows = [
         head + (" anchor residual (cm / deg) |" if loop else ""),
-        "|---" * (8 if loop else 7) + "|",
+        "|---" * (11 if loop else 10) + "|",
     ]
     for a in anchors:
         status = a.status if a.status == "ok" else f"failed: {a.error}"
         row = (
             f"| {a.plot} | {a.reference} | {status} | {fmt(a.fitness, 1, 3)} | {fmt(a.inlier_rmse, 100, 2)} "
-            f"| {fmt(a.overlap, 1, 3)} | {a.crop} |"
+            f"| {fmt(a.overlap, 1, 3)} | {fmt(a.fine_margin, 1, 2)} | {fmt(a.als_offset_median_m, 100, 2)} "
+            f"| {fmt(a.als_offset_nmad_m, 100, 2)} | {a.crop} |"
         )
         if loop:
             r = a.residual
@@ -111,9 +118,16 @@ def anchor_fact(a: AnchorRow, loop: bool) -> str:
         if r and loop
         else ""
     )
+    profile = (
+        f", ALS returns {a.als_offset_median_m * 100:+.1f} cm off the TLS surfaces (median, NMAD "
+        f"{fmt(a.als_offset_nmad_m, 100, 1)} cm)"
+        if a.als_offset_median_m is not None
+        else ""
+    )
+    margin = f", fine margin {a.fine_margin:.2f}" if a.fine_margin is not None else ""
     return (
         f"plot {a.plot} -> ALS (through {a.reference}): fitness {fmt(a.fitness, 1, 3)}, "
-        f"inlier RMSE {fmt(a.inlier_rmse, 100, 1)} cm{off}"
+        f"inlier RMSE {fmt(a.inlier_rmse, 100, 1)} cm{profile}{margin}{off}"
     )
 
 
@@ -231,8 +245,10 @@ def rigid_plots(result, earlier, earlier_report: Path | None, cfg) -> dict[str, 
 ANCHOR_FIELDS = tuple(f.name for f in dataclasses.fields(AnchorRow))
 
 
-def _row(a) -> AnchorRow:
-    return AnchorRow(**{k: getattr(a, k) for k in ANCHOR_FIELDS})
+def anchor_row(recorded: dict) -> AnchorRow:
+    """An AnchorRow from the anchor's fields as tie-to-als records them (its poses.json form:
+    the fit's figures flat beside the pair's)."""
+    return AnchorRow(**{k: v for k, v in recorded.items() if k in ANCHOR_FIELDS and v is not None})
 
 
 def write_tie_report(
@@ -254,7 +270,7 @@ def write_tie_report(
     run = TieRun(
         out=result.out,
         graph=result.graph,
-        anchors=tuple(_row(a) for a in result.anchors),
+        anchors=tuple(anchor_row({**vars(a), **(a.fit or {})}) for a in result.anchors),
         poses=poses,
         sigmas={k: v.sigma for k, v in result.poses.scans.items()},
         plots={p.id: [s.id for s in p.scans] for p in manifest.plots},
