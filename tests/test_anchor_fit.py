@@ -41,3 +41,11 @@ def test_too_few_als_points_give_no_fit():
     plot, als, T = _scene(np.random.default_rng(1), 0.01)
     assert anchor_fit(plot, als[:2000], T, block=10.0, max_distance=0.3) is not None
     assert anchor_fit(plot, als[:60], T, block=10.0, max_distance=0.3) is None  # < 4 blocks of 20
+
+
+def test_an_anchor_off_the_als_disagrees_by_its_error():
+    plot, als, T = _scene(np.random.default_rng(2), 0.01)
+    error = np.array([np.radians(0.05), 0.0, np.radians(-0.03), 0.02, -0.01, 0.015])
+    fit = anchor_fit(plot, als, T @ gtsam.Pose3.Expmap(error).matrix(), 10.0, 0.3)
+    assert np.allclose(fit.disagreement, -error, atol=0.15 * np.abs(error).max())
+    assert np.all(fit.sigma >= 0.7 * np.abs(error))  # the disagreement is part of the covariance

@@ -8,6 +8,11 @@ ALS is sparse); the linearised point-to-plane problem is then solved again with 
 block jackknife) is the anchor's covariance: it holds whatever the blocks disagree on (terrain or
 canopy seen differently from the air), not only the point noise that averages away.
 
+The anchor's own ICP and this fit are two estimates of one pose: where they disagree (the step
+the fit would take from the anchor), the anchor is off by about that much, so the disagreement is
+added to the covariance in its own direction. Blocks capture errors shorter than a block; the
+disagreement, those that move the whole plot.
+
 The same residuals are the anchor's profile against the ALS: their median (the ALS above or below
 the TLS surfaces) and robust spread.
 """
@@ -30,7 +35,7 @@ MIN_BLOCK_POINTS = 20  # a block with fewer matched ALS points is merged into no
 MIN_BLOCKS = 4
 # blocks shrink below `anchor_block` until about this many cover the plot: a jackknife over a
 # handful of blocks swings with whichever edge block is left out
-TARGET_BLOCKS = 25
+TARGET_BLOCKS = 16
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -40,7 +45,8 @@ class AnchorFit:
 
     points: int  # ALS returns matched to a TLS plane
     blocks: int  # jackknife blocks
-    covariance: np.ndarray  # 6x6, the anchor's (jackknife)
+    covariance: np.ndarray  # 6x6, the anchor's: jackknife + the disagreement's outer product
+    disagreement: np.ndarray  # 6, the fit's step from the anchor's pose (rx ry rz in rad, t in m)
     offset_median: float  # median of ALS minus TLS along the plane normals (m)
     offset_nmad: float  # 1.4826 x median absolute deviation of the same (m)
 
@@ -53,6 +59,8 @@ class AnchorFit:
             "als_points": self.points,
             "jackknife_blocks": self.blocks,
             "sigma": self.sigma.tolist(),
+            "disagreement_m": float(np.linalg.norm(self.disagreement[3:])),
+            "disagreement_deg": float(np.degrees(np.linalg.norm(self.disagreement[:3]))),
             "als_offset_median_m": self.offset_median,
             "als_offset_nmad_m": self.offset_nmad,
         }
@@ -92,6 +100,7 @@ def anchor_fit(
     _, label = np.unique(cells, axis=0, return_inverse=True)
     label = label.ravel()
     H, g = J.T @ J, J.T @ r
+    full = np.linalg.lstsq(H, g, rcond=None)[0]  # r ~ r0 - J xi: the fit's pose is T Exp(full)
     steps = []
     for b in np.unique(label):
         s = label == b
@@ -107,7 +116,8 @@ def anchor_fit(
     return AnchorFit(
         points=len(r),
         blocks=B,
-        covariance=(B - 1) / B * X.T @ X,
+        covariance=(B - 1) / B * X.T @ X + np.outer(full, full),
+        disagreement=full,
         offset_median=med,
         offset_nmad=float(1.4826 * np.median(np.abs(up - med))),
     )
