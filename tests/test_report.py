@@ -202,3 +202,25 @@ def test_report_for_a_register_plot_folder(tmp_path):
     assert result.exit_code == 0, result.output
     result = CliRunner().invoke(app, ["report", str(reg), "--out", str(tmp_path / "x")])
     assert result.exit_code == 2 and "--out" in result.output
+
+
+def test_3d_view_fits_the_size_cap_with_the_als_as_a_layer(tmp_path):
+    """One view3d.html: the scans thinned to fit `[report] view3d_max_mb`, the ALS a trace of its own."""
+    from plotmosaic.config.report import ReportConfig
+    from plotmosaic.report.view3d import write_3d_view
+
+    rng = np.random.default_rng(0)
+    clouds = {f"S{k}": rng.uniform(0, 30, (60_000, 3)) + UTM for k in range(3)}
+    als = rng.uniform(-20, 50, (60_000, 3)) + UTM
+    roomy = write_3d_view(tmp_path / "a.html", clouds, als, ReportConfig(), seed=0)
+    capped = ReportConfig(view3d_max_mb=5.6)
+    small = write_3d_view(tmp_path / "b.html", clouds, als, capped, seed=0)
+    assert roomy is not None and small is not None
+    assert small.stat().st_size <= 5.6e6 < roomy.stat().st_size
+    text = small.read_text()
+    assert text.count("ALS (click to hide)") == 1 and text.count('"name":"S1"') == 1
+    assert text.count("* plotly.js v") == 1  # plotly.js inlined once (its banner names it)
+    tiny = ReportConfig(
+        view3d_max_mb=1.0
+    )  # below plotly.js itself: no page rather than a broken one
+    assert write_3d_view(tmp_path / "c.html", clouds, als, tiny, seed=0) is None
