@@ -32,6 +32,7 @@ from plotmosaic.io.outputs import (
     inputs_of,
     manifest_inputs,
 )
+from plotmosaic.report.plot_figures import PLOT_FIGURES
 from plotmosaic.stages.register_plot import register_plot
 from plotmosaic.stages.tie_to_als import tie_to_als
 
@@ -53,7 +54,7 @@ def _recorded(out: Path, settings, command: str) -> Iterator[None]:
     write_config_used(out / CONFIG_USED, settings, command)
 
 
-REPORT_FIGURES = ("breast_slice", "map", "distances", "scan_distances", "scans")  # per plot
+REPORT_FIGURES = PLOT_FIGURES  # per plot: every picture a run's page may write
 # what both stages write into OUT besides the per-plot figures (report/build.py, graph/report.py)
 _COMMON = ("poses.json", "graph.json", "report.md", "report.html", "view3d.html", CONFIG_USED)
 _FORCE_HELP = "write into an OUT holding other files (they are left untouched; never an input)"
