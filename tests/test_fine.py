@@ -149,11 +149,9 @@ def test_facing_tells_the_two_sides_of_a_plane_apart():
 def test_airborne_pairs_keep_the_scaled_polish(sparse_pair):
     src, tgt, _ = sparse_pair
     cfg = AlignConfig()
-    src.kind = "als"  # a sparse ALS tile: its planes are 1 m normals, a 3 cm kernel would starve
-    try:
-        assert len(_fine_schedule(src, tgt, cfg)[0]) == len(cfg.final_schedule)
-    finally:
-        src.kind = "tls"
+    # a sparse ALS tile: its planes are 1 m normals, a 3 cm kernel would starve
+    als = dataclasses.replace(src, kind="als")
+    assert len(_fine_schedule(als, tgt, cfg)[0]) == len(cfg.final_schedule)
 
 
 def test_symmetric_fine_stage_uses_both_scans_planes(sparse_pair):
@@ -167,12 +165,9 @@ def test_symmetric_fine_stage_uses_both_scans_planes(sparse_pair):
     assert np.linalg.norm(one_way) > 0.3
     assert np.linalg.norm(both) < 0.2
     # only pairs of the listed kinds: a TLS -> MLS pair stays one way
-    src.kind = "mls"
-    try:
-        mixed = _baseline_error_cm(src, tgt, truth, AlignConfig())
-        mixed_one_way = _baseline_error_cm(src, tgt, truth, AlignConfig(final_symmetric_kinds=[]))
-    finally:
-        src.kind = "tls"
+    mls = dataclasses.replace(src, kind="mls")
+    mixed = _baseline_error_cm(mls, tgt, truth, AlignConfig())
+    mixed_one_way = _baseline_error_cm(mls, tgt, truth, AlignConfig(final_symmetric_kinds=[]))
     np.testing.assert_allclose(mixed, mixed_one_way, atol=1e-12)
 
 

@@ -29,8 +29,11 @@ SPARSE_PROBE = (
 MAX_EXTENT_M = 20_000.0
 
 
-@dataclass
+@dataclass(frozen=True, eq=False)
 class PreparedCloud:
+    """One cloud ready to register; never changed once made (what the stages compute from it is
+    kept in memos owned by the pair or the run: align/memo.py)."""
+
     frame: Frame
     kind: str
     points: np.ndarray  # (N, 3) local, delta0 voxel centroids in cube order (spatially coherent)
