@@ -37,7 +37,7 @@ def _case(rng: np.random.Generator):
         T = translation(UTM + rng.normal(0, 0.003, 3)) @ truth[n]  # unbiased, 3 mm noise
         records[key] = {"status": "ok", "transform": T.tolist(), "information": INFO.tolist(),
                         "fitness": 0.3, "overlap": 0.2, "confidence": 0.8}  # fmt: skip
-    G = build_graph({n: {} for n in names}, edges)
+    G = build_graph({n: {"kind": "tls"} for n in names}, edges)
     return plot, G, jobs, records, truth
 
 
@@ -62,6 +62,11 @@ def test_anchors_hold_a_drifting_chain_and_place_a_scan_without_pairs():
     # what the solve marks on the scan edges is on the plot's own graph, the ALS node is not
     assert anchor_id(plot) not in G
     assert all(e.get("residual_after") is not None for _, _, e in G.edges(data=True))
+    # the placements' noise is scaled on their own residuals, apart from the pairs'
+    factors = G.graph["calibration"]["P1"]
+    als = factors["als-tls/translation"]
+    assert als["redundancy"] + factors["als-tls/rotation"]["redundancy"] > 6, factors
+    assert als["factor"] != factors["tls-tls/translation"]["factor"]
 
 
 def test_only_kept_placements_become_anchors():
