@@ -34,6 +34,9 @@ MIN_REDUNDANCY = 6.0
 # one edge's squared whitened residual counts at most this much (chi2, 6 dof, p = 0.999): a wrong
 # edge the robust kernel already discounts must not inflate its whole group
 MAX_EDGE_CHI2 = 22.46
+# a group's sigmas shrink at most 10x (an exact synthetic edge would make it infinitely sure) and
+# grow at most 1000x
+FACTOR_RANGE = (1e-2, 1e6)
 
 
 def edge_group(G: nx.Graph, u: str, v: str) -> str:
@@ -227,7 +230,7 @@ def update_scales(scales: Scales, quad: dict, red: dict) -> Scales:
         else:
             continue
         for k, s2 in zip(keys, observed, strict=True):
-            factors[k] = float(np.clip(factors.get(k, 1.0) * np.clip(s2, 1e-4, 1e4), 1e-4, 1e6))
+            factors[k] = float(np.clip(factors.get(k, 1.0) * s2, *FACTOR_RANGE))
     return Scales(factors=factors, redundancy=redundancy)
 
 
