@@ -17,7 +17,7 @@ from plotmosaic.config.report import ReportConfig
 from plotmosaic.graph.posegraph import graph_to_json
 from plotmosaic.io.las import PointCloud, read_cloud, write_cloud
 from plotmosaic.poses import Poses, ScanPose, load_poses
-from plotmosaic.report.align_page import motion_of
+from plotmosaic.report.align_page import motion_of, source_centre
 from plotmosaic.report.als_fit import spread
 from plotmosaic.report.collect import collect, with_als_fit
 from plotmosaic.report.tie_page import AnchorRow, TieRun, render_tie
@@ -75,7 +75,8 @@ def test_motion_is_read_at_the_source_centre():
     T = np.eye(4)
     T[:3, :3] = turn[:3, :3]
     T[:3, 3] = centre - turn[:3, :3] @ centre + [0.03, 0.0, 0.0]
-    m = motion_of(T, xyz)
+    m = motion_of(T, source_centre({}, xyz))
+    assert np.allclose(source_centre({"source_centre": [1.0, 2.0, 3.0]}, xyz), [1, 2, 3])
     assert np.linalg.norm(T[:3, 3]) > 100
     assert np.allclose(m.moves, [0.03, 0, 0], atol=1e-6) and abs(m.angle_deg - 2.0) < 1e-9
     assert np.allclose(np.abs(m.axis), [0, 0, 1])

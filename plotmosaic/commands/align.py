@@ -21,6 +21,7 @@ from plotmosaic.config.align import DEFAULT_LEVELS, KINDS, MAX_LEVELS
 from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import check_output_dir, check_output_file, write_text_atomic
 from plotmosaic.io.las import read_header_info
+from plotmosaic.io.matrix import matrix_text
 from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed, inputs_of
 from plotmosaic.poses import read_json, rigid_matrix
 
@@ -60,12 +61,6 @@ def config_used_path(out: Path | None, save_levels: Path | None) -> Path | None:
 def matrix_path(out: Path | None) -> Path | None:
     """The 4x4 as text beside RESULT.json (RESULT.matrix.txt), when there is one."""
     return None if out is None else out.with_name(f"{out.stem}.matrix.txt")
-
-
-def matrix_text(T: np.ndarray) -> str:
-    """Four lines of four numbers (CloudCompare reads it); float64 in its shortest exact form, so a
-    georeferenced translation keeps every digit."""
-    return "".join(" ".join(repr(float(v)) for v in row) + "\n" for row in np.asarray(T))
 
 
 def output_plan(source, target, init, config, out, save_levels, force) -> OutputPlan:

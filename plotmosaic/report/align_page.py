@@ -27,7 +27,7 @@ from plotmosaic.report.pictures import plot_scans
 from plotmosaic.report.tables import md_figures
 
 QUALITY = ("fitness", "inlier_rmse", "overlap", "confidence")
-NOT_SECONDS = ("_deg", "_m", "iterations")  # timings entries that are measures, not times
+NOT_SECONDS = ("_deg", "_m", "iterations")  # older results kept measures among their timings
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -40,12 +40,19 @@ class Motion:
     moves: np.ndarray  # where that centre goes minus where it was (m)
 
 
-def motion_of(T: np.ndarray, source_xyz: np.ndarray) -> Motion:
+def source_centre(data: dict, source_xyz: np.ndarray) -> np.ndarray:
+    """The centre `align` measured the motion at (stray points left out), else the points' box centre
+    (a result written before RESULT.json carried it)."""
+    if data.get("source_centre") is not None:
+        return np.asarray(data["source_centre"], dtype=float)
+    return (source_xyz.min(axis=0) + source_xyz.max(axis=0)) / 2
+
+
+def motion_of(T: np.ndarray, centre: np.ndarray) -> Motion:
     R = T[:3, :3]
     angle = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
     w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
     axis = w / np.linalg.norm(w) if np.linalg.norm(w) > 1e-12 else np.array([0.0, 0.0, 1.0])
-    centre = (source_xyz.min(axis=0) + source_xyz.max(axis=0)) / 2
     return Motion(angle_deg=angle, axis=axis, centre=centre, moves=R @ centre + T[:3, 3] - centre)
 
 
@@ -171,7 +178,7 @@ def report_pair(
     src, tgt = Path(source_path), Path(target_path)
     src_xyz, tgt_xyz = read_scan(src), read_scan(tgt)
     names = (f"source {src.stem}", f"target {tgt.stem}")
-    motion = motion_of(T, src_xyz)
+    motion = motion_of(T, source_centre(data, src_xyz))
     figs = _pictures(data, T, src_xyz, tgt_xyz, names, out, points, seed, levels)
     G = nx.Graph()
     G.add_node(names[0], kind=data.get("source_kind", "tls"))

@@ -12,9 +12,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
-
 from plotmosaic.io.atomic import write_text_atomic
+from plotmosaic.io.matrix import matrix_text
 from plotmosaic.stages.export.plan import ExportPlan
 
 INDEX = "matrices.json"
@@ -26,11 +25,6 @@ CONVENTION = (
 
 def matrix_file(scan_id: str) -> str:
     return f"{scan_id}.txt"
-
-
-def matrix_text(T: np.ndarray) -> str:
-    """Four lines of four numbers, each float64 in its shortest exact decimal form."""
-    return "".join(" ".join(repr(float(v)) for v in row) + "\n" for row in np.asarray(T))
 
 
 def output_names(plan: ExportPlan) -> tuple[str, ...]:
