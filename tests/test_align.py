@@ -213,18 +213,18 @@ def test_sim_tls_pair_large_errors_never_silently_wrong(sim_prepared):
 @pytest.mark.slow
 def test_initial_guess_is_a_prior_not_a_trap(sim_prepared):
     """With the coarse stage on (the default), a +-10 deg / +-2 m guess is searched around and verified:
-    the starts that ICP alone ends in a wrong minimum from come back right too, and a start it ended
-    right from stays right. ICP alone (the judge's basin retry included) either ends right or is
-    refused; trial 4 is refused (a wrong minimum)."""
+    the starts that ICP alone ends in a wrong minimum from come back right too. ICP alone (the judge's
+    basin retry included) either ends right or is refused; trial 4 is refused (a wrong minimum)."""
     ps, pt, T_true, cfg = sim_prepared
     prior_cfg = cfg.model_copy(deep=True)
     prior_cfg.coarse.enabled = True
     rng = np.random.default_rng(5)
     centre = ps.frame.to_global(ps.points.mean(axis=0))
-    starts = [T_true @ perturbation(rng, centre) for _ in range(5)]
+    starts = {i: T_true @ perturbation(rng, centre) for i in range(5)}
+    starts = {i: starts[i] for i in (0, 2, 4)}  # every other start: the wrong minimum among them
     memo = PairMemo()  # the pair's, as a run keeps it: one global search serves every start
     refused = []
-    for i, init in enumerate(starts):
+    for i, init in starts.items():
         try:
             result = register_prepared(ps, pt, cfg, init=init, seed=0, memo=memo)
         except RegistrationFailed:
@@ -233,8 +233,7 @@ def test_initial_guess_is_a_prior_not_a_trap(sim_prepared):
         assert i != 4, "trial 4 is a wrong minimum for ICP from the guess alone"
         deg, m = pose_error(result.transform, T_true, centre)
         assert deg.max() < PAIR_MAX_DEG and m.max() < 0.02, (i, deg, m)
-    right = [i for i in range(len(starts)) if i not in refused]
-    for i in refused + right[:1]:
+    for i in refused:
         result = register_prepared(ps, pt, prior_cfg, init=starts[i], seed=0, memo=memo)
         deg, m = pose_error(result.transform, T_true, centre)
         assert deg.max() < PAIR_MAX_DEG and m.max() < 0.02, (deg, m)
@@ -248,11 +247,13 @@ def test_level_stage_never_ends_worse_than_its_start(sim_pair):
     dropped and the final ICP starts from the coarse pose."""
     src, tgt, T_true = sim_pair
     cfg = AlignConfig(complexity="vmf")
+    # the level stage is the point: the judge weighs the coarse search's own hypotheses only
+    cfg.judge.global_rivals = False
     ps, pt = prepare_cloud(src, "tls", 3, cfg, 0), prepare_cloud(tgt, "tls", 3, cfg, 0)
     rng = np.random.default_rng(0)
     centre = ps.frame.to_global(ps.points.mean(axis=0))
     init = T_true @ perturbation(rng, centre)
-    memo = PairMemo()  # one global search (the judge's rivals) for both settings
+    memo = PairMemo()  # the clouds levelled once for both settings
     result = register_prepared(ps, pt, cfg, init=init, seed=0, memo=memo)
     deg, m = pose_error(result.transform, T_true, centre)
     assert deg.max() < PAIR_MAX_DEG and m.max() < 0.02, (deg, m)

@@ -39,10 +39,10 @@ def error(T, T_true, centre) -> tuple[float, float]:
     return rotation_deg(D), float(np.linalg.norm(D[:3, :3] @ centre + D[:3, 3] - centre))
 
 
-def outcome(src, tgt, cfg, init):
+def outcome(src, tgt, cfg, init, memo=None):
     """(result, accepted) of one registration; a refusal must carry its figures."""
     try:
-        return register_prepared(src, tgt, cfg, init, seed=0), True
+        return register_prepared(src, tgt, cfg, init, seed=0, memo=memo), True
     except RegistrationFailed as exc:
         assert exc.result is not None and exc.result.judge is not None
         return exc.result, False
@@ -57,6 +57,12 @@ def pair(small_sim):
     cfg = AlignConfig()
     ps, pt = prepare_pair(s, t, "tls", "tls", 3, 3, cfg, 0)
     return ps, pt, T_true, s.xyz.mean(axis=0), cfg
+
+
+@pytest.fixture(scope="module")
+def pair_memo(pair):
+    """The pair's memo, kept across its registrations as a run keeps it (one global search)."""
+    return PairMemo()
 
 
 def test_profile_separates_truth_from_a_distinct_pose(pair):
@@ -75,7 +81,7 @@ def test_profile_separates_truth_from_a_distinct_pose(pair):
 
 
 @pytest.mark.slow
-def test_sharpness_floor_refuses_a_blunt_fit(pair):
+def test_sharpness_floor_refuses_a_blunt_fit(pair, pair_memo):
     """A pose the ICP settles at by chance fits bluntly: below min_sharpness, refused with the figure
     (the floors are the same on every path: checked on the local one, from the true pose)."""
     ps, pt, T_true, _, cfg = pair
@@ -83,7 +89,7 @@ def test_sharpness_floor_refuses_a_blunt_fit(pair):
     T = to_local_transform(T_true, ps.frame, pt.frame)
     off = T.copy()
     off[:3, 3] += [2.0, -1.0, 0.0]
-    memo = PairMemo()  # the pair's: one global search serves the three settings
+    memo = pair_memo
     right = judge.sharpness(judge.profile(ps, pt, T, cfg.judge, memo))
     wrong = judge.sharpness(judge.profile(ps, pt, off, cfg.judge, memo))
     assert wrong < cfg.judge.min_sharpness < right, (wrong, right)
@@ -108,9 +114,9 @@ def test_sharpness_floor_refuses_a_blunt_fit(pair):
 
 
 @pytest.mark.slow
-def test_right_pair_accepted_with_high_confidence(pair):
+def test_right_pair_accepted_with_high_confidence(pair, pair_memo):
     ps, pt, T_true, centre, cfg = pair
-    result = register_prepared(ps, pt, cfg, None, seed=0)
+    result = register_prepared(ps, pt, cfg, None, seed=0, memo=pair_memo)
     deg, m = error(result.transform, T_true, centre)
     assert deg < SIM_PAIR_MAX_DEG and m < SIM_PAIR_MAX_M, (deg, m)
     assert result.confidence > 0.6 and result.judge["fine_margin"] > cfg.judge.chance_margin
@@ -132,7 +138,7 @@ def test_right_pair_accepted_with_high_confidence(pair):
 
 
 @pytest.mark.slow
-def test_local_start_far_off_is_refused_never_wrong(pair):
+def test_local_start_far_off_is_refused_never_wrong(pair, pair_memo):
     """--no-coarse from a start that leaves ICP in a wrong minimum: exit 3 with the rival named, or right."""
     ps, pt, T_true, centre, cfg = pair
     cfg = local(cfg)
@@ -141,7 +147,7 @@ def test_local_start_far_off_is_refused_never_wrong(pair):
     bad[:3, :3] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ bad[:3, :3]
     for init in (None, bad):
         try:
-            result = register_prepared(ps, pt, cfg, init, seed=0)
+            result = register_prepared(ps, pt, cfg, init, seed=0, memo=pair_memo)
         except RegistrationFailed as exc:
             assert "distinct pose fits" in str(exc) and "rerun without --no-coarse" in str(exc), (
                 str(exc)
@@ -153,11 +159,11 @@ def test_local_start_far_off_is_refused_never_wrong(pair):
 
 
 @pytest.mark.slow
-def test_true_pose_control_right_or_refused_on_every_path(pair):
+def test_true_pose_control_right_or_refused_on_every_path(pair, pair_memo):
     """The source handed over in its true pose: back within 1 deg / 10 cm or refused, with and without the coarse stage."""
     ps, pt, T_true, centre, cfg = pair
     for c in (local(cfg), cfg):
-        result, accepted = outcome(ps, pt, c, T_true)
+        result, accepted = outcome(ps, pt, c, T_true, pair_memo)
         if accepted:
             deg, m = error(result.transform, T_true, centre)
             assert deg < 1.0 and m < 0.1, (deg, m)
