@@ -176,8 +176,9 @@ def test_unrelated_forests_refused_on_every_path(small_sim, pair):
     ps, _, _, _, cfg = pair
     t = read_cloud(small_sim.scan_paths["P1-S0"], attributes=False)
     mirrored = prepare_cloud(PointCloud(t.xyz * [-1.0, 1.0, 1.0]), "tls", 3, cfg, 1, "target")
+    memo = PairMemo()  # one global search for the three paths
     for c, init in ((cfg, None), (local(cfg), None), (cfg, np.eye(4))):
-        result, accepted = outcome(ps, mirrored, c, init)
+        result, accepted = outcome(ps, mirrored, c, init, memo)
         assert not accepted, (
             c.coarse.enabled,
             init is None,
@@ -331,10 +332,11 @@ def test_retry_takes_the_sharper_basin_pose_and_never_a_wrong_one(pair):
     jc, c = cfg.judge, judge.centre(ps, cfg.judge)
     T = to_local_transform(T_true, ps.frame, pt.frame)
     near = _turned(T, c, 2.5, [0.2, -0.2, 0.0])
-    v = judge.judge(ps, pt, near, [], jc)
+    memo = PairMemo()  # the verdict and its retry share the refined rivals, as in register
+    v = judge.judge(ps, pt, near, [], jc, memo)
     assert v.basin_transform is not None and v.confidence < cfg.min_confidence
     empty = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), 0, False)
-    judged = recover(ps, pt, cfg, [], FineResult(near, *empty), v, lambda msg: None)
+    judged = recover(ps, pt, cfg, [], FineResult(near, *empty), v, lambda msg: None, memo)
     T2, v2 = judged.fine.T, judged.verdict
     deg, m = judge.separation(T2, T, c)
     assert deg < SIM_PAIR_MAX_DEG and m < SIM_PAIR_MAX_M, (deg, m)  # recovered: the truth
