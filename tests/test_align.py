@@ -159,6 +159,12 @@ def sim_prepared(sim_pair):
     return prepare_cloud(src, "tls", 3, cfg, 0), prepare_cloud(tgt, "tls", 3, cfg, 1), T_true, cfg
 
 
+@pytest.fixture(scope="module")
+def sim_memo(sim_prepared):
+    """The prepared pair's memo, kept across its registrations as a run keeps it (one global search)."""
+    return PairMemo()
+
+
 def test_tls_levels_are_ground_stems_foliage(sim_pair, sim_prepared):
     """K=3 on TLS: one level each mostly ground, mostly stems+branches and mostly foliage."""
     src, _, _ = sim_pair
@@ -172,15 +178,14 @@ def test_tls_levels_are_ground_stems_foliage(sim_pair, sim_prepared):
 
 
 @pytest.mark.slow
-def test_sim_tls_pair_from_perturbations(sim_prepared):
+def test_sim_tls_pair_from_perturbations(sim_prepared, sim_memo):
     """+-5 deg / +-1 m: every trial within PAIR_MAX_DEG and 2 cm."""
     ps, pt, T_true, cfg = sim_prepared
     rng = np.random.default_rng(7)
     centre = ps.frame.to_global(ps.points.mean(axis=0))
     for _ in range(3):
-        result = register_prepared(
-            ps, pt, cfg, init=T_true @ perturbation(rng, centre, 5.0, 1.0), seed=0
-        )
+        init = T_true @ perturbation(rng, centre, 5.0, 1.0)
+        result = register_prepared(ps, pt, cfg, init=init, seed=0, memo=sim_memo)
         deg, m = pose_error(result.transform, T_true, centre)
         assert deg.max() < PAIR_MAX_DEG, deg
         assert m.max() < 0.02, m
@@ -188,7 +193,7 @@ def test_sim_tls_pair_from_perturbations(sim_prepared):
 
 
 @pytest.mark.slow
-def test_sim_tls_pair_large_errors_never_silently_wrong(sim_prepared):
+def test_sim_tls_pair_large_errors_never_silently_wrong(sim_prepared, sim_memo):
     """+-10 deg / +-2 m (the issue's range): a trial is either within bounds or refused (exit 3).
 
     On this sparse preset (50k points a scan) a minority of such starts end in a wrong minimum; the
@@ -200,7 +205,8 @@ def test_sim_tls_pair_large_errors_never_silently_wrong(sim_prepared):
     good = 0
     for _ in range(4):
         try:
-            result = register_prepared(ps, pt, cfg, init=T_true @ perturbation(rng, centre), seed=0)
+            init = T_true @ perturbation(rng, centre)
+            result = register_prepared(ps, pt, cfg, init=init, seed=0, memo=sim_memo)
         except RegistrationFailed as exc:
             assert "fitness" in str(exc)
             continue
@@ -211,7 +217,7 @@ def test_sim_tls_pair_large_errors_never_silently_wrong(sim_prepared):
 
 
 @pytest.mark.slow
-def test_initial_guess_is_a_prior_not_a_trap(sim_prepared):
+def test_initial_guess_is_a_prior_not_a_trap(sim_prepared, sim_memo):
     """With the coarse stage on (the default), a +-10 deg / +-2 m guess is searched around and verified:
     the starts that ICP alone ends in a wrong minimum from come back right too. ICP alone (the judge's
     basin retry included) either ends right or is refused; trial 4 is refused (a wrong minimum)."""
@@ -222,7 +228,7 @@ def test_initial_guess_is_a_prior_not_a_trap(sim_prepared):
     centre = ps.frame.to_global(ps.points.mean(axis=0))
     starts = {i: T_true @ perturbation(rng, centre) for i in range(5)}
     starts = {i: starts[i] for i in (0, 2, 4)}  # every other start: the wrong minimum among them
-    memo = PairMemo()  # the pair's, as a run keeps it: one global search serves every start
+    memo = sim_memo
     refused = []
     for i, init in starts.items():
         try:
