@@ -36,7 +36,13 @@ from plotmosaic.manifest import load_manifest
 from plotmosaic.poses import Poses, ScanPose, load_poses
 from plotmosaic.stages.register_plot import als_anchor_edges, solve_plot
 from plotmosaic.stages.tie_to_als.anchor_fit import fit_anchors
-from plotmosaic.stages.tie_to_als.solve import Anchor, Tied, region_graph, solve_region
+from plotmosaic.stages.tie_to_als.solve import (
+    Anchor,
+    Tied,
+    georeferenced_sigmas,
+    region_graph,
+    solve_region,
+)
 
 
 def _truth(sim: Path) -> dict[str, np.ndarray]:
@@ -93,7 +99,8 @@ def resolve_register(sim: Path, reg: Path) -> Poses:
         ref, sol = solve_plot(G, plot, anchors.get(plot.id, []), RegisterConfig())
         plots[plot.id] = {"reference": ref}
         for sid, T in sol.poses.items():
-            scans[sid] = ScanPose(T, plot.id, sol.sigmas[sid])
+            about = {"sigma_about_plot": sol.about_plot[sid].tolist()}
+            scans[sid] = ScanPose(T, plot.id, sol.sigmas[sid], about)
     return Poses(scans, "plot", extra={"plots": plots})
 
 
@@ -122,10 +129,11 @@ def resolve_tie(sim: Path, geo: Path, plot_poses: Poses) -> Poses:
     frame = Frame(np.asarray(earlier.extra["offset"], dtype=float))
     G = region_graph(manifest, plot_poses, None, frame, tied)
     sol = solve_region(G, config)
+    sigmas = {**sol.sigmas, **georeferenced_sigmas(plot_poses, tied)}
     E = np.eye(4)
     E[:3, 3] = frame.offset
     scans = {
-        sid: ScanPose(E @ X, G.nodes[sid].get("plot"), sol.sigmas[sid])
+        sid: ScanPose(E @ X, G.nodes[sid].get("plot"), sigmas[sid])
         for sid, X in sol.poses.items()
         if sid != "ALS"
     }

@@ -1,9 +1,12 @@
-"""The plot -> ALS anchor's fit: ALS returns on the TLS planes, offset and jackknife covariance."""
+"""The plot -> ALS anchor's fit: ALS returns on the TLS planes, offset and jackknife covariance,
+carried to each scan of the plot."""
 
 import gtsam
 import numpy as np
 
-from plotmosaic.stages.tie_to_als.anchor_fit import anchor_fit
+from plotmosaic.poses import Poses, ScanPose
+from plotmosaic.stages.tie_to_als.anchor_fit import AnchorFit, anchor_fit
+from plotmosaic.stages.tie_to_als.solve import Tied, georeferenced_sigmas
 
 
 def _ground(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -49,3 +52,28 @@ def test_an_anchor_off_the_als_disagrees_by_its_error():
     fit = anchor_fit(plot, als, T @ gtsam.Pose3.Expmap(error).matrix(), 10.0, 0.3)
     assert np.allclose(fit.disagreement, -error, atol=0.15 * np.abs(error).max())
     assert np.all(fit.sigma >= 0.7 * np.abs(error))  # the disagreement is part of the covariance
+
+
+def test_georeferenced_sigmas_carry_the_anchor_to_each_scan():
+    fit = AnchorFit(
+        points=1000,
+        blocks=16,
+        covariance=np.diag([1e-8, 1e-8, 4e-8, 1e-6, 1e-6, 1e-6]),  # 0.1 mrad tilt, 1 mm
+        disagreement=np.zeros(6),
+        offset_median=0.0,
+        offset_nmad=0.03,
+    )
+    far = np.eye(4)
+    far[:3, 3] = [100.0, 0.0, 0.0]
+    about = [1e-5] * 3 + [1e-3] * 3
+    poses = Poses(
+        {
+            "S0": ScanPose(np.eye(4), "P1", np.zeros(6), {"sigma_about_plot": about}),
+            "S1": ScanPose(far, "P1", np.ones(6), {"sigma_about_plot": about}),
+        }
+    )
+    tied = Tied(jobs=[], records={}, computed=0, anchors={}, refs={"P1": "S0"}, fits={"P1": fit})
+    sig = georeferenced_sigmas(poses, tied)
+    assert np.allclose(sig["S0"][3:], np.sqrt(1e-6 + 1e-6))
+    # 100 m from the plot's origin a 0.2 mrad yaw sigma is 2 cm across
+    assert 0.019 < sig["S1"][4] < 0.021 and sig["S1"][3] < 0.002

@@ -203,3 +203,11 @@ def test_no_loop_no_calibration():
     assert all(
         np.isfinite(s).all() and s[3:].min() > 1e-4 for n, s in sol.sigmas.items() if n != "s0"
     )
+
+
+def test_sigmas_about_the_plot_free_the_reference():
+    truth, nodes, edges = synthetic_pose_graph(n_scans=5, seed=6)
+    sol = optimise(build_graph(nodes, edges), "s0")
+    assert sol.sigmas["s0"].max() < 1e-5  # the plot frame is the reference's
+    assert set(sol.about_plot) == set(sol.poses)
+    assert all(s.min() > 1e-6 for s in sol.about_plot.values())  # about the plot, none is exact

@@ -240,5 +240,25 @@ def marginal_covariances(graph, result, keys: dict[str, int]) -> dict[str, np.nd
     return {name: np.asarray(marginals.marginalCovariance(k)) for name, k in keys.items()}
 
 
+def about_the_plot(
+    joint: JointCovariance, poses: dict[str, np.ndarray], keys: dict[str, int], skip: set[str]
+) -> dict[str, np.ndarray]:
+    """Each pose's covariance about the mean frame of the poses not in `skip` (a plot registered to
+    the ALS as one cloud is placed by all its scans, not by its reference): the right perturbation
+    less the scans' mean left perturbation carried to it."""
+    names = [n for n in keys if n not in skip]
+    index = {n: k for k, n in enumerate(keys)}
+    Ad = {n: gtsam.Pose3(poses[n]).AdjointMap() for n in names}
+    M = np.zeros((6, 6 * len(keys)))
+    for n in names:
+        M[:, 6 * index[n] : 6 * index[n] + 6] = Ad[n] / len(names)
+    out = {}
+    for n in names:
+        A = -np.linalg.solve(Ad[n], M)
+        A[:, 6 * index[n] : 6 * index[n] + 6] += np.eye(6)
+        out[n] = A @ joint.C @ A.T
+    return out
+
+
 def sigmas_of(covariances: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {n: np.sqrt(np.clip(np.diag(C), 0, None)) for n, C in covariances.items()}

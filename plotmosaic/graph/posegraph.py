@@ -26,6 +26,7 @@ from plotmosaic.config.register import PoseGraphConfig
 from plotmosaic.graph.covariance import (  # noqa: F401  (condition_information, residual re-exported)
     EdgeInformation,
     JointCovariance,
+    about_the_plot,
     condition_information,
     marginal_covariances,
     noise_model,
@@ -277,6 +278,7 @@ class Solution:
     dropped: list[dict] = field(default_factory=list)  # {"source", "target", "reason"}
     covariances: dict[str, np.ndarray] = field(default_factory=dict)  # 6x6, same order as sigmas
     scales: dict = field(default_factory=dict)  # the edge groups' variance factors (Scales.as_dict)
+    about_plot: dict[str, np.ndarray] = field(default_factory=dict)  # sigmas about the mean frame
 
 
 def _solve(G: nx.Graph, reference: str, config: PoseGraphConfig, information: EdgeInformation):
@@ -338,6 +340,10 @@ def _calibrated(G: nx.Graph, reference: str, config: PoseGraphConfig, informatio
         sol, graph, result, keys = _solve(G, reference, config, information)
     sol.covariances = marginal_covariances(graph, result, keys)
     sol.sigmas = sigmas_of(sol.covariances)
+    als = {n for n in keys if G.nodes[n].get("kind") == "als"}
+    sol.about_plot = sigmas_of(
+        about_the_plot(JointCovariance(graph, result, keys), sol.poses, keys, als)
+    )
     sol.scales = information.scales.as_dict()
     return sol
 

@@ -94,5 +94,6 @@ def solve(run: Run, priors: Priors, pairs: Pairs) -> Solved:
         ref, sol = solve_plot(G, plot, priors.anchors[plot.id], run.config)
         results.append(PlotResult(plot.id, ref, sol, [s.id for s in plot.scans]))
         for name, T in sol.poses.items():
-            scans[name] = ScanPose(T, plot.id, sol.sigmas[name])
+            about = {"sigma_about_plot": sol.about_plot[name].tolist()}  # for tie-to-als
+            scans[name] = ScanPose(T, plot.id, sol.sigmas[name], about)
     return Solved(graph=G, plots=results, scans=scans)

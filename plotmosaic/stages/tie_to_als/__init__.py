@@ -46,6 +46,7 @@ from plotmosaic.stages.tie_to_als.solve import (
     Tied,
     _anchor_dict,
     _plot_reference,
+    georeferenced_sigmas,
     region_graph,
     solve_region,
 )
@@ -199,11 +200,12 @@ def _tie_plots(
 def _write(run: TieRun, G: nx.Graph, sol: Solution, tied: Tied, start: float) -> TieResult:
     """poses.json (ALS CRS), graph.json and the report written; the run's result."""
     E = translation(run.als_frame.offset)
+    sigmas = {**sol.sigmas, **georeferenced_sigmas(run.poses, tied)}
     scans = {}
     for name, X in sol.poses.items():
         if name == ALS_NODE:
             continue
-        scans[name] = ScanPose(E @ X, G.nodes[name].get("plot"), sol.sigmas[name])
+        scans[name] = ScanPose(E @ X, G.nodes[name].get("plot"), sigmas[name])
     unplaced = sorted(s.id for s in run.manifest.scans if s.id not in scans)
     extra = {
         "offset": [float(v) for v in run.als_frame.offset],

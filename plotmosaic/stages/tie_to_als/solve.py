@@ -190,3 +190,20 @@ def solve_region(G: nx.Graph, config: TieConfig) -> Solution:
     for _u, _v, e in G.edges(data=True):  # register-plot decisions stand; the rest is re-checked
         e["dropped"] = bool(e.get("dropped"))
     return optimise(G, ALS_NODE, config.graph)
+
+
+def georeferenced_sigmas(poses: Poses, tied: Tied) -> dict[str, np.ndarray]:
+    """Sigmas of the scans of each plot with a measured anchor: the anchor's covariance carried to
+    the scan plus the scan's own about its plot's mean frame (register-plot's `sigma_about_plot`).
+    The anchor is fitted on the whole plot cloud, so it places the plot's mean frame, not its
+    reference scan; the region graph's marginals would hang every scan on the reference."""
+    out = {}
+    for plot, fit in tied.fits.items():
+        for sid, sp in poses.scans.items():
+            about = sp.extra.get("sigma_about_plot")
+            if sp.plot != plot or about is None:
+                continue
+            Ad = gtsam.Pose3(inverse(sp.transform)).AdjointMap()  # plot frame -> the scan's tangent
+            C = Ad @ fit.covariance @ Ad.T + np.diag(np.square(np.asarray(about, dtype=float)))
+            out[sid] = np.sqrt(np.diag(C))
+    return out
