@@ -262,3 +262,12 @@ def about_the_plot(
 
 def sigmas_of(covariances: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {n: np.sqrt(np.clip(np.diag(C), 0, None)) for n, C in covariances.items()}
+
+
+def scan_covariances(G: nx.Graph, graph, result, keys: dict[str, int], poses: dict) -> tuple:
+    """(marginal covariance, sigmas, sigmas about the mean frame of the scans) of every placed
+    node; an ALS node (kind "als") is no part of the plot's mean frame."""
+    covariances = marginal_covariances(graph, result, keys)
+    als = {n for n in keys if G.nodes[n].get("kind") == "als"}
+    about = about_the_plot(JointCovariance(graph, result, keys), poses, keys, als)
+    return covariances, sigmas_of(covariances), sigmas_of(about)

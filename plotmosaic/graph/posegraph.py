@@ -26,13 +26,11 @@ from plotmosaic.config.register import PoseGraphConfig
 from plotmosaic.graph.covariance import (  # noqa: F401  (condition_information, residual re-exported)
     EdgeInformation,
     JointCovariance,
-    about_the_plot,
     condition_information,
-    marginal_covariances,
     noise_model,
     redundancy_dof,
     residual,
-    sigmas_of,
+    scan_covariances,
     update_scales,
     variance_components,
 )
@@ -338,11 +336,8 @@ def _calibrated(G: nx.Graph, reference: str, config: PoseGraphConfig, informatio
             )
             information.scales = update_scales(information.scales, quad, red)
         sol, graph, result, keys = _solve(G, reference, config, information)
-    sol.covariances = marginal_covariances(graph, result, keys)
-    sol.sigmas = sigmas_of(sol.covariances)
-    als = {n for n in keys if G.nodes[n].get("kind") == "als"}
-    sol.about_plot = sigmas_of(
-        about_the_plot(JointCovariance(graph, result, keys), sol.poses, keys, als)
+    sol.covariances, sol.sigmas, sol.about_plot = scan_covariances(
+        G, graph, result, keys, sol.poses
     )
     sol.scales = information.scales.as_dict()
     return sol
