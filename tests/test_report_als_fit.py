@@ -116,7 +116,6 @@ def _tie_run(sim, truth, out, raw, als) -> TieRun:
         fine_margin=0.9,
         als_offset_median_m=-0.004,
         als_offset_nmad_m=0.03,
-        residual=zero,
     )
     return TieRun(
         out=out,

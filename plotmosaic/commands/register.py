@@ -223,16 +223,18 @@ def tie_to_als_command(
         result = tie_to_als(manifest, poses, out, settings.tie_config(), seed, jobs)
 
     table = Table(title="anchors (plot -> ALS)", title_justify="left")
-    for name in ("plot", "status", "fitness", "inlier RMSE (cm)", "residual (cm / deg)"):
+    columns = ("plot", "status", "fitness", "inlier RMSE (cm)", "fine margin", "ALS - TLS (cm)")
+    for name in columns:
         table.add_column(name)
     for a in result.anchors:
-        r = a.residual
+        fit = a.fit or {}
         table.add_row(
             a.plot,
             a.status if a.status == "ok" else f"failed: {a.error}",
             "-" if a.fitness is None else f"{a.fitness:.3f}",
             "-" if a.inlier_rmse is None else f"{a.inlier_rmse * 100:.2f}",
-            "-" if not r else f"{r['translation'] * 100:.2f} / {r['rotation_deg']:.3f}",
+            "-" if a.fine_margin is None else f"{a.fine_margin:.2f}",
+            _als_offset(fit),
         )
     Console(highlight=False).print(table)
     poses = {k: v.transform for k, v in result.poses.scans.items()}
@@ -246,6 +248,13 @@ def tie_to_als_command(
         f"{result.seconds:.1f} s; wrote {out / 'poses.json'} (ALS CRS), {out / 'report.md'}, "
         f"{out / CONFIG_USED}"
     )
+
+
+def _als_offset(fit: dict) -> str:
+    """The ALS returns' median offset from the TLS surfaces (NMAD): what says how well an anchor holds."""
+    if fit.get("als_offset_median_m") is None:
+        return "-"
+    return f"{fit['als_offset_median_m'] * 100:+.1f} ({fit['als_offset_nmad_m'] * 100:.1f})"
 
 
 def _summary(G, solves, unplaced: list[str]) -> None:

@@ -26,6 +26,7 @@ from functools import partial
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from plotmosaic.align.memo import RunMemo
 from plotmosaic.align.pipeline import register_prepared
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import InputError, RegistrationFailed
@@ -105,20 +106,9 @@ def _prepared_in_memory(job: PrepareJob):
     return prepared, time.perf_counter() - start
 
 
-# One view of a prepared cloud per role: the same arrays, but what the stages remember on the object
-# (the coarse stage's levelled sample, seeded per role) survives a scan's alternating roles.
-_ROLES: OrderedDict[tuple[str, str], tuple[object, object]] = OrderedDict()
-
-
-def _in_role(cloud, key: str, role: str):
-    memo = (key, role)
-    held = _ROLES.get(memo)
-    if held is None or held[0] is not cloud:
-        held = _ROLES[memo] = (cloud, dataclasses.replace(cloud))
-    _ROLES.move_to_end(memo)
-    while len(_ROLES) > 2 * _PREPARED_MAX:
-        _ROLES.popitem(last=False)
-    return held[1]
+# What the stages compute once per scan and role (the coarse stage's levelled sample is seeded per
+# role), and per source scan its latest pair's global search and judged rivals (align/memo.py).
+_MEMOS = RunMemo(max_clouds=2 * _PREPARED_MAX)
 
 
 def run_pair_job(job: PairJob) -> dict:
@@ -135,9 +125,9 @@ def run_pair_job(job: PairJob) -> dict:
         ps, pt = prepare_jobs_for(job, job.prepared or "")
         src, t_src = get(ps)
         tgt, t_tgt = get(pt)
-        src, tgt = _in_role(src, ps.key, "source"), _in_role(tgt, pt.key, "target")
         init = None if job.init is None else np.asarray(job.init, dtype=np.float64)
-        result = register_prepared(src, tgt, config, init, job.seed, stored=job.stored)
+        memo = _MEMOS.pair(ps.key, pt.key)
+        result = register_prepared(src, tgt, config, init, job.seed, stored=job.stored, memo=memo)
         result.timings = {"prepare_source": t_src, "prepare_target": t_tgt, **result.timings}
         record.update(result.to_dict(), status="ok")
     except RegistrationFailed as exc:  # a real outcome of this pair: cache it, with its figures

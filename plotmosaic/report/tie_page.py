@@ -24,7 +24,6 @@ from plotmosaic.io.frame import inverse, pose_error
 from plotmosaic.report.build import build_report
 from plotmosaic.report.collect import read_scan
 from plotmosaic.report.model import ReportInput, Stage
-from plotmosaic.report.sections import has_loop
 from plotmosaic.report.tables import (
     edge_table,
     fmt,
@@ -51,7 +50,6 @@ class AnchorRow:
     fine_margin: float | None = None  # the judge's margin of the pair's fine pose
     als_offset_median_m: float | None = None  # ALS returns minus the TLS surfaces, median (m)
     als_offset_nmad_m: float | None = None
-    residual: dict | None = None  # the anchor edge's after the joint solve (zero without a loop)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -85,16 +83,12 @@ def als_near(als_xyz: np.ndarray, poses: dict[str, np.ndarray], margin: float):
     return als_xyz[keep] if keep.sum() >= 100 else None
 
 
-def anchor_rows(G: nx.Graph, anchors: tuple[AnchorRow, ...]) -> list[str]:
-    loop = has_loop(G)
+def anchor_rows(anchors: tuple[AnchorRow, ...]) -> list[str]:
     head = (
         "| plot | reference scan | status | fitness | inlier RMSE (cm) | overlap | fine margin "
         "| ALS - TLS surfaces, median (cm) | NMAD (cm) | ALS crop |"
     )
-    rows = [
-        head + (" anchor residual (cm / deg) |" if loop else ""),
-        "|---" * (11 if loop else 10) + "|",
-    ]
+    rows = [head, "|---" * 10 + "|"]
     for a in anchors:
         status = a.status if a.status == "ok" else f"failed: {a.error}"
         row = (
@@ -102,22 +96,13 @@ def anchor_rows(G: nx.Graph, anchors: tuple[AnchorRow, ...]) -> list[str]:
             f"| {fmt(a.overlap, 1, 3)} | {fmt(a.fine_margin, 1, 2)} | {fmt(a.als_offset_median_m, 100, 2)} "
             f"| {fmt(a.als_offset_nmad_m, 100, 2)} | {a.crop} |"
         )
-        if loop:
-            r = a.residual
-            row += " - |" if not r else f" {r['translation'] * 100:.2f} / {r['rotation_deg']:.3f} |"
         rows.append(row)
     return rows
 
 
-def anchor_fact(a: AnchorRow, loop: bool) -> str:
+def anchor_fact(a: AnchorRow) -> str:
     if a.status != "ok":
         return f"plot {a.plot} -> ALS: failed ({a.error})"
-    r = a.residual
-    off = (
-        f", {r['translation'] * 100:.2f} cm / {r['rotation_deg']:.3f} deg off the joint solution"
-        if r and loop
-        else ""
-    )
     profile = (
         f", ALS returns {a.als_offset_median_m * 100:+.1f} cm off the TLS surfaces (median, NMAD "
         f"{fmt(a.als_offset_nmad_m, 100, 1)} cm)"
@@ -127,7 +112,7 @@ def anchor_fact(a: AnchorRow, loop: bool) -> str:
     margin = f", fine margin {a.fine_margin:.2f}" if a.fine_margin is not None else ""
     return (
         f"plot {a.plot} -> ALS (through {a.reference}): fitness {fmt(a.fitness, 1, 3)}, "
-        f"inlier RMSE {fmt(a.inlier_rmse, 100, 1)} cm{profile}{margin}{off}"
+        f"inlier RMSE {fmt(a.inlier_rmse, 100, 1)} cm{profile}{margin}"
     )
 
 
@@ -155,8 +140,7 @@ def render_tie(
     reader: Callable[[Path], np.ndarray],
 ) -> Path:
     """report.md and report.html (with the run's view3d.html) of a tie-to-als run."""
-    loop = has_loop(run.graph)
-    anchors = anchor_rows(run.graph, run.anchors)
+    anchors = anchor_rows(run.anchors)
     poses = pose_table([s for ids in run.plots.values() for s in ids], run.poses, run.sigmas)
     edges = edge_table(run.graph)
     inp = ReportInput(
@@ -177,7 +161,7 @@ def render_tie(
         facts=(
             run.source,
             "frame: the ALS CRS",
-            *(anchor_fact(a, loop) for a in run.anchors),
+            *(anchor_fact(a) for a in run.anchors),
         ),
         als_xyz=run.als_xyz,
         judged_in=run.judged_in,

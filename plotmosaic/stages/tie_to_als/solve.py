@@ -40,7 +40,6 @@ class Anchor:
     # says how well the anchor holds (its edge residual is zero by construction: one anchor a plot)
     fit: dict | None = None
     fine_margin: float | None = None
-    residual: dict | None = None  # kept empty until the report no longer reads it
 
 
 @dataclass(frozen=True, kw_only=True)
