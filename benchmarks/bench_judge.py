@@ -1,4 +1,4 @@
-"""Calibration of the pose judge (align/judge.py) on right and wrong poses of real and simulated pairs.
+"""Calibration of the pose judge (align/judge/) on right and wrong poses of real and simulated pairs.
 
 For every case (a pair with exact or refined truth, each cloud in its own random frame):
   * every hypothesis of the global search and the start are refined like a rival and profiled;

@@ -55,13 +55,13 @@ def _recorded(out: Path, settings, command: str) -> Iterator[None]:
 
 
 REPORT_FIGURES = PLOT_FIGURES  # per plot: every picture a run's page may write
-# what both stages write into OUT besides the per-plot figures (report/build.py, graph/report.py)
+# what both stages write into OUT besides the per-plot figures (stages/*/write, report/)
 _COMMON = ("poses.json", "graph.json", "report.md", "report.html", "view3d.html", CONFIG_USED)
 _FORCE_HELP = "write into an OUT holding other files (they are left untouched; never an input)"
 
 
 def register_plan(manifest, config: Path | None, out: Path, force: bool) -> OutputPlan:
-    """What register-plot writes in OUT (graph/pipeline.py, graph/report.py) and what it reads."""
+    """What register-plot writes in OUT (stages/register_plot, report/) and what it reads."""
     figures = [f"{p.id}_{f}.png" for p in manifest.plots for f in (*REPORT_FIGURES, "graph")]
     return OutputPlan(
         "register-plot",
@@ -74,7 +74,7 @@ def register_plan(manifest, config: Path | None, out: Path, force: bool) -> Outp
 
 
 def tie_plan(manifest, poses: Path, config: Path | None, out: Path, force: bool) -> OutputPlan:
-    """What tie-to-als writes in OUT (graph/anchors.py, graph/report.py) and what it reads: the
+    """What tie-to-als writes in OUT (stages/tie_to_als, report/) and what it reads: the
     register-plot folder of --poses (its poses, graph, report and prepared clouds) included."""
     figures = [f"{p.id}_{f}.png" for p in manifest.plots for f in REPORT_FIGURES]
     earlier = poses.parent

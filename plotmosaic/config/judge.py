@@ -1,4 +1,4 @@
-"""Settings of the pose judge (align/judge.py): residual-profile scales, rivals, calibrated thresholds."""
+"""Settings of the pose judge (align/judge/): residual-profile scales, rivals, calibrated thresholds."""
 
 from __future__ import annotations
 
