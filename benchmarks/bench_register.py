@@ -167,10 +167,10 @@ def main() -> None:
         )
         timings["tie-to-als"] = time.perf_counter() - t
         for a in tie.anchors:
-            r = a.residual
-            res = "-" if not r else f"{r['translation'] * 100:.2f} cm / {r['rotation_deg']:.3f} deg"
+            fit = a.fit or {}
             print(
-                f"anchor {a.plot}: {a.status} fitness {a.fitness} inlier RMSE {a.inlier_rmse} residual {res} ({a.crop})"
+                f"anchor {a.plot}: {a.status} fitness {a.fitness} inlier RMSE {a.inlier_rmse} "
+                f"fine margin {a.fine_margin} ALS - TLS median {fit.get('als_offset_median_m')} m ({a.crop})"
             )
         rows = []
         for sid in truth.scans:
