@@ -163,7 +163,8 @@ class Verifier:
         self.structure = self.src_v[flat_ok]
         few = sample(len(self.src_v), config.screen_points, rng)
         self.src_few, self.structure_few = self.src_v[few], self.src_v[few][flat_ok[few]]
-        # id of a start's hypothesis dict -> (score, pose, dict)
+        # id of a start's hypothesis dict -> (that dict, (score, pose, dict)): holding the dict
+        # keeps its id from being reused by a later start once the caller lets it go
         self.screened: dict[int, tuple] = {}
         self.refined: dict[int, tuple] = {}  # the same key -> (pose, score)
 
@@ -189,8 +190,8 @@ class Verifier:
         """(score, pose, dict) of every start screened, best first."""
         new = [s for s in starts if id(s[1]) not in self.screened]
         for s, r in zip(new, in_two_threads(self._screen, new)):
-            self.screened[id(s[1])] = r
-        return sorted((self.screened[id(s[1])] for s in starts), key=lambda r: -r[0])
+            self.screened[id(s[1])] = (s[1], r)
+        return sorted((self.screened[id(s[1])][1] for s in starts), key=lambda r: -r[0])
 
     def agreed(self, starts: list[tuple]) -> bool:
         """Whether the best screened pose was reached by `settled_generators` generators."""
