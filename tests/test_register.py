@@ -7,6 +7,7 @@ outputs, the Dask executor and tie-to-als.
 """
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -249,6 +250,9 @@ def test_cli_rerun_uses_the_cache(runs):
         and "0 registered now" in result.output
     )
     assert "P1-S3" in result.output  # the per-scan table
+    ref = json.loads((runs["out"] / "poses.json").read_text())["plots"]["P1"]["reference"]
+    row = next(line for line in result.output.splitlines() if f" {ref} " in line and "│" in line)
+    assert not re.search(r"\d", row.replace(ref, "")), row  # the frame itself: no zero figures
 
 
 def test_register_plot_reads_the_report_settings(runs, tmp_path):

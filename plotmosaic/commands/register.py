@@ -273,6 +273,9 @@ def _summary(G, solves, unplaced: list[str]) -> None:
         for name, T in poses.items():
             if name == "ALS":
                 continue
+            if name == ref:  # the frame itself: its pose and sigmas are zero by construction
+                table.add_row(name, *(["-"] * 5))
+                continue
             s = sigmas[name]
             table.add_row(
                 name,
