@@ -9,6 +9,7 @@ and the key it was computed for: another key replaces it, so memory stays bounde
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
@@ -22,12 +23,15 @@ class Slot:
         self._key: Hashable | None = None
         self._value: Any = None
         self._held = False
+        self._lock = threading.RLock()  # the stages' two-thread maps share a pair's memo
 
     def get(self, key: Hashable, compute: Callable[[], Any]) -> Any:
-        """The value for `key`, computed (and kept in place of any other) when it is not held."""
-        if not self._held or self._key != key:
-            self._value, self._key, self._held = compute(), key, True
-        return self._value
+        """The value for `key`, computed (and kept in place of any other) when it is not held; one
+        caller computes it, the others wait for it (a mutable value, the rival table, stays one)."""
+        with self._lock:
+            if not self._held or self._key != key:
+                self._value, self._key, self._held = compute(), key, True
+            return self._value
 
 
 @dataclass(frozen=True, eq=False)

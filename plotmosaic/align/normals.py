@@ -14,6 +14,8 @@ neighbourhood's main axis instead (algebraic fit, Kasa 1976) and takes the radia
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -232,8 +234,15 @@ class LazyNormals:
         self.stems = stems
         self.normals = np.zeros((len(points), 3))
         self.known = np.zeros(len(points), dtype=bool)
+        # two-thread maps share a target: one fill at a time, or a thread could read another's plane
+        # normals before its stem pass (a result that would depend on the machine's load)
+        self._lock = threading.RLock()
 
     def __call__(self, idx: np.ndarray) -> np.ndarray:
+        with self._lock:
+            return self._filled(idx)
+
+    def _filled(self, idx: np.ndarray) -> np.ndarray:
         missing = np.unique(idx[~self.known[idx]])
         if len(missing):
             query = self.points[missing]
