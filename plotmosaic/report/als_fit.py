@@ -17,28 +17,19 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from plotmosaic.config.report import AlsFitConfig
-from plotmosaic.report.slice import Ground, cell_keys, cell_minima, ground_model
+from plotmosaic.report.slice import GridExtent, Ground, cell_keys, cell_minima, ground_model
 
 NMAD_SCALE = 1.4826  # NMAD = this x median absolute deviation: the std of a normal distribution
 
 
 @dataclass(frozen=True, kw_only=True)
-class Raster:
+class Raster(GridExtent):
     """Values at cell centres of a regular grid (rows = y, columns = x); NaN where not compared."""
 
     x0: float
     y0: float
     cell: float
     z: np.ndarray
-
-    @property
-    def extent(self) -> tuple[float, float, float, float]:
-        return (
-            self.x0,
-            self.x0 + self.z.shape[1] * self.cell,
-            self.y0,
-            self.y0 + self.z.shape[0] * self.cell,
-        )
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -76,8 +76,21 @@ def merge_minima(
     return keys[order[starts]], np.minimum.reduceat(z[order], starts)
 
 
+class GridExtent:
+    """The (left, right, bottom, top) of a grid with x0, y0, cell and z (rows = y), for imshow."""
+
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        return (
+            self.x0,
+            self.x0 + self.z.shape[1] * self.cell,
+            self.y0,
+            self.y0 + self.z.shape[0] * self.cell,
+        )
+
+
 @dataclass
-class Ground:
+class Ground(GridExtent):
     """A coarse DTM: z at cell centres of a regular grid (rows = y, columns = x)."""
 
     x0: float
@@ -102,15 +115,6 @@ class Ground:
             np.sin(alt) * np.cos(slope) + np.cos(alt) * np.sin(slope) * np.cos(az - aspect), 0, 1
         )
         return shade if self.seen is None else np.where(self.seen, shade, np.nan)
-
-    @property
-    def extent(self) -> tuple[float, float, float, float]:
-        return (
-            self.x0,
-            self.x0 + self.z.shape[1] * self.cell,
-            self.y0,
-            self.y0 + self.z.shape[0] * self.cell,
-        )
 
 
 def ground_model(
