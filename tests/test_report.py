@@ -180,6 +180,7 @@ def test_report_for_a_register_plot_folder(tmp_path):
         )
     G = build_graph(nodes, edges)
     sol = optimise(G, "S0")
+    G.graph["calibration"] = {"P1": {"tls-tls/translation": {"factor": 2.25, "redundancy": 3.0}}}
     reg = tmp_path / "reg"
     reg.mkdir()
     (reg / "graph.json").write_text(json.dumps(graph_to_json(G)))
@@ -195,6 +196,9 @@ def test_report_for_a_register_plot_folder(tmp_path):
     assert (reg / "report.html").is_file()
     _check_pngs(reg, linked)
     assert "| S1 | S0 |" in (reg / "report.md").read_text()
+    # the calibration the run recorded in graph.json is shown with the plot's sigmas
+    assert "| tls-tls translation | 2.25 | x 1.50 | 3 |" in (reg / "report.md").read_text()
+    assert "P1: sigma calibration" in (reg / "report.html").read_text()
     assert sorted(p.name for p in tmp_path.rglob("report.html")) == ["report.html"]
     assert len(list(tmp_path.rglob("view3d.html"))) <= 1
     # a second run replaces the run's own report (it is the run's, not the user's)

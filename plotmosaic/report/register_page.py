@@ -140,6 +140,27 @@ def _head(run: RegisterRun) -> list[str]:
     return lines
 
 
+def _calibration(G: nx.Graph, plot: str) -> list[str]:
+    """How the plot's sigmas were scaled: each edge group's residuals against its claimed noise."""
+    groups = G.graph.get("calibration", {}).get(plot) or {}
+    if not groups:
+        return []
+    rows = [
+        f"| {name.replace('/', ' ')} | {g['factor']:.2f} | x {np.sqrt(g['factor']):.2f} "
+        f"| {g['redundancy']:.0f} |"
+        for name, g in sorted(groups.items())
+    ]
+    return [
+        "Sigmas calibrated on the kept edges' residuals (a variance factor above 1: the pairs "
+        "were noisier than their information said, so their sigmas grew):",
+        "",
+        "| edge group | variance factor | sigmas | redundancy (dof) |",
+        "|---|---|---|---|",
+        *rows,
+        "",
+    ]
+
+
 def _plot_md(run: RegisterRun, r: PlotRun, figures) -> list[str]:
     sub = run.graph.subgraph(r.scans)
     s = residual_summary(sub)
@@ -156,6 +177,7 @@ def _plot_md(run: RegisterRun, r: PlotRun, figures) -> list[str]:
             f"(max {s['rotation_max_deg']:.3f}).",
             "",
         ]
+    lines += _calibration(run.graph, r.plot)
     lines += ["### Poses", "", *pose_table(list(r.scans), r.poses, r.sigmas), ""]
     lines += [
         "### Edges",
@@ -198,6 +220,8 @@ def render_register(
             (f"Plot {r.plot}: poses (plot frame)", pose_table(list(r.scans), r.poses, r.sigmas)),
             (f"Plot {r.plot}: edges", edge_table(run.graph.subgraph(r.scans))),
         ]
+        if calibration := _calibration(run.graph, r.plot):
+            tables.append((f"Plot {r.plot}: sigma calibration", calibration))
     inp = ReportInput(
         title="register-plot report",
         out=run.out,
