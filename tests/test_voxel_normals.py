@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from plotmosaic.align.normals import LazyNormals, level_shape, local_shape, stem_normals
+from plotmosaic.align.normals import (
+    LazyNormals,
+    eigenvalues_sym3,
+    eigenvector_sym3,
+    level_shape,
+    local_shape,
+    stem_normals,
+)
 from plotmosaic.align.voxel import (
     FACE_PHASE,
     KEY_BLOCK,
@@ -133,8 +140,6 @@ def test_level_shape_sees_a_stem_as_a_vertical_line_and_the_ground_as_a_level_pl
 
 
 def test_closed_form_eigen_matches_lapack_on_planes_lines_and_scatter():
-    from plotmosaic.align.normals import eigenvalues_sym3, eigenvector_sym3
-
     rng = np.random.default_rng(6)
     R = np.linalg.qr(rng.normal(size=(300, 3, 3)))[0]
     spectra = np.concatenate(
@@ -153,6 +158,20 @@ def test_closed_form_eigen_matches_lapack_on_planes_lines_and_scatter():
     # axial: compare up to sign, where the eigenvalue is well separated (planes' normals, lines' axes)
     assert np.all(np.abs(np.einsum("ij,ij->i", small[:100], vecs[:100, :, 0])) > 1 - 1e-6)
     assert np.all(np.abs(np.einsum("ij,ij->i", large[100:200], vecs[100:200, :, 2])) > 1 - 1e-6)
+
+
+def test_eigenvectors_are_the_longest_np_cross_product_to_the_bit():
+    rng = np.random.default_rng(7)
+    A = rng.normal(size=(5000, 3, 3)) * rng.lognormal(size=(5000, 1, 1)) * 1e-2
+    A = A @ A.transpose(0, 2, 1)
+    c = {(a, b): A[:, a, b] for a in range(3) for b in range(a, 3)}
+    lam = eigenvalues_sym3(c)[2]
+    rows = A - lam[:, None, None] * np.eye(3)
+    crosses = [np.cross(rows[:, a], rows[:, b]) for a, b in ((0, 1), (0, 2), (1, 2))]
+    norms = np.column_stack([np.einsum("ij,ij->i", v, v) for v in crosses])
+    want = np.choose(norms.argmax(axis=1)[:, None], crosses)
+    want /= np.sqrt(norms.max(axis=1))[:, None]
+    assert np.array_equal(eigenvector_sym3(c, lam), want)
 
 
 def _sparse_stem_and_ground(rng: np.random.Generator):

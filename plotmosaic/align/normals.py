@@ -28,6 +28,19 @@ LEVEL_FEATURE_NAMES = (*FEATURE_NAMES, "verticality")
 CHUNK = 50_000
 
 
+def _offsets(points: np.ndarray, query: np.ndarray, idx: np.ndarray) -> list[np.ndarray]:
+    """x, y and z of each neighbour `idx` (rows of `points`) relative to its query point, (M, k)
+    each; a missing neighbour (idx = len(points)) reads row 0 and must be weighted out."""
+    safe = np.where(idx < len(points), idx, 0)
+    out = []
+    for i in range(3):
+        # a gather from the strided column, then in place: a third of the time of fresh arrays
+        r = points[:, i].take(safe)
+        r -= query[:, i][:, None]
+        out.append(r)
+    return out
+
+
 def _shape_chunk(
     points: np.ndarray,
     query: np.ndarray,
@@ -37,11 +50,17 @@ def _shape_chunk(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
     """(normals, features, counts, main axes or None) of the neighbours `idx` (rows of `points`) kept by `ok`."""
     ok = idx < len(points) if ok is None else ok
+    return _shape(_offsets(points, query, idx), ok, main_axes)
+
+
+def _shape(
+    offsets: list[np.ndarray], ok: np.ndarray, main_axes: bool = False
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """`_shape_chunk` from the neighbours' offsets (see `_offsets`) and which of them count."""
     w = ok.astype(np.float64)
     count = w.sum(axis=1)
-    safe = np.where(idx < len(points), idx, 0)
     # coordinates relative to the query point (small numbers: raw moments keep their precision)
-    rel = [(points[:, i][safe] - query[:, i][:, None]) * w for i in range(3)]
+    rel = [r * w for r in offsets]
     m = np.maximum(count, 1.0)
     mean = [r.sum(axis=1) / m for r in rel]
     cov = {
@@ -91,11 +110,11 @@ def eigenvector_sym3(c: dict, lam: np.ndarray) -> np.ndarray:
     """Unit eigenvectors for eigenvalues `lam` (one per matrix): the longest cross product of two rows
     of A - lam I (they span the plane orthogonal to the eigenvector). (0, 0, 1) where A - lam I is 0."""
     rows = [
-        np.column_stack([c[0, 0] - lam, c[0, 1], c[0, 2]]),
-        np.column_stack([c[0, 1], c[1, 1] - lam, c[1, 2]]),
-        np.column_stack([c[0, 2], c[1, 2], c[2, 2] - lam]),
+        (c[0, 0] - lam, c[0, 1], c[0, 2]),
+        (c[0, 1], c[1, 1] - lam, c[1, 2]),
+        (c[0, 2], c[1, 2], c[2, 2] - lam),
     ]
-    crosses = [np.cross(rows[0], rows[1]), np.cross(rows[0], rows[2]), np.cross(rows[1], rows[2])]
+    crosses = [_cross(rows[0], rows[1]), _cross(rows[0], rows[2]), _cross(rows[1], rows[2])]
     norms = np.column_stack([np.einsum("ij,ij->i", v, v) for v in crosses])
     best = norms.argmax(axis=1)
     v = np.choose(best[:, None], crosses)
@@ -104,6 +123,14 @@ def eigenvector_sym3(c: dict, lam: np.ndarray) -> np.ndarray:
     out = np.tile([0.0, 0.0, 1.0], (len(lam), 1))
     out[ok] = v[ok] / length[ok, None]
     return out
+
+
+def _cross(a: tuple, b: tuple) -> np.ndarray:
+    """Rows a x b of two (x, y, z) column triples, (M, 3): np.cross's products and differences in
+    its order (the same bits) without its per-call reshaping, which cost more than the arithmetic."""
+    return np.column_stack(
+        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    )
 
 
 def local_shape(
@@ -145,10 +172,9 @@ def level_shape(
         q = query[s : s + CHUNK]
         dist, idx = tree.query(q, k=int(min(max_nn, len(support))), distance_upper_bound=2 * radius)
         dist, idx = dist.reshape(len(q), -1), idx.reshape(len(q), -1)
-        normals[s : s + CHUNK], _, counts[s : s + CHUNK], _ = _shape_chunk(
-            support, q, idx, dist <= radius
-        )
-        _, wide, _, axes = _shape_chunk(support, q, idx, main_axes=True)
+        offsets = _offsets(support, q, idx)  # one gather for both spheres
+        normals[s : s + CHUNK], _, counts[s : s + CHUNK], _ = _shape(offsets, dist <= radius)
+        _, wide, _, axes = _shape(offsets, idx < len(support), main_axes=True)
         features[s : s + CHUNK] = np.column_stack([wide, np.abs(axes[:, 2])])
 
     _in_chunks(run, m)
@@ -161,8 +187,9 @@ def _circle_chunk(
     """(radial normals, fitted) of the query points whose neighbours `idx` lie on a circle across
     their main axis: a stem seen from one side, where the plane fit gives the view direction."""
     ok = idx < len(points)
-    _, features, _, axis = _shape_chunk(points, query, idx, ok, main_axes=True)
-    rel = points[np.where(ok, idx, 0)] - query[:, None, :]
+    offsets = _offsets(points, query, idx)
+    _, features, _, axis = _shape(offsets, ok, main_axes=True)
+    rel = np.stack(offsets, axis=2)
     # two unit vectors across the axis (whichever of x, y is less parallel to it)
     helper = np.where(np.abs(axis[:, :1]) < 0.7, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
     e1 = np.cross(axis, helper)
