@@ -2,9 +2,10 @@
 
 Sections: [align] (pairwise registration, with [align.coarse], [align.judge], [align.stray]: used by
 `align`, by register-plot for its pairs and its ALS placement, and by tie-to-als), [posegraph],
-[pairs], [register_plot], [tie_to_als], [merge], [report]. `plotmosaic config --defaults` prints them all; each run
-writes the settings it used as config-used.toml beside its outputs, and that file given back with
-`--config` repeats the run exactly (floats are written with repr, which reads back bit for bit).
+[pairs], [register_plot], [tie_to_als], [merge], [report], [read] (how much of a scan registration
+holds while reading it). `plotmosaic config --defaults` prints them all; each run writes the settings
+it used as config-used.toml beside its outputs, and that file given back with `--config` repeats the
+run exactly (floats are written with repr, which reads back bit for bit).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.config.merge import MergeConfig
+from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.config.register import (
     PairSelection,
     PoseGraphConfig,
@@ -67,6 +69,10 @@ class Settings(BaseModel):
     merge: MergeConfig = Field(default_factory=MergeConfig, description="merge")
     report: ReportConfig = Field(
         default_factory=ReportConfig, description="report of register-plot and tie-to-als"
+    )
+    read: ReadingConfig = Field(
+        default_factory=ReadingConfig,
+        description="reading a scan to register it: the memory budget of align, register-plot, tie",
     )
 
     def align_config(self) -> AlignConfig:

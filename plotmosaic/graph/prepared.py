@@ -15,7 +15,7 @@ import json
 import sys
 import time
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -25,8 +25,10 @@ from plotmosaic import __version__
 from plotmosaic.align.normals import LazyNormals
 from plotmosaic.align.prepare import PreparedCloud, prepare_cloud
 from plotmosaic.config.align import AlignConfig, StemNormalConfig, default_levels
+from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.graph.cache import file_hash
 from plotmosaic.io.atomic import atomic_output
+from plotmosaic.io.bounded import over_budget, read_bounded
 from plotmosaic.io.frame import Frame
 from plotmosaic.io.las import read_cloud
 
@@ -35,8 +37,16 @@ _REBUILT = ("tree", "target_normals")  # derived from `points` on load
 _FIELDS = tuple(f.name for f in dataclasses.fields(PreparedCloud))
 
 
-def prepared_key(path, kind: str, levels: int | None, config_json: str, seed: int) -> str:
-    """What determines a prepared cloud (the role in a pair does not: one preparation serves both)."""
+def prepared_key(
+    path,
+    kind: str,
+    levels: int | None,
+    config_json: str,
+    seed: int,
+    reading: ReadingConfig | None = None,
+) -> str:
+    """What determines a prepared cloud (the role in a pair does not: one preparation serves both);
+    the reading budget only for a scan it thins (`reading` None: the default budget)."""
     parts = {
         "file": file_hash(path),
         "kind": kind,
@@ -47,6 +57,9 @@ def prepared_key(path, kind: str, levels: int | None, config_json: str, seed: in
         "format": FORMAT,
         "fields": _FIELDS,
     }
+    reading = reading or ReadingConfig()
+    if over_budget(path, reading):
+        parts["read"] = reading.model_dump()
     return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:32]
 
 
@@ -141,6 +154,8 @@ class PrepareJob:
     config_json: str
     seed: int
     folder: str  # DIR/prepared
+    # keyword-only: jobs extending this one add positional fields after `folder`
+    reading: ReadingConfig = field(default_factory=ReadingConfig, kw_only=True)
 
 
 def entry(folder: str | Path, key: str) -> Path:
@@ -160,7 +175,7 @@ def _compute(job: PrepareJob, cloud=None) -> PreparedCloud:
     global reads
     config = AlignConfig.model_validate_json(job.config_json)
     if cloud is None:
-        cloud = read_cloud(job.path, attributes=False)
+        cloud = read_bounded(job.path, job.reading, min(config.voxel, config.final_voxel))
         reads += 1
     return prepare_cloud(
         cloud, job.kind, job.levels or default_levels(job.kind), config, job.seed, job.scan
