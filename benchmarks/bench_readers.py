@@ -1,14 +1,20 @@
-"""E57 readers compared: pye57 (libE57Format) vs `e57` (Rust), plus plotmosaic's chunked reader.
+"""Point-cloud readers compared: E57 (pye57 vs `e57`), and a LAZ scan read for registration.
 
-Each case runs in its own process under `/usr/bin/time -v`: whole-process wall time and peak RSS,
-beside the time spent inside the read call (printed by the child). `e57` is not a plotmosaic
-dependency: `.venv/bin/pip install e57` first (its rows are skipped without it). Run:
+Each case runs in its own process under `/usr/bin/time -v`: whole-process wall time, CPU time (user +
+system) and peak RSS, beside the time spent inside the read call (printed by the child). `e57` is not
+a plotmosaic dependency: `.venv/bin/pip install e57` first (its rows are skipped without it). Run:
 
     nice -n 10 .venv/bin/python benchmarks/bench_readers.py [FILE.e57] [--repeat 3]
     nice -n 10 .venv/bin/python benchmarks/bench_readers.py --big 10000000 --repeat 1   # memory bound
+    nice -n 10 .venv/bin/python benchmarks/bench_readers.py --laz SCAN.laz --budget 4000000 --repeat 1
 
 `--big N` writes an N-point scan (pye57, single-precision xyz + intensity) to a temporary folder and
 compares reading it whole with streaming it block by block (peak memory should stay flat).
+
+`--laz SCAN` reads one LAZ scan: laspy's parallel lazrs decoder against the single-threaded one
+(coordinates only, as registration reads), plotmosaic's whole read, and `read_bounded` (what
+register-plot's prepare reads) with `[read] max_points_in_memory` above the scan's count and at each
+`--budget` below it, alone and followed by `prepare_cloud` (what a prepare worker holds at its peak).
 """
 
 from __future__ import annotations
@@ -62,6 +68,42 @@ BIG_CASES = {
 }
 
 
+_LAZ_DECODE = (
+    "import laspy; t0 = time.perf_counter(); n = 0\n"
+    "with laspy.open(F, laz_backend=laspy.LazBackend.{backend}, decompression_selection="
+    "laspy.DecompressionSelection.XY_RETURNS_CHANNEL | laspy.DecompressionSelection.Z) as r:\n"
+    "    for c in r.chunk_iterator(2_000_000): n += len(c)"
+)
+_BOUNDED = (
+    "from plotmosaic.config.reading import ReadingConfig; from plotmosaic.io.bounded import read_bounded; "
+    "t0 = time.perf_counter(); c = read_bounded(F, ReadingConfig(max_points_in_memory={budget}), 0.025); "
+    "n = len(c)"
+)
+_PREPARE = (
+    "; from plotmosaic.align.prepare import prepare_cloud; from plotmosaic.config.align import AlignConfig; "
+    "n = len(prepare_cloud(c, 'tls', 3, AlignConfig()).points)"
+)
+
+
+def laz_cases(budgets: list[int]) -> dict[str, str]:
+    """The LAZ cases: decoders, whole read, bounded read at 2**31-1 (above any scan) and each budget."""
+    cases = {
+        "laspy decode, lazrs parallel (xyz layers)": _LAZ_DECODE.format(backend="LazrsParallel"),
+        "laspy decode, lazrs single thread (xyz layers)": _LAZ_DECODE.format(backend="Lazrs"),
+        "plotmosaic read_cloud (whole scan, float64)": (
+            "from plotmosaic.io.las import read_cloud; t0 = time.perf_counter(); "
+            "n = len(read_cloud(F, attributes=False))"
+        ),
+    }
+    for budget in [2_000_000_000, *budgets]:
+        read = _BOUNDED.format(budget=budget)
+        cases[f"read_bounded, budget {budget:,}"] = read
+        cases[f"read_bounded + prepare_cloud, budget {budget:,} (points: delta0 cloud)"] = (
+            read + _PREPARE
+        )
+    return cases
+
+
 def write_big(folder: Path, n: int) -> Path:
     import numpy as np
     import pye57
@@ -82,7 +124,7 @@ def write_big(folder: Path, n: int) -> Path:
     return path
 
 
-def run_case(code: str, path: Path) -> tuple[float, float, float, int]:
+def run_case(code: str, path: Path) -> tuple[float, float, float, int, float]:
     script = f"import time\nF = {str(path)!r}\n{code}\nprint('READ', time.perf_counter() - t0, n)"
     proc = subprocess.run(
         ["/usr/bin/time", "-v", sys.executable, "-c", script],
@@ -95,7 +137,11 @@ def run_case(code: str, path: Path) -> tuple[float, float, float, int]:
     h, m, s = wall.groups()
     seconds = int(h or 0) * 3600 + int(m) * 60 + float(s)
     rss_kb = int(re.search(r"Maximum resident set size \(kbytes\): (\d+)", proc.stderr).group(1))
-    return seconds, rss_kb / 1024, float(read_s), int(n)
+    cpu = sum(
+        float(re.search(rf"{k} time \(seconds\): ([\d.]+)", proc.stderr).group(1))
+        for k in ("User", "System")
+    )
+    return seconds, rss_kb / 1024, float(read_s), int(n), cpu
 
 
 def main() -> None:
@@ -103,7 +149,12 @@ def main() -> None:
     ap.add_argument("file", nargs="?", type=Path, default=DEFAULT)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--big", type=int, default=0, help="write and read an N-point scan instead")
+    ap.add_argument("--laz", type=Path, help="read this LAZ scan for registration instead")
+    ap.add_argument("--budget", type=int, nargs="*", default=[], help="budgets below its count")
     args = ap.parse_args()
+    if args.laz:
+        table(args.laz, laz_cases(args.budget), args.repeat)
+        return
     with tempfile.TemporaryDirectory() as tmp:
         path, cases = (
             (write_big(Path(tmp), args.big), BIG_CASES) if args.big else (args.file, CASES)
@@ -113,16 +164,19 @@ def main() -> None:
 
 def table(path: Path, cases: dict[str, str], repeat: int) -> None:
     print(f"file: {path} ({path.stat().st_size / 1e6:.1f} MB), median of {repeat} runs")
-    print("| reader | points | process wall s | read call s | peak RSS MB |")
-    print("|---|---:|---:|---:|---:|")
+    print("| reader | points | process wall s | process CPU s | read call s | peak RSS MB |")
+    print("|---|---:|---:|---:|---:|---:|")
     for name, code in cases.items():
         module = code.split()[1].split(".")[0].rstrip(";")
         if importlib.util.find_spec(module) is None:
-            print(f"| {name} | not installed | | | |")
+            print(f"| {name} | not installed | | | | |")
             continue
         runs = [run_case(code, path) for _ in range(repeat)]
-        wall, rss, read = (statistics.median(r[i] for r in runs) for i in range(3))
-        print(f"| {name} | {runs[0][3]:,} | {wall:.2f} | {read:.3f} | {rss:.0f} |")
+        wall, rss, read, _, cpu = (statistics.median(r[i] for r in runs) for i in range(5))
+        print(
+            f"| {name} | {runs[0][3]:,} | {wall:.2f} | {cpu:.2f} | {read:.3f} | {rss:.0f} |",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":
