@@ -5,13 +5,16 @@ import tracemalloc
 
 import numpy as np
 import pytest
+from plyfile import PlyData, PlyElement
 
 from plotmosaic.align.pipeline import align_clouds
+from plotmosaic.config.align import AlignConfig
 from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.config.settings import SettingsError, settings_from_dict
-from plotmosaic.graph.prepared import prepared_key
+from plotmosaic.errors import InputError
+from plotmosaic.graph.prepared import PrepareJob, get_prepared, prepared_key
 from plotmosaic.io.bounded import read_bounded, read_thinned
-from plotmosaic.io.las import PointCloud, read_cloud, write_cloud
+from plotmosaic.io.las import PointCloud, read_cloud, read_header_info, write_cloud
 from plotmosaic.poses import load_poses
 
 N = 1_000_000
@@ -117,3 +120,31 @@ def test_thinned_scans_still_align(small_sim):
     moved = D[:3, :3] @ centre + D[:3, 3] - centre
     angle = np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1)))
     assert np.abs(moved).max() < 0.02 and angle < 0.12, (moved, angle)
+
+
+def test_a_prepare_job_reads_its_scan_within_its_budget(small_sim, tmp_path, capsys):
+    path = str(small_sim.scan_paths["P1-S0"])
+    config = AlignConfig().model_dump_json()
+    reading = ReadingConfig(max_points_in_memory=20_000)
+    key = prepared_key(path, "tls", 3, config, 0, reading)
+    job = PrepareJob(key, "P1-S0", path, "tls", 3, config, 0, str(tmp_path), reading=reading)
+    cloud, _ = get_prepared(job)
+    assert cloud.input_points <= 20_000 < read_header_info(path).point_count
+    assert "thinned on reading" in capsys.readouterr().err
+
+
+def test_a_ply_over_the_budget_streams_and_refuses_bad_coordinates(tmp_path):
+    rng = np.random.default_rng(5)
+    xyz = rng.uniform(0, 20, (30_000, 3))
+    xyz[[10, 20_000, 29_999]] = np.nan
+    vertex = np.empty(len(xyz), dtype=[("x", "f8"), ("y", "f8"), ("z", "f8")])
+    vertex["x"], vertex["y"], vertex["z"] = xyz.T
+    path = tmp_path / "bad.ply"
+    PlyData([PlyElement.describe(vertex, "vertex")]).write(str(path))
+    with pytest.raises(InputError, match="3 points have NaN or infinite coordinates"):
+        read_thinned(path, 10_000, CELL)
+    vertex["x"][[10, 20_000, 29_999]] = 1.0
+    vertex["y"][[10, 20_000, 29_999]] = 1.0
+    vertex["z"][[10, 20_000, 29_999]] = 1.0
+    PlyData([PlyElement.describe(vertex, "vertex")]).write(str(path))
+    assert 0 < len(read_thinned(path, 10_000, CELL).cloud) <= 10_000
