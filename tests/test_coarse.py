@@ -98,7 +98,9 @@ def test_coarse_finds_drone_clip_inside_als_from_far_away(spanner_dir):
     dt, dr = pose_error(result.transform, truth)
     assert dt < 0.3 and dr < 1.0, (dt, dr)
     assert 0.0 < result.confidence <= 1.0
-    assert result.hypotheses and {"transform", "score", "yaw_deg"} <= set(result.hypotheses[0])
+    assert result.hypotheses and {"transform", "score", "yaw_deg"} <= set(
+        result.hypotheses[0].to_dict()
+    )
     again = coarse_align(src, tgt, CoarseConfig(), seed=0)
     # deterministic up to the summation order of Open3D's parallel reductions
     np.testing.assert_allclose(again.transform, result.transform, atol=1e-9)

@@ -131,7 +131,7 @@ def test_coarse_recovers_a_45_degree_tilted_source_and_is_deterministic(tilted_p
     result = coarse_align(src, tgt, c, seed=3)
     deg, m = pose_error(result.transform, truth)
     assert deg < 1.0 and m < 0.2, (deg, m, result.hypotheses[:3])
-    gens = {h["generator"] for h in result.hypotheses}
+    gens = {h.generator for h in result.hypotheses}
     assert {"raster", "fpfh", "stems"} <= gens
     assert {
         "transform",
@@ -144,7 +144,7 @@ def test_coarse_recovers_a_45_degree_tilted_source_and_is_deterministic(tilted_p
         "prior",
         "generator",
         "vertical",
-    } <= set(result.hypotheses[0])
+    } <= set(result.hypotheses[0].to_dict())
     # FPFH and the stem map each put the truth among their own starts (a duplicate of another's start is noted
     # in "agree"); the raster search on this 10 m scene does not at 20k points (it does at 40k), and is
     # checked alone on a 25/-30 deg tilted drone clip in test_coarse.py
@@ -152,16 +152,12 @@ def test_coarse_recovers_a_45_degree_tilted_source_and_is_deterministic(tilted_p
         near = [
             h
             for h in result.hypotheses
-            if (h["generator"] == gen or any(a.startswith(gen) for a in h.get("agree", [])))
-            and max(
-                pose_error(np.asarray(h["transform"]), truth)[0] / 2,
-                pose_error(np.asarray(h["transform"]), truth)[1] / 0.5,
-            )
-            < 1
+            if (h.generator == gen or any(a.startswith(gen) for a in h.agree))
+            and max(pose_error(h.T, truth)[0] / 2, pose_error(h.T, truth)[1] / 0.5) < 1
         ]
         assert near, gen
     again = coarse_align(Cloud(src.points.copy()), Cloud(tgt.points.copy()), c, seed=3)
-    assert [h["generator"] for h in again.hypotheses] == [h["generator"] for h in result.hypotheses]
+    assert [h.generator for h in again.hypotheses] == [h.generator for h in result.hypotheses]
     np.testing.assert_allclose(again.transform, result.transform, atol=1e-9)
 
 

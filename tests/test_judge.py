@@ -316,7 +316,7 @@ def test_boxed_view_refused_when_a_copy_fits_as_well(boxed):
     T = to_local_transform(case.truth, ps.frame, pt2.frame)
     copy = to_local_transform(shift @ case.truth, ps.frame, pt2.frame)
     for pose, rival in ((T, copy), (copy, T)):
-        v = judge.judge(ps, pt2, pose, [(rival, "copy")], cfg.judge)
+        v = judge.judge(ps, pt2, pose, [judge.Candidate(T=rival, source="copy")], cfg.judge)
         assert v.distinct_rivals == 1 and abs(v.fine_margin) < 0.3, v.fine_margin
         assert v.confidence < cfg.min_confidence, v.confidence
 
@@ -363,7 +363,7 @@ def test_near_rival_still_sliding_into_the_pose_is_the_pose(pair, monkeypatch):
         ps,
         pt,
         T,
-        [(start, "near"), (far, "far")],
+        [judge.Candidate(T=start, source="near"), judge.Candidate(T=far, source="far")],
         short.model_copy(update={"near_rival_passes": 0}),
     )
     stopped = next(r for r in once.rivals if r["from"] == "near")
@@ -380,7 +380,7 @@ def test_near_rival_still_sliding_into_the_pose_is_the_pose(pair, monkeypatch):
         ps,
         pt,
         T,
-        [(start, "near"), (far, "far")],
+        [judge.Candidate(T=start, source="near"), judge.Candidate(T=far, source="far")],
         short.model_copy(update={"near_rival_passes": 8}),
     )
     assert not next(r for r in more.rivals if r["from"] == "near")["distinct"]

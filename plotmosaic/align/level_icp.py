@@ -14,7 +14,7 @@ from plotmosaic.align.sampling import sample
 from plotmosaic.config.align import AlignConfig
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, kw_only=True, eq=False)
 class LevelResult:
     """The level stage's pose and the figures PairResult.levels reports."""
 
@@ -46,7 +46,14 @@ def incremental_steps(matching: dict[int, int]) -> list[tuple[list[int], list[in
 
 def no_level_stage(src: PreparedCloud, tgt: PreparedCloud, T: np.ndarray) -> LevelResult:
     """The matching alone, for a pose that skips the level stage (a verified stored pose)."""
-    return LevelResult(T, level_matching(src, tgt), [], None, None, False)
+    return LevelResult(
+        T=T,
+        matching=level_matching(src, tgt),
+        steps=[],
+        start_fit=None,
+        level_fit=None,
+        reverted=False,
+    )
 
 
 def level_stage(
@@ -98,7 +105,14 @@ def level_stage(
     reverted = bool(steps) and level_fit < config.level_keep_ratio * start_fit
     if reverted:
         T = T_init.copy()
-    return LevelResult(T, matching, steps, start_fit, level_fit, reverted)
+    return LevelResult(
+        T=T,
+        matching=matching,
+        steps=steps,
+        start_fit=start_fit,
+        level_fit=level_fit,
+        reverted=reverted,
+    )
 
 
 def level_table(p: PreparedCloud, matching: dict[int, int], as_source: bool) -> list[dict]:

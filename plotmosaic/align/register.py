@@ -13,10 +13,11 @@ import numpy as np
 from plotmosaic.align import judge as judge_mod
 from plotmosaic.align import scene
 from plotmosaic.align.coarse import CoarseResult, coarse_align
+from plotmosaic.align.coarse.hypothesis import Hypothesis
 from plotmosaic.align.fine import FineResult, final_icp
 from plotmosaic.align.floors import check_quality
 from plotmosaic.align.icp import evaluate, information_matrix
-from plotmosaic.align.judge import Verdict
+from plotmosaic.align.judge import Candidate, Verdict
 from plotmosaic.align.level_icp import LevelResult, level_stage, levels_record, no_level_stage
 from plotmosaic.align.memo import PairMemo
 from plotmosaic.align.prepare import PreparedCloud
@@ -78,7 +79,7 @@ def register_prepared(
     return result
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, kw_only=True, eq=False)
 class StoredCheck:
     """A stored pose checked: the fine ICP from it and whether it verified."""
 
@@ -87,17 +88,17 @@ class StoredCheck:
     record: dict  # judge.verify_stored's figures for PairResult.coarse["stored_pose"]
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, kw_only=True, eq=False)
 class Search:
     """Where the level stage starts, and the hypotheses the judge weighs the pose against."""
 
     T: np.ndarray  # source local -> target local
     coarse: dict | None  # PairResult.coarse (None: the coarse stage did not run)
-    hypotheses: list[dict]
+    hypotheses: tuple[Hypothesis, ...]
     skipped: bool  # a verified stored pose: no search and no level stage
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, kw_only=True, eq=False)
 class Judged:
     """The pose the judge let stand, with its last fine stage, and its verdict."""
 
@@ -105,7 +106,7 @@ class Judged:
     verdict: Verdict | None  # None: the judge is off
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, kw_only=True, eq=False)
 class Quality:
     """The pose's figures in file coordinates."""
 
@@ -131,7 +132,7 @@ def verify_stored_pose(
     fine = final_icp(src, tgt, T, config, memo)
     check = judge_mod.verify_stored(src, tgt, T, fine.T, config.judge, memo)
     check["seconds"] = time.perf_counter() - t
-    return StoredCheck(fine, check["verified"], _stored_record(check))
+    return StoredCheck(fine=fine, verified=check["verified"], record=_stored_record(check))
 
 
 def search_pose(
@@ -148,7 +149,7 @@ def search_pose(
     """The coarse stage, around `T` when a start was given, else from anywhere; nothing after a
     verified stored pose. A local result (--init, --no-coarse) takes its rivals from the global search."""
     skipped = check is not None and check.verified
-    coarse, hypotheses = None, []
+    coarse, hypotheses = None, ()
     if skipped:
         # no search, so no rivals either; the level stage neither (the fine ICP is done)
         coarse = {"skipped": "stored pose verified", "stored_pose": check.record}
@@ -162,14 +163,14 @@ def search_pose(
             cres = global_search(src, tgt, config, seed, memo)
         T = np.asarray(cres.transform, dtype=float)
         coarse = cres.to_dict()
-        hypotheses = list(cres.hypotheses)
+        hypotheses = cres.hypotheses
         if check is not None:
             coarse["stored_pose"] = check.record
     rivals = config.judge.enabled and config.judge.global_rivals
     if rivals and not skipped and (has_init or not config.coarse.enabled):
         say("searching for rival poses")
         hypotheses += global_search(src, tgt, config, seed, memo).hypotheses
-    return Search(T, coarse, hypotheses, skipped)
+    return Search(T=T, coarse=coarse, hypotheses=hypotheses, skipped=skipped)
 
 
 def global_search(
@@ -201,12 +202,12 @@ def judge_pose(
     """The judge's verdict on the pose against every hypothesis and the start; after a search, one
     retry from a better pose the judge found (`recover`)."""
     if not config.judge.enabled:
-        return Judged(fine, None)
+        return Judged(fine=fine, verdict=None)
     say("judging the pose against its rivals")
     candidates = _candidates(search.hypotheses, start)
     verdict = judge_mod.judge(src, tgt, fine.T, candidates, config.judge, memo)
     if search.skipped:
-        return Judged(fine, verdict)
+        return Judged(fine=fine, verdict=verdict)
     return recover(src, tgt, config, candidates, fine, verdict, say, memo)
 
 
@@ -214,7 +215,7 @@ def recover(
     src: PreparedCloud,
     tgt: PreparedCloud,
     config: AlignConfig,
-    candidates: list[tuple[np.ndarray, str]],
+    candidates: list[Candidate],
     fine: FineResult,
     verdict: Verdict,
     say: Say,
@@ -229,15 +230,22 @@ def recover(
     rival = verdict.rival_better and config.coarse.enabled
     better = verdict.rival_transform if rival else verdict.basin_transform
     if better is None:
-        return Judged(fine, verdict)
+        return Judged(fine=fine, verdict=verdict)
     say("final ICP from a better rival" if rival else "final ICP from the pose's sharper basin")
     memo = memo or PairMemo()
     second_fine = final_icp(src, tgt, better, config, memo)
     second = judge_mod.judge(
-        src, tgt, second_fine.T, candidates + [(fine.T, "first pose")], config.judge, memo
+        src,
+        tgt,
+        second_fine.T,
+        [*candidates, Candidate(T=fine.T, source="first pose")],
+        config.judge,
+        memo,
     )
     keep = second.score > verdict.score if rival else second.confidence > verdict.confidence
-    return Judged(second_fine, second) if keep else Judged(fine, verdict)
+    if keep:
+        return Judged(fine=second_fine, verdict=second)
+    return Judged(fine=fine, verdict=verdict)
 
 
 def measure(
@@ -263,7 +271,14 @@ def measure(
         info, sigma = information_matrix(p, q, fine.n, T_file)
     else:
         info, sigma = np.zeros((6, 6)), float("nan")
-    return Quality(T_file, fitness, rmse, overlap, info, sigma)
+    return Quality(
+        transform=T_file,
+        fitness=fitness,
+        rmse=rmse,
+        overlap=overlap,
+        information=info,
+        sigma=sigma,
+    )
 
 
 def pair_result(
@@ -331,23 +346,20 @@ def _silent(msg: str) -> None:
     pass
 
 
-def _candidates(hypotheses: list[dict], start: np.ndarray) -> list[tuple[np.ndarray, str]]:
+def _candidates(hypotheses: tuple[Hypothesis, ...], start: np.ndarray) -> list[Candidate]:
     """Rival poses: every hypothesis (refined ones first, by score), then the start as handed over."""
     order = sorted(
         range(len(hypotheses)),
-        key=lambda i: (
-            not hypotheses[i].get("refined", False),
-            -float(hypotheses[i].get("score") or 0.0),
-        ),
+        key=lambda i: (not hypotheses[i].refined, -float(hypotheses[i].score or 0.0)),
     )
     out = [
-        (
-            np.asarray(hypotheses[i]["transform"], dtype=float),
-            f"{hypotheses[i].get('generator', 'coarse')} hypothesis {i}",
+        Candidate(
+            T=np.asarray(hypotheses[i].T, dtype=float),
+            source=f"{hypotheses[i].generator} hypothesis {i}",
         )
         for i in order
     ]
-    return out + [(start, "start")]
+    return [*out, Candidate(T=start, source="start")]
 
 
 def _stored_record(check: dict) -> dict:

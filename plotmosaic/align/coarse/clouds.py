@@ -146,15 +146,23 @@ def _rot_z(yaw: float) -> np.ndarray:
 
 
 def hypothesis_transform(
-    h: dict, src: Levelled, tgt: Levelled, ground_tree: cKDTree | None, config: CoarseConfig
+    src: Levelled,
+    tgt: Levelled,
+    ground_tree: cKDTree | None,
+    config: CoarseConfig,
+    *,
+    yaw: float,
+    t_xy: np.ndarray,
+    centre: np.ndarray,
 ) -> np.ndarray:
-    """Full 4x4 (levelled source -> levelled target) of a heading/shift hypothesis, tz from the ground."""
+    """Full 4x4 (levelled source -> levelled target) of a heading `yaw` about `centre` and a
+    horizontal shift `t_xy`, tz from the ground."""
     Rz = np.eye(3)
-    Rz[:2, :2] = _rot_z(h["yaw"])
+    Rz[:2, :2] = _rot_z(yaw)
     A = np.eye(4)
     A[:3, :3] = Rz
-    c = np.array([*h["centre"], 0.0])
-    A[:3, 3] = c - Rz @ c + np.array([*h["t_xy"], 0.0])
+    c = np.array([*centre, 0.0])
+    A[:3, 3] = c - Rz @ c + np.array([*t_xy, 0.0])
     return with_height(A, src, tgt, ground_tree, config)
 
 

@@ -7,6 +7,7 @@ import numpy as np
 
 from plotmosaic.align import features3d
 from plotmosaic.align.coarse.clouds import CoarseCloud, homogeneous
+from plotmosaic.align.coarse.hypothesis import Start
 from plotmosaic.align.levelling import rotate
 from plotmosaic.config.coarse import CoarseConfig
 
@@ -30,16 +31,16 @@ def fpfh_starts(
     config: CoarseConfig,
     rng: np.random.Generator,
     six_dof: bool,
-) -> list[tuple]:
-    """(local 4x4, hypothesis dict) from FPFH matches: a 4-DoF vote per vertical pair, and (`six_dof`) one 6-DoF RANSAC."""
+) -> list[Start]:
+    """Starts from FPFH matches: a 4-DoF vote per vertical pair, and (`six_dof`) one 6-DoF RANSAC."""
     p, q = matches
     out = []
     for vs, vt in pairs:
         Rs, Rt = vs.R, vt.R
         for A, n in features3d.vote_4dof(rotate(p, Rs), rotate(q, Rt), config):
             T = homogeneous(Rt.T) @ A @ homogeneous(Rs)
-            out.append((T, {"generator": "fpfh", "vertical": f"{vs.name}/{vt.name}", "votes": n}))
+            out.append(Start(T=T, generator="fpfh", vertical=f"{vs.name}/{vt.name}", votes=n))
     if six_dof and config.fpfh_six_dof:
         for T, n in features3d.ransac_6dof(p, q, config, rng):
-            out.append((T, {"generator": "fpfh", "vertical": "none (6-DoF)", "votes": n}))
+            out.append(Start(T=T, generator="fpfh", vertical="none (6-DoF)", votes=n))
     return out

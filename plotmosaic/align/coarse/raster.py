@@ -14,6 +14,7 @@ from plotmosaic.align.coarse.clouds import (
     hypothesis_transform,
     unlevelled,
 )
+from plotmosaic.align.coarse.hypothesis import Start
 from plotmosaic.align.peaks import angle_diff, distinct_peaks
 from plotmosaic.align.rasters import CHANNELS, MaskedNCC, column_bins, rasterise
 from plotmosaic.config.coarse import CoarseConfig
@@ -195,8 +196,8 @@ def raster_starts(
     config: CoarseConfig,
     prior: np.ndarray | None,
     first: int = 0,
-) -> tuple[list[tuple], float | None]:
-    """(local 4x4, hypothesis dict) of the raster search per vertical pair, and the raster cell used.
+) -> tuple[list[Start], float | None]:
+    """Starts of the raster search per vertical pair, and the raster cell used.
 
     `first`: the index of `pairs[0]` among all vertical pairs (pair 0 gets the most hypotheses)."""
     out, cell = [], None
@@ -211,18 +212,17 @@ def raster_starts(
             hyps = hyps + _small_scene(ls, lt, weights, config, prior_l)
         for h in hyps:
             cell = h["cell"] if cell is None else cell
-            T = unlevelled(hypothesis_transform(h, ls, lt, ground_tree, config), ls, lt)
+            A = hypothesis_transform(
+                ls, lt, ground_tree, config, yaw=h["yaw"], t_xy=h["t_xy"], centre=h["centre"]
+            )
             out.append(
-                (
-                    T,
-                    {
-                        "generator": "raster",
-                        "vertical": f"{vs.name}/{vt.name}" + (" fine" if h.get("fine") else ""),
-                        "score": h["score"],
-                        "yaw": h["yaw"],
-                        "overlap": h["overlap"],
-                        "cell": h["cell"],
-                    },
+                Start(
+                    T=unlevelled(A, ls, lt),
+                    generator="raster",
+                    vertical=f"{vs.name}/{vt.name}" + (" fine" if h.get("fine") else ""),
+                    score=h["score"],
+                    yaw=h["yaw"],
+                    overlap=h["overlap"],
                 )
             )
     return out, cell

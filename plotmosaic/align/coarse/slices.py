@@ -5,28 +5,28 @@ from __future__ import annotations
 
 from plotmosaic.align import slices
 from plotmosaic.align.coarse.clouds import CoarseCloud, hypothesis_transform, unlevelled
+from plotmosaic.align.coarse.hypothesis import Start
 from plotmosaic.config.coarse import CoarseConfig
 
 
-def slice_starts(src: CoarseCloud, tgt: CoarseCloud, pairs, config: CoarseConfig) -> list[tuple]:
-    """(local 4x4, hypothesis dict) of the height-slice occupancy search per vertical pair."""
+def slice_starts(src: CoarseCloud, tgt: CoarseCloud, pairs, config: CoarseConfig) -> list[Start]:
+    """Starts of the height-slice occupancy search per vertical pair."""
     out = []
     for vs, vt in pairs:
         ls, lt = src.level(vs, config), tgt.level(vt, config)
         ground_tree = lt.ground_tree(config)
         for h in slices.slice_search(ls.points, ls.hag, lt.points, lt.hag, config):
-            T = unlevelled(hypothesis_transform(h, ls, lt, ground_tree, config), ls, lt)
+            A = hypothesis_transform(
+                ls, lt, ground_tree, config, yaw=h["yaw"], t_xy=h["t_xy"], centre=h["centre"]
+            )
             out.append(
-                (
-                    T,
-                    {
-                        "generator": "slices",
-                        "vertical": f"{vs.name}/{vt.name}",
-                        "slice_score": h["score"],
-                        "yaw": h["yaw"],
-                        "overlap": h["overlap"],
-                        "cell": h["cell"],
-                    },
+                Start(
+                    T=unlevelled(A, ls, lt),
+                    generator="slices",
+                    vertical=f"{vs.name}/{vt.name}",
+                    slice_score=h["score"],
+                    yaw=h["yaw"],
+                    overlap=h["overlap"],
                 )
             )
     return out

@@ -11,6 +11,7 @@ import numpy as np
 from plotmosaic.align.coarse import verify as verification
 from plotmosaic.align.coarse.clouds import AIRBORNE, CoarseCloud, remembered, vertical_pairs
 from plotmosaic.align.coarse.fpfh import fpfh_matches, fpfh_starts
+from plotmosaic.align.coarse.hypothesis import Hypothesis, Start
 from plotmosaic.align.coarse.raster import raster_starts, weights
 from plotmosaic.align.coarse.slices import slice_starts
 from plotmosaic.align.coarse.stems import stem_starts
@@ -20,11 +21,13 @@ from plotmosaic.config.coarse import CoarseConfig
 from plotmosaic.parallel import both
 
 
-@dataclass
+@dataclass(frozen=True, kw_only=True, eq=False)
 class CoarseResult:
+    """The coarse stage's pose, its confidence, and every verified hypothesis, best first."""
+
     transform: np.ndarray  # 4x4, source local frame -> target local frame
     confidence: float
-    hypotheses: list[dict] = field(default_factory=list)
+    hypotheses: tuple[Hypothesis, ...] = ()
     seconds: float = 0.0
     levelling: dict = field(default_factory=dict)
     timing: dict = field(default_factory=dict)
@@ -36,7 +39,7 @@ class CoarseResult:
             "seconds": self.seconds,
             "levelling": self.levelling,
             "timing": self.timing,
-            "hypotheses": self.hypotheses,
+            "hypotheses": [h.to_dict() for h in self.hypotheses],
         }
 
 
@@ -62,7 +65,7 @@ class _Generators:
         self.prior, self.rng, self.timing = prior, rng, timing
         self.matches = None
 
-    def __call__(self, first: int, chosen) -> tuple[list[tuple], float | None]:
+    def __call__(self, first: int, chosen) -> tuple[list[Start], float | None]:
         """(starts, raster cell) under the vertical pairs `chosen`, the first of which is pair `first`."""
         src, tgt, config, timing = self.src, self.tgt, self.config, self.timing
         t = time.perf_counter()
@@ -124,9 +127,8 @@ def coarse_align(
     )
     starts, cell = generate(0, pairs[:1])
     if prior is not None:
-        starts.append(
-            (prior, {"generator": "prior", "vertical": "prior", "prior": True})
-        )  # never merged away
+        # never merged away
+        starts.append(Start(T=prior, generator="prior", vertical="prior", prior=True))
     starts = unique_starts(starts, config)
     settled = False
     if config.settle_early and len(pairs) > 1:
@@ -143,12 +145,9 @@ def coarse_align(
         _clock(timing, "verify", t)
     searched = pairs if len(pairs) == 1 or not settled else pairs[:1]
     return CoarseResult(
-        transform=results[0]["T"],
+        transform=results[0].T,
         confidence=confidence,
-        hypotheses=[
-            {k: v for k, v in r.items() if k != "T"} | {"transform": np.asarray(r["T"]).tolist()}
-            for r in results
-        ],
+        hypotheses=tuple(results),
         seconds=time.perf_counter() - start,
         levelling={
             "source": src.info,
@@ -157,7 +156,7 @@ def coarse_align(
             "vertical_pairs": [f"{a.name}/{b.name}" for a, b in searched],
             "vertical_pairs_skipped": len(pairs) - len(searched),
             "hypotheses_by_generator": {
-                g: sum(r["generator"] == g for r in results) for g in GENERATORS
+                g: sum(r.generator == g for r in results) for g in GENERATORS
             },
         },
         timing=timing,
@@ -186,7 +185,7 @@ def _coarse_clouds(
     )
 
 
-def _more_starts(generate: _Generators, pairs, starts: list[tuple]) -> list[tuple]:
+def _more_starts(generate: _Generators, pairs, starts: list[Start]) -> list[Start]:
     """The starts with those of the other vertical pairs and of the slice search (only now: a
     settled pair needs no finer search)."""
     config = generate.config

@@ -6,13 +6,14 @@ import numpy as np
 
 from plotmosaic.align import stemmap
 from plotmosaic.align.coarse.clouds import CoarseCloud, hypothesis_transform, unlevelled
+from plotmosaic.align.coarse.hypothesis import Start
 from plotmosaic.config.coarse import CoarseConfig
 
 
 def stem_starts(
     src: CoarseCloud, tgt: CoarseCloud, pairs, config: CoarseConfig, rng: np.random.Generator
-) -> list[tuple]:
-    """(local 4x4, hypothesis dict) from stem-map matches per vertical pair."""
+) -> list[Start]:
+    """Starts from stem-map matches per vertical pair."""
     out = []
     for vs, vt in pairs:
         ls, lt = src.level(vs, config), tgt.level(vt, config)
@@ -22,18 +23,16 @@ def stem_starts(
             continue
         ground_tree = lt.ground_tree(config)
         for yaw, t_xy, n in found:
-            h = {"yaw": yaw, "t_xy": t_xy, "centre": np.zeros(2)}
-            T = unlevelled(hypothesis_transform(h, ls, lt, ground_tree, config), ls, lt)
+            A = hypothesis_transform(
+                ls, lt, ground_tree, config, yaw=yaw, t_xy=t_xy, centre=np.zeros(2)
+            )
             out.append(
-                (
-                    T,
-                    {
-                        "generator": "stems",
-                        "vertical": f"{vs.name}/{vt.name}",
-                        "votes": n,
-                        "yaw": yaw,
-                        "stems": [len(ms.xy), len(mt.xy)],
-                    },
+                Start(
+                    T=unlevelled(A, ls, lt),
+                    generator="stems",
+                    vertical=f"{vs.name}/{vt.name}",
+                    votes=n,
+                    yaw=yaw,
                 )
             )
     return out

@@ -5,10 +5,13 @@ distinct runner-up is the confidence."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 from plotmosaic.align.coarse.clouds import CoarseCloud
+from plotmosaic.align.coarse.hypothesis import Hypothesis, Start
 from plotmosaic.align.icp import evaluate, point_to_plane_icp
 from plotmosaic.align.sampling import sample
 from plotmosaic.align.voxel import thin
@@ -44,93 +47,62 @@ def _score(structure: np.ndarray, tgt: tuple, T: np.ndarray, distance: float) ->
     return evaluate(structure, tgt[2], T, distance)[0]
 
 
+@dataclass(frozen=True, kw_only=True, eq=False)
+class _Screened:
+    """A start after its short ICP."""
+
+    score: float
+    T: np.ndarray
+    start: Start
+
+
 def distinct(A: np.ndarray, B: np.ndarray, config: CoarseConfig) -> bool:
     degrees, metres = pose_error(A, B)
     return metres > config.distinct_m or degrees > config.distinct_deg
 
 
-def unique_starts(starts: list[tuple], config: CoarseConfig) -> list[tuple]:
-    """Starts without near-duplicates (the first kept; the generators that agreed with it noted in "agree")."""
-    out: list[tuple] = []
-    for T, h in starts:
-        for T2, h2 in out:
-            deg, m = pose_error(T, T2)
-            if (
-                m < config.start_duplicate_m
-                and deg < config.start_duplicate_deg
-                and not h.get("prior")
-            ):
-                h2.setdefault("agree", []).append(f"{h['generator']}:{h['vertical']}")
+def unique_starts(starts: list[Start], config: CoarseConfig) -> list[Start]:
+    """Starts without near-duplicates (the first kept; the generators that agreed with it noted in `agree`)."""
+    out: list[Start] = []
+    for s in starts:
+        for i, kept in enumerate(out):
+            deg, m = pose_error(s.T, kept.T)
+            if m < config.start_duplicate_m and deg < config.start_duplicate_deg and not s.prior:
+                out[i] = replace(kept, agree=(*kept.agree, s.label()))
                 break
         else:
-            out.append((T, h))
+            out.append(s)
     return out
 
 
-def _yaw_deg(T: np.ndarray) -> float:
-    return float(np.degrees(np.arctan2(T[1, 0], T[0, 0])))
-
-
-def support(results: list[dict], best: dict, config: CoarseConfig) -> set[str]:
+def support(results: list[Hypothesis], best: Hypothesis, config: CoarseConfig) -> set[str]:
     """Generators whose own hypotheses reached `best`'s pose (screened or as a duplicate start)."""
     out = set()
     for r in results:
-        if not distinct(best["T"], r["T"], config):
-            out.add(r["generator"])
-            out.update(a.split(":")[0] for a in r.get("agree", []))
+        if not distinct(best.T, r.T, config):
+            out.add(r.generator)
+            out.update(a.split(":")[0] for a in r.agree)
     return out - {"prior"}
 
 
-def settled(results: list[dict], confidence: float, config: CoarseConfig) -> bool:
+def settled(results: list[Hypothesis], confidence: float, config: CoarseConfig) -> bool:
     """The first vertical pair's best pose needs no other: ahead of its rivals, fitting, found twice."""
     best = results[0]
     return (
-        best["refined"]
+        best.refined
         and confidence >= config.settled_confidence
-        and (best["score"] or 0.0) >= config.settled_score
+        and (best.score or 0.0) >= config.settled_score
         and len(support(results, best, config)) >= config.settled_generators
     )
 
 
-_NONE = {
-    "T": None,
-    "refined": True,
-    "score": 0.0,
-    "screen_score": 0.0,
-    "raster_score": 0.0,
-    "yaw_deg": 0.0,
-    "overlap": 0.0,
-    "prior": False,
-    "generator": "none",
-    "vertical": "none",
-}
-
-
-def _row(pre: float, A: np.ndarray, h: dict, refined: bool, score: float | None) -> dict:
-    """One verified start as CoarseResult.hypotheses lists it (with its pose as "T")."""
-    return {
-        "T": A,
-        "refined": refined,
-        "score": score,
-        "screen_score": pre,
-        "raster_score": h.get("score"),  # None for other generators (strict JSON: no NaN)
-        "yaw_deg": float(np.degrees(h["yaw"])) if "yaw" in h else _yaw_deg(A),
-        "overlap": h.get("overlap"),
-        "prior": bool(h.get("prior", False)),
-        "generator": h["generator"],
-        "vertical": h["vertical"],
-    } | {k: h[k] for k in ("votes", "agree", "slice_score") if k in h}
-
-
-def _confidence(results: list[dict], config: CoarseConfig) -> float:
+def _confidence(results: list[Hypothesis], config: CoarseConfig) -> float:
     """1 - the best distinct refined runner-up's score / the best's (0 when the best scores 0)."""
     best = results[0]
     # only refined hypotheses compete: an unrefined one may be the best pose not yet converged
-    runner_up = next(
-        (r for r in results[1:] if r["refined"] and distinct(best["T"], r["T"], config)), None
-    )
-    second = runner_up["score"] if runner_up else 0.0
-    return float(1.0 - second / best["score"]) if best["score"] > 0 else 0.0
+    runner_up = next((r for r in results[1:] if r.refined and distinct(best.T, r.T, config)), None)
+    second = runner_up.score if runner_up else 0.0
+    return float(1.0 - second / best.score) if best.score > 0 else 0.0
 
 
 class Verifier:
@@ -163,19 +135,18 @@ class Verifier:
         self.structure = self.src_v[flat_ok]
         few = sample(len(self.src_v), config.screen_points, rng)
         self.src_few, self.structure_few = self.src_v[few], self.src_v[few][flat_ok[few]]
-        # id of a start's hypothesis dict -> (that dict, (score, pose, dict)): holding the dict
-        # keeps its id from being reused by a later start once the caller lets it go
-        self.screened: dict[int, tuple] = {}
-        self.refined: dict[int, tuple] = {}  # the same key -> (pose, score)
+        # a start's key -> (score, pose) screened, and -> (pose, score) refined
+        self.screened: dict[tuple, tuple[float, np.ndarray]] = {}
+        self.refined: dict[tuple, tuple[np.ndarray, float]] = {}
 
-    def _screen(self, start):
+    def _screen(self, start: Start) -> tuple[float, np.ndarray]:
         c, d = self.config, self.d
         A = _refine(
-            self.src_few, self.tgt_v, start[0], (c.screen_distance_factor * d,), self.iterations
+            self.src_few, self.tgt_v, start.T, (c.screen_distance_factor * d,), self.iterations
         )
-        return _score(self.structure_few, self.tgt_v, A, c.screen_score_factor * d), A, start[1]
+        return _score(self.structure_few, self.tgt_v, A, c.screen_score_factor * d), A
 
-    def _refine(self, A):
+    def _refine(self, A: np.ndarray) -> tuple[np.ndarray, float]:
         c, d = self.config, self.d
         A = _refine(
             self.src_v,
@@ -186,59 +157,57 @@ class Verifier:
         )
         return A, _score(self.structure, self.tgt_v, A, d)
 
-    def _screen_all(self, starts: list[tuple]) -> list[tuple]:
-        """(score, pose, dict) of every start screened, best first."""
-        new = [s for s in starts if id(s[1]) not in self.screened]
+    def _screen_all(self, starts: list[Start]) -> list[_Screened]:
+        """Every start screened, best first."""
+        new = [s for s in starts if s.key not in self.screened]
         for s, r in zip(new, in_two_threads(self._screen, new)):
-            self.screened[id(s[1])] = (s[1], r)
-        return sorted((self.screened[id(s[1])][1] for s in starts), key=lambda r: -r[0])
+            self.screened[s.key] = r
+        screened = []
+        for s in starts:
+            score, A = self.screened[s.key]
+            screened.append(_Screened(score=score, T=A, start=s))
+        return sorted(screened, key=lambda r: -r.score)
 
-    def agreed(self, starts: list[tuple]) -> bool:
+    def agreed(self, starts: list[Start]) -> bool:
         """Whether the best screened pose was reached by `settled_generators` generators."""
         screened = self._screen_all(starts)
         if not screened:
             return False
-        rows = [
-            {"T": A, "generator": h["generator"], "agree": h.get("agree", [])}
-            for _, A, h in screened
-        ]
+        rows = [Hypothesis.verified(r.start, r.T, r.score, None) for r in screened]
         return len(support(rows, rows[0], self.config)) >= self.config.settled_generators
 
-    def _chosen(self, screened: list[tuple]) -> list[int]:
+    def _chosen(self, screened: list[_Screened]) -> list[int]:
         """Which screened poses to refine: the best of each generator first (so no generator's best
         is lost to another's near-duplicates), then by score; distinct ones only, so the runner-up
         is a real rival (screened poses have converged)."""
         config = self.config
         distinct_ones: list[int] = []
-        for i, (_, A, _) in enumerate(screened):
-            if all(distinct(A, screened[j][1], config) for j in distinct_ones):
+        for i, r in enumerate(screened):
+            if all(distinct(r.T, screened[j].T, config) for j in distinct_ones):
                 distinct_ones.append(i)
         chosen = [
             k
             for k in (
-                next((i for i in distinct_ones if screened[i][2]["generator"] == gen), None)
+                next((i for i in distinct_ones if screened[i].start.generator == gen), None)
                 for gen in GENERATORS
             )
-            if k is not None and screened[k][0] > 0
+            if k is not None and screened[k].score > 0
         ]
         rest = [i for i in distinct_ones if i not in chosen]
         return sorted(chosen + rest[: max(0, config.refine_top - len(chosen))])
 
-    def __call__(self, starts: list[tuple]) -> tuple[list[dict], float]:
+    def __call__(self, starts: list[Start]) -> tuple[list[Hypothesis], float]:
         screened = self._screen_all(starts)
         # independent ICPs, two at a time (KD-tree queries release the GIL)
-        todo = [i for i in self._chosen(screened) if id(screened[i][2]) not in self.refined]
-        for i, r in zip(todo, in_two_threads(self._refine, [screened[i][1] for i in todo])):
-            self.refined[id(screened[i][2])] = r
+        todo = [i for i in self._chosen(screened) if screened[i].start.key not in self.refined]
+        for i, r in zip(todo, in_two_threads(self._refine, [screened[i].T for i in todo])):
+            self.refined[screened[i].start.key] = r
         results = []
-        for pre, A, h in screened:
+        for r in screened:
             # every refined pose competes, also one refined before more starts came (more rivals)
-            refined = id(h) in self.refined
-            A, score = self.refined[id(h)] if refined else (A, None)
-            results.append(_row(pre, A, h, refined, score))
+            A, score = self.refined.get(r.start.key, (r.T, None))
+            results.append(Hypothesis.verified(r.start, A, r.score, score))
         if not results:
-            results.append(_NONE | {"T": np.eye(4)})
-        results.sort(
-            key=lambda r: (not r["refined"], -(r["score"] if r["refined"] else r["screen_score"]))
-        )
+            results.append(Hypothesis.none())
+        results.sort(key=lambda h: (not h.refined, -(h.score if h.refined else h.screen_score)))
         return results, _confidence(results, self.config)

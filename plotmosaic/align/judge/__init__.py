@@ -30,9 +30,10 @@ from plotmosaic.align.judge.profile import (
     spacing,
 )
 from plotmosaic.align.judge.rivals import basin, neighbours, refine, sharper_neighbours
-from plotmosaic.align.judge.verdict import Verdict, judge, verify_stored
+from plotmosaic.align.judge.verdict import Candidate, Verdict, judge, verify_stored
 
 __all__ = [
+    "Candidate",
     "Verdict",
     "basin",
     "centre",

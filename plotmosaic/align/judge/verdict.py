@@ -27,8 +27,10 @@ from plotmosaic.align.memo import PairMemo
 from plotmosaic.config.judge import JudgeConfig
 
 
-@dataclass
+@dataclass(frozen=True, kw_only=True, eq=False)
 class Verdict:
+    """The judge's figures on a pose (source local -> target local) and on its best rivals."""
+
     score: float  # judge score of the pose
     rival_score: float  # of the best distinct rival as sharp as blunt_min_sharpness (0: none)
     margin: float  # 1 - rival_score / score (negative: a rival fits better)
@@ -81,19 +83,27 @@ class Verdict:
         }
 
 
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Candidate:
+    """A pose the judge weighs a pose against, before its refinement."""
+
+    T: np.ndarray  # source local -> target local
+    source: str  # where it came from, as the verdict names it
+
+
 def _shortlist(
-    T: np.ndarray, candidates: list[tuple[np.ndarray, str]], centre: np.ndarray, config: JudgeConfig
-) -> list[tuple[np.ndarray, str]]:
+    T: np.ndarray, candidates: list[Candidate], centre: np.ndarray, config: JudgeConfig
+) -> list[Candidate]:
     """Candidates distinct from T and from each other, in the order given, at most `max_rivals`."""
-    kept: list[tuple[np.ndarray, str]] = []
-    for A, name in candidates:
-        A = np.asarray(A, dtype=float)
+    kept: list[Candidate] = []
+    for cand in candidates:
+        A = np.asarray(cand.T, dtype=float)
         if len(kept) >= config.max_rivals:
             break
         if not np.isfinite(A).all() or not distinct(A, T, centre, config):
             continue
-        if all(distinct(A, B, centre, config) for B, _ in kept):
-            kept.append((A, name))
+        if all(distinct(A, k.T, centre, config) for k in kept):
+            kept.append(Candidate(T=A, source=cand.source))
     return kept
 
 
@@ -147,12 +157,11 @@ def judge(
     src,
     tgt,
     T: np.ndarray,
-    candidates: list[tuple[np.ndarray, str]],
+    candidates: list[Candidate],
     config: JudgeConfig,
     memo: PairMemo | None = None,
 ) -> Verdict:
-    """Score pose T against the distinct rivals among `candidates` ((transform, where from), source local ->
-    target local), each refined first; a rival that ends within the distinct radius of T is T itself.
+    """Score pose T against the distinct rivals among `candidates`, each refined first; a rival that ends within the distinct radius of T is T itself.
     T's `basin` starts that end sharper than T (`sharper_neighbours`) are rivals of the fine margin too;
     rivals blunter than `blunt_min_sharpness` are rivals of the fine margin only, not of the score.
     Refined rivals are kept in the pair's `memo` (`rivals.refined`). A source or target that is not a
@@ -164,8 +173,8 @@ def judge(
     mine = profile(src, tgt, T, config, memo)
     tally = _Tally()
     shortlist = _shortlist(T, candidates, c, config)
-    done = refined(src, tgt, [A0 for A0, _ in shortlist], T, config, memo)
-    for (_, name), (A, prof) in zip(shortlist, done):
+    done = refined(src, tgt, [cand.T for cand in shortlist], T, config, memo)
+    for name, (A, prof) in zip((cand.source for cand in shortlist), done):
         deg, m = separation(A, T, c)
         if m <= config.distinct_m and deg <= config.distinct_deg:
             tally.table.append({"from": name, "distinct": False, "deg": deg, "m": m})

@@ -1,0 +1,115 @@
+"""The coarse stage's typed hand-overs: starts merged into their first near-duplicate, and a verified
+hypothesis as its RESULT.json row."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from plotmosaic.align.coarse.hypothesis import Hypothesis, Start
+from plotmosaic.align.coarse.verify import support, unique_starts
+from plotmosaic.config.coarse import CoarseConfig
+
+
+def _pose(yaw_deg: float, x: float) -> np.ndarray:
+    T = np.eye(4)
+    c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[0, 3] = x
+    return T
+
+
+def test_near_duplicate_starts_merge_into_the_first_and_the_prior_never_does():
+    config = CoarseConfig()
+    first = Start(T=_pose(10.0, 1.0), generator="raster", vertical="a/b", score=0.5, yaw=0.17)
+    copy = Start(
+        T=_pose(10.0, 1.0 + 0.1 * config.start_duplicate_m), generator="stems", vertical="c/d"
+    )
+    other = Start(T=_pose(100.0, 5.0), generator="fpfh", vertical="a/b", votes=7)
+    prior = Start(T=first.T.copy(), generator="prior", vertical="prior", prior=True)
+    out = unique_starts([first, copy, other, prior], config)
+    assert [s.generator for s in out] == ["raster", "fpfh", "prior"]
+    assert (
+        out[0].agree == ("stems:c/d",) and first.agree == ()
+    )  # a new start, the old one untouched
+    assert out[0].key == first.key  # verification still finds what it computed for it
+    again = unique_starts(
+        [*out, Start(T=_pose(100.0, 5.0), generator="stems", vertical="x/y")], config
+    )
+    assert again[0] is out[0] and again[1].agree == ("stems:x/y",)
+
+
+def test_support_counts_the_generators_that_agreed_with_the_best_pose():
+    config = CoarseConfig()
+    merged = Start(T=_pose(0.0, 0.0), generator="raster", vertical="a/b", agree=("fpfh:a/b",))
+    best = Hypothesis.verified(merged, merged.T, 0.6, 0.7)
+    far = Hypothesis.verified(
+        Start(T=_pose(90.0, 9.0), generator="stems", vertical="a/b"), _pose(90.0, 9.0), 0.5, None
+    )
+    prior = Hypothesis.verified(
+        Start(T=_pose(0.0, 0.0), generator="prior", vertical="prior", prior=True),
+        _pose(0.0, 0.0),
+        0.6,
+        None,
+    )
+    assert support([best, far, prior], best, config) == {"raster", "fpfh"}
+
+
+@pytest.mark.parametrize(
+    ("start", "extra"),
+    [
+        (
+            Start(
+                T=_pose(30.0, 2.0),
+                generator="raster",
+                vertical="a/b",
+                score=0.4,
+                yaw=0.5,
+                overlap=0.8,
+            ),
+            set(),
+        ),
+        (Start(T=_pose(30.0, 2.0), generator="fpfh", vertical="none (6-DoF)", votes=12), {"votes"}),
+        (
+            Start(
+                T=_pose(30.0, 2.0),
+                generator="slices",
+                vertical="a/b",
+                slice_score=0.3,
+                yaw=0.5,
+                overlap=0.2,
+                agree=("stems:a/b",),
+            ),
+            {"agree", "slice_score"},
+        ),
+    ],
+)
+def test_a_hypothesis_row_names_only_what_its_generator_measured(start, extra):
+    row = Hypothesis.verified(start, start.T, 0.25, None).to_dict()
+    base = [
+        "refined",
+        "score",
+        "screen_score",
+        "raster_score",
+        "yaw_deg",
+        "overlap",
+        "prior",
+        "generator",
+        "vertical",
+    ]
+    assert list(row)[: len(base)] == base and list(row)[-1] == "transform"
+    assert set(row) - set(base) - {"transform"} == extra
+    assert row["refined"] is False and row["score"] is None and row["screen_score"] == 0.25
+    assert row["raster_score"] == start.score and row["overlap"] == start.overlap
+    # a heading measured by the generator, else read from the pose
+    assert row["yaw_deg"] == pytest.approx(np.degrees(start.yaw) if start.yaw is not None else 30.0)
+    assert np.array_equal(np.asarray(row["transform"]), start.T)
+    json.dumps(row, allow_nan=False)
+
+
+def test_an_empty_search_reports_the_identity():
+    row = Hypothesis.none().to_dict()
+    assert row["generator"] == "none" and row["refined"] is True and row["score"] == 0.0
+    assert np.array_equal(np.asarray(row["transform"]), np.eye(4))
