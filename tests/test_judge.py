@@ -16,6 +16,7 @@ from plotmosaic.align.memo import PairMemo
 from plotmosaic.align.pipeline import PairResult, blunt_fit, prepare_pair, register_prepared
 from plotmosaic.align.prepare import prepare_cloud
 from plotmosaic.align.register import recover
+from plotmosaic.align.spacing import scale_factor
 from plotmosaic.cli import app
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import RegistrationFailed
@@ -77,7 +78,7 @@ def test_profile_separates_truth_from_a_distinct_pose(pair):
     assert right["score"] > 1.5 * wrong["score"], (right, wrong)
     assert right["structure_st"][0] > 2 * wrong["structure_st"][0]
     # a sparse cloud is judged at its own resolution: scales grow, never shrink
-    assert judge.scale_factor(ps, pt, cfg.judge) >= 1.0
+    assert scale_factor(ps, pt, cfg.judge) >= 1.0
 
 
 @pytest.mark.slow

@@ -7,10 +7,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from plotmosaic.align import judge as judge_mod
 from plotmosaic.align.icp import Mirror, point_to_plane_icp
 from plotmosaic.align.memo import PairMemo
 from plotmosaic.align.prepare import PreparedCloud
+from plotmosaic.align.spacing import scale_factor, spacing
 from plotmosaic.config.align import AlignConfig, IcpStage
 from plotmosaic.io.frame import inverse
 
@@ -48,7 +48,7 @@ def fine_schedule(
     fixed = (
         src.kind in config.final_polish_fixed_kinds and tgt.kind in config.final_polish_fixed_kinds
     )
-    f = 1.0 if fixed else judge_mod.scale_factor(src, tgt, config.judge, memo)
+    f = 1.0 if fixed else scale_factor(src, tgt, config.judge, memo)
     d = config.final_polish_distance * f
     stages = list(config.final_schedule)
     if config.final_polish_iterations == 0 or not stages or d >= stages[-1].max_distance:
@@ -68,8 +68,8 @@ def final_icp(
     `final_symmetric_kinds` of comparable density (neither side `final_reverse_ratio` sparser), with
     the side test where both scanners are known."""
     memo = memo or PairMemo()
-    s_sp = judge_mod.spacing(src, config.judge, memo.source)
-    t_sp = judge_mod.spacing(tgt, config.judge, memo.target)
+    s_sp = spacing(src, config.judge, memo.source)
+    t_sp = spacing(tgt, config.judge, memo.target)
     schedule, kernel = fine_schedule(src, tgt, config, memo)
     # both scanners known (align/viewpoint.py): matches between the two faces of a stem are left out
     views = (

@@ -24,10 +24,8 @@ from plotmosaic.align.judge.profile import (
     fine_share,
     near,
     profile,
-    scale_factor,
     separation,
     sharpness,
-    spacing,
 )
 from plotmosaic.align.judge.rivals import basin, neighbours, refine, sharper_neighbours
 from plotmosaic.align.judge.verdict import Candidate, Verdict, judge, verify_stored
@@ -46,10 +44,8 @@ __all__ = [
     "neighbours",
     "profile",
     "refine",
-    "scale_factor",
     "separation",
     "sharper_neighbours",
     "sharpness",
-    "spacing",
     "verify_stored",
 ]

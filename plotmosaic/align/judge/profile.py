@@ -6,61 +6,13 @@ Every transform here maps source-local to target-local coordinates.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from plotmosaic.align.icp import nearest
 from plotmosaic.align.memo import CloudMemo, PairMemo
-from plotmosaic.align.sampling import sample
+from plotmosaic.align.spacing import samples, scale_factor
 from plotmosaic.config.judge import JudgeConfig
 from plotmosaic.io.frame import inverse, rotation_deg
-
-
-@dataclass
-class _Samples:
-    everything: np.ndarray  # profile sample of the cloud (its level points: even density)
-    structure: np.ndarray  # the non-flat part of it
-    spacing: float  # median nearest-neighbour spacing of the delta0 points (m)
-    fine: np.ndarray  # source points of a rival's refinement ICP
-    centre: np.ndarray  # centroid of the cloud's points: where pose separations are measured
-
-
-def samples(cloud, config: JudgeConfig, memo: CloudMemo | None) -> _Samples:
-    """Seeded samples of a prepared cloud, kept in `memo` (a scan takes part in several pairs)."""
-    key = config.model_dump_json(
-        include={"profile_points", "structure_max_planarity", "rival_points"}
-    )
-    return (memo or CloudMemo()).judge.get(key, lambda: _draw_samples(cloud, config))
-
-
-def _draw_samples(cloud, config: JudgeConfig) -> _Samples:
-    rng = np.random.default_rng(20_261_201)
-    pts = cloud.level_points
-    planarity = np.nan_to_num(np.asarray(cloud.features)[:, 1], nan=1.0)
-    flat = planarity >= config.structure_max_planarity
-    every = pts[sample(len(pts), config.profile_points, rng)]
-    struct = pts[~flat]
-    struct = struct[sample(len(struct), config.profile_points, rng)]
-    probe = pts[sample(len(pts), 2_000, rng)]
-    d, _ = cloud.tree.query(probe, k=2)
-    spacing = float(np.median(d[:, 1])) if len(probe) > 1 else config.reference_spacing
-    fine = cloud.fine_points[sample(len(cloud.fine_points), config.rival_points, rng)]
-    return _Samples(every, struct, spacing, fine, cloud.points.mean(axis=0))
-
-
-def spacing(cloud, config: JudgeConfig, memo: CloudMemo | None = None) -> float:
-    """Median nearest-neighbour spacing (m) of a prepared cloud's delta0 points."""
-    return samples(cloud, config, memo).spacing
-
-
-def scale_factor(src, tgt, config: JudgeConfig, memo: PairMemo | None = None) -> float:
-    """How much the profile distances stretch: the sparser cloud is judged at its own resolution."""
-    memo = memo or PairMemo()
-    spacing = max(
-        samples(src, config, memo.source).spacing, samples(tgt, config, memo.target).spacing
-    )
-    return float(np.clip(spacing / config.reference_spacing, 1.0, config.max_scale_factor))
 
 
 def _shares(points: np.ndarray, tree, T: np.ndarray, scales: np.ndarray) -> list[float]:

@@ -16,11 +16,10 @@ from plotmosaic.align.judge.profile import (
     fine_share,
     near,
     profile,
-    samples,
-    scale_factor,
     separation,
 )
 from plotmosaic.align.memo import PairMemo
+from plotmosaic.align.spacing import samples, scale_factor
 from plotmosaic.config.align import IcpStage
 from plotmosaic.config.judge import JudgeConfig
 from plotmosaic.parallel import in_two_threads
