@@ -75,8 +75,8 @@ def read_thinned(path: str | Path, max_points: int, cell: float) -> Thinned:
     for chunk in iter_chunks(path, chunk_size, attributes=False):
         read += len(chunk)
         crs = chunk.crs
-        finite = np.isfinite(chunk.xyz).all(axis=1)
-        bad += int(len(finite) - finite.sum())
+        if not np.isfinite(chunk.xyz).all():  # the flat check is far cheaper than counting rows
+            bad += int((~np.isfinite(chunk.xyz).all(axis=1)).sum())
         if not bad:  # else the scan is refused below, once every bad point is counted
             kept.add(chunk.xyz)
     if file_format(path) == "las" and read != count:  # E57 / PLY drop their invalid points
@@ -95,13 +95,27 @@ def read_thinned(path: str | Path, max_points: int, cell: float) -> Thinned:
 
 
 def _first_of_each(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(the distinct keys sorted, the index of each one's first occurrence); `keys` is consumed
-    (np.unique's return_index holds two more arrays of its length at once)."""
-    order = np.argsort(keys, kind="stable")
+    """(the distinct keys sorted, the index of each one's first occurrence); `keys` is consumed.
+    An unstable sort and the least index of each run of equal keys: a few times faster than a
+    stable sort (np.unique's return_index)."""
+    order = np.argsort(keys)
     keys = keys[order]
-    first = np.ones(len(keys), dtype=bool)
-    np.not_equal(keys[1:], keys[:-1], out=first[1:])
-    return keys[first], order[first]
+    new = np.ones(len(keys), dtype=bool)
+    np.not_equal(keys[1:], keys[:-1], out=new[1:])
+    starts = np.flatnonzero(new)
+    first = np.minimum.reduceat(order, starts) if len(starts) else starts
+    return keys[starts], first
+
+
+def _merged(sorted_keys: np.ndarray, new: np.ndarray) -> np.ndarray:
+    """Two sorted arrays of distinct keys as one (np.insert would sort the positions again)."""
+    out = np.empty(len(sorted_keys) + len(new), dtype=np.int64)
+    at = np.searchsorted(sorted_keys, new) + np.arange(len(new))
+    old = np.ones(len(out), dtype=bool)
+    old[at] = False
+    out[at] = new
+    out[old] = sorted_keys
+    return out
 
 
 def _member(keys: np.ndarray, sorted_keys: np.ndarray) -> np.ndarray:
@@ -158,7 +172,7 @@ class _FirstPerCell:
         keys, first = keys[new], first[new]
         self.rows[self.n : self.n + len(first)] = xyz[np.sort(first)]
         self.n += len(first)
-        self.keys = np.insert(self.keys, np.searchsorted(self.keys, keys), keys)
+        self.keys = _merged(self.keys, keys)
 
     def _coarsen(self) -> None:
         """Double the cell: keep the first kept point of each coarser cell."""
