@@ -17,6 +17,56 @@ def nearest(tree: cKDTree, points: np.ndarray, distance: float) -> tuple[np.ndar
     return tree.query(points, distance_upper_bound=distance, workers=inner_workers())
 
 
+class MovingNearest:
+    """`nearest` for points that move a little between calls (one ICP run's iterations): a point
+    keeps its nearest tree point while it has moved less than that point's lead over every other
+    one at its last query (the second nearest, or the search distance), and only the rest are
+    queried again. The same neighbours and distances as a full query: the kept distances use
+    cKDTree's own formula; a tie or a point on the search distance is queried again."""
+
+    def __init__(self, tree: cKDTree):
+        self.tree = tree
+        self.at: np.ndarray | None = None  # each point where it was last queried
+        self.index = np.zeros(0, np.int64)  # its nearest there, len(tree) if none in reach
+        self.floor = np.zeros(0)  # no other tree point was closer than this to it there
+
+    def __call__(self, points: np.ndarray, distance: float) -> tuple[np.ndarray, np.ndarray]:
+        n = self.tree.n
+        if self.at is None or len(points) != len(self.at):
+            self.at = points.copy()
+            self.index, self.floor = np.full(len(points), n), np.zeros(len(points))
+            return self._query(points, distance, np.arange(len(points)))
+        lower = self.floor - _distance(points, self.at) - 1e-9  # rounding of the two distances
+        has = self.index < n
+        d = np.full(len(points), np.inf)
+        d[has] = _distance(points[has], self.tree.data[self.index[has]])
+        kept = np.where(has, (d < lower) & (d != distance), lower > distance)
+        out = np.where(kept & (d < distance), self.index, n)
+        d[out == n] = np.inf
+        again = np.flatnonzero(~kept)
+        if len(again):
+            d[again], out[again] = self._query(points[again], distance, again)
+        return d, out
+
+    def _query(self, points: np.ndarray, distance: float, rows: np.ndarray):
+        """The two nearest of `points` (rows `rows` of the cache), kept for the next call."""
+        d, j = self.tree.query(points, k=2, distance_upper_bound=distance, workers=inner_workers())
+        # two equally near: the first of two need not be the one a single-neighbour query picks
+        tie = np.flatnonzero(np.isfinite(d[:, 0]) & (d[:, 0] == d[:, 1]))
+        if len(tie):
+            j[tie, 0] = nearest(self.tree, points[tie], distance)[1]
+        self.at[rows], self.index[rows] = points, j[:, 0]
+        self.floor[rows] = np.where(np.isfinite(d[:, 1]), d[:, 1], distance)
+        return d[:, 0], j[:, 0]
+
+
+def _distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row distances summed in cKDTree's order (x, then y, then z), so a kept neighbour's distance
+    has the bits a query would give it."""
+    diff = a - b
+    return np.sqrt((diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1]) + diff[:, 2] * diff[:, 2])
+
+
 def evaluate(
     source: np.ndarray, tree: cKDTree, T: np.ndarray, distance: float
 ) -> tuple[float, float, int]:
@@ -83,13 +133,14 @@ class Mirror:
     tree: cKDTree
     normals_of: Callable[[np.ndarray], np.ndarray]
 
-    def stacked(self, T: np.ndarray, distance: float, a, b, n, views=None):
+    def stacked(self, T: np.ndarray, distance: float, a, b, n, views=None, search=None):
         """Forward (a = T p, b = q, n) with the reverse rows appended, all in target coordinates:
         a source point under T, the target sample point it was matched from, its plane turned by T.
-        `views`: both scanners in target coordinates; reverse rows seen from opposite sides are left out."""
+        `views`: both scanners in target coordinates; reverse rows seen from opposite sides are left out.
+        `search`: a MovingNearest over `tree` kept across one ICP run's iterations."""
         R, t = T[:3, :3], T[:3, 3]
         back = (self.points - t) @ R  # target sample in source coordinates
-        d, j = nearest(self.tree, back, distance)
+        d, j = (search or MovingNearest(self.tree))(back, distance)
         ok = np.flatnonzero(np.isfinite(d))
         a2 = self.source[j[ok]] @ R.T + t
         n2 = self.normals_of(j[ok]) @ R.T
@@ -146,6 +197,8 @@ def point_to_plane_icp(
     a match whose plane has the two scanners on opposite sides is left out (see `facing`).
     """
     tree = tree if tree is not None else cKDTree(target)
+    forward = MovingNearest(tree)
+    backward = MovingNearest(mirror.tree) if mirror is not None else None
     normals_of = target_normals if callable(target_normals) else (lambda j: target_normals[j])
     T = np.asarray(init, dtype=np.float64).copy()
     centre = source.mean(axis=0)
@@ -159,7 +212,7 @@ def point_to_plane_icp(
         for _ in range(st.iterations):
             iterations += 1
             moved = source @ T[:3, :3].T + T[:3, 3]
-            d, j = nearest(tree, moved, st.max_distance)
+            d, j = forward(moved, st.max_distance)
             ok = np.flatnonzero(np.isfinite(d))
             if len(ok) < 12:
                 return IcpResult(T, 0.0, float("nan"), 0, ok, j[ok], iterations)
@@ -171,7 +224,7 @@ def point_to_plane_icp(
                 seen = facing(n, b, *views)
                 ok, a, b, n = ok[seen], a[seen], b[seen], n[seen]
             if mirror is not None:
-                a, b, n = mirror.stacked(T, st.max_distance, a, b, n, views)
+                a, b, n = mirror.stacked(T, st.max_distance, a, b, n, views, backward)
             T, step, rank = _gauss_newton_step(T, a, b, n, centre, scale, k, min_eig_ratio)
             result = IcpResult(
                 T,
