@@ -34,8 +34,9 @@ def _offsets(points: np.ndarray, query: np.ndarray, idx: np.ndarray) -> list[np.
     safe = np.where(idx < len(points), idx, 0)
     out = []
     for i in range(3):
-        # a gather from the strided column, then in place: a third of the time of fresh arrays
-        r = points[:, i].take(safe)
+        # fancy indexing, not .take: take copies the whole strided column first (a lazy fill asks
+        # for a few dozen points of a scan); the subtraction in place saves an array a chunk
+        r = points[:, i][safe]
         r -= query[:, i][:, None]
         out.append(r)
     return out
