@@ -95,8 +95,9 @@ def read_thinned(path: str | Path, max_points: int, cell: float) -> Thinned:
 
 
 def _first_of_each(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(the distinct keys sorted, the index of each one's first occurrence): an unstable sort and the least index of each run of equal keys: a few times faster than a
-    stable sort (np.unique's return_index)."""
+    """(the distinct keys sorted, the index of each one's first occurrence), from an unstable sort
+    and the least index of each run of equal keys: a few times faster than a stable sort (np.unique's
+    return_index)."""
     order = np.argsort(keys)
     keys = keys[order]
     new = np.ones(len(keys), dtype=bool)
