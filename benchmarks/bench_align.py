@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from plotmosaic.align.complexity import level_purity
-from plotmosaic.align.pipeline import align_files, register_prepared
+from plotmosaic.align.pipeline import AlignRequest, align_files, register_prepared
 from plotmosaic.align.prepare import prepare_cloud
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import RegistrationFailed
@@ -236,7 +236,10 @@ def bench_speed(
     T0 = load_init(init) if init else None
     t0, c0 = time.perf_counter(), time.process_time()
     try:
-        res = align_files(src, tgt, kinds[0], kinds[1], config(mode), init=T0)
+        request = AlignRequest(
+            source_kind=kinds[0], target_kind=kinds[1], config=config(mode), init=T0
+        )
+        res = align_files(src, tgt, request)
     except RegistrationFailed as exc:
         print(f"exit 3: {exc}")
         res = exc.result

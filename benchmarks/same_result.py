@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plotmosaic.align.pipeline import align_files
+from plotmosaic.align.pipeline import AlignRequest, align_files
 from plotmosaic.errors import RegistrationFailed
 from plotmosaic.simulate.run import scan_path, simulate
 
@@ -40,7 +40,7 @@ def _pairs(sim: Path) -> list[tuple[str, Path, Path, str, str]]:
 def _record(name: str, src: Path, tgt: Path, sk: str, tk: str) -> dict:
     error = None
     try:
-        result = align_files(src, tgt, sk, tk, seed=0)
+        result = align_files(src, tgt, AlignRequest(source_kind=sk, target_kind=tk, seed=0))
     except RegistrationFailed as err:
         result, error = getattr(err, "result", None), str(err)
     rec = {"pair": name, "error": error}

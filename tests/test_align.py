@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from plotmosaic.align.complexity import level_purity, match_levels
 from plotmosaic.align.icp import _exp_se3, information_matrix, point_to_plane_jacobian
 from plotmosaic.align.memo import PairMemo, RunMemo
-from plotmosaic.align.pipeline import PairResult, align_clouds, register_prepared
+from plotmosaic.align.pipeline import AlignRequest, PairResult, align_clouds, register_prepared
 from plotmosaic.align.prepare import prepare_cloud
 from plotmosaic.align.vmf import fit_vmf_mixture, sample_vmf
 from plotmosaic.config.align import AlignConfig
@@ -284,14 +285,12 @@ def test_utm_coordinates_keep_precision(sim_pair):
     # shifted, the scanners are no longer at the file origins (no side test): compare like with like
     cfg = config(viewpoint={"kinds": []})
     init = T_true @ perturbation(np.random.default_rng(11), src.xyz.mean(axis=0), 5.0, 1.0)
-    base = align_clouds(src, tgt, "tls", "tls", cfg, init=init)
+    tls = AlignRequest(source_kind="tls", target_kind="tls", config=cfg, init=init)
+    base = align_clouds(src, tgt, tls)
     shifted = align_clouds(
         PointCloud(src.xyz + o_s),
         PointCloud(tgt.xyz + o_t),
-        "tls",
-        "tls",
-        cfg,
-        init=translation(o_t) @ init @ translation(-o_s),
+        replace(tls, init=translation(o_t) @ init @ translation(-o_s)),
     )
     expected = translation(o_t) @ base.transform @ translation(-o_s)
     deg, m = pose_error(shifted.transform, expected, src.xyz.mean(axis=0) + o_s)
@@ -307,7 +306,11 @@ def test_non_overlapping_pair_fails_with_figures(sim_pair):
     src, tgt, _ = sim_pair
     far = PointCloud(tgt.xyz + [500.0, 0.0, 0.0])
     with pytest.raises(RegistrationFailed, match="fitness .* overlap"):
-        align_clouds(src, far, "tls", "tls", config(), init=np.eye(4))
+        align_clouds(
+            src,
+            far,
+            AlignRequest(source_kind="tls", target_kind="tls", config=config(), init=np.eye(4)),
+        )
 
 
 # ------------------------------------------------------------------ real clips
@@ -325,7 +328,8 @@ def test_real_uas_to_als_recovers_known_perturbation(spanner_dir):
     P[:3, :3] = Rotation.from_euler("xyz", [3.0, -2.5, 3.0], degrees=True).as_matrix()  # ~5 deg
     P[:3, 3] = centre - P[:3, :3] @ centre + [0.6, -0.6, 0.5]  # ~1 m
     moved = PointCloud(apply_transform(P, uas.xyz))
-    result = align_clouds(moved, als, "uls", "als", config(), init=np.eye(4))
+    request = AlignRequest(source_kind="uls", target_kind="als", config=config(), init=np.eye(4))
+    result = align_clouds(moved, als, request)
     # the true transform moved -> ALS is inv(P) (UAS and ALS share the georeference)
     deg, m = pose_error(result.transform, np.linalg.inv(P), moved.xyz.mean(axis=0))
     assert deg.max() < 0.3, deg
@@ -337,8 +341,9 @@ def test_real_uas_to_als_recovers_known_perturbation(spanner_dir):
 def test_same_inputs_and_seed_same_result(sim_pair):
     """Whole pipeline (coarse stage included, both clouds prepared in parallel threads) twice: same figures."""
     src, tgt, _ = sim_pair
-    a = align_clouds(src, tgt, "tls", "tls", AlignConfig(), seed=3)
-    b = align_clouds(src, tgt, "tls", "tls", AlignConfig(), seed=3)
+    request = AlignRequest(source_kind="tls", target_kind="tls", config=AlignConfig(), seed=3)
+    a = align_clouds(src, tgt, request)
+    b = align_clouds(src, tgt, request)
     np.testing.assert_allclose(a.transform, b.transform, rtol=0, atol=1e-9)
     assert (a.fitness, a.inlier_rmse, a.overlap, a.confidence) == (
         b.fitness,

@@ -11,7 +11,7 @@ from helpers import SIM_PAIR_MAX_DEG
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
-from plotmosaic.align.pipeline import PairResult, align_files
+from plotmosaic.align.pipeline import AlignRequest, PairResult, align_files
 from plotmosaic.cli import app
 from plotmosaic.commands.align import kind_lines, summary_lines
 from plotmosaic.io.las import PointCloud, read_cloud, write_cloud
@@ -117,7 +117,7 @@ def test_real_pair_kinds_detected_as_given(spanner_dir):
     """UAS -> ALS with no kinds: detected uls -> als, the same confidence as with the kinds given."""
     src, tgt = spanner_dir / "UAS_Clip.laz", spanner_dir / "ALS_Clip.laz"
     found = align_files(src, tgt)
-    given = align_files(src, tgt, "uls", "als")
+    given = align_files(src, tgt, AlignRequest(source_kind="uls", target_kind="als"))
     assert (found.source_kind, found.target_kind) == ("uls", "als"), found.detected_kinds
     assert found.confidence == given.confidence and given.detected_kinds == {}
     np.testing.assert_array_equal(found.transform, given.transform)

@@ -58,47 +58,22 @@ def test_support_counts_the_generators_that_agreed_with_the_best_pose():
 
 
 @pytest.mark.parametrize(
-    ("start", "extra"),
+    ("measured", "extra"),
     [
+        ({"generator": "raster", "score": 0.4, "yaw": 0.5, "overlap": 0.8}, set()),
+        ({"generator": "fpfh", "votes": 12}, {"votes"}),
         (
-            Start(
-                T=_pose(30.0, 2.0),
-                generator="raster",
-                vertical="a/b",
-                score=0.4,
-                yaw=0.5,
-                overlap=0.8,
-            ),
-            set(),
-        ),
-        (Start(T=_pose(30.0, 2.0), generator="fpfh", vertical="none (6-DoF)", votes=12), {"votes"}),
-        (
-            Start(
-                T=_pose(30.0, 2.0),
-                generator="slices",
-                vertical="a/b",
-                slice_score=0.3,
-                yaw=0.5,
-                overlap=0.2,
-                agree=("stems:a/b",),
-            ),
+            {"generator": "slices", "slice_score": 0.3, "yaw": 0.5, "agree": ("stems:a/b",)},
             {"agree", "slice_score"},
         ),
     ],
 )
-def test_a_hypothesis_row_names_only_what_its_generator_measured(start, extra):
+def test_a_hypothesis_row_names_only_what_its_generator_measured(measured, extra):
+    start = Start(T=_pose(30.0, 2.0), vertical="a/b", **measured)
     row = Hypothesis.verified(start, start.T, 0.25, None).to_dict()
-    base = [
-        "refined",
-        "score",
-        "screen_score",
-        "raster_score",
-        "yaw_deg",
-        "overlap",
-        "prior",
-        "generator",
-        "vertical",
-    ]
+    base = (
+        "refined score screen_score raster_score yaw_deg overlap prior generator vertical".split()
+    )
     assert list(row)[: len(base)] == base and list(row)[-1] == "transform"
     assert set(row) - set(base) - {"transform"} == extra
     assert row["refined"] is False and row["score"] is None and row["screen_score"] == 0.25

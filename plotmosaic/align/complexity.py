@@ -29,6 +29,16 @@ from plotmosaic.config.align import VmfConfig
 VAR_FLOOR = 1e-4
 
 
+@dataclass(frozen=True, kw_only=True)
+class LevelFit:
+    """How the levels are fitted: how many, on which grouping signal, the mixture's settings, the seed."""
+
+    k: int
+    mode: str  # AlignConfig.complexity: "vmf" or "vmf+eigen"
+    config: VmfConfig
+    seed: int
+
+
 @dataclass
 class Levels:
     labels: np.ndarray  # (N,) 0..K-1, 0 = least complex
@@ -104,7 +114,8 @@ def fit_levels(
     if valid.sum() < max(10, 3 * k):
         valid = np.ones(len(normals), dtype=bool)
     w = None if weights is None else np.asarray(weights, dtype=np.float64)[valid]
-    levels = _fit_valid(normals[valid], features[valid], k, mode, config, seed, w)
+    fit = LevelFit(k=k, mode=mode, config=config, seed=seed)
+    levels = _fit_valid(normals[valid], features[valid], w, fit)
     labels = np.full(len(normals), levels.stats[-1]["level"] if levels.stats else 0, dtype=np.int64)
     labels[valid] = levels.labels
     if not valid.all():
@@ -115,14 +126,10 @@ def fit_levels(
 
 
 def _fit_valid(
-    normals: np.ndarray,
-    features: np.ndarray,
-    k: int,
-    mode: str,
-    config: VmfConfig,
-    seed: int,
-    weights: np.ndarray | None = None,
+    normals: np.ndarray, features: np.ndarray, weights: np.ndarray | None, fit: LevelFit
 ) -> Levels:
+    """`fit_levels` on the points that have a plane."""
+    k, mode, config, seed = fit.k, fit.mode, fit.config, fit.seed
     n = len(normals)
     rng = np.random.default_rng(seed)
     p = None if weights is None or weights.sum() <= 0 else weights / weights.sum()

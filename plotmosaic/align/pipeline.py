@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,7 @@ from plotmosaic.parallel import both
 
 __all__ = [
     "METHOD",
+    "AlignRequest",
     "FineResult",
     "PairResult",
     "align_clouds",
@@ -107,29 +109,39 @@ def prepare_pair(
     )
 
 
+@dataclass(frozen=True, kw_only=True, eq=False)
+class AlignRequest:
+    """What a pair's registration is asked for, the clouds aside."""
+
+    source_kind: str | None = None  # None: detected from its points (align/kinds.py)
+    target_kind: str | None = None
+    config: AlignConfig = field(default_factory=AlignConfig)
+    init: np.ndarray | None = (
+        None  # source file -> target file: the coarse stage's prior, or the start
+    )
+    levels_source: int | None = None  # None: default_levels of its kind
+    levels_target: int | None = None
+    seed: int = 0
+    save_levels: Path | None = (
+        None  # a folder for the levels as LAZ + PNG (before ICP: also on failure)
+    )
+
+
 def align_clouds(
     source: PointCloud,
     target: PointCloud,
-    source_kind: str | None = "tls",
-    target_kind: str | None = "tls",
-    config: AlignConfig | None = None,
-    init: np.ndarray | None = None,
-    levels_source: int | None = None,
-    levels_target: int | None = None,
-    seed: int = 0,
+    request: AlignRequest | None = None,
     progress: Callable[[str], None] | None = None,
-    save_levels: Path | None = None,
 ) -> PairResult:
-    """Register `source` onto `target`; the result maps source file coordinates to target file coordinates.
-
-    A kind given as None is detected from its cloud (align/kinds.py). `save_levels`: a folder for
-    the levels as LAZ + PNG (written before ICP, so also on failure).
-    """
-    config = config or AlignConfig()
+    """Register `source` onto `target` as `request` asks; the result maps source file coordinates
+    to target file coordinates."""
+    request = request or AlignRequest()
+    config, seed = request.config, request.seed
     t0 = time.perf_counter()
     say = progress or (lambda msg: None)
     # the source's bounding box as registration sees it (stray points dropped, as prepare does)
     src_xyz, src_bounds = _robust(source, config, "source")
+    source_kind, target_kind = request.source_kind, request.target_kind
     if source_kind is None or target_kind is None:
         say("detecting sensor kinds")
     tgt_xyz = _robust(target, config, "target")[0] if target_kind is None else None
@@ -142,16 +154,16 @@ def align_clouds(
         target,
         sk,
         tk,
-        levels_source or default_levels(sk),
-        levels_target or default_levels(tk),
+        request.levels_source or default_levels(sk),
+        request.levels_target or default_levels(tk),
         config,
         seed,
     )
-    if save_levels is not None:
+    if request.save_levels is not None:
         say("saving levels")
-        write_levels(save_levels, src, tgt, source.crs, target.crs)
+        write_levels(request.save_levels, src, tgt, source.crs, target.crs)
     t1 = time.perf_counter()
-    result = register_prepared(src, tgt, config, init, seed, progress)
+    result = register_prepared(src, tgt, config, request.init, seed, progress)
     steps = {k: v for k, v in result.timings.items() if k in STEP_ENTRIES}
     result.timings = {
         "kinds": t_kinds,  # the source's bounds, and the kinds not given
@@ -171,35 +183,16 @@ def align_clouds(
 def align_files(
     source_path,
     target_path,
-    source_kind: str | None = None,
-    target_kind: str | None = None,
-    config: AlignConfig | None = None,
-    init: np.ndarray | None = None,
-    levels_source: int | None = None,
-    levels_target: int | None = None,
-    seed: int = 0,
+    request: AlignRequest | None = None,
     progress: Callable[[str], None] | None = None,
-    save_levels: Path | None = None,
 ) -> PairResult:
-    """`align_clouds` on two point-cloud files (coordinates only); a kind not given is detected."""
+    """`align_clouds` on two point-cloud files (coordinates only)."""
     t0 = time.perf_counter()
     say = progress or (lambda msg: None)
     say("reading source and target")
     source, target = both(lambda path: read_cloud(path, attributes=False), source_path, target_path)
     t_read = time.perf_counter() - t0
-    result = align_clouds(
-        source,
-        target,
-        source_kind,
-        target_kind,
-        config,
-        init,
-        levels_source,
-        levels_target,
-        seed,
-        progress,
-        save_levels,
-    )
+    result = align_clouds(source, target, request, progress)
     result.timings = {"read": t_read, **result.timings}
     result.seconds = time.perf_counter() - t0
     result.source_path, result.target_path = (

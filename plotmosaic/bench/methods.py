@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
-from plotmosaic.align.pipeline import align_clouds, register_prepared
+from plotmosaic.align.pipeline import AlignRequest, align_clouds, register_prepared
 from plotmosaic.align.prepare import prepare_cloud
 from plotmosaic.config.align import AlignConfig, default_levels
 from plotmosaic.config.bench import CpdConfig, IcpConfig, MethodsConfig
@@ -103,15 +103,14 @@ def _forestalign(pair: PairInput, config: MethodsConfig, seed: int):
         cfg = cfg.model_copy(update={"coarse": cfg.coarse.model_copy(update={"enabled": False})})
         init = np.eye(4)
     if pair.target_prepared is None:
-        return align_clouds(
-            pair.source,
-            pair.target,
+        request = AlignRequest(
             source_kind=pair.source_kind,
             target_kind=pair.target_kind,
             config=cfg,
             init=init,
             seed=seed,
         )
+        return align_clouds(pair.source, pair.target, request)
     kind = pair.source_kind.lower()
     src = prepare_cloud(pair.source, kind, default_levels(kind), cfg, seed, "source")
     return register_prepared(src, pair.target_prepared, cfg, init, seed)

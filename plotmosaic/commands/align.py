@@ -8,7 +8,7 @@ import numpy as np
 import typer
 from rich.console import Console
 
-from plotmosaic.align.pipeline import align_files
+from plotmosaic.align.pipeline import AlignRequest, align_files
 from plotmosaic.align.prepare import MIN_POINTS
 from plotmosaic.commands.common import (
     CONFIG_HELP,
@@ -222,19 +222,17 @@ def align_command(
     plan = check_files(source, target, plan, config_used_path(out, save_levels))
     console = Console(stderr=True)
     with claimed(plan), console.status("aligning") as status:
-        result = align_files(
-            source,
-            target,
-            source_kind,
-            target_kind,
-            settings.align_config(),
-            T0,
-            levels_source,
-            levels_target,
-            seed,
-            progress=lambda msg: status.update(msg),
+        request = AlignRequest(
+            source_kind=source_kind,
+            target_kind=target_kind,
+            config=settings.align_config(),
+            init=T0,
+            levels_source=levels_source,
+            levels_target=levels_target,
+            seed=seed,
             save_levels=save_levels,
         )
+        result = align_files(source, target, request, progress=lambda msg: status.update(msg))
     written = write_outputs(result, settings, out, save_levels)
     typer.echo(f"aligned {source.name} -> {target.name}")
     for line in kind_lines(result) + summary_lines(result) + written:
