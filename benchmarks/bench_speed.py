@@ -15,7 +15,12 @@ Cases (the targets of the speed issue are in benchmarks/results/speed.md):
   plot400k  register-plot alone on the demo's plot (10 pairs: a spanning tree by the global search,
             the loop pairs verified from the poses it implies)
   large1m   register-plot of the `large` preset (36 scans) at 1M points a scan
+  large10m  register-plot + tie-to-als + merge of the `large` preset at 10M points a scan (survey
+            density: 360M points; not in the default cases), each stage on a row of its own too.
+            The simulation takes long and is reused: a link WORK/large10000k -> an existing one
+            (`plotmosaic simulate DIR --preset large --points-per-scan 10000000`) skips it.
 
+The chains (demo, large10m) print their total, then one row per stage (its read floor left empty).
 Measure on a quiet machine (nothing else running) or compare CPU seconds only.
 """
 
@@ -82,10 +87,14 @@ def pair(work: Path, points: int) -> tuple[Run, Run]:
     return run, read_floor([src, tgt])
 
 
-def chain(work: Path, jobs: int) -> tuple[Run, Run]:
-    sim = simulated(work, "paper400k", "paper", 400_000)
+def chain(
+    work: Path, jobs: int, preset: str = "paper", points: int = 400_000
+) -> tuple[Run, Run, dict[str, Run]]:
+    """register-plot, tie-to-als and merge on a simulated plot: (total, read floor, each stage)."""
+    name = f"{preset}{points // 1000}k"
+    sim = simulated(work, name, preset, points)
     manifest = sim / "manifest.toml"
-    out = work / "demo-chain"
+    out = work / ("demo-chain" if name == "paper400k" else f"{name}-chain")
     steps = [
         ["register-plot", str(manifest), "--out", str(out / "reg"), "-j", str(jobs), "--force"],
         [
@@ -109,11 +118,13 @@ def chain(work: Path, jobs: int) -> tuple[Run, Run]:
             "--force",
         ],
     ]
-    runs = [timed([*PLOTMOSAIC, *step]) for step in steps]
+    runs = {step[0]: timed([*PLOTMOSAIC, *step]) for step in steps}
     total = Run(
-        sum(r.wall_s for r in runs), sum(r.cpu_s for r in runs), max(r.peak_mb for r in runs)
+        sum(r.wall_s for r in runs.values()),
+        sum(r.cpu_s for r in runs.values()),
+        max(r.peak_mb for r in runs.values()),
     )
-    return total, read_floor(sorted(sim.rglob("*.laz")))
+    return total, read_floor(sorted(sim.rglob("*.laz"))), runs
 
 
 def register(work: Path, jobs: int, preset: str, points: int) -> tuple[Run, Run]:
@@ -141,16 +152,19 @@ def main() -> None:
         "demo": lambda: chain(a.work, a.jobs),
         "plot400k": lambda: register(a.work, a.jobs, "paper", 400_000),
         "large1m": lambda: register(a.work, a.jobs, "large", 1_000_000),
+        "large10m": lambda: chain(a.work, a.jobs, "large", 10_000_000),
     }
     print("| case | wall (s) | CPU (s) | peak (MB) | read floor wall (s) | wall / floor |")
     print("|---|---|---|---|---|---|")
     for name in a.cases.split(","):
-        run, floor = cases[name]()
+        run, floor, *stages = cases[name]()
         print(
             f"| {name} | {run.wall_s:.1f} | {run.cpu_s:.1f} | {run.peak_mb:.0f} "
             f"| {floor.wall_s:.1f} | {run.wall_s / floor.wall_s:.1f} |",
             flush=True,
         )
+        for stage, r in (stages[0] if stages else {}).items():
+            print(f"| {name}: {stage} | {r.wall_s:.1f} | {r.cpu_s:.1f} | {r.peak_mb:.0f} | | |")
 
 
 if __name__ == "__main__":
