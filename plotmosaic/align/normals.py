@@ -190,13 +190,28 @@ def _circle_chunk(
     ok = idx < len(points)
     offsets = _offsets(points, query, idx)
     _, features, _, axis = _shape(offsets, ok, main_axes=True)
-    rel = np.stack(offsets, axis=2)
+    w = ok.astype(np.float64)
+    count = w.sum(axis=1)
+    # circles only where a stem can be: linear enough and with the points to fit one (row by row,
+    # so the rows fitted come out as they would among all)
+    rows = np.flatnonzero((features[:, 0] > cfg.min_linearity) & (count >= cfg.min_points))
+    normals, fitted = np.zeros((len(query), 3)), np.zeros(len(query), dtype=bool)
+    if len(rows):
+        rel = np.stack([o[rows] for o in offsets], axis=2)
+        normals[rows], fitted[rows] = _circle_fit(rel, w[rows], count[rows], axis[rows], cfg)
+    return normals, fitted
+
+
+def _circle_fit(
+    rel: np.ndarray, w: np.ndarray, count: np.ndarray, axis: np.ndarray, cfg: StemNormalConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """(radial normals, fitted) of circles across `axis` through the neighbours `rel` (M, k, 3)
+    relative to their query points, weighted `w` (M, k), `count` of them."""
     # two unit vectors across the axis (whichever of x, y is less parallel to it)
     helper = np.where(np.abs(axis[:, :1]) < 0.7, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
     e1 = np.cross(axis, helper)
     e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
     e2 = np.cross(axis, e1)
-    w = ok.astype(np.float64)
     u, v = np.einsum("ijk,ik->ij", rel, e1), np.einsum("ijk,ik->ij", rel, e2)
     # algebraic circle fit (Kasa): u D + v E + F = -(u^2 + v^2), least squares per query point
     A = np.stack([u, v, np.ones_like(u)], axis=2) * w[..., None]
@@ -205,17 +220,9 @@ def _circle_chunk(
     cu, cv = -sol[:, 0] / 2, -sol[:, 1] / 2
     r2 = cu**2 + cv**2 - sol[:, 2]
     r = np.sqrt(np.clip(r2, 0.0, None))
-    count = w.sum(axis=1)
     off = np.hypot(u - cu[:, None], v - cv[:, None]) - r[:, None]
     rms = np.sqrt((off**2 * w).sum(axis=1) / np.maximum(count, 1.0))
-    fitted = (
-        (features[:, 0] > cfg.min_linearity)
-        & (count >= cfg.min_points)
-        & (r2 > 0)
-        & (r >= cfg.min_radius)
-        & (r <= cfg.max_radius)
-        & (rms <= cfg.max_residual)
-    )
+    fitted = (r2 > 0) & (r >= cfg.min_radius) & (r <= cfg.max_radius) & (rms <= cfg.max_residual)
     normal = -(cu[:, None] * e1 + cv[:, None] * e2)  # from the fitted axis to the query point
     length = np.linalg.norm(normal, axis=1)
     fitted &= length > 0
