@@ -12,7 +12,7 @@ from plotmosaic.config.align import AlignConfig
 from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.config.settings import SettingsError, settings_from_dict
 from plotmosaic.errors import InputError
-from plotmosaic.graph.prepared import PrepareJob, get_prepared, prepared_key
+from plotmosaic.graph.prepared import PrepareJob, get_prepared, points_reader, prepared_key
 from plotmosaic.io.bounded import read_bounded, read_thinned
 from plotmosaic.io.las import PointCloud, read_cloud, read_header_info, write_cloud
 from plotmosaic.poses import load_poses
@@ -148,3 +148,9 @@ def test_a_ply_over_the_budget_streams_and_refuses_bad_coordinates(tmp_path):
     vertex["z"][[10, 20_000, 29_999]] = 1.0
     PlyData([PlyElement.describe(vertex, "vertex")]).write(str(path))
     assert 0 < len(read_thinned(path, 10_000, CELL).cloud) <= 10_000
+
+
+def test_the_report_reads_an_uncached_scan_within_the_budget(big_scan, capsys):
+    read = points_reader({}, ReadingConfig(max_points_in_memory=BUDGET))
+    assert 0 < len(read(big_scan)) <= BUDGET
+    assert "thinned on reading" in capsys.readouterr().err

@@ -30,7 +30,6 @@ from plotmosaic.graph.cache import file_hash
 from plotmosaic.io.atomic import atomic_output
 from plotmosaic.io.bounded import over_budget, read_bounded
 from plotmosaic.io.frame import Frame
-from plotmosaic.io.las import read_cloud
 
 FORMAT = 2  # 2: the stem-normal settings of target_normals
 _REBUILT = ("tree", "target_normals")  # derived from `points` on load
@@ -126,9 +125,10 @@ def load_points(path: str | Path) -> np.ndarray:
         return data["points"] + data["frame_offset"]
 
 
-def points_reader(entries: dict[str, Path]):
+def points_reader(entries: dict[str, Path], reading: ReadingConfig | None = None):
     """A reader for the report's pictures: scan file -> points, from its prepared cloud when cached
-    (`entries`: scan file path -> cache entry), else from the file (a damaged or missing entry)."""
+    (`entries`: scan file path -> cache entry), else from the file (a damaged or missing entry),
+    within the reading budget (`reading` None: the default one) as a prepare job reads it."""
 
     def read(path) -> np.ndarray:
         cached = entries.get(str(path))
@@ -137,7 +137,10 @@ def points_reader(entries: dict[str, Path]):
                 return load_points(cached)
             except Exception:  # damaged entry: the scan itself
                 pass
-        return read_cloud(path, attributes=False).xyz
+        config = AlignConfig()
+        return read_bounded(
+            path, reading or ReadingConfig(), min(config.voxel, config.final_voxel)
+        ).xyz
 
     return read
 
