@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from plyfile import PlyData, PlyElement
 
-from plotmosaic.align.pipeline import align_clouds
+from plotmosaic.align.pipeline import AlignRequest, align_clouds
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.config.settings import SettingsError, settings_from_dict
@@ -113,7 +113,7 @@ def test_thinned_scans_still_align(small_sim):
     src = read_thinned(small_sim.scan_paths["P1-S1"], 30_000, CELL).cloud
     tgt = read_thinned(small_sim.scan_paths["P1-S0"], 30_000, CELL).cloud
     assert len(src) <= 30_000 and len(tgt) <= 30_000
-    result = align_clouds(src, tgt, "tls", "tls", seed=0)
+    result = align_clouds(src, tgt, AlignRequest(source_kind="tls", target_kind="tls", seed=0))
     T_true = np.linalg.inv(truth.transform("P1-S0")) @ truth.transform("P1-S1")
     D = np.linalg.inv(T_true) @ result.transform
     centre = src.xyz.mean(axis=0)
