@@ -85,7 +85,7 @@ class StoredCheck:
 
     fine: FineResult
     verified: bool
-    record: dict  # judge.verify_stored's figures for PairResult.coarse["stored_pose"]
+    record: dict  # judge.StoredVerdict.record, PairResult.coarse["stored_pose"]
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -131,8 +131,9 @@ def verify_stored_pose(
     t = time.perf_counter()
     fine = final_icp(src, tgt, T, config, memo)
     check = judge_mod.verify_stored(src, tgt, T, fine.T, config.judge, memo)
-    check["seconds"] = time.perf_counter() - t
-    return StoredCheck(fine=fine, verified=check["verified"], record=_stored_record(check))
+    return StoredCheck(
+        fine=fine, verified=check.verified, record=check.record(time.perf_counter() - t)
+    )
 
 
 def search_pose(
@@ -360,12 +361,6 @@ def _candidates(hypotheses: tuple[Hypothesis, ...], start: np.ndarray) -> list[C
         for i in order
     ]
     return [*out, Candidate(T=start, source="start")]
-
-
-def _stored_record(check: dict) -> dict:
-    """verify_stored's figures for PairResult.coarse (no transform: the result has it)."""
-    keep = ("verified", "failed", "correction_deg", "correction_m", "sharpness", "score", "seconds")
-    return {k: check[k] for k in keep}
 
 
 def _judge_record(verdict: Verdict, src: PreparedCloud, tgt: PreparedCloud) -> dict:

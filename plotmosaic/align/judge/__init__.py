@@ -28,10 +28,17 @@ from plotmosaic.align.judge.profile import (
     sharpness,
 )
 from plotmosaic.align.judge.rivals import basin, neighbours, refine, sharper_neighbours
-from plotmosaic.align.judge.verdict import Candidate, Verdict, judge, verify_stored
+from plotmosaic.align.judge.verdict import (
+    Candidate,
+    StoredVerdict,
+    Verdict,
+    judge,
+    verify_stored,
+)
 
 __all__ = [
     "Candidate",
+    "StoredVerdict",
     "Verdict",
     "basin",
     "centre",

@@ -212,12 +212,36 @@ def judge(
     )
 
 
+@dataclass(frozen=True, kw_only=True, eq=False)
+class StoredVerdict:
+    """Whether a stored pose holds, and the figures of the fine ICP from it."""
+
+    verified: bool
+    failed: tuple[str, ...]  # the checks that did not pass
+    correction_deg: float  # how far the fine ICP moved it
+    correction_m: float
+    sharpness: float
+    score: float
+    profile: dict
+
+    def record(self, seconds: float) -> dict:
+        """Its figures for PairResult.coarse (no transform: the result has it)."""
+        return {
+            "verified": self.verified,
+            "failed": list(self.failed),
+            "correction_deg": self.correction_deg,
+            "correction_m": self.correction_m,
+            "sharpness": self.sharpness,
+            "score": self.score,
+            "seconds": seconds,
+        }
+
+
 def verify_stored(
     src, tgt, T: np.ndarray, A: np.ndarray, config: JudgeConfig, memo: PairMemo | None = None
-) -> dict:
+) -> StoredVerdict:
     """Does the stored pose T (source local -> target local) hold? A, the fine ICP from it, must
-    barely move it and fit sharply (`sharpness`) with at least `min_score`. Returns the figures and
-    `verified`; `failed` names the checks that did not pass."""
+    barely move it and fit sharply (`sharpness`) with at least `min_score`."""
     memo = memo or PairMemo()
     deg, m = separation(A, T, centre(src, config, memo.source))
     prof = profile(src, tgt, A, config, memo)
@@ -228,12 +252,12 @@ def verify_stored(
         "sharpness": sharp >= config.stored_min_sharpness,
         "score": prof["score"] >= config.min_score,
     }
-    return {
-        "verified": all(checks.values()),
-        "failed": [k for k, ok in checks.items() if not ok],
-        "correction_deg": deg,
-        "correction_m": m,
-        "sharpness": sharp,
-        "score": prof["score"],
-        "profile": prof,
-    }
+    return StoredVerdict(
+        verified=all(checks.values()),
+        failed=tuple(k for k, ok in checks.items() if not ok),
+        correction_deg=deg,
+        correction_m=m,
+        sharpness=sharp,
+        score=prof["score"],
+        profile=prof,
+    )
