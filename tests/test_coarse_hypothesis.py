@@ -1,5 +1,5 @@
-"""The coarse stage's typed hand-overs: starts merged into their first near-duplicate, and a verified
-hypothesis as its RESULT.json row."""
+"""The coarse stage's typed hand-overs: starts merged into their first near-duplicate, a verified
+hypothesis as its RESULT.json row, and verification computing each start once."""
 
 from __future__ import annotations
 
@@ -8,9 +8,13 @@ import json
 import numpy as np
 import pytest
 
+from plotmosaic.align.coarse import verify as verification
+from plotmosaic.align.coarse.clouds import CoarseCloud
 from plotmosaic.align.coarse.hypothesis import Hypothesis, Start
-from plotmosaic.align.coarse.verify import support, unique_starts
+from plotmosaic.align.coarse.verify import Verifier, support, unique_starts
+from plotmosaic.align.levelling import Vertical
 from plotmosaic.config.coarse import CoarseConfig
+from plotmosaic.io.frame import pose_error
 
 
 def _pose(yaw_deg: float, x: float) -> np.ndarray:
@@ -88,3 +92,41 @@ def test_an_empty_search_reports_the_identity():
     row = Hypothesis.none().to_dict()
     assert row["generator"] == "none" and row["refined"] is True and row["score"] == 0.0
     assert np.array_equal(np.asarray(row["transform"]), np.eye(4))
+
+
+def _stand(rng: np.random.Generator) -> CoarseCloud:
+    """Ground and a dozen upright stems, with their normals."""
+    ground = np.column_stack([rng.uniform(-10, 10, (4000, 2)), rng.normal(0, 0.01, 4000)])
+    parts, normals = [ground], [np.tile([0.0, 0.0, 1.0], (4000, 1))]
+    for x, y in rng.uniform(-8, 8, (12, 2)):
+        a, z = rng.uniform(0, 2 * np.pi, 400), rng.uniform(0, 6, 400)
+        radial = np.column_stack([np.cos(a), np.sin(a), np.zeros(400)])
+        parts.append(np.column_stack([x + 0.2 * radial[:, 0], y + 0.2 * radial[:, 1], z]))
+        normals.append(radial)
+    up = Vertical(up=np.array([0.0, 0.0, 1.0]), name="normals")
+    return CoarseCloud(np.vstack(parts), np.vstack(normals), [up], {})
+
+
+def test_verification_keeps_a_start_s_results_when_other_generators_agree_with_it(monkeypatch):
+    """A start merged with a later near-duplicate is a new Start; its screening and refinement are
+    not run again, and its row names the generator that agreed."""
+    config = CoarseConfig()
+    cloud = _stand(np.random.default_rng(5))
+    verifier = Verifier(cloud, cloud, False, config, np.random.default_rng(0))
+    icps = []
+    real = verification._refine
+    monkeypatch.setattr(verification, "_refine", lambda *args: icps.append(args[2]) or real(*args))
+    right = Start(T=_pose(3.0, 0.3), generator="raster", vertical="normals/normals", yaw=0.05)
+    wrong = Start(T=_pose(120.0, 4.0), generator="fpfh", vertical="normals/normals", votes=9)
+    first, _ = verifier([right, wrong])
+    ran = len(icps)
+    assert first[0].refined and first[0].generator == "raster"
+    assert pose_error(first[0].T, np.eye(4))[0] < 0.5
+    again = unique_starts(
+        [right, wrong, Start(T=_pose(3.2, 0.3), generator="stems", vertical="normals/normals")],
+        config,
+    )
+    second, _ = verifier(again)
+    assert len(icps) == ran  # nothing screened or refined twice
+    assert second[0].agree == ("stems:normals/normals",)
+    assert [h.T.tobytes() for h in second] == [h.T.tobytes() for h in first]
