@@ -336,8 +336,9 @@ def test_retry_takes_the_sharper_basin_pose_and_never_a_wrong_one(pair):
     memo = PairMemo()  # the verdict and its retry share the refined rivals, as in register
     v = judge.judge(ps, pt, near, [], jc, memo)
     assert v.basin_transform is not None and v.confidence < cfg.min_confidence
-    empty = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), 0, False)
-    judged = recover(ps, pt, cfg, [], FineResult(near, *empty), v, lambda msg: None, memo)
+    none = np.zeros((0, 3))
+    empty = {"p": none, "q": none, "n": none, "iterations": 0, "reverse": False}
+    judged = recover(ps, pt, cfg, [], FineResult(T=near, **empty), v, lambda msg: None, memo)
     T2, v2 = judged.fine.T, judged.verdict
     deg, m = judge.separation(T2, T, c)
     assert deg < SIM_PAIR_MAX_DEG and m < SIM_PAIR_MAX_M, (deg, m)  # recovered: the truth
@@ -345,7 +346,7 @@ def test_retry_takes_the_sharper_basin_pose_and_never_a_wrong_one(pair):
     right = judge.judge(ps, pt, T, [], jc)
     wrong = _turned(T, c, 40.0, [3.0, 0.0, 0.0])
     offered = dataclasses.replace(right, basin_transform=wrong)
-    judged = recover(ps, pt, cfg, [], FineResult(T, *empty), offered, lambda msg: None)
+    judged = recover(ps, pt, cfg, [], FineResult(T=T, **empty), offered, lambda msg: None)
     T3, v3 = judged.fine.T, judged.verdict
     assert np.array_equal(T3, T) and v3 is offered  # the wrong pose is not taken
 

@@ -39,7 +39,7 @@ class LevelFit:
     seed: int
 
 
-@dataclass
+@dataclass(frozen=True, kw_only=True, eq=False)
 class Levels:
     labels: np.ndarray  # (N,) 0..K-1, 0 = least complex
     stats: list[dict]  # per level: size, kappa, mu, weight, sc, sc_sum, complexity, features
@@ -122,7 +122,7 @@ def fit_levels(
         last = levels.stats[-1]
         last["size"] = int((labels == last["level"]).sum())
         last["no_plane"] = int((~valid).sum())
-    return Levels(labels, levels.stats)
+    return Levels(labels=labels, stats=levels.stats)
 
 
 def _fit_valid(
@@ -143,7 +143,8 @@ def _fit_valid(
         # a single component needs no restarts
         mix = vmf.fit_vmf_mixture(x, 1, config.model_copy(update={"n_init": 1}), seed)
         labels = np.zeros(n, dtype=np.int64)
-        return Levels(*_order(normals, features, labels, mix.mu, mix.kappa, mix.weights, mode))
+        labels, stats = _order(normals, features, labels, mix.mu, mix.kappa, mix.weights, mode)
+        return Levels(labels=labels, stats=stats)
     if mode == "vmf":
         mix = vmf.fit_vmf_mixture(x, k, config, seed)
         mu, kappa, weights = mix.mu, mix.kappa, mix.weights
@@ -176,7 +177,8 @@ def _fit_valid(
             labels[s : s + 1_000_000] = np.argmax(joint, axis=1)
     else:
         raise ValueError(f"unknown complexity signal {mode!r}")
-    return Levels(*_order(normals, features, labels, mu, kappa, weights, mode))
+    labels, stats = _order(normals, features, labels, mu, kappa, weights, mode)
+    return Levels(labels=labels, stats=stats)
 
 
 def structural_complexity(normals: np.ndarray, mu: np.ndarray, kappa: float) -> tuple[float, float]:

@@ -15,7 +15,7 @@ from plotmosaic.config.align import AlignConfig, IcpStage
 from plotmosaic.io.frame import inverse
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, kw_only=True, eq=False)
 class FineResult:
     """The final ICP's pose and its last forward correspondences, in local coordinates."""
 
@@ -93,7 +93,7 @@ def final_icp(
         n = (
             src.target_normals(res.target_index) @ T[:3, :3].T
         )  # the same planes, in target coordinates
-        return FineResult(T, p, q, n, res.iterations, True)
+        return FineResult(T=T, p=p, q=q, n=n, iterations=res.iterations, reverse=True)
     symmetric = (
         src.kind in config.final_symmetric_kinds and tgt.kind in config.final_symmetric_kinds
     )
@@ -112,10 +112,10 @@ def final_icp(
         viewpoints=views,
     )
     return FineResult(
-        res.T,
-        src.fine_points[res.source_index],
-        tgt.points[res.target_index],
-        tgt.target_normals(res.target_index),
-        res.iterations,
-        False,
+        T=res.T,
+        p=src.fine_points[res.source_index],
+        q=tgt.points[res.target_index],
+        n=tgt.target_normals(res.target_index),
+        iterations=res.iterations,
+        reverse=False,
     )
