@@ -7,6 +7,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from plotmosaic.config.align import AlignConfig
+from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.config.report import ReportConfig
 from plotmosaic.config.scale import PlacedPriors, SignatureConfig
 
@@ -150,6 +151,9 @@ class RegisterConfig(RegisterOptions):
         default_factory=AlignConfig, description="scan -> ALS: verified poses only"
     )
     report: ReportConfig = Field(default_factory=ReportConfig, description="the report's pictures")
+    read: ReadingConfig = Field(
+        default_factory=ReadingConfig, description="the memory budget of reading a scan"
+    )
 
 
 class TieOptions(BaseModel):
@@ -189,3 +193,6 @@ class TieConfig(TieOptions):
         default_factory=PoseGraphConfig, description="the region's pose graph, ALS fixed"
     )
     report: ReportConfig = Field(default_factory=ReportConfig, description="the report's pictures")
+    read: ReadingConfig = Field(
+        default_factory=ReadingConfig, description="the memory budget of reading a scan"
+    )

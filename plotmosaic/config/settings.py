@@ -90,6 +90,7 @@ class Settings(BaseModel):
             pairs=self.pairs.model_copy(deep=True),
             placement=self.align.model_copy(deep=True),
             report=self.report.model_copy(deep=True),
+            read=self.read,
         )
 
     def tie_config(self) -> TieConfig:
@@ -98,6 +99,7 @@ class Settings(BaseModel):
             align=self.align.model_copy(deep=True),
             graph=self.posegraph.model_copy(deep=True),
             report=self.report.model_copy(deep=True),
+            read=self.read,
         )
 
     def merge_config(self) -> MergeConfig:

@@ -20,7 +20,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 
 import numpy as np
@@ -29,9 +29,11 @@ from threadpoolctl import threadpool_limits
 from plotmosaic.align.memo import RunMemo
 from plotmosaic.align.pipeline import register_prepared
 from plotmosaic.config.align import AlignConfig
+from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.graph import prepared as store
 from plotmosaic.graph.prepared import PrepareJob, get_prepared, prepared_key
+from plotmosaic.io.bounded import over_budget
 from plotmosaic.io.progress import progress_bar
 from plotmosaic.lifetime import bind_to_parent
 from plotmosaic.parallel import limited, set_threads
@@ -59,6 +61,7 @@ class PairJob:
     prepare_json: str | None = None  # settings the scans are prepared with, when not config_json's
     stored: bool = False  # init comes from poses stored in the scan files (E57 use_pose): verified
     # first, and the search is skipped when it holds
+    reading: ReadingConfig = field(default_factory=ReadingConfig, kw_only=True)  # `with_reading`
 
 
 def with_stored_poses(jobs: Sequence[PairJob], scans: set[str]) -> list[PairJob]:
@@ -74,6 +77,30 @@ def with_stored_poses(jobs: Sequence[PairJob], scans: set[str]) -> list[PairJob]
     return out
 
 
+def with_reading(jobs: Sequence[PairJob], reading: ReadingConfig) -> list[PairJob]:
+    """The jobs reading their scans within the budget `reading`; a job one of whose scans it thins
+    is keyed apart (its result is another pair result), the others keep their keys."""
+    thins: dict[str, bool] = {}  # scan file -> over the budget (one header read each)
+    out = []
+    for job in jobs:
+        job = dataclasses.replace(job, reading=reading)
+        for path in (job.source_path, job.target_path):
+            if path not in thins:
+                thins[path] = _thins(path, reading)
+        if thins[job.source_path] or thins[job.target_path]:
+            budget = hashlib.sha256(reading.model_dump_json().encode()).hexdigest()[:12]
+            job = dataclasses.replace(job, key=f"{job.key}-read-{budget}")
+        out.append(job)
+    return out
+
+
+def _thins(path: str, reading: ReadingConfig) -> bool:
+    try:
+        return over_budget(path, reading)
+    except InputError:  # unreadable: its prepare job fails and names it, the pair is not run
+        return False
+
+
 def prepare_jobs_for(job: PairJob, folder: str | None = None) -> tuple[PrepareJob, PrepareJob]:
     """The two scans' prepare jobs; each scan is prepared once with the run's seed, whatever its role."""
     folder = folder or job.prepared
@@ -83,8 +110,12 @@ def prepare_jobs_for(job: PairJob, folder: str | None = None) -> tuple[PrepareJo
         (job.target, job.target_path, job.target_kind, job.levels_target),
     ):
         settings = job.prepare_json or job.config_json
-        key = prepared_key(path, kind, levels, settings, job.seed)
-        out.append(PrepareJob(key, scan, path, kind, levels, settings, job.seed, folder))
+        key = prepared_key(path, kind, levels, settings, job.seed, job.reading)
+        out.append(
+            PrepareJob(
+                key, scan, path, kind, levels, settings, job.seed, folder, reading=job.reading
+            )
+        )
     return out[0], out[1]
 
 

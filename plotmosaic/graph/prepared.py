@@ -29,6 +29,7 @@ from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.graph.cache import file_hash
 from plotmosaic.io.atomic import atomic_output
 from plotmosaic.io.bounded import over_budget, read_bounded
+from plotmosaic.io.cloud import PointCloud
 from plotmosaic.io.frame import Frame
 
 FORMAT = 2  # 2: the stem-normal settings of target_normals
@@ -60,6 +61,12 @@ def prepared_key(
     if over_budget(path, reading):
         parts["read"] = reading.model_dump()
     return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:32]
+
+
+def read_scan_points(path, reading: ReadingConfig, config: AlignConfig) -> PointCloud:
+    """A scan's coordinates as registration with `config` reads them: within the budget `reading`,
+    a scan over it thinned to a share of the finest voxel registration builds on it."""
+    return read_bounded(path, reading, min(config.voxel, config.final_voxel))
 
 
 def _plain(value):
@@ -125,10 +132,14 @@ def load_points(path: str | Path) -> np.ndarray:
         return data["points"] + data["frame_offset"]
 
 
-def points_reader(entries: dict[str, Path], reading: ReadingConfig | None = None):
+def points_reader(
+    entries: dict[str, Path],
+    reading: ReadingConfig | None = None,
+    config: AlignConfig | None = None,
+):
     """A reader for the report's pictures: scan file -> points, from its prepared cloud when cached
-    (`entries`: scan file path -> cache entry), else from the file (a damaged or missing entry),
-    within the reading budget (`reading` None: the default one) as a prepare job reads it."""
+    (`entries`: scan file path -> cache entry), else from the file (a damaged or missing entry)
+    as a prepare job with `config` reads it, within the budget `reading` (None: the defaults)."""
 
     def read(path) -> np.ndarray:
         cached = entries.get(str(path))
@@ -137,10 +148,7 @@ def points_reader(entries: dict[str, Path], reading: ReadingConfig | None = None
                 return load_points(cached)
             except Exception:  # damaged entry: the scan itself
                 pass
-        config = AlignConfig()
-        return read_bounded(
-            path, reading or ReadingConfig(), min(config.voxel, config.final_voxel)
-        ).xyz
+        return read_scan_points(path, reading or ReadingConfig(), config or AlignConfig()).xyz
 
     return read
 
@@ -178,7 +186,7 @@ def _compute(job: PrepareJob, cloud=None) -> PreparedCloud:
     global reads
     config = AlignConfig.model_validate_json(job.config_json)
     if cloud is None:
-        cloud = read_bounded(job.path, job.reading, min(config.voxel, config.final_voxel))
+        cloud = read_scan_points(job.path, job.reading, config)
         reads += 1
     return prepare_cloud(
         cloud, job.kind, job.levels or default_levels(job.kind), config, job.seed, job.scan
@@ -194,13 +202,15 @@ def _remember(key: str, cloud: PreparedCloud) -> None:
 
 def prepare_held(job: PrepareJob, cloud) -> PreparedCloud:
     """The job's prepared cloud from points this process holds (exactly job.path's points, e.g. a
-    cloud it has just written there): into the cache and this process's memo, the file not read."""
+    cloud it has just written there): into the cache and this process's memo, the file not read
+    unless it is over the reading budget."""
     path = entry(job.folder, job.key)
     if str(path) in _LOADED:
         return _LOADED[str(path)]
     prepared = _load_or_warn(path, job.scan)
     if prepared is None:
-        prepared = _compute(job, cloud)
+        # over the budget, the file is read as any prepare job reads it (thinned): one cloud per key
+        prepared = _compute(job, None if over_budget(job.path, job.reading) else cloud)
         save_prepared(path, prepared)
     _remember(str(path), prepared)
     return prepared

@@ -304,6 +304,7 @@ class SignatureJob(PrepareJob):
             self.config_json,
             self.seed,
             self.folder,
+            reading=self.reading,
         )
 
 

@@ -11,8 +11,8 @@ import networkx as nx
 import numpy as np
 
 from plotmosaic.config.report import ReportConfig
+from plotmosaic.graph.prepared import points_reader
 from plotmosaic.io.frame import apply_transform
-from plotmosaic.io.las import read_cloud
 from plotmosaic.report.als_fit import als_fit
 from plotmosaic.report.distance import edge_distances, scan_medians, thin
 from plotmosaic.report.model import PlotView
@@ -27,8 +27,9 @@ from plotmosaic.report.slice import (
 
 
 def read_scan(path: Path) -> np.ndarray:
-    """A scan's points from its file (runs pass their prepared clouds instead)."""
-    return read_cloud(path, attributes=False).xyz
+    """A scan's points from its file, within the default reading budget (runs pass a reader of
+    their prepared clouds and their own budget instead)."""
+    return points_reader({})(path)
 
 
 def collect(

@@ -87,7 +87,14 @@ def position_jobs(
             target, source = sorted((a, b), key=order.get)  # the later scan is the source
             out.append(
                 _pair_job(
-                    manifest, by_id[source], by_id[target], config_json, seed, str(prepared), poses
+                    manifest,
+                    by_id[source],
+                    by_id[target],
+                    config_json,
+                    seed,
+                    str(prepared),
+                    poses,
+                    config.read,
                 )
             )
             tried.add(frozenset((a, b)))
@@ -135,7 +142,14 @@ def grow_jobs(
             target, source = sorted((a, b), key=order.get)  # the later scan is the source
             out.append(
                 _pair_job(
-                    manifest, by_id[source], by_id[target], config_json, seed, str(prepared), placed
+                    manifest,
+                    by_id[source],
+                    by_id[target],
+                    config_json,
+                    seed,
+                    str(prepared),
+                    placed,
+                    config.read,
                 )
             )
     return out

@@ -8,10 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
+from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.config.register import RegisterConfig
 from plotmosaic.errors import InputError
 from plotmosaic.graph.cache import PairCache, pair_key
-from plotmosaic.graph.executor import PairJob, prepare_jobs_for, run_pairs
+from plotmosaic.graph.executor import PairJob, prepare_jobs_for, run_pairs, with_reading
 from plotmosaic.graph.placement import prior
 from plotmosaic.graph.prepared import PrepareJob, entry, prepared_key, run_prepare_job
 from plotmosaic.manifest import Manifest, Plot, Scan, load_manifest
@@ -128,12 +129,14 @@ def _pair_job(
     seed: int,
     prepared: str | None,
     placed: dict[str, np.ndarray],
+    reading: ReadingConfig | None = None,
 ) -> PairJob:
+    """The pair's job, its scans read within `reading` (None: the default budget)."""
     sp, tp = manifest.resolve(source.path), manifest.resolve(target.path)
     key = pair_key(
         sp, tp, source.kind.value, target.kind.value, source.k, target.k, config_json, seed
     )
-    return PairJob(
+    job = PairJob(
         key,
         source.id,
         target.id,
@@ -148,6 +151,7 @@ def _pair_job(
         prepared,
         prior(placed, source.id, target.id),
     )
+    return with_reading([job], reading or ReadingConfig())[0]
 
 
 def anchor_id(plot: Plot) -> str:
@@ -209,9 +213,10 @@ def prepare_every_scan(
     for plot in manifest.plots:
         for scan in plot.scans:
             path = str(manifest.resolve(scan.path))
-            key = prepared_key(path, scan.kind.value, scan.k, settings, seed)
+            kind = scan.kind.value
+            key = prepared_key(path, kind, scan.k, settings, seed, config.read)
             jobs[key] = PrepareJob(
-                key, scan.id, path, scan.kind.value, scan.k, settings, seed, str(folder)
+                key, scan.id, path, kind, scan.k, settings, seed, str(folder), reading=config.read
             )
     for key, record in _prepare(list(jobs.values()), executor, n_jobs, scheduler, progress).items():
         pj = jobs[key]

@@ -9,7 +9,7 @@ import numpy as np
 
 from plotmosaic.config.register import RegisterConfig
 from plotmosaic.graph.cache import PairCache
-from plotmosaic.graph.executor import PairJob
+from plotmosaic.graph.executor import PairJob, with_reading
 from plotmosaic.graph.pairs import manifest_positions
 from plotmosaic.graph.placement import placed_poses, placement_jobs, sure_placements
 from plotmosaic.io.frame import translation
@@ -53,7 +53,7 @@ def place_scans(
     jobs = []
     for plot in manifest.plots:
         if len(plot.scans) > config.pairs.all_pairs_up_to and manifest_positions(plot) is None:
-            jobs += placement_jobs(
+            plot_jobs = placement_jobs(
                 manifest,
                 plot,
                 config.placement.model_dump_json(),
@@ -61,6 +61,7 @@ def place_scans(
                 str(out / "prepared"),
                 config.align.model_dump_json(),
             )
+            jobs += with_reading(plot_jobs, config.read)
     if not jobs:
         return {}, [], {}
     records, _ = compute_pairs(

@@ -57,7 +57,11 @@ def plan_jobs(
         for source, target in candidate_pairs(
             plot, config.max_distance, positions, config.pairs, linked.get(plot.id), reach
         ):
-            jobs.append(_pair_job(manifest, source, target, config_json, seed, prepared, placed))
+            jobs.append(
+                _pair_job(
+                    manifest, source, target, config_json, seed, prepared, placed, config.read
+                )
+            )
     return jobs
 
 
@@ -72,9 +76,10 @@ def _signature_jobs(
     for plot in plots:
         for scan in plot.scans:
             path = str(manifest.resolve(scan.path))
-            key = prepared_key(path, scan.kind.value, scan.k, settings, seed)
+            kind = scan.kind.value
+            key = prepared_key(path, kind, scan.k, settings, seed, config.read)
             jobs[scan.id] = SignatureJob(
-                key, scan.id, path, scan.kind.value, scan.k, settings, seed, folder, sig
+                key, scan.id, path, kind, scan.k, settings, seed, folder, sig, reading=config.read
             )
     return jobs
 

@@ -85,6 +85,7 @@ def write(run: Run, priors: Priors, pairs: Pairs, solved: Solved, start: float) 
         for p, sid in by_path.items()
         if sid in extra["prepared"]
     }
-    write_register_report(result, run.manifest, run.config, run.seed, reader=points_reader(entries))
+    reader = points_reader(entries, run.config.read, run.config.align)
+    write_register_report(result, run.manifest, run.config, run.seed, reader=reader)
     result.seconds = time.perf_counter() - start
     return result

@@ -22,7 +22,7 @@ import numpy as np
 from plotmosaic.config.register import TieConfig
 from plotmosaic.errors import InputError
 from plotmosaic.graph.cache import PairCache, pair_key
-from plotmosaic.graph.executor import PairJob, prepare_jobs_for
+from plotmosaic.graph.executor import PairJob, prepare_jobs_for, with_reading
 from plotmosaic.graph.posegraph import Solution, graph_from_json, graph_to_json
 from plotmosaic.graph.prepared import points_reader, prepare_held
 from plotmosaic.io.atomic import write_text_atomic
@@ -145,7 +145,7 @@ def _start(
 def _plot_job(run: TieRun, plot: Plot, cache: PairCache) -> tuple[PairJob, str]:
     """(the pair plot cloud -> ALS crop, how the ALS was cropped): both clouds written as outputs,
     and prepared from the points in memory (exactly what the files hold) unless the pair is cached."""
-    cloud = plot_cloud(run.manifest, plot, run.poses, run.config.plot_voxel, run.prepared_scans)
+    cloud = plot_cloud(run.manifest, plot, run.poses, run.config, run.prepared_scans)
     crop, how = crop_als(run.als, plot, cloud, run.config.buffer)
     src = write_cloud(run.out / "plots" / f"{plot.id}.laz", cloud, scale=LAS_SCALE)
     tgt = write_cloud(run.out / "plots" / f"{plot.id}_als.laz", crop, crs=run.crs, scale=LAS_SCALE)
@@ -154,7 +154,7 @@ def _plot_job(run: TieRun, plot: Plot, cache: PairCache) -> tuple[PairJob, str]:
     kind, k, als_k = plot.reference.kind.value, plot.reference.k, run.manifest.als[0].k
     config_json = run.config.align.model_dump_json()
     key = pair_key(src, tgt, kind, "als", k, als_k, config_json, run.seed)
-    job = PairJob(
+    pair = PairJob(
         key,
         plot.id,
         ALS_NODE,
@@ -168,7 +168,8 @@ def _plot_job(run: TieRun, plot: Plot, cache: PairCache) -> tuple[PairJob, str]:
         run.seed,
         str(run.out / "prepared"),
     )
-    if not cache.path(key).is_file():  # a cached result needs neither cloud prepared
+    (job,) = with_reading([pair], run.config.read)
+    if not cache.path(job.key).is_file():  # a cached result needs neither cloud prepared
         for pj, points in zip(prepare_jobs_for(job), (as_stored(cloud), as_stored(crop))):
             prepare_held(pj, points)
     return job, how
@@ -231,7 +232,7 @@ def _write(run: TieRun, G: nx.Graph, sol: Solution, tied: Tied, start: float) ->
         run.als,
         run.config,
         run.seed,
-        reader=points_reader(entries),
+        reader=points_reader(entries, run.config.read, run.config.align),
         earlier=run.poses,
         earlier_report=run.poses_path.parent / "report.html",
     )

@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 from plotmosaic.align.icp import point_to_plane_jacobian
 from plotmosaic.config.register import TieConfig
 from plotmosaic.graph.executor import PairJob
-from plotmosaic.io.las import read_cloud
+from plotmosaic.graph.prepared import read_scan_points
 
 NEIGHBOURS = 12  # TLS points a plane is fitted to (at the plot voxel, a few decimetres across)
 MAX_CURVATURE = 0.02  # smallest / summed eigenvalue: a plane; above it, twigs and leaves
@@ -133,8 +133,8 @@ def fit_anchors(
         if rec.get("status") != "ok":
             continue
         fit = anchor_fit(
-            read_cloud(job.source_path, attributes=False).xyz,
-            read_cloud(job.target_path, attributes=False).xyz,
+            read_scan_points(job.source_path, config.read, config.align).xyz,
+            read_scan_points(job.target_path, config.read, config.align).xyz,
             np.asarray(rec["transform"], dtype=float),
             config.anchor_block,
             config.anchor_max_distance,

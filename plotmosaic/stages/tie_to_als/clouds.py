@@ -7,8 +7,9 @@ from pathlib import Path
 import numpy as np
 
 from plotmosaic.align.voxel import voxel_centroids
+from plotmosaic.config.register import TieConfig
 from plotmosaic.errors import InputError
-from plotmosaic.graph.prepared import load_points
+from plotmosaic.graph.prepared import load_points, read_scan_points
 from plotmosaic.io.frame import Frame, apply_transform
 from plotmosaic.io.las import PointCloud, las_offsets, read_cloud
 from plotmosaic.manifest import Manifest, Plot
@@ -23,38 +24,41 @@ def _voxel(xyz: np.ndarray, size: float) -> np.ndarray:
     return frame.to_global(voxel_centroids(frame.to_local(xyz), size))
 
 
-def _scan_points(manifest: Manifest, scan, prepared: dict[str, Path]) -> tuple[np.ndarray, bool]:
+def _scan_points(
+    manifest: Manifest, scan, prepared: dict[str, Path], config: TieConfig
+) -> tuple[np.ndarray, bool]:
     """(the scan's points, whether they are thinned already): register-plot's prepared (delta0-thinned)
-    cloud when it is still there, else the file."""
+    cloud when it is still there, else the file, within the reading budget."""
     entry = prepared.get(scan.id)
     if entry is not None and entry.is_file():
         try:
             return load_points(entry), True
         except Exception:  # damaged entry: read the scan itself
             pass
-    return read_cloud(manifest.resolve(scan.path), attributes=False).xyz, False
+    path = manifest.resolve(scan.path)
+    return read_scan_points(path, config.read, config.align).xyz, False
 
 
 def plot_cloud(
     manifest: Manifest,
     plot: Plot,
     poses: Poses,
-    voxel: float,
+    config: TieConfig,
     prepared: dict[str, Path] | None = None,
 ) -> PointCloud:
-    """All placed scans of the plot in the plot frame, voxel-thinned.
+    """All placed scans of the plot in the plot frame, thinned to `config.plot_voxel`.
 
     A scan read from its file is thinned on its own first (memory: its 8M points are not kept);
     a prepared cloud is thinned already (delta0 cubes), so it joins the one pass over the plot."""
     parts = []
     for scan in plot.scans:
         if scan.id in poses.scans:
-            xyz, thinned = _scan_points(manifest, scan, prepared or {})
+            xyz, thinned = _scan_points(manifest, scan, prepared or {}, config)
             xyz = apply_transform(poses.transform(scan.id), xyz)
-            parts.append(xyz if thinned else _voxel(xyz, voxel))
+            parts.append(xyz if thinned else _voxel(xyz, config.plot_voxel))
     if not parts:
         raise InputError(f"plot {plot.id!r}: none of its scans has a pose in the poses file")
-    return PointCloud(_voxel(np.concatenate(parts), voxel))
+    return PointCloud(_voxel(np.concatenate(parts), config.plot_voxel))
 
 
 def as_stored(cloud: PointCloud, scale: float = LAS_SCALE) -> PointCloud:
