@@ -72,11 +72,9 @@ def test_profile_separates_truth_from_a_distinct_pose(pair):
     off = T.copy()
     off[:3, 3] += [2.0, -1.0, 0.0]
     right, wrong = judge.profile(ps, pt, T, cfg.judge), judge.profile(ps, pt, off, cfg.judge)
-    assert len(right["scales"]) == len(cfg.judge.scales) and right["scales"] == sorted(
-        right["scales"]
-    )
-    assert right["score"] > 1.5 * wrong["score"], (right, wrong)
-    assert right["structure_st"][0] > 2 * wrong["structure_st"][0]
+    assert len(right.scales) == len(cfg.judge.scales) and right.scales == sorted(right.scales)
+    assert right.score > 1.5 * wrong.score, (right, wrong)
+    assert right.structure_st[0] > 2 * wrong.structure_st[0]
     # a sparse cloud is judged at its own resolution: scales grow, never shrink
     assert scale_factor(ps, pt, cfg.judge) >= 1.0
 
@@ -219,10 +217,19 @@ def test_cli_no_coarse_exits_3_or_right(small_sim, tmp_path):
     assert deg < 0.1 and m < 0.02, (deg, m)
 
 
-def _profile(fine: float, wide: float) -> dict:
+def _profile(fine: float, wide: float) -> judge.Profile:
     """A residual profile with share `fine` at the smallest scale and `wide` at the others."""
     shares = [fine, wide, wide, wide]
-    return {"structure_st": shares, "structure_ts": shares, "score": float(np.mean(shares))}
+    mean = float(np.mean(shares))
+    return judge.Profile(
+        scales=[0.02, 0.05, 0.1, 0.25],
+        structure_st=shares,
+        structure_ts=shares,
+        all_st=shares,
+        all_ts=shares,
+        score=mean,
+        score_all=mean,
+    )
 
 
 def test_fine_margin_accepts_a_clear_winner_refuses_a_close_rival():

@@ -17,6 +17,7 @@ verdict and the stored-pose check.
 """
 
 from plotmosaic.align.judge.profile import (
+    Profile,
     centre,
     confidence,
     distinct,
@@ -38,6 +39,7 @@ from plotmosaic.align.judge.verdict import (
 
 __all__ = [
     "Candidate",
+    "Profile",
     "StoredVerdict",
     "Verdict",
     "basin",

@@ -6,6 +6,8 @@ Every transform here maps source-local to target-local coordinates.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from plotmosaic.align.icp import nearest
@@ -22,25 +24,51 @@ def _shares(points: np.ndarray, tree, T: np.ndarray, scales: np.ndarray) -> list
     return [float(np.mean(d <= s)) for s in scales]
 
 
-def profile(src, tgt, T: np.ndarray, config: JudgeConfig, memo: PairMemo | None = None) -> dict:
-    """Residual profile of pose T: shares of points within each scale, structure and all, both directions.
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Profile:
+    """A pose's residual profile: the shares of sample points within each scale of the other cloud,
+    on structure points and on all, both directions (st: source points near the target)."""
 
-    `score` is the mean share over the scales and the two directions on structure points.
-    """
+    scales: list[float]  # m, the judge's scales stretched by the pair's scale factor
+    structure_st: list[float]
+    structure_ts: list[float]
+    all_st: list[float]
+    all_ts: list[float]
+    score: float  # the mean share over the scales and both directions, structure points
+    score_all: float  # the same on all points
+
+    def to_dict(self) -> dict:
+        """Its figures in RESULT.json (judge.profile, judge.rival_profile)."""
+        return {
+            "scales": self.scales,
+            "structure_st": self.structure_st,
+            "structure_ts": self.structure_ts,
+            "all_st": self.all_st,
+            "all_ts": self.all_ts,
+            "score": self.score,
+            "score_all": self.score_all,
+        }
+
+
+def profile(src, tgt, T: np.ndarray, config: JudgeConfig, memo: PairMemo | None = None) -> Profile:
+    """Residual profile of pose T."""
     memo = memo or PairMemo()
     s, t = samples(src, config, memo.source), samples(tgt, config, memo.target)
     scales = np.asarray(config.scales) * scale_factor(src, tgt, config, memo)
     Ti = inverse(T)
-    out = {
-        "scales": [float(v) for v in scales],
-        "structure_st": _shares(s.structure, tgt.tree, T, scales),
-        "structure_ts": _shares(t.structure, src.tree, Ti, scales),
-        "all_st": _shares(s.everything, tgt.tree, T, scales),
-        "all_ts": _shares(t.everything, src.tree, Ti, scales),
-    }
-    out["score"] = float(np.mean(out["structure_st"] + out["structure_ts"]))
-    out["score_all"] = float(np.mean(out["all_st"] + out["all_ts"]))
-    return out
+    structure_st = _shares(s.structure, tgt.tree, T, scales)
+    structure_ts = _shares(t.structure, src.tree, Ti, scales)
+    all_st = _shares(s.everything, tgt.tree, T, scales)
+    all_ts = _shares(t.everything, src.tree, Ti, scales)
+    return Profile(
+        scales=[float(v) for v in scales],
+        structure_st=structure_st,
+        structure_ts=structure_ts,
+        all_st=all_st,
+        all_ts=all_ts,
+        score=float(np.mean(structure_st + structure_ts)),
+        score_all=float(np.mean(all_st + all_ts)),
+    )
 
 
 def separation(A: np.ndarray, B: np.ndarray, centre: np.ndarray) -> tuple[float, float]:
@@ -67,21 +95,21 @@ def centre(cloud, config: JudgeConfig, memo: CloudMemo | None = None) -> np.ndar
     return samples(cloud, config, memo).centre
 
 
-def fine_share(prof: dict, config: JudgeConfig) -> float:
+def fine_share(prof: Profile, config: JudgeConfig) -> float:
     """Mean share of structure points within the `fine_scales` smallest scales, both directions:
     where a right pose stands out (chance alignments gather points only at the wide scales)."""
     k = config.fine_scales
-    return float(np.mean(prof["structure_st"][:k] + prof["structure_ts"][:k]))
+    return float(np.mean(prof.structure_st[:k] + prof.structure_ts[:k]))
 
 
-def fine_margin(prof: dict, rivals: list[dict], config: JudgeConfig) -> float:
+def fine_margin(prof: Profile, rivals: list[Profile], config: JudgeConfig) -> float:
     """1 - the best rival's fine share / the pose's (1 without rivals, -1 when the pose has none)."""
     mine = fine_share(prof, config)
     best = max((fine_share(r, config) for r in rivals), default=0.0)
     return 1.0 - best / mine if mine > 0 else -1.0
 
 
-def confidence(prof: dict, rivals: list[dict], config: JudgeConfig) -> float:
+def confidence(prof: Profile, rivals: list[Profile], config: JudgeConfig) -> float:
     """The judge's confidence in pose `prof` over the distinct `rivals` (profiles), 0-1: its fine
     margin, from the margin chance alignments reach (0) to `full_margin` (1)."""
     m = fine_margin(prof, rivals, config)
@@ -90,9 +118,9 @@ def confidence(prof: dict, rivals: list[dict], config: JudgeConfig) -> float:
     )
 
 
-def sharpness(prof: dict) -> float:
+def sharpness(prof: Profile) -> float:
     """Share within the smallest scale over share within the largest, structure points, both
     directions: near 1 when the clouds coincide, low when they only come close by chance."""
-    near = prof["structure_st"][0] + prof["structure_ts"][0]
-    far = prof["structure_st"][-1] + prof["structure_ts"][-1]
+    near = prof.structure_st[0] + prof.structure_ts[0]
+    far = prof.structure_st[-1] + prof.structure_ts[-1]
     return float(near / far) if far > 0 else 0.0

@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from plotmosaic.align.icp import point_to_plane_icp
 from plotmosaic.align.judge.profile import (
+    Profile,
     centre,
     distinct,
     fine_share,
@@ -136,7 +137,7 @@ def basin(src, tgt, T: np.ndarray, config: JudgeConfig, memo: PairMemo | None = 
     return [table[k] for k in keys]
 
 
-def sharper_neighbours(prof: dict, near: list[dict], config: JudgeConfig) -> list[dict]:
+def sharper_neighbours(prof: Profile, near: list[Profile], config: JudgeConfig) -> list[Profile]:
     """The basin profiles `near` that end with more than (1 + basin_tolerance) x the pose's fine share:
     rivals of it (one that returns to the pose, or ends blunter, is none)."""
     mine = fine_share(prof, config)

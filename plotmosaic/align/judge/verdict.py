@@ -13,6 +13,7 @@ import numpy as np
 
 from plotmosaic.align import scene
 from plotmosaic.align.judge.profile import (
+    Profile,
     centre,
     confidence,
     distinct,
@@ -40,8 +41,8 @@ class Verdict:
     fine_margin: float  # 1 - fine_rival_share / fine_share
     fine_rival_source: str | None
     sharpness: float  # of the pose (`sharpness`): near 1 when the clouds coincide, low by chance
-    profile: dict
-    rival_profile: dict | None
+    profile: Profile
+    rival_profile: Profile | None
     rival_transform: np.ndarray | None  # source local -> target local
     rival_source: str | None
     candidates: int  # rivals refined and scored
@@ -66,8 +67,8 @@ class Verdict:
             "fine_margin": self.fine_margin,
             "fine_rival_source": self.fine_rival_source,
             "sharpness": self.sharpness,
-            "profile": self.profile,
-            "rival_profile": self.rival_profile,
+            "profile": self.profile.to_dict(),
+            "rival_profile": None if self.rival_profile is None else self.rival_profile.to_dict(),
             "rival_transform": None
             if self.rival_transform is None
             else np.asarray(self.rival_transform).tolist(),
@@ -112,17 +113,17 @@ class _Tally:
     """What the judge gathers while it weighs the rivals and the basin."""
 
     table: list[dict] = field(default_factory=list)  # Verdict.rivals
-    profs: list[dict] = field(default_factory=list)  # the distinct rivals' profiles
+    profs: list[Profile] = field(default_factory=list)  # the distinct rivals' profiles
     best: float = 0.0  # the best score of a rival sharp enough to be accepted itself
     best_T: np.ndarray | None = None
     best_name: str | None = None
-    best_prof: dict | None = None
+    best_prof: Profile | None = None
     fine_best: float = 0.0  # the highest fine share of any rival, the basin's included
     fine_name: str | None = None
     basin_T: np.ndarray | None = None  # the sharpest basin start that is a rival
     basin_best: float = 0.0
 
-    def rival(self, name: str, A: np.ndarray, prof: dict, deg: float, m: float, config) -> None:
+    def rival(self, name: str, A: np.ndarray, prof: Profile, deg: float, m: float, config) -> None:
         fine, sharp = fine_share(prof, config), sharpness(prof)
         self.profs.append(prof)
         self.table.append(
@@ -131,15 +132,15 @@ class _Tally:
                 "distinct": True,
                 "deg": deg,
                 "m": m,
-                "score": prof["score"],
+                "score": prof.score,
                 "fine": fine,
                 "sharpness": sharp,
             }
         )
         # a rival too blunt to be accepted itself fits only by chance: it may not outscore the pose
         # (docs/method.md#judge-settings), but it stays a rival of the fine margin
-        if prof["score"] > self.best and sharp >= config.blunt_min_sharpness:
-            self.best, self.best_T, self.best_name, self.best_prof = prof["score"], A, name, prof
+        if prof.score > self.best and sharp >= config.blunt_min_sharpness:
+            self.best, self.best_T, self.best_name, self.best_prof = prof.score, A, name, prof
         if fine > self.fine_best:
             self.fine_best, self.fine_name = fine, name
 
@@ -187,7 +188,7 @@ def judge(
         rival = any(prof is q for q in sharper)
         tally.basin_start(k, A, fine_share(prof, config), rival, deg, m)
     fine_rivals = tally.profs + sharper
-    score = mine["score"]
+    score = mine.score
     margin = 1.0 - tally.best / score if score > 0 else -1.0
     return Verdict(
         score=score,
@@ -222,7 +223,7 @@ class StoredVerdict:
     correction_m: float
     sharpness: float
     score: float
-    profile: dict
+    profile: Profile
 
     def record(self, seconds: float) -> dict:
         """Its figures for PairResult.coarse (no transform: the result has it)."""
@@ -250,7 +251,7 @@ def verify_stored(
         "correction": deg <= config.stored_max_correction_deg
         and m <= config.stored_max_correction_m,
         "sharpness": sharp >= config.stored_min_sharpness,
-        "score": prof["score"] >= config.min_score,
+        "score": prof.score >= config.min_score,
     }
     return StoredVerdict(
         verified=all(checks.values()),
@@ -258,6 +259,6 @@ def verify_stored(
         correction_deg=deg,
         correction_m=m,
         sharpness=sharp,
-        score=prof["score"],
+        score=prof.score,
         profile=prof,
     )
