@@ -17,7 +17,6 @@ from plotmosaic.graph.prepared import points_reader
 from plotmosaic.io.las import read_cloud
 from plotmosaic.manifest import load_manifest
 from plotmosaic.poses import Poses, load_poses
-from plotmosaic.report.collect import read_scan
 from plotmosaic.report.register_page import (
     PlotRun,
     RegisterRun,
@@ -82,15 +81,16 @@ def _scans(directory: Path, G: nx.Graph, poses: Poses, manifest: Path | None):
     return paths, plots, f"folder: {directory} (the scans graph.json records)"
 
 
-def _reader(directory: Path, poses: Poses, paths: dict[str, Path]):
-    """The scans' prepared clouds a register-plot folder keeps (as the run read them), else their files."""
+def _reader(directory: Path, poses: Poses, paths: dict[str, Path], settings: Settings):
+    """The scans' prepared clouds a register-plot folder keeps (as the run read them), else their
+    files within the run's reading budget."""
     recorded_ = poses.extra.get("prepared") or {}
     entries = {
         str(paths[sid]): directory / "prepared" / Path(name).name
         for sid, name in recorded_.items()
         if sid in paths and (directory / "prepared" / Path(name).name).is_file()
     }
-    return points_reader(entries)
+    return points_reader(entries, settings.read, settings.align)
 
 
 def _register_run(directory: Path, G, poses: Poses, paths, plots, source) -> RegisterRun:
@@ -160,6 +160,10 @@ def rerender(directory: str | Path, manifest: str | Path | None = None, seed: in
     min_conf = settings.posegraph.min_confidence
     if poses.frame == "crs":
         run = _tie_run(directory, G, poses, paths, plots, source, settings.report.als_margin)
-        return render_tie(run, settings.report, min_conf, seed, read_scan)
+        return render_tie(
+            run, settings.report, min_conf, seed, points_reader({}, settings.read, settings.align)
+        )
     run = _register_run(directory, G, poses, paths, plots, source)
-    return render_register(run, settings.report, min_conf, seed, _reader(directory, poses, paths))
+    return render_register(
+        run, settings.report, min_conf, seed, _reader(directory, poses, paths, settings)
+    )
