@@ -7,14 +7,18 @@ runs, so `plotmosaic info` or `--version` does not pay for every stage.
 
 from __future__ import annotations
 
+import ast
 import importlib
+import importlib.util
 import os
 import sys
+from pathlib import Path
 
 import typer
 
 # typer vendors click: its parser raises these, not the `click` package's
 from typer._click import exceptions as click_errors
+from typer._click.utils import make_default_short_help
 from typer.core import TyperGroup
 
 from plotmosaic import __version__
@@ -53,12 +57,32 @@ COMMANDS = {
 }
 
 
+def short_help(name: str, limit: int) -> str:
+    """A command's line in `plotmosaic --help`: the first paragraph of its function's docstring, as
+    click shortens it, read from the module's source without importing it (each command module
+    pulls in its whole stage: the listing imported them all, seconds of CPU for a help text)."""
+    module, function = COMMANDS[name]
+    source = Path(importlib.util.find_spec(f"plotmosaic.commands.{module}").origin)
+    tree = ast.parse(source.read_text(encoding="utf-8"))
+    doc = next(
+        ast.get_docstring(node) or ""
+        for node in tree.body
+        if isinstance(node, ast.FunctionDef) and node.name == function
+    )
+    return make_default_short_help(doc, limit).strip()
+
+
 class OneLineErrors(TyperGroup):
     """Bad options, arguments and unreadable files end as one `error:` line and exit 2, as every
     other bad input does, instead of click's usage block."""
 
     def list_commands(self, ctx) -> list[str]:
         return list(COMMANDS)
+
+    def format_commands(self, ctx, formatter) -> None:
+        limit = formatter.width - 6 - max(len(name) for name in COMMANDS)
+        with formatter.section("Commands"):
+            formatter.write_dl([(name, short_help(name, limit)) for name in COMMANDS])
 
     def get_command(self, ctx, name: str):
         """The command, its module imported now (only the command that runs pays for its stage)."""
