@@ -12,6 +12,7 @@ from typer.testing import CliRunner
 from plotmosaic.align import judge
 from plotmosaic.align.fine import FineResult
 from plotmosaic.align.judge import rivals
+from plotmosaic.align.judge.profile import Profile
 from plotmosaic.align.memo import PairMemo
 from plotmosaic.align.pipeline import PairResult, blunt_fit, prepare_pair, register_prepared
 from plotmosaic.align.prepare import prepare_cloud
@@ -217,11 +218,11 @@ def test_cli_no_coarse_exits_3_or_right(small_sim, tmp_path):
     assert deg < 0.1 and m < 0.02, (deg, m)
 
 
-def _profile(fine: float, wide: float) -> judge.Profile:
+def _profile(fine: float, wide: float) -> Profile:
     """A residual profile with share `fine` at the smallest scale and `wide` at the others."""
     shares = [fine, wide, wide, wide]
     mean = float(np.mean(shares))
-    return judge.Profile(
+    return Profile(
         scales=[0.02, 0.05, 0.1, 0.25],
         structure_st=shares,
         structure_ts=shares,

@@ -17,7 +17,6 @@ verdict and the stored-pose check.
 """
 
 from plotmosaic.align.judge.profile import (
-    Profile,
     centre,
     confidence,
     distinct,
@@ -39,7 +38,6 @@ from plotmosaic.align.judge.verdict import (
 
 __all__ = [
     "Candidate",
-    "Profile",
     "StoredVerdict",
     "Verdict",
     "basin",
