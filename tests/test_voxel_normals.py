@@ -200,13 +200,13 @@ def test_stem_normals_are_radial_where_a_sparse_plane_fit_sees_the_view_directio
     tree, cfg = cKDTree(pts), StemNormalConfig()
     angle = lambda a, b: np.degrees(np.arccos(np.clip(np.abs((a * b).sum(axis=1)), 0, 1)))  # noqa: E731
     plane = local_shape(pts, tree, stem, 1.0, 20)[0]
-    circle, fitted = stem_normals(pts, tree, stem, 1.0, cfg)
+    circle, fitted = stem_normals(pts, tree, stem, 1.0, cfg, 20)
     assert fitted.mean() > 0.9
     # the outer columns are 50-60 deg off the view direction; the circle's normals follow the bark
     assert np.percentile(angle(plane, radial), 90) > 30
     assert np.percentile(angle(circle[fitted], radial[fitted]), 90) < 5
     # the ground is a disc, not a stem: no circle
-    assert not stem_normals(pts, tree, ground, 1.0, cfg)[1].any()
+    assert not stem_normals(pts, tree, ground, 1.0, cfg, 20)[1].any()
     # the lazy normals: circles where fitted, planes elsewhere, each computed once
     lazy = LazyNormals(pts, tree, 1.0, 20, cfg)
     idx = np.array([0, len(stem) + 5, 0])
@@ -215,5 +215,5 @@ def test_stem_normals_are_radial_where_a_sparse_plane_fit_sees_the_view_directio
     np.testing.assert_allclose(got[1], local_shape(pts, tree, pts[idx[1:2]], 1.0, 20)[0][0])
     assert lazy.known.sum() == 2
     # too few neighbours, a radius out of bounds: plane normals kept
-    assert not stem_normals(pts, tree, stem, 1.0, StemNormalConfig(min_points=1000))[1].any()
-    assert not stem_normals(pts, tree, stem, 1.0, StemNormalConfig(max_radius=0.05))[1].any()
+    assert not stem_normals(pts, tree, stem, 1.0, StemNormalConfig(min_points=1000), 20)[1].any()
+    assert not stem_normals(pts, tree, stem, 1.0, StemNormalConfig(max_radius=0.05), 20)[1].any()

@@ -230,22 +230,48 @@ def _circle_fit(
 
 
 def stem_normals(
-    points: np.ndarray, tree: cKDTree, query: np.ndarray, radius: float, cfg: StemNormalConfig
+    points: np.ndarray,
+    tree: cKDTree,
+    query: np.ndarray,
+    radius: float,
+    cfg: StemNormalConfig,
+    max_nn: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(normals (M, 3), fitted (M,)) from circles fitted to each query point's `cfg.neighbours`
-    nearest points within `radius`; a row is meaningful only where `fitted`."""
+    """(normals (M, 3), fitted (M,)): where a circle fits a query point's `cfg.neighbours` nearest
+    points within `radius` (`fitted`), its radial direction; elsewhere the plane normal of its
+    `max_nn` nearest (as `local_shape`). One neighbour query serves both."""
     m = len(query)
     normals, fitted = np.empty((m, 3)), np.zeros(m, dtype=bool)
+    k_plane, k_circle = (int(min(k, len(points))) for k in (max_nn, cfg.neighbours))
 
     def run(s: int) -> None:
         q = query[s : s + CHUNK]
-        _, idx = tree.query(q, k=int(min(cfg.neighbours, len(points))), distance_upper_bound=radius)
-        normals[s : s + CHUNK], fitted[s : s + CHUNK] = _circle_chunk(
-            points, q, idx.reshape(len(q), -1), cfg
-        )
+        k = max(k_plane, k_circle)
+        dist, idx = tree.query(q, k=k, distance_upper_bound=radius)
+        dist, idx = dist.reshape(len(q), k), idx.reshape(len(q), k)
+        plane = _shape_chunk(points, q, _first(tree, q, dist, idx, k_plane, radius))[0]
+        circle, fit = _circle_chunk(points, q, _first(tree, q, dist, idx, k_circle, radius), cfg)
+        normals[s : s + CHUNK] = np.where(fit[:, None], circle, plane)
+        fitted[s : s + CHUNK] = fit
 
     _in_chunks(run, m)
     return normals, fitted
+
+
+def _first(
+    tree: cKDTree, q: np.ndarray, dist: np.ndarray, idx: np.ndarray, k: int, radius: float
+) -> np.ndarray:
+    """The first `k` of a query's neighbours (`dist`, `idx`, sorted, more than k), as a k-query
+    gives them: where two of the first k + 1 are equally near, a k-query may order or pick them
+    otherwise, so those rows are queried with k (the normals' sums follow the neighbours' order)."""
+    if idx.shape[1] <= k:
+        return idx
+    head = dist[:, : k + 1]
+    tie = np.flatnonzero(((head[:, 1:] == head[:, :-1]) & np.isfinite(head[:, 1:])).any(axis=1))
+    out = idx[:, :k].copy()
+    if len(tie):
+        out[tie] = tree.query(q[tie], k=k, distance_upper_bound=radius)[1].reshape(len(tie), k)
+    return out
 
 
 def _in_chunks(run, m: int) -> None:
@@ -280,14 +306,11 @@ class LazyNormals:
     def _filled(self, idx: np.ndarray) -> np.ndarray:
         missing = np.unique(idx[~self.known[idx]])
         if len(missing):
-            query = self.points[missing]
-            self.normals[missing] = local_shape(
-                self.points, self.tree, query, self.radius, self.max_nn
-            )[0]
-            if self.stems is not None:
-                round_, fitted = stem_normals(
-                    self.points, self.tree, query, self.radius, self.stems
-                )
-                self.normals[missing[fitted]] = round_[fitted]
+            query, args = self.points[missing], (self.points, self.tree)
+            if self.stems is None:
+                filled = local_shape(*args, query, self.radius, self.max_nn)[0]
+            else:
+                filled = stem_normals(*args, query, self.radius, self.stems, self.max_nn)[0]
+            self.normals[missing] = filled
             self.known[missing] = True
         return self.normals[idx]
