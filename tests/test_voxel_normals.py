@@ -217,3 +217,14 @@ def test_stem_normals_are_radial_where_a_sparse_plane_fit_sees_the_view_directio
     # too few neighbours, a radius out of bounds: plane normals kept
     assert not stem_normals(pts, tree, stem, 1.0, StemNormalConfig(min_points=1000), 20)[1].any()
     assert not stem_normals(pts, tree, stem, 1.0, StemNormalConfig(max_radius=0.05), 20)[1].any()
+
+
+def test_stem_normals_planes_are_local_shapes_to_the_bit_also_among_equally_near_neighbours():
+    rng = np.random.default_rng(9)
+    grid = np.stack(np.meshgrid(*[np.arange(0.0, 1.2, 0.1)] * 3), axis=-1).reshape(-1, 3)
+    pts = np.vstack([grid, rng.uniform(0, 1.2, (400, 3))])  # ties on the grid, none off it
+    tree, cfg = cKDTree(pts), StemNormalConfig()
+    normals, fitted = stem_normals(pts, tree, pts, 0.35, cfg, 20)
+    plane = local_shape(pts, tree, pts, 0.35, 20)[0]
+    assert not fitted.all()
+    assert normals[~fitted].tobytes() == plane[~fitted].tobytes()
