@@ -256,18 +256,16 @@ def run_case(
     cres = global_search(ps, pt, cfg, 0)
     # every hypothesis and the start, refined the way a rival is, then profiled
     poses = []
-    order = sorted(
-        cres.hypotheses, key=lambda h: (not h.get("refined", False), -float(h.get("score") or 0.0))
-    )
+    order = sorted(cres.hypotheses, key=lambda h: (not h.refined, -float(h.score or 0.0)))
     for h in order[:MAX_POSES]:
-        A = judge.refine(ps, pt, np.asarray(h["transform"], float), jc)
-        poses.append((A, judge.profile(ps, pt, A, jc)["score"], h.get("generator", "coarse")))
+        A = judge.refine(ps, pt, np.asarray(h.T, float), jc)
+        poses.append((A, judge.profile(ps, pt, A, jc).score, h.generator))
     start = to_local_transform(np.eye(4), ps.frame, pt.frame)
     A = judge.refine(ps, pt, start, jc)
-    poses.append((A, judge.profile(ps, pt, A, jc)["score"], "start"))
+    poses.append((A, judge.profile(ps, pt, A, jc).score, "start"))
     for E in extra:
         A = judge.refine(ps, pt, to_local_transform(E, ps.frame, pt.frame), jc)
-        poses.append((A, judge.profile(ps, pt, A, jc)["score"], "known wrong"))
+        poses.append((A, judge.profile(ps, pt, A, jc).score, "known wrong"))
     profiles = [judge.profile(ps, pt, A, jc) for A, _, _ in poses]
     labels = [label_of(A, truth_local, centre) for A, _, _ in poses]
     for i, (A, score, gen) in enumerate(poses):
@@ -310,10 +308,10 @@ def run_case(
                 # this pose handed over as a stored pose (E57 use_pose): would it skip the search?
                 **stored,
                 # the judge's figures of the final-ICP pose against the distinct refined others
-                "final_score": fin["score"],
+                "final_score": fin.score,
                 "final_margin": 1.0
-                - max((profiles[j]["score"] for j in others), default=0.0) / fin["score"]
-                if fin["score"] > 0
+                - max((profiles[j].score for j in others), default=0.0) / fin.score
+                if fin.score > 0
                 else -1.0,
                 "final_sharpness": judge.sharpness(fin),
                 "fine_margin": fm,
@@ -324,13 +322,13 @@ def run_case(
                 "confidence_wrong_rivals": judge.confidence(fin, wrong_others + sharper, jc),
                 "confidence_wrong_rivals_no_basin": judge.confidence(fin, wrong_others, jc),
                 "final_margin_wrong_rivals": 1.0
-                - max((p["score"] for p in wrong_others), default=0.0) / fin["score"]
-                if fin["score"] > 0
+                - max((p.score for p in wrong_others), default=0.0) / fin.score
+                if fin.score > 0
                 else -1.0,
                 # what the judge would say of it (its confidence: the fine margin)
                 "confidence": judge.confidence(fin, [profiles[j] for j in others] + sharper, jc),
-                "final_profile": fin,
-                "rival_profiles": [profiles[j] for j in others],
+                "final_profile": fin.to_dict(),
+                "rival_profiles": [profiles[j].to_dict() for j in others],
             }
         )
     if not paths:
@@ -406,9 +404,9 @@ def stored_check(ps, pt, A, cfg: AlignConfig, truth_local, centre) -> dict:
     v = judge.verify_stored(ps, pt, A, F, cfg.judge)
     return {
         "final": F,
-        "stored_verified": v["verified"],
-        "sharpness": v["sharpness"],
-        "stored_correction_deg": v["correction_deg"],
+        "stored_verified": v.verified,
+        "sharpness": v.sharpness,
+        "stored_correction_deg": v.correction_deg,
         "stored_right": right(F, truth_local, centre),
     }
 
