@@ -50,7 +50,7 @@ KERNELS = [
 ]
 
 
-# the align command's imports alone, in a fresh process: under cProfile they cost ~3x (scipy rewrites
+# the align command's imports alone, in a fresh process: under cProfile they cost several times more (scipy rewrites
 # hundreds of docstrings at import, many small Python calls the profiler times one by one)
 BARE_IMPORTS = (
     "import time; t = time.process_time(); import plotmosaic.cli, plotmosaic.commands.align; "

@@ -60,7 +60,7 @@ COMMANDS = {
 def short_help(name: str, limit: int) -> str:
     """A command's line in `plotmosaic --help`: the first paragraph of its function's docstring, as
     click shortens it, read from the module's source without importing it (each command module
-    pulls in its whole stage: the listing imported them all, seconds of CPU for a help text)."""
+    pulls in its whole stage, and the listing imported them all)."""
     module, function = COMMANDS[name]
     source = Path(importlib.util.find_spec(f"plotmosaic.commands.{module}").origin)
     tree = ast.parse(source.read_text(encoding="utf-8"))
