@@ -50,8 +50,8 @@ KERNELS = [
 ]
 
 
-# the align command's imports alone, in a fresh process: under cProfile they cost several times more (scipy rewrites
-# hundreds of docstrings at import, many small Python calls the profiler times one by one)
+# the align command's imports alone, in a fresh process: under cProfile they cost several times
+# more (scipy rewrites hundreds of docstrings at import, many small Python calls the profiler times)
 BARE_IMPORTS = (
     "import time; t = time.process_time(); import plotmosaic.cli, plotmosaic.commands.align; "
     "print(time.process_time() - t)"
