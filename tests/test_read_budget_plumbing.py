@@ -121,3 +121,14 @@ def test_register_plot_and_tie_to_als_honour_the_users_budget(small_sim, tmp_pat
     )
     keys = [p.stem for p in (tied / "pairs").glob("*.json")]
     assert keys and all(("-read-" in k) == over for k in keys)
+
+
+@pytest.mark.slow
+def test_align_honours_the_users_budget(small_sim, tmp_path, user_settings):
+    m = load_manifest(small_sim.manifest_path)
+    src, tgt = (m.resolve(s.path) for s in m.plots[0].scans[:2])
+    out = tmp_path / "pair"
+    args = ["align", str(src), str(tgt), "--out", str(out), "--config", str(user_settings)]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code in (0, 3), result.output
+    assert len(notes(result.output)) == 2  # both clouds read within the budget, each said once

@@ -22,8 +22,10 @@ from plotmosaic.align.prepare import MIN_POINTS, PreparedCloud, prepare_cloud, r
 from plotmosaic.align.register import global_search, register_prepared
 from plotmosaic.align.result import METHOD, PairResult
 from plotmosaic.config.align import KINDS, AlignConfig, default_levels
+from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.errors import InputError
-from plotmosaic.io.las import PointCloud, read_cloud
+from plotmosaic.io.bounded import read_scan_points
+from plotmosaic.io.las import PointCloud
 from plotmosaic.parallel import both
 
 __all__ = [
@@ -125,6 +127,7 @@ class AlignRequest:
     save_levels: Path | None = (
         None  # a folder for the levels as LAZ + PNG (before ICP: also on failure)
     )
+    reading: ReadingConfig = field(default_factory=ReadingConfig)  # files: the memory budget
 
 
 def align_clouds(
@@ -186,11 +189,16 @@ def align_files(
     request: AlignRequest | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> PairResult:
-    """`align_clouds` on two point-cloud files (coordinates only)."""
+    """`align_clouds` on two point-cloud files (coordinates only, within the reading budget)."""
+    request = request or AlignRequest()
     t0 = time.perf_counter()
     say = progress or (lambda msg: None)
     say("reading source and target")
-    source, target = both(lambda path: read_cloud(path, attributes=False), source_path, target_path)
+    source, target = both(
+        lambda path: read_scan_points(path, request.reading, request.config),
+        source_path,
+        target_path,
+    )
     t_read = time.perf_counter() - t0
     result = align_clouds(source, target, request, progress)
     result.timings = {"read": t_read, **result.timings}

@@ -231,6 +231,7 @@ def align_command(
             levels_target=levels_target,
             seed=seed,
             save_levels=save_levels,
+            reading=settings.read,
         )
         result = align_files(source, target, request, progress=lambda msg: status.update(msg))
     written = write_outputs(result, settings, out, save_levels)

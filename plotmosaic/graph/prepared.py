@@ -28,8 +28,7 @@ from plotmosaic.config.align import AlignConfig, StemNormalConfig, default_level
 from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.graph.cache import file_hash
 from plotmosaic.io.atomic import atomic_output
-from plotmosaic.io.bounded import over_budget, read_bounded
-from plotmosaic.io.cloud import PointCloud
+from plotmosaic.io.bounded import over_budget, read_scan_points
 from plotmosaic.io.frame import Frame
 
 FORMAT = 2  # 2: the stem-normal settings of target_normals
@@ -61,12 +60,6 @@ def prepared_key(
     if over_budget(path, reading):
         parts["read"] = reading.model_dump()
     return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:32]
-
-
-def read_scan_points(path, reading: ReadingConfig, config: AlignConfig) -> PointCloud:
-    """A scan's coordinates as registration with `config` reads them: within the budget `reading`,
-    a scan over it thinned to a share of the finest voxel registration builds on it."""
-    return read_bounded(path, reading, min(config.voxel, config.final_voxel))
 
 
 def _plain(value):

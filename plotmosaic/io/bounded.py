@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from plotmosaic.config.align import AlignConfig
 from plotmosaic.config.merge import CHUNK_SIZE
 from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.errors import InputError
@@ -191,3 +192,9 @@ class _FirstPerCell:
             block = first[i : i + self.step]
             self.rows[i : i + len(block)] = self.rows[block]
         self.n = len(first)
+
+
+def read_scan_points(path, reading: ReadingConfig, config: AlignConfig) -> PointCloud:
+    """A scan's coordinates as registration with `config` reads them: within the budget `reading`,
+    a scan over it thinned to a share of the finest voxel registration builds on it."""
+    return read_bounded(path, reading, min(config.voxel, config.final_voxel))

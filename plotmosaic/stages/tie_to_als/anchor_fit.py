@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 from plotmosaic.align.icp import point_to_plane_jacobian
 from plotmosaic.config.register import TieConfig
 from plotmosaic.graph.executor import PairJob
-from plotmosaic.graph.prepared import read_scan_points
+from plotmosaic.io.bounded import read_scan_points
 
 NEIGHBOURS = 12  # TLS points a plane is fitted to (at the plot voxel, a few decimetres across)
 MAX_CURVATURE = 0.02  # smallest / summed eigenvalue: a plane; above it, twigs and leaves

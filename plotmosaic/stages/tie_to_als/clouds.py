@@ -9,7 +9,8 @@ import numpy as np
 from plotmosaic.align.voxel import voxel_centroids
 from plotmosaic.config.register import TieConfig
 from plotmosaic.errors import InputError
-from plotmosaic.graph.prepared import load_points, read_scan_points
+from plotmosaic.graph.prepared import load_points
+from plotmosaic.io.bounded import read_scan_points
 from plotmosaic.io.frame import Frame, apply_transform
 from plotmosaic.io.las import PointCloud, las_offsets, read_cloud
 from plotmosaic.manifest import Manifest, Plot
