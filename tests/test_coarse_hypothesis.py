@@ -4,15 +4,19 @@ hypothesis as its RESULT.json row, and verification computing each start once.""
 from __future__ import annotations
 
 import json
+from concurrent.futures import ThreadPoolExecutor
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+from plotmosaic.align.coarse import clouds
 from plotmosaic.align.coarse import verify as verification
-from plotmosaic.align.coarse.clouds import CoarseCloud
+from plotmosaic.align.coarse.clouds import CoarseCloud, Levels, remembered
 from plotmosaic.align.coarse.hypothesis import Hypothesis, Start
 from plotmosaic.align.coarse.verify import Verifier, support, unique_starts
 from plotmosaic.align.levelling import Vertical
+from plotmosaic.align.memo import CloudMemo
 from plotmosaic.config.coarse import CoarseConfig
 from plotmosaic.io.frame import pose_error
 
@@ -104,7 +108,9 @@ def _stand(rng: np.random.Generator) -> CoarseCloud:
         parts.append(np.column_stack([x + 0.2 * radial[:, 0], y + 0.2 * radial[:, 1], z]))
         normals.append(radial)
     up = Vertical(up=np.array([0.0, 0.0, 1.0]), name="normals")
-    return CoarseCloud(np.vstack(parts), np.vstack(normals), [up], {})
+    return CoarseCloud(
+        points=np.vstack(parts), normals=np.vstack(normals), verticals=(up,), info={}
+    )
 
 
 def test_verification_keeps_a_start_s_results_when_other_generators_agree_with_it(monkeypatch):
@@ -130,3 +136,31 @@ def test_verification_keeps_a_start_s_results_when_other_generators_agree_with_i
     assert len(icps) == ran  # nothing screened or refined twice
     assert second[0].agree == ("stems:normals/normals",)
     assert [h.T.tobytes() for h in second] == [h.T.tobytes() for h in first]
+
+
+def test_a_cloud_s_levelled_form_and_stem_map_are_made_once_for_every_thread_that_asks(monkeypatch):
+    """The levelled forms live in the memo that owns the cloud: four threads asking for one stem
+    map level the cloud once and share one map."""
+    config = CoarseConfig()
+    levels = Levels(_stand(np.random.default_rng(5)))
+    made = []
+    real = clouds.levelled
+    monkeypatch.setattr(clouds, "levelled", lambda *args: made.append(args[1].name) or real(*args))
+    up = levels.cloud.verticals[0]
+    with ThreadPoolExecutor(4) as pool:
+        maps = list(pool.map(lambda _: levels.stems(up, config), range(4)))
+    assert made == ["normals"]
+    assert all(m is maps[0] for m in maps)
+    assert levels.level(up, config) is levels.level(up, config) and made == ["normals"]
+
+
+def test_a_cloud_memo_keeps_one_coarse_sample_per_key():
+    """The same cloud, seed and settings: the kept sample and its levelled forms; another seed
+    replaces them."""
+    config = CoarseConfig(max_points=2000)
+    cloud = SimpleNamespace(points=_stand(np.random.default_rng(5)).points)  # a cloud's points
+    memo = CloudMemo()
+    first = remembered(cloud, config, 0, False, False, 2, memo)
+    assert remembered(cloud, config, 0, False, False, 2, memo) is first
+    other = remembered(cloud, config, 1, False, False, 2, memo)
+    assert other is not first and remembered(cloud, config, 1, False, False, 2, memo) is other

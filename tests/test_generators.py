@@ -273,9 +273,9 @@ def test_slice_search_finds_heading_and_shift_of_a_levelled_view(views):
     truth = np.linalg.inv(T)  # moved -> target
     best = found[0]
     A = np.eye(4)
-    ca, sa = np.cos(best["yaw"]), np.sin(best["yaw"])
+    ca, sa = np.cos(best.yaw), np.sin(best.yaw)
     A[:2, :2] = [[ca, -sa], [sa, ca]]
-    A[:2, 3] = best["centre"] - A[:2, :2] @ best["centre"] + best["t_xy"]
+    A[:2, 3] = best.centre - A[:2, :2] @ best.centre + best.t_xy
     A[2, 3] = truth[2, 3]  # the height comes from the ground, not from this search
     deg, m = pose_error(A, truth)
-    assert deg < 3.0 and m < 1.0, (deg, m, [round(h["score"], 3) for h in found])
+    assert deg < 3.0 and m < 1.0, (deg, m, [round(h.score, 3) for h in found])

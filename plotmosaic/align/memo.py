@@ -4,7 +4,8 @@ never hung on the clouds themselves.
 A `CloudMemo` belongs to one prepared cloud in one role (source or target: the coarse stage seeds
 each role differently); a `PairMemo` to one (source, target) pair, holding its two clouds' memos.
 A run whose scans take part in several pairs keeps them in a `RunMemo`. Every slot holds one value
-and the key it was computed for: another key replaces it, so memory stays bounded.
+and the key it was computed for: another key replaces it, so memory stays bounded. A `Shelf` keeps a
+value for each of a few keys (a cloud's vertical hypotheses), held in a slot that bounds its life.
 """
 
 from __future__ import annotations
@@ -34,11 +35,25 @@ class Slot:
             return self._value
 
 
+class Shelf:
+    """Values by key, each computed once and kept: for a small, fixed set of keys."""
+
+    def __init__(self) -> None:
+        self._slots: dict[Hashable, Slot] = {}
+        self._lock = threading.Lock()
+
+    def get(self, key: Hashable, compute: Callable[[], Any]) -> Any:
+        """The value for `key`, computed on first use; callers of other keys do not wait for it."""
+        with self._lock:
+            slot = self._slots.setdefault(key, Slot())
+        return slot.get(key, compute)
+
+
 @dataclass(frozen=True, eq=False)
 class CloudMemo:
     """Figures of one prepared cloud in one role, each a pure function of the cloud and its key."""
 
-    coarse: Slot = field(default_factory=Slot)  # the coarse stage's levelled sample
+    coarse: Slot = field(default_factory=Slot)  # the coarse stage's sample and its levelled forms
     judge: Slot = field(default_factory=Slot)  # the judge's seeded samples
     scene: Slot = field(default_factory=Slot)  # the scene figures
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import fft
 
-from plotmosaic.align.peaks import distinct_peaks
+from plotmosaic.align.peaks import Peak, distinct_peaks
 from plotmosaic.config.coarse import CoarseConfig
 from plotmosaic.parallel import in_two_threads
 
@@ -45,12 +45,10 @@ def slice_search(
     tgt_points: np.ndarray,
     tgt_hag: np.ndarray,
     config: CoarseConfig,
-) -> list[dict]:
-    """Best distinct (yaw, t_xy about `centre`) poses of the levelled source on the levelled target.
-
-    Returns dicts with score, yaw, t_xy, centre, overlap, cell (the raster search's convention:
-    source xy rotated by yaw about centre, then shifted by t_xy).
-    """
+) -> list[Peak]:
+    """Best distinct (yaw, t_xy about `centre`) poses of the levelled source on the levelled target,
+    as peaks in the raster search's convention (source xy rotated by yaw about centre, then shifted
+    by t_xy)."""
     edges = np.asarray(config.slice_edges, float)
     n_layers = len(edges) - 1
 
@@ -67,7 +65,7 @@ def slice_search(
     yaws = [float(y) for y in np.arange(0.0, 2 * np.pi, np.radians(config.slice_yaw_deg))]
     candidates = sorted(
         (c for found in in_two_threads(search.peaks, yaws) for c in found),
-        key=lambda c: -c["score"],
+        key=lambda c: -c.score,
     )
     return distinct_peaks(
         candidates,
@@ -120,7 +118,7 @@ class _Correlation:
         s = np.array([k[i] if k[i] < shape[i] // 2 else k[i] - shape[i] for i in range(2)])
         return self.t_min - self.s_origin + s * self.cell
 
-    def peaks(self, yaw: float) -> list[dict]:
+    def peaks(self, yaw: float) -> list[Peak]:
         """The best `slice_peaks_per_yaw` shifts of the source turned by `yaw`, each suppressing
         its neighbourhood."""
         config, rel, shape = self.config, self.rel, self.shape
@@ -167,12 +165,12 @@ class _Correlation:
             if score[k] <= 0:
                 break
             found.append(
-                {
-                    "score": float(score[k]),
-                    "yaw": yaw,
-                    "t_xy": self._to_t(k),
-                    "overlap": float(min(n_s[k] / total, 1.0)),
-                }
+                Peak(
+                    score=float(score[k]),
+                    yaw=yaw,
+                    t_xy=self._to_t(k),
+                    overlap=float(min(n_s[k] / total, 1.0)),
+                )
             )
             rows = np.arange(k[0] - r_sup, k[0] + r_sup + 1) % shape[0]
             cols = np.arange(k[1] - r_sup, k[1] + r_sup + 1) % shape[1]

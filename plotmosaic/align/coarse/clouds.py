@@ -1,5 +1,6 @@
 """A cloud as the coarse stage sees it: a capped feature-voxel sample with its own normals and
-vertical hypotheses, levelled under each hypothesis on demand; and the poses between levelled clouds.
+vertical hypotheses, levelled under each hypothesis on demand (kept in the memo that owns the
+cloud); and the poses between levelled clouds.
 
 Every transform here maps source-local to target-local coordinates (see PreparedCloud.frame).
 """
@@ -13,7 +14,7 @@ from scipy.spatial import cKDTree
 
 from plotmosaic.align import stemmap
 from plotmosaic.align.levelling import Vertical, rotate, vertical_hypotheses
-from plotmosaic.align.memo import CloudMemo
+from plotmosaic.align.memo import CloudMemo, Shelf
 from plotmosaic.align.normals import local_shape
 from plotmosaic.align.rasters import PointFeatures, height_above_ground, point_features
 from plotmosaic.align.sampling import sample
@@ -23,7 +24,7 @@ from plotmosaic.config.coarse import CoarseConfig
 AIRBORNE = {"als", "uls"}
 
 
-@dataclass
+@dataclass(frozen=True, kw_only=True, eq=False)
 class Levelled:
     """A coarse cloud turned upright under one vertical hypothesis, with its raster features."""
 
@@ -34,13 +35,6 @@ class Levelled:
     hag: np.ndarray  # height above the rough DTM
     name: str  # which vertical hypothesis
     info: dict
-    _stems: stemmap.StemMap | None = None
-
-    def stems(self, config: CoarseConfig) -> stemmap.StemMap:
-        """Its stem map, made on first use."""
-        if self._stems is None:
-            self._stems = stemmap.stem_map(self.points, self.normals, self.hag, config)
-        return self._stems
 
     def ground_tree(self, config: CoarseConfig) -> cKDTree | None:
         """KD-tree of its ground cells' xy, or None with fewer than `tz_min_ground`."""
@@ -48,30 +42,50 @@ class Levelled:
         return cKDTree(ground_xy) if len(ground_xy) >= config.tz_min_ground else None
 
 
-@dataclass
+@dataclass(frozen=True, kw_only=True, eq=False)
 class CoarseCloud:
     """A cloud as the coarse stage sees it (local frame), with its vertical hypotheses."""
 
     points: np.ndarray  # one per feature voxel (capped), in cube order
     normals: np.ndarray
-    verticals: list[Vertical]
+    verticals: tuple[Vertical, ...]
     info: dict
-    levelled: dict = field(default_factory=dict)  # vertical name -> Levelled, made on demand
+
+
+def levelled(cloud: CoarseCloud, v: Vertical, config: CoarseConfig) -> Levelled:
+    """`cloud` turned upright under `v`, with its raster features."""
+    R = v.R
+    pts_l, nrm_l = rotate(cloud.points, R), rotate(cloud.normals, R)
+    hag = height_above_ground(pts_l, config.feature_cell, config)
+    feats = point_features(pts_l, nrm_l, config.feature_cell, config, hag=hag)
+    info = {
+        "stems": int(feats.stem.sum()),
+        "canopy": int(feats.canopy.sum()),
+        "ground": int(feats.ground.sum()),
+    }
+    return Levelled(points=pts_l, normals=nrm_l, R=R, feats=feats, hag=hag, name=v.name, info=info)
+
+
+@dataclass(frozen=True, eq=False)
+class Levels:
+    """A coarse cloud and the shelf (in the memo that owns the cloud) where its levelled forms and
+    their stem maps are kept, each made on first use: every generator levels under the same pairs."""
+
+    cloud: CoarseCloud
+    shelf: Shelf = field(default_factory=Shelf)
 
     def level(self, v: Vertical, config: CoarseConfig) -> Levelled:
-        """The cloud levelled under `v`, made on first use."""
-        if v.name not in self.levelled:
-            R = v.R
-            pts_l, nrm_l = rotate(self.points, R), rotate(self.normals, R)
-            hag = height_above_ground(pts_l, config.feature_cell, config)
-            feats = point_features(pts_l, nrm_l, config.feature_cell, config, hag=hag)
-            info = {
-                "stems": int(feats.stem.sum()),
-                "canopy": int(feats.canopy.sum()),
-                "ground": int(feats.ground.sum()),
-            }
-            self.levelled[v.name] = Levelled(pts_l, nrm_l, R, feats, hag, v.name, info)
-        return self.levelled[v.name]
+        """The cloud levelled under `v`."""
+        return self.shelf.get(("level", v.name), lambda: levelled(self.cloud, v, config))
+
+    def stems(self, v: Vertical, config: CoarseConfig) -> stemmap.StemMap:
+        """The stem map of the cloud levelled under `v`."""
+
+        def make() -> stemmap.StemMap:
+            lv = self.level(v, config)
+            return stemmap.stem_map(lv.points, lv.normals, lv.hag, config)
+
+        return self.shelf.get(("stems", v.name), make)
 
 
 def coarse_cloud(
@@ -91,7 +105,9 @@ def coarse_cloud(
     )
     if upright:  # z-up first, and one estimate: on a slope a ground-levelled source pairs with a ground-levelled target
         info = {**info, "estimated_tilt_deg": info["tilt_deg"], "tilt_deg": 0.0, "upright": True}
-    return CoarseCloud(pts, nrm, verticals, info | {"points": len(pts)})
+    return CoarseCloud(
+        points=pts, normals=nrm, verticals=tuple(verticals), info=info | {"points": len(pts)}
+    )
 
 
 def remembered(
@@ -102,12 +118,15 @@ def remembered(
     upright: bool,
     limit: int,
     memo: CloudMemo,
-) -> CoarseCloud:
-    """`coarse_cloud`, kept in the cloud's memo: in a plot each scan takes part in several pairs."""
+) -> Levels:
+    """`coarse_cloud` and its levelled forms, kept in the cloud's memo: in a plot each scan takes
+    part in several pairs."""
     key = (config.model_dump_json(), seed, airborne, upright, limit)
     return memo.coarse.get(
         key,
-        lambda: coarse_cloud(cloud, config, np.random.default_rng(seed), airborne, upright, limit),
+        lambda: Levels(
+            coarse_cloud(cloud, config, np.random.default_rng(seed), airborne, upright, limit)
+        ),
     )
 
 

@@ -3,19 +3,21 @@ correlation of forest rasters (stems, canopy, terrain), per vertical pair."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from scipy import fft
 
 from plotmosaic.align.coarse.clouds import (
     AIRBORNE,
-    CoarseCloud,
     Levelled,
+    Levels,
     homogeneous,
     hypothesis_transform,
     unlevelled,
 )
 from plotmosaic.align.coarse.hypothesis import Start
-from plotmosaic.align.peaks import angle_diff, distinct_peaks
+from plotmosaic.align.peaks import Peak, angle_diff, distinct_peaks
 from plotmosaic.align.rasters import CHANNELS, MaskedNCC, column_bins, rasterise
 from plotmosaic.config.coarse import CoarseConfig
 from plotmosaic.parallel import in_two_threads
@@ -111,7 +113,7 @@ class _Correlation:
             total = np.where(self.allowed, total, -1.0)
         return total, frac
 
-    def peaks(self, yaw: float) -> list[dict]:
+    def peaks(self, yaw: float) -> list[Peak]:
         """The best `peaks_per_yaw` shifts of the source turned by `yaw`, each suppressing its
         neighbourhood."""
         config, rel, centre, cell = self.config, self.rel, self.centre, self.cell
@@ -128,12 +130,12 @@ class _Correlation:
                 break
             t_xy = self.ncc.shift_to_translation(k, source)
             found.append(
-                {
-                    "score": float(total[k]),
-                    "yaw": float(yaw),
-                    "t_xy": t_xy,
-                    "overlap": float(min(frac[k], 1.0)),
-                }
+                Peak(
+                    score=float(total[k]),
+                    yaw=float(yaw),
+                    t_xy=t_xy,
+                    overlap=float(min(frac[k], 1.0)),
+                )
             )
             r = max(1, int(round(config.peak_suppression_m / cell)))
             rows = np.arange(k[0] - r, k[0] + r + 1) % total.shape[0]
@@ -148,7 +150,7 @@ def search(
     weights: dict[str, float],
     config: CoarseConfig,
     prior: np.ndarray | None = None,
-) -> list[dict]:
+) -> list[Peak]:
     """Exhaustive heading search; masked-NCC shift per heading; the best distinct peaks.
 
     `prior` (levelled source -> levelled target): search only headings within `prior_yaw_deg` of
@@ -168,16 +170,16 @@ def search(
         c for found in in_two_threads(corr.peaks, [float(y) for y in yaws]) for c in found
     ]
     best_yaws: list[float] = []
-    for c in sorted(candidates, key=lambda c: -c["score"]):
-        if all(angle_diff(c["yaw"], y) > 1.5 * step for y in best_yaws):
-            best_yaws.append(c["yaw"])
+    for c in sorted(candidates, key=lambda c: -c.score):
+        if all(angle_diff(c.yaw, y) > 1.5 * step for y in best_yaws):
+            best_yaws.append(c.yaw)
         if len(best_yaws) >= config.refine_headings:
             break
     refine = [
         float((yaw + d) % (2 * np.pi)) for yaw in best_yaws for d in (-0.5 * step, 0.5 * step)
     ]
     candidates += [c for found in in_two_threads(corr.peaks, refine) for c in found]
-    candidates.sort(key=lambda c: -c["score"])
+    candidates.sort(key=lambda c: -c.score)
     return distinct_peaks(
         candidates,
         config.distinct_yaw_deg,
@@ -189,8 +191,8 @@ def search(
 
 
 def raster_starts(
-    src: CoarseCloud,
-    tgt: CoarseCloud,
+    src: Levels,
+    tgt: Levels,
     pairs,
     weights,
     config: CoarseConfig,
@@ -211,18 +213,18 @@ def raster_starts(
         if k == 0:
             hyps = hyps + _small_scene(ls, lt, weights, config, prior_l)
         for h in hyps:
-            cell = h["cell"] if cell is None else cell
+            cell = h.cell if cell is None else cell
             A = hypothesis_transform(
-                ls, lt, ground_tree, config, yaw=h["yaw"], t_xy=h["t_xy"], centre=h["centre"]
+                ls, lt, ground_tree, config, yaw=h.yaw, t_xy=h.t_xy, centre=h.centre
             )
             out.append(
                 Start(
                     T=unlevelled(A, ls, lt),
                     generator="raster",
-                    vertical=f"{vs.name}/{vt.name}" + (" fine" if h.get("fine") else ""),
-                    score=h["score"],
-                    yaw=h["yaw"],
-                    overlap=h["overlap"],
+                    vertical=f"{vs.name}/{vt.name}" + (" fine" if h.fine else ""),
+                    score=h.score,
+                    yaw=h.yaw,
+                    overlap=h.overlap,
                 )
             )
     return out, cell
@@ -230,7 +232,7 @@ def raster_starts(
 
 def _small_scene(
     ls: Levelled, lt: Levelled, weights, config: CoarseConfig, prior_l: np.ndarray | None
-) -> list[dict]:
+) -> list[Peak]:
     """A narrow scene (a 12 m understorey view is 12 cells at 1 m) also gets a finer-cell search
     beside, never instead of, the usual one: finer cells alone found a wrong pose with full confidence."""
     side = float(np.ptp(ls.feats.xy, axis=0).min())
@@ -238,6 +240,6 @@ def _small_scene(
         return []
     fine = config.model_copy(update={"cell": max(config.min_cell, side / config.small_scene_cells)})
     return [
-        h | {"fine": True}
+        replace(h, fine=True)
         for h in search(ls, lt, weights, fine, prior_l)[: config.secondary_hypotheses]
     ]

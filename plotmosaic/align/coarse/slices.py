@@ -4,12 +4,12 @@ sparse ground views the 1 m rasters miss), run only when the first vertical pair
 from __future__ import annotations
 
 from plotmosaic.align import slices
-from plotmosaic.align.coarse.clouds import CoarseCloud, hypothesis_transform, unlevelled
+from plotmosaic.align.coarse.clouds import Levels, hypothesis_transform, unlevelled
 from plotmosaic.align.coarse.hypothesis import Start
 from plotmosaic.config.coarse import CoarseConfig
 
 
-def slice_starts(src: CoarseCloud, tgt: CoarseCloud, pairs, config: CoarseConfig) -> list[Start]:
+def slice_starts(src: Levels, tgt: Levels, pairs, config: CoarseConfig) -> list[Start]:
     """Starts of the height-slice occupancy search per vertical pair."""
     out = []
     for vs, vt in pairs:
@@ -17,16 +17,16 @@ def slice_starts(src: CoarseCloud, tgt: CoarseCloud, pairs, config: CoarseConfig
         ground_tree = lt.ground_tree(config)
         for h in slices.slice_search(ls.points, ls.hag, lt.points, lt.hag, config):
             A = hypothesis_transform(
-                ls, lt, ground_tree, config, yaw=h["yaw"], t_xy=h["t_xy"], centre=h["centre"]
+                ls, lt, ground_tree, config, yaw=h.yaw, t_xy=h.t_xy, centre=h.centre
             )
             out.append(
                 Start(
                     T=unlevelled(A, ls, lt),
                     generator="slices",
                     vertical=f"{vs.name}/{vt.name}",
-                    slice_score=h["score"],
-                    yaw=h["yaw"],
-                    overlap=h["overlap"],
+                    slice_score=h.score,
+                    yaw=h.yaw,
+                    overlap=h.overlap,
                 )
             )
     return out

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from plotmosaic.align.coarse import verify as verification
-from plotmosaic.align.coarse.clouds import AIRBORNE, CoarseCloud, remembered, vertical_pairs
+from plotmosaic.align.coarse.clouds import AIRBORNE, Levels, remembered, vertical_pairs
 from plotmosaic.align.coarse.fpfh import fpfh_matches, fpfh_starts
 from plotmosaic.align.coarse.hypothesis import Hypothesis, Start
 from plotmosaic.align.coarse.raster import raster_starts, weights
@@ -53,8 +53,8 @@ class _Generators:
 
     def __init__(
         self,
-        src: CoarseCloud,
-        tgt: CoarseCloud,
+        src: Levels,
+        tgt: Levels,
         weights: dict[str, float],
         config: CoarseConfig,
         prior: np.ndarray | None,
@@ -74,7 +74,7 @@ class _Generators:
         if config.fpfh:
             t = time.perf_counter()
             if self.matches is None:
-                self.matches = fpfh_matches(src, tgt, config)
+                self.matches = fpfh_matches(src.cloud, tgt.cloud, config)
             own = chosen[: max(0, config.fpfh_vertical_pairs - first)]
             out += fpfh_starts(self.matches, own, config, self.rng, six_dof=first == 0)
             _clock(timing, "fpfh", t)
@@ -103,18 +103,18 @@ def coarse_align(
     The first vertical pair is searched and verified first; the other pairs only when its best pose
     is not already settled (`verify.settled`): clearly ahead of its distinct rivals, fitting well and
     found by two generators independently. Its rivals stay in the hypotheses for the judge.
-    `memo`: the pair's, where each cloud's levelled sample is kept.
+    `memo`: the pair's, where each cloud's sample and its levelled forms are kept.
     """
     config = config or CoarseConfig()
     memo = memo or PairMemo()
     start = time.perf_counter()
     rng = np.random.default_rng(seed)
     src, tgt = _coarse_clouds(source, target, config, seed, memo)
-    pairs = vertical_pairs(src, tgt, config)
+    pairs = vertical_pairs(src.cloud, tgt.cloud, config)
     timing = {"levelling": time.perf_counter() - start}
     prior = None if prior is None else np.asarray(prior, dtype=float)
     airborne = source.kind in AIRBORNE or target.kind in AIRBORNE
-    verify = Verifier(src, tgt, airborne, config, rng)
+    verify = Verifier(src.cloud, tgt.cloud, airborne, config, rng)
     # generators draw from their own stream: adding one changes no other
     generate = _Generators(
         src,
@@ -150,8 +150,8 @@ def coarse_align(
         hypotheses=tuple(results),
         seconds=time.perf_counter() - start,
         levelling={
-            "source": src.info,
-            "target": tgt.info,
+            "source": src.cloud.info,
+            "target": tgt.cloud.info,
             "raster_cell": cell,
             "vertical_pairs": [f"{a.name}/{b.name}" for a, b in searched],
             "vertical_pairs_skipped": len(pairs) - len(searched),
@@ -165,11 +165,12 @@ def coarse_align(
 
 def _coarse_clouds(
     source, target, config: CoarseConfig, seed: int, memo: PairMemo
-) -> tuple[CoarseCloud, CoarseCloud]:
-    """Both clouds as the coarse stage sees them, the target seeded `seed + 1`. An airborne target
-    (ALS/ULS) is georeferenced: its z is the vertical, while its ground normals show the terrain's
-    slope and few stems correct them (docs/method.md#coarse-stage-settings). The source may come in
-    any orientation: several vertical hypotheses (z-up first when it is airborne), each searched."""
+) -> tuple[Levels, Levels]:
+    """Both clouds as the coarse stage sees them, with their levelled forms; the target seeded
+    `seed + 1`. An airborne target (ALS/ULS) is georeferenced: its z is the vertical, while its
+    ground normals show the terrain's slope and few stems correct them
+    (docs/method.md#coarse-stage-settings). The source may come in any orientation: several
+    vertical hypotheses (z-up first when it is airborne), each searched."""
     return both(
         lambda job: remembered(*job),
         (source, config, seed, source.kind in AIRBORNE, False, config.max_verticals, memo.source),

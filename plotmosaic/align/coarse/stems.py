@@ -5,19 +5,19 @@ from __future__ import annotations
 import numpy as np
 
 from plotmosaic.align import stemmap
-from plotmosaic.align.coarse.clouds import CoarseCloud, hypothesis_transform, unlevelled
+from plotmosaic.align.coarse.clouds import Levels, hypothesis_transform, unlevelled
 from plotmosaic.align.coarse.hypothesis import Start
 from plotmosaic.config.coarse import CoarseConfig
 
 
 def stem_starts(
-    src: CoarseCloud, tgt: CoarseCloud, pairs, config: CoarseConfig, rng: np.random.Generator
+    src: Levels, tgt: Levels, pairs, config: CoarseConfig, rng: np.random.Generator
 ) -> list[Start]:
     """Starts from stem-map matches per vertical pair."""
     out = []
     for vs, vt in pairs:
         ls, lt = src.level(vs, config), tgt.level(vt, config)
-        ms, mt = ls.stems(config), lt.stems(config)
+        ms, mt = src.stems(vs, config), tgt.stems(vt, config)
         found = stemmap.match_stem_maps(ms, mt, config, rng)
         if not found:
             continue
