@@ -8,7 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from plotmosaic.align.kinds import DEFAULT_KIND, KindEvidence, decide, detect_kind
+from plotmosaic.align.kinds import (
+    DEFAULT_KIND,
+    KindEvidence,
+    decide,
+    detect_kind,
+    occupied_cells,
+)
 from plotmosaic.align.pipeline import pair_kinds
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.config.kinds import KindConfig
@@ -83,6 +89,21 @@ def test_too_small_to_tell_is_the_default_kind():
         found = detect_kind(xyz, CONFIG.kinds, CONFIG.viewpoint)
         assert found.kind == DEFAULT_KIND and "too small" in found.reason
         assert found.to_dict()["evidence"]["coverage"] is None  # JSON: not measured is null
+
+
+@pytest.mark.parametrize("n", [1, 7, 5000])
+def test_occupied_cells_are_numpys_unique_rows(n):
+    # a wide, far-off and uneven cloud: cells in both directions, many sharing a row or a column
+    rng = np.random.default_rng(n)
+    xy = rng.normal(size=(n, 2)) * [40.0, 3.0] + [4.0e5, -6.0e6]
+    xy[: n // 2, 1] = xy[0, 1]  # half the points in one row of cells
+    idx = np.floor((xy - xy.min(axis=0)) / 0.5).astype(np.int64)
+    cells, inverse, counts = np.unique(idx, axis=0, return_inverse=True, return_counts=True)
+    got = occupied_cells(xy, 0.5)
+    assert got[0].dtype == cells.dtype
+    np.testing.assert_array_equal(got[0], cells)
+    np.testing.assert_array_equal(got[1], inverse.ravel())
+    np.testing.assert_array_equal(got[2], counts)
 
 
 AIRBORNE = KindEvidence(

@@ -176,6 +176,7 @@ def point_to_plane_icp(
     tol: float = 1e-5,
     mirror: Mirror | None = None,
     viewpoints: tuple[np.ndarray, np.ndarray] | None = None,
+    search: MovingNearest | None = None,
 ) -> IcpResult:
     """Point-to-plane ICP (Tukey-weighted Gauss-Newton) that moves only along well-constrained directions.
 
@@ -195,9 +196,13 @@ def point_to_plane_icp(
 
     `viewpoints`: (source scanner in source coordinates, target scanner in target coordinates);
     a match whose plane has the two scanners on opposite sides is left out (see `facing`).
+
+    `search`: a MovingNearest over `tree` kept from an earlier run on the same source rows (one
+    start refined stage by stage): its neighbours hold whatever the distance, so the run's first
+    iteration queries only the points that moved too far.
     """
     tree = tree if tree is not None else cKDTree(target)
-    forward = MovingNearest(tree)
+    forward = search if search is not None else MovingNearest(tree)
     backward = MovingNearest(mirror.tree) if mirror is not None else None
     normals_of = target_normals if callable(target_normals) else (lambda j: target_normals[j])
     T = np.asarray(init, dtype=np.float64).copy()
