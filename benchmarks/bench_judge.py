@@ -400,7 +400,7 @@ def run_case(
 
 def stored_check(ps, pt, A, cfg: AlignConfig, truth_local, centre) -> dict:
     """The stored-pose check (judge.verify_stored after the fine ICP) from pose A."""
-    F = final_icp(ps, pt, A, cfg)[0]
+    F = final_icp(ps, pt, A, cfg).T
     v = judge.verify_stored(ps, pt, A, F, cfg.judge)
     return {
         "final": F,

@@ -79,7 +79,7 @@ def main() -> None:
         src, tgt = get(s), get(t)
         with_view += src.viewpoint is not None and tgt.viewpoint is not None
         T0 = to_local_transform(np.asarray(d["transform"], dtype=float), src.frame, tgt.frame)
-        T = to_global_transform(final_icp(src, tgt, T0, config)[0], src.frame, tgt.frame)
+        T = to_global_transform(final_icp(src, tgt, T0, config).T, src.frame, tgt.frame)
         rows.append(pair_errors(T, truth[s], truth[t]))
     A = np.asarray(rows)
     print(f"{len(A)} TLS pairs ({with_view} with both scanners known); {Path(a.out)}")

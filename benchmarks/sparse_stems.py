@@ -62,7 +62,7 @@ def main() -> None:
                 tgt = prepare_cloud(PointCloud(tgt_xyz), "tls", 3, cfg, draw + 1)
                 sparse[key] += src.normal_radius > cfg.normal_radius
                 T0 = to_local_transform(start, src.frame, tgt.frame)
-                T = to_global_transform(final_icp(src, tgt, T0, cfg)[0], src.frame, tgt.frame)
+                T = to_global_transform(final_icp(src, tgt, T0, cfg).T, src.frame, tgt.frame)
                 E = np.linalg.inv(case.truth) @ T
                 rot = np.degrees(np.linalg.norm(Rotation.from_matrix(E[:3, :3]).as_rotvec()))
                 errs[key].append((rot, 100 * np.linalg.norm(T[:3, 3] - case.truth[:3, 3])))

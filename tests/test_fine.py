@@ -65,7 +65,7 @@ def _planes(cloud):
 
 def _baseline_error_cm(src, tgt, truth, config) -> np.ndarray:
     """Error (cm) of the source scanner's position after the final ICP started at the truth."""
-    T = final_icp(src, tgt, to_local_transform(truth, src.frame, tgt.frame), config)[0]
+    T = final_icp(src, tgt, to_local_transform(truth, src.frame, tgt.frame), config).T
     return 100 * (to_global_transform(T, src.frame, tgt.frame)[:3, 3] - truth[:3, 3])
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,13 +24,6 @@ class FineResult:
     n: np.ndarray  # target-side normals
     iterations: int
     reverse: bool  # the source's planes were used (sparse target)
-
-    def __iter__(self) -> Iterator:
-        """Unpacks as the tuple (T, p, q, n, iterations, reverse) it replaces."""
-        return iter((self.T, self.p, self.q, self.n, self.iterations, self.reverse))
-
-    def __getitem__(self, i: int):
-        return tuple(self)[i]
 
 
 def fine_schedule(
