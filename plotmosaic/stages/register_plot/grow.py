@@ -15,7 +15,7 @@ from plotmosaic.graph.pairs import neighbour_pairs, reach_distance, spanning_fir
 from plotmosaic.graph.placement import prior
 from plotmosaic.graph.posegraph import build_graph
 from plotmosaic.graph.signature import grow_candidates
-from plotmosaic.manifest import Manifest
+from plotmosaic.manifest import Manifest, Plot
 from plotmosaic.stages.register_plot.pairs import (
     EDGE_FIELDS,
     Pairs,
@@ -34,6 +34,31 @@ def _degrees(job_list: list[PairJob]) -> dict[str, int]:
         degree[j.source] = degree.get(j.source, 0) + 1
         degree[j.target] = degree.get(j.target, 0) + 1
     return degree
+
+
+def _job(
+    manifest: Manifest,
+    config: RegisterConfig,
+    seed: int,
+    prepared: str | Path,
+    placed: dict[str, np.ndarray],
+    plot: Plot,
+    pair: tuple[str, str],
+) -> PairJob:
+    """The job of two scans of `plot`, the later of them in the plot as the source."""
+    by_id = {s.id: s for s in plot.scans}
+    order = {s.id: k for k, s in enumerate(plot.scans)}
+    target, source = sorted(pair, key=order.get)
+    return _pair_job(
+        manifest,
+        by_id[source],
+        by_id[target],
+        config.align.model_dump_json(),
+        seed,
+        str(prepared),
+        placed,
+        config.read,
+    )
 
 
 def graph_poses(
@@ -65,7 +90,6 @@ def position_jobs(
     at most `reach` x the scan spacing apart, their prior from the graph and verified first (a chain
     of verified pairs is as good a prior as two ALS placements), at most `max_per_scan` pairs a scan."""
     reach = config.placed_priors.reach
-    config_json = config.align.model_dump_json()
     tried = {frozenset((j.source, j.target)) for j in job_list}
     degree = _degrees(job_list)
     cap = config.pairs.max_per_scan
@@ -78,25 +102,11 @@ def position_jobs(
             continue
         xy = np.array([poses[i][:2, 3] for i in ids])
         far = reach_distance(xy, reach, config.max_distance)
-        by_id = {s.id: s for s in plot.scans}
-        order = {s.id: k for k, s in enumerate(plot.scans)}
         for i, j in neighbour_pairs(xy, config.pairs.neighbours, cap, far):
             a, b = ids[i], ids[j]
             if frozenset((a, b)) in tried or max(degree.get(a, 0), degree.get(b, 0)) >= cap:
                 continue
-            target, source = sorted((a, b), key=order.get)  # the later scan is the source
-            out.append(
-                _pair_job(
-                    manifest,
-                    by_id[source],
-                    by_id[target],
-                    config_json,
-                    seed,
-                    str(prepared),
-                    poses,
-                    config.read,
-                )
-            )
+            out.append(_job(manifest, config, seed, prepared, poses, plot, (a, b)))
             tried.add(frozenset((a, b)))
             degree[a] = degree.get(a, 0) + 1
             degree[b] = degree.get(b, 0) + 1
@@ -118,7 +128,6 @@ def grow_jobs(
 
     `anchored`: scans held by an ALS anchor (one piece with each other through the plot's ALS node)."""
     sig = config.signature
-    config_json = config.align.model_dump_json()
     tried = {frozenset((j.source, j.target)) for j in job_list}
     degree = _degrees(job_list)
     G = nx.Graph()
@@ -134,24 +143,10 @@ def grow_jobs(
         sub.add_nodes_from(ids)
         sub.add_edges_from((i, anchor_id(plot)) for i in ids if i in (anchored or ()))
         comps = [set(c) - {anchor_id(plot)} for c in nx.connected_components(sub)]
-        by_id = {s.id: s for s in plot.scans}
-        order = {s.id: k for k, s in enumerate(plot.scans)}
-        for a, b in grow_candidates(
+        for pair in grow_candidates(
             ranks, tried, comps, degree, sig.grow_per_scan, config.pairs.max_per_scan
         ):
-            target, source = sorted((a, b), key=order.get)  # the later scan is the source
-            out.append(
-                _pair_job(
-                    manifest,
-                    by_id[source],
-                    by_id[target],
-                    config_json,
-                    seed,
-                    str(prepared),
-                    placed,
-                    config.read,
-                )
-            )
+            out.append(_job(manifest, config, seed, prepared, placed, plot, pair))
     return out
 
 

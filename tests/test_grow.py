@@ -1,0 +1,32 @@
+"""register-plot's growth rounds: the pairs a plot in pieces adds (no registration involved)."""
+
+from plotmosaic.config.register import RegisterConfig
+from plotmosaic.manifest import Manifest, Plot, Scan
+from plotmosaic.stages.register_plot.grow import grow_jobs
+from plotmosaic.stages.register_plot.pairs import _pair_job
+
+
+def test_a_plot_in_pieces_grows_its_ranked_partners_with_the_later_scan_as_source(tmp_path):
+    for k in range(4):
+        (tmp_path / f"s{k}.laz").write_bytes(bytes([k]) * 10)
+    plot = Plot(id="P", scans=[Scan(id=f"s{k}", path=f"s{k}.laz") for k in range(4)])
+    manifest = Manifest(plots=[plot], source=tmp_path / "m.toml")
+    config = RegisterConfig()
+    by_id = {s.id: s for s in plot.scans}
+    cj = config.align.model_dump_json()
+    done = [
+        _pair_job(manifest, by_id[s], by_id[t], cj, 0, str(tmp_path), {}, config.read)
+        for s, t in [("s2", "s1"), ("s3", "s2")]
+    ]
+    records = {j.key: {"status": "ok"} for j in done}
+    # s0 is a piece of its own; its ranked partner s2 comes later in the plot
+    jobs = grow_jobs(manifest, config, 0, tmp_path, {}, {"s0": ["s2", "s1"]}, done, records)
+    expected = [
+        _pair_job(manifest, by_id[s], by_id["s0"], cj, 0, str(tmp_path), {}, config.read)
+        for s in ["s2", "s1"][: config.signature.grow_per_scan]
+    ]
+    assert jobs == expected
+    joined = _pair_job(manifest, by_id["s1"], by_id["s0"], cj, 0, str(tmp_path), {}, config.read)
+    records[joined.key] = {"status": "ok"}
+    ranks = {"s0": ["s2", "s1"]}
+    assert grow_jobs(manifest, config, 0, tmp_path, {}, ranks, [*done, joined], records) == []
