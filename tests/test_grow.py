@@ -6,11 +6,18 @@ from plotmosaic.stages.register_plot.grow import grow_jobs
 from plotmosaic.stages.register_plot.pairs import _pair_job
 
 
+def _plot_of(root, n: int) -> tuple[Manifest, Plot]:
+    """A manifest of one plot of `n` scans, each file a few distinct bytes (pair keys hash them)."""
+    scans = []
+    for k in range(n):
+        (root / f"s{k}.laz").write_bytes(bytes([k]) * 10)
+        scans.append(Scan(id=f"s{k}", path=f"s{k}.laz"))
+    plot = Plot(id="P", scans=scans)
+    return Manifest(plots=[plot], source=root / "m.toml"), plot
+
+
 def test_a_plot_in_pieces_grows_its_ranked_partners_with_the_later_scan_as_source(tmp_path):
-    for k in range(4):
-        (tmp_path / f"s{k}.laz").write_bytes(bytes([k]) * 10)
-    plot = Plot(id="P", scans=[Scan(id=f"s{k}", path=f"s{k}.laz") for k in range(4)])
-    manifest = Manifest(plots=[plot], source=tmp_path / "m.toml")
+    manifest, plot = _plot_of(tmp_path, 4)
     config = RegisterConfig()
     by_id = {s.id: s for s in plot.scans}
     cj = config.align.model_dump_json()
