@@ -55,9 +55,10 @@ def _shape_chunk(
 
 
 def _shape(
-    offsets: list[np.ndarray], ok: np.ndarray, main_axes: bool = False
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
-    """`_shape_chunk` from the neighbours' offsets (see `_offsets`) and which of them count."""
+    offsets: list[np.ndarray], ok: np.ndarray, main_axes: bool = False, normals: bool = True
+) -> tuple[np.ndarray | None, np.ndarray, np.ndarray, np.ndarray | None]:
+    """`_shape_chunk` from the neighbours' offsets (see `_offsets`) and which of them count;
+    without `normals`, None in their place (a caller that needs only the features and axes)."""
     w = ok.astype(np.float64)
     count = w.sum(axis=1)
     # coordinates relative to the query point (small numbers: raw moments keep their precision)
@@ -76,12 +77,12 @@ def _shape(
     features = np.column_stack(
         [(l1 - l2) * inv, (l2 - l3) * inv, np.where(has_plane, l3 * inv, 1.0)]
     )
-    normals = eigenvector_sym3(cov, l3)
-    normals[~has_plane] = (0.0, 0.0, 1.0)
+    plane = eigenvector_sym3(cov, l3) if normals else None
     axes = eigenvector_sym3(cov, l1) if main_axes else None
-    if axes is not None:
-        axes[~has_plane] = (0.0, 0.0, 1.0)
-    return normals, features, np.where(has_plane, count, 0).astype(np.int64), axes
+    for v in (plane, axes):
+        if v is not None:
+            v[~has_plane] = (0.0, 0.0, 1.0)
+    return plane, features, np.where(has_plane, count, 0).astype(np.int64), axes
 
 
 def eigenvalues_sym3(c: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -175,7 +176,7 @@ def level_shape(
         dist, idx = dist.reshape(len(q), -1), idx.reshape(len(q), -1)
         offsets = _offsets(support, q, idx)  # one gather for both spheres
         normals[s : s + CHUNK], _, counts[s : s + CHUNK], _ = _shape(offsets, dist <= radius)
-        _, wide, _, axes = _shape(offsets, idx < len(support), main_axes=True)
+        _, wide, _, axes = _shape(offsets, idx < len(support), main_axes=True, normals=False)
         features[s : s + CHUNK] = np.column_stack([wide, np.abs(axes[:, 2])])
 
     _in_chunks(run, m)
@@ -189,7 +190,7 @@ def _circle_chunk(
     their main axis: a stem seen from one side, where the plane fit gives the view direction."""
     ok = idx < len(points)
     offsets = _offsets(points, query, idx)
-    _, features, _, axis = _shape(offsets, ok, main_axes=True)
+    _, features, _, axis = _shape(offsets, ok, main_axes=True, normals=False)
     w = ok.astype(np.float64)
     count = w.sum(axis=1)
     # circles only where a stem can be: linear enough and with the points to fit one (row by row,

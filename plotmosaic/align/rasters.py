@@ -243,12 +243,14 @@ class MaskedNCC:
             np.stack(arrays).astype(np.float32), s=self.shape, axes=(-2, -1), workers=self.workers
         )
 
-    def _spectra(self, raster: Raster, names) -> dict[str, tuple]:
-        """{channel: (mask id, FFT of mask, of masked image, of its square)}, one batched transform;
-        a mask array shared by channels is transformed once."""
+    def _spectra(self, raster: Raster, names, conjugate: bool = False) -> dict[str, tuple]:
+        """{channel: (mask id, FFT of mask, of masked image, of its square)}, one batched transform
+        (conjugated with `conjugate`); a mask array shared by channels is transformed once."""
         masks = _distinct_masks(raster, names)
         images = [raster.images[n] * raster.masks[n] for n in names]
         spectra = self._f(list(masks.values()) + [a for f in images for a in (f, f * f)])
+        if conjugate:
+            spectra = np.conj(spectra)  # once, not once per product it enters
         slot = {key: i for i, key in enumerate(masks)}
         return {
             n: (
@@ -262,24 +264,26 @@ class MaskedNCC:
 
     def scores(self, source: Raster, names) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """{channel: (NCC, overlap in cells)} for every shift of `source` over the target."""
-        src = self._spectra(source, names)
-        # sum_x a(x) b(x + s) for every shift s is irfft(conj(A) B) (padded: no wrap-around overlaps)
-        products, overlap_of, base = [], {}, {}
+        src = self._spectra(source, names, conjugate=True)
+        # sum_x a(x) b(x + s) for every shift s is irfft(conj(A) B) (padded: no wrap-around overlaps);
+        # a mask pair's overlap row, then each channel's five rows
+        overlap_of, base, rows = {}, {}, 0
+        for name in names:
+            if (src[name][0], self._t[name][0]) not in overlap_of:
+                overlap_of[src[name][0], self._t[name][0]] = rows
+                rows += 1
+            base[name], rows = rows, rows + 5
+        first = next(iter(self._t.values()))[1]
+        products = np.empty((rows, *first.shape), dtype=first.dtype)
         for name in names:
             s_mask, fm1, ff, fff = src[name]
             t_mask, fm2, fg, fgg = self._t[name]
-            if (s_mask, t_mask) not in overlap_of:
-                overlap_of[s_mask, t_mask] = len(products)
-                products.append(np.conj(fm1) * fm2)
-            base[name] = len(products)
-            products += [
-                np.conj(ff) * fm2,
-                np.conj(fm1) * fg,
-                np.conj(fff) * fm2,
-                np.conj(fm1) * fgg,
-                np.conj(ff) * fg,
-            ]
-        corr = fft.irfft2(np.stack(products), s=self.shape, axes=(-2, -1), workers=self.workers)
+            if overlap_of[s_mask, t_mask] == base[name] - 1:  # the mask pair's first channel
+                np.multiply(fm1, fm2, out=products[base[name] - 1])
+            pairs = ((ff, fm2), (fm1, fg), (fff, fm2), (fm1, fgg), (ff, fg))
+            for k, (a, b) in enumerate(pairs):
+                np.multiply(a, b, out=products[base[name] + k])
+        corr = fft.irfft2(products, s=self.shape, axes=(-2, -1), workers=self.workers)
         out = {}
         for name in names:
             overlap = np.round(corr[overlap_of[src[name][0], self._t[name][0]]])
