@@ -5,6 +5,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 import pytest
+from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from plotmosaic.align.coarse import CoarseConfig, coarse_align
@@ -41,8 +42,6 @@ def test_levelling_finds_vertical_on_a_slope_from_stems():
 
 def test_masked_ncc_recovers_a_shift_with_partial_overlap():
     rng = np.random.default_rng(1)
-    from scipy import ndimage
-
     world = ndimage.gaussian_filter(rng.random((200, 200)), 2)
     tgt = Raster(
         np.array([0.0, 0.0]), 1.0, {"c": world[20:120, 30:130]}, {"c": np.ones((100, 100))}

@@ -7,12 +7,16 @@ import dataclasses
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from plotmosaic.align.fine import final_icp
 from plotmosaic.align.fine import fine_schedule as _fine_schedule
+from plotmosaic.align.icp import Mirror, facing
 from plotmosaic.align.normals import LazyNormals
 from plotmosaic.align.prepare import prepare_cloud
-from plotmosaic.config.align import AlignConfig
+from plotmosaic.align.viewpoint import crowding, scanner_viewpoint
+from plotmosaic.config.align import AlignConfig, ViewpointConfig
+from plotmosaic.graph.prepared import load_prepared, save_prepared
 from plotmosaic.io.frame import to_global_transform, to_local_transform, translation
 from plotmosaic.io.las import PointCloud
 
@@ -117,9 +121,6 @@ def test_the_side_test_keeps_the_two_faces_of_a_stem_apart(sparse_pair):
 def test_a_scanner_is_trusted_only_where_the_cloud_crowds_around_it(sparse_pair):
     """The file origin is the scanner of a single scan in its own frame (1/r^2 density about it); the
     same scan in a project frame, a cloud of even density, or a mobile cloud get none."""
-    from plotmosaic.align.viewpoint import crowding, scanner_viewpoint
-    from plotmosaic.config.align import ViewpointConfig
-
     src, _, _ = sparse_pair
     np.testing.assert_allclose(src.frame.to_global(src.viewpoint), 0.0, atol=1e-12)
     cfg, rng = ViewpointConfig(), np.random.default_rng(0)
@@ -134,8 +135,6 @@ def test_a_scanner_is_trusted_only_where_the_cloud_crowds_around_it(sparse_pair)
 
 
 def test_facing_tells_the_two_sides_of_a_plane_apart():
-    from plotmosaic.align.icp import facing
-
     n = np.array([[1.0, 0, 0], [1.0, 0, 0], [0, 0, 1.0]])
     x = np.zeros((3, 3))
     a = np.array([-3.0, 0.0, 1.5])
@@ -174,10 +173,6 @@ def test_symmetric_fine_stage_uses_both_scans_planes(sparse_pair):
 def test_mirror_rows_are_the_reverse_matches_in_target_coordinates():
     """Each reverse row is a source point moved by T, the target sample point matched to it, and the
     source normal turned by T: zero residual where the two clouds coincide under T."""
-    from scipy.spatial import cKDTree
-
-    from plotmosaic.align.icp import Mirror
-
     rng = np.random.default_rng(3)
     source = rng.uniform(-5, 5, (500, 3))
     normals = rng.normal(size=(500, 3))
@@ -195,8 +190,6 @@ def test_mirror_rows_are_the_reverse_matches_in_target_coordinates():
 
 def test_the_scanner_survives_the_prepared_cache(sparse_pair, tmp_path):
     """A cached prepared cloud keeps its scanner (or its lack of one) across runs."""
-    from plotmosaic.graph.prepared import load_prepared, save_prepared
-
     src, _, _ = sparse_pair
     for cloud, name in ((src, "seen.npz"), (_blind(src), "blind.npz")):
         again = load_prepared(save_prepared(tmp_path / name, cloud))
@@ -209,8 +202,6 @@ def test_the_scanner_survives_the_prepared_cache(sparse_pair, tmp_path):
 def test_only_sparse_ground_based_scans_get_stem_normals(sparse_pair, tmp_path):
     """The sparse radius on a TLS scan brings circle normals; a dense scan, or the same points
     called airborne, keeps plane normals; the prepared cache keeps the choice."""
-    from plotmosaic.graph.prepared import load_prepared, save_prepared
-
     src, _, _ = sparse_pair
     cfg = AlignConfig()
     assert src.normal_radius == cfg.normal_radius_sparse

@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from plotmosaic.align import features3d, stemmap
+from plotmosaic.align import features3d, slices, stemmap
 from plotmosaic.align.coarse import CoarseConfig, coarse_align
 from plotmosaic.align.levelling import Z, angle_deg, vertical_hypotheses
 from plotmosaic.align.normals import local_shape
@@ -261,8 +261,6 @@ def test_4dof_vote_finds_a_pose_held_by_one_percent_of_the_matches():
 
 def test_slice_search_finds_heading_and_shift_of_a_levelled_view(views):
     """Height-slice occupancy (slices.py) puts the truth first on two levelled views turned 130 deg apart."""
-    from plotmosaic.align import slices
-
     c = CoarseConfig()
     src, tgt = voxel_centroids(views[0], 0.1), voxel_centroids(views[1], 0.1)
     T = rigid([0, 0, 130], [4.0, -3.0, 0.5], src.mean(axis=0))
