@@ -42,3 +42,25 @@ def test_points_on_the_grid_itself_are_queried_again_not_guessed():
     got_d, got_j = search(moved, 0.2)
     want_d, want_j = tree.query(moved, distance_upper_bound=0.2)
     assert np.array_equal(got_j, want_j) and np.array_equal(got_d, want_d)
+
+
+def test_points_beyond_the_distance_drifting_into_it_and_on_it():
+    # points start outside the search distance (their nearest known from the wider look) and walk
+    # in across it; some sit exactly on it, where only the tree's own test may decide
+    rng = np.random.default_rng(3)
+    target = rng.uniform(-0.2, 0.2, (400, 3))
+    target[0] = 5.0  # alone: the points placed around it have it as their nearest
+    tree = cKDTree(target)
+    direction = rng.normal(size=(3000, 3))
+    direction /= np.linalg.norm(direction, axis=1)[:, None]
+    start = direction * rng.uniform(0.45, 0.9, (3000, 1))
+    search = MovingNearest(tree)
+    for step in range(40):
+        points = start * (1.0 - 0.02 * step)
+        points[:3] = [[5.25, 5.0, 5.0], [5.0, 4.75, 5.0], [5.0, 5.0, 5.125]]  # on the distance
+        bound = 0.25 if step % 10 else 0.125  # the bound narrowing and widening again
+        got_d, got_j = search(points, bound)
+        want_d, want_j = tree.query(points, distance_upper_bound=bound)
+        assert np.array_equal(got_j, want_j)
+        assert got_d.tobytes() == want_d.tobytes()
+    assert np.isfinite(want_d).sum() > 100  # most of them walked into reach

@@ -17,12 +17,18 @@ def nearest(tree: cKDTree, points: np.ndarray, distance: float) -> tuple[np.ndar
     return tree.query(points, distance_upper_bound=distance, workers=inner_workers())
 
 
+# a correspondence search looks this many times its distance far: a point with no neighbour within
+# the distance learns how far its nearest is, and keeps that answer while it moves less than its margin
+REACH = 1.5
+
+
 class MovingNearest:
     """`nearest` for points that move a little between calls (one ICP run's iterations): a point
     keeps its nearest tree point while it has moved less than that point's lead over every other
-    one at its last query (the second nearest, or the search distance), and only the rest are
-    queried again. The same neighbours and distances as a full query: the kept distances use
-    cKDTree's own formula; a tie or a point on the search distance is queried again."""
+    one at its last query (the second nearest, or REACH x the search distance), and only the rest
+    are queried again. The same neighbours and distances as a full query within the distance: the
+    kept distances use cKDTree's own formula; a tie or a nearest point on the search distance is
+    queried again."""
 
     def __init__(self, tree: cKDTree):
         self.tree = tree
@@ -40,7 +46,8 @@ class MovingNearest:
         has = self.index < n
         d = np.full(len(points), np.inf)
         d[has] = _distance(points[has], self.tree.data[self.index[has]])
-        kept = np.where(has, (d < lower) & (d != distance), lower > distance)
+        # still the nearest, and plainly inside or beyond the search distance
+        kept = np.where(has, (d < lower) & (np.abs(d - distance) > 1e-9), lower > distance)
         out = np.where(kept & (d < distance), self.index, n)
         d[out == n] = np.inf
         again = np.flatnonzero(~kept)
@@ -49,15 +56,22 @@ class MovingNearest:
         return d, out
 
     def _query(self, points: np.ndarray, distance: float, rows: np.ndarray):
-        """The two nearest of `points` (rows `rows` of the cache), kept for the next call."""
-        d, j = self.tree.query(points, k=2, distance_upper_bound=distance, workers=inner_workers())
-        # two equally near: the first of two need not be the one a single-neighbour query picks
-        tie = np.flatnonzero(np.isfinite(d[:, 0]) & (d[:, 0] == d[:, 1]))
-        if len(tie):
-            j[tie, 0] = nearest(self.tree, points[tie], distance)[1]
+        """The two nearest of `points` within REACH x `distance` (rows `rows` of the cache), kept
+        for the next call; returned as a query within `distance` gives them."""
+        reach = REACH * distance
+        d, j = self.tree.query(points, k=2, distance_upper_bound=reach, workers=inner_workers())
         self.at[rows], self.index[rows] = points, j[:, 0]
-        self.floor[rows] = np.where(np.isfinite(d[:, 1]), d[:, 1], distance)
-        return d[:, 0], j[:, 0]
+        self.floor[rows] = np.where(np.isfinite(d[:, 1]), d[:, 1], reach)
+        beyond = d[:, 0] >= distance
+        found, index = np.where(beyond, np.inf, d[:, 0]), np.where(beyond, self.tree.n, j[:, 0])
+        # the tree's own answer where these do not make it plain: two equally near (the first of
+        # two need not be the one a single-neighbour query picks), or a nearest on the distance
+        ask = np.flatnonzero(
+            np.isfinite(d[:, 0]) & ((d[:, 0] == d[:, 1]) | (np.abs(d[:, 0] - distance) <= 1e-9))
+        )
+        if len(ask):
+            found[ask], index[ask] = nearest(self.tree, points[ask], distance)
+        return found, index
 
 
 def _distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
