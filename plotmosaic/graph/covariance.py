@@ -34,9 +34,10 @@ MIN_REDUNDANCY = 6.0
 # one edge's squared whitened residual counts at most this much (chi2, 6 dof, p = 0.999): a wrong
 # edge the robust kernel already discounts must not inflate its whole group
 MAX_EDGE_CHI2 = 22.46
-# a group's sigmas shrink at most 10x (an exact synthetic edge would make it infinitely sure) and
-# grow at most 1000x
-FACTOR_RANGE = (1e-2, 1e6)
+# a group's sigmas shrink at most 2x: loop residuals see only the part of a pair's error that
+# differs between pairs; what neighbouring pairs share (same scene, same sampling) cancels around
+# a loop yet moves every scan. They grow at most 1000x.
+FACTOR_RANGE = (0.25, 1e6)
 
 
 def edge_group(G: nx.Graph, u: str, v: str) -> str:
