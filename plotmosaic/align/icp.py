@@ -11,10 +11,18 @@ from scipy.spatial import cKDTree
 from plotmosaic.config.align import IcpStage
 from plotmosaic.parallel import inner_workers
 
+# a query of fewer points runs in the calling thread: cKDTree's split of a small query (an ICP
+# iteration's) across threads costs more CPU than it saves time; each point's answer is the same
+SPLIT_QUERY_POINTS = 50_000
+
+
+def _workers(points: np.ndarray) -> int:
+    return inner_workers() if len(points) >= SPLIT_QUERY_POINTS else 1
+
 
 def nearest(tree: cKDTree, points: np.ndarray, distance: float) -> tuple[np.ndarray, np.ndarray]:
     """(distances, indices) of each point's nearest tree point; inf / len(tree) beyond `distance`."""
-    return tree.query(points, distance_upper_bound=distance, workers=inner_workers())
+    return tree.query(points, distance_upper_bound=distance, workers=_workers(points))
 
 
 # a correspondence search looks this many times its distance far: a point with no neighbour within
@@ -59,7 +67,7 @@ class MovingNearest:
         """The two nearest of `points` within REACH x `distance` (rows `rows` of the cache), kept
         for the next call; returned as a query within `distance` gives them."""
         reach = REACH * distance
-        d, j = self.tree.query(points, k=2, distance_upper_bound=reach, workers=inner_workers())
+        d, j = self.tree.query(points, k=2, distance_upper_bound=reach, workers=_workers(points))
         self.at[rows], self.index[rows] = points, j[:, 0]
         self.floor[rows] = np.where(np.isfinite(d[:, 1]), d[:, 1], reach)
         beyond = d[:, 0] >= distance
