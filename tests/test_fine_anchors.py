@@ -66,7 +66,9 @@ def test_anchors_hold_a_drifting_chain_and_place_a_scan_without_pairs():
     factors = G.graph["calibration"]["P1"]
     als = factors["als-tls/translation"]
     assert als["redundancy"] + factors["als-tls/rotation"]["redundancy"] > 6, factors
-    assert als["factor"] != factors["tls-tls/translation"]["factor"]
+    pairs = factors["tls-tls/translation"]
+    # its own estimate from its own residuals (the factors themselves may meet at the floor)
+    assert als["redundancy"] != pairs["redundancy"], factors
 
 
 def test_only_kept_placements_become_anchors():

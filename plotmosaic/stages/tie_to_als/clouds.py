@@ -6,7 +6,6 @@ from pathlib import Path
 
 import numpy as np
 
-from plotmosaic.align.voxel import voxel_centroids
 from plotmosaic.config.register import TieConfig
 from plotmosaic.errors import InputError
 from plotmosaic.graph.prepared import load_points
@@ -19,25 +18,71 @@ from plotmosaic.poses import Poses
 LAS_SCALE = 0.001  # write_cloud's default: the plot and ALS clouds are written at 1 mm
 
 
-def _voxel(xyz: np.ndarray, size: float) -> np.ndarray:
-    """Voxel-thinned points, computed near the origin so UTM-sized values keep their precision."""
-    frame = Frame.around(xyz)
-    return frame.to_global(voxel_centroids(frame.to_local(xyz), size))
-
-
 def _scan_points(
     manifest: Manifest, scan, prepared: dict[str, Path], config: TieConfig
-) -> tuple[np.ndarray, bool]:
-    """(the scan's points, whether they are thinned already): register-plot's prepared (delta0-thinned)
-    cloud when it is still there, else the file, within the reading budget."""
+) -> np.ndarray:
+    """The scan's points: register-plot's prepared (delta0-thinned) cloud when it is still there,
+    else the file, within the reading budget."""
     entry = prepared.get(scan.id)
     if entry is not None and entry.is_file():
         try:
-            return load_points(entry), True
+            return load_points(entry)
         except Exception:  # damaged entry: read the scan itself
             pass
     path = manifest.resolve(scan.path)
-    return read_scan_points(path, config.read, config.align).xyz, False
+    return read_scan_points(path, config.read, config.align).xyz
+
+
+KEY_BITS = 21  # per axis of a packed voxel key: 2M voxels a side, 105 km at the default 5 cm
+
+
+class _VoxelSums:
+    """Running per-voxel sums and counts over a plot's scans, one scan in memory at a time: the
+    plot's centroids without concatenating its scans (memory follows the occupied voxels)."""
+
+    def __init__(self, size: float):
+        self.size = size
+        self.origin: np.ndarray | None = None
+        self.keys = np.zeros(0, dtype=np.int64)
+        self.sums = np.zeros((0, 3))
+        self.counts = np.zeros(0, dtype=np.int64)
+
+    def add(self, xyz: np.ndarray) -> None:
+        if len(xyz) == 0:
+            return
+        if self.origin is None:
+            self.origin = Frame.around(xyz).offset
+        local = xyz - self.origin
+        half = 1 << (KEY_BITS - 1)
+        ijk = np.floor(local / self.size).astype(np.int64) + half
+        if ijk.min() < 0 or ijk.max() >= 2 * half:
+            raise InputError(
+                f"the plot spans more than {2 * half} voxels of {self.size} m a side: "
+                "raise [tie] plot_voxel"
+            )
+        keys = (ijk[:, 0] << (2 * KEY_BITS)) | (ijk[:, 1] << KEY_BITS) | ijk[:, 2]
+        self._merge(keys, local)
+
+    def _merge(self, keys: np.ndarray, local: np.ndarray) -> None:
+        # the scan reduced to its voxels first, then merged into the sorted running ones
+        keys, inverse = np.unique(keys, return_inverse=True)
+        n = len(keys)
+        sums = np.stack(
+            [np.bincount(inverse, weights=local[:, c], minlength=n) for c in range(3)], axis=1
+        )
+        counts = np.bincount(inverse, minlength=n)
+        at = np.searchsorted(self.keys, keys)
+        known = at < len(self.keys)
+        known[known] = self.keys[at[known]] == keys[known]
+        self.sums[at[known]] += sums[known]
+        self.counts[at[known]] += counts[known]
+        new = ~known
+        self.keys = np.insert(self.keys, at[new], keys[new])
+        self.sums = np.insert(self.sums, at[new], sums[new], axis=0)
+        self.counts = np.insert(self.counts, at[new], counts[new])
+
+    def centroids(self) -> np.ndarray:
+        return self.sums / self.counts[:, None] + self.origin
 
 
 def plot_cloud(
@@ -47,19 +92,18 @@ def plot_cloud(
     config: TieConfig,
     prepared: dict[str, Path] | None = None,
 ) -> PointCloud:
-    """All placed scans of the plot in the plot frame, thinned to `config.plot_voxel`.
-
-    A scan read from its file is thinned on its own first (memory: its 8M points are not kept);
-    a prepared cloud is thinned already (delta0 cubes), so it joins the one pass over the plot."""
-    parts = []
+    """All placed scans of the plot in the plot frame, thinned to `config.plot_voxel`: each
+    voxel's centroid over every scan's points in it (a prepared cloud's delta0 centroids, or the
+    file's points), summed scan by scan so one scan at a time is held."""
+    voxels = _VoxelSums(config.plot_voxel)
     for scan in plot.scans:
         if scan.id in poses.scans:
-            xyz, thinned = _scan_points(manifest, scan, prepared or {}, config)
-            xyz = apply_transform(poses.transform(scan.id), xyz)
-            parts.append(xyz if thinned else _voxel(xyz, config.plot_voxel))
-    if not parts:
+            xyz = _scan_points(manifest, scan, prepared or {}, config)
+            voxels.add(apply_transform(poses.transform(scan.id), xyz))
+            del xyz
+    if voxels.origin is None:
         raise InputError(f"plot {plot.id!r}: none of its scans has a pose in the poses file")
-    return PointCloud(_voxel(np.concatenate(parts), config.plot_voxel))
+    return PointCloud(voxels.centroids())
 
 
 def as_stored(cloud: PointCloud, scale: float = LAS_SCALE) -> PointCloud:
