@@ -35,12 +35,14 @@ class DemoResult:
     reports: list[Path]
     html: Path  # the final report.html (georeferenced): summary, slice, distances, map
     plot_errors: dict[str, tuple[float, float]]  # scan -> (deg, m), relative to the plot reference
+    # (the reference scans themselves not listed: they are the frame)
     geo_errors: dict[str, tuple[float, float]]  # scan -> (deg, m), in the ALS CRS
     seconds: dict[str, float] = field(default_factory=dict)
 
 
 def plot_frame_errors(estimated: Poses, truth: Poses) -> dict[str, tuple[float, float]]:
-    """Errors of register-plot poses: both sides expressed relative to each plot's reference scan."""
+    """Errors of register-plot poses: both sides expressed relative to each plot's reference scan
+    (the reference itself left out: it is the frame, its error zero by construction)."""
     errors = {}
     refs = {
         p: next(
@@ -52,6 +54,8 @@ def plot_frame_errors(estimated: Poses, truth: Poses) -> dict[str, tuple[float, 
     }
     for sid, sp in estimated.scans.items():
         ref = refs[sp.plot]
+        if sid == ref:
+            continue
         true_rel = inverse(truth.transform(ref)) @ truth.transform(sid)
         errors[sid] = pose_error(sp.transform, true_rel)
     return errors

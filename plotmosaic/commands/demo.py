@@ -32,17 +32,27 @@ def demo_command(
     typer.echo("pose errors against the simulator's ground truth")
     typer.echo(f"  {'scan':<10} {'plot frame':>22} {'ALS CRS (georeferenced)':>28}")
     for sid in sorted(result.geo_errors):
-        pr, pt = result.plot_errors.get(sid, (float("nan"), float("nan")))
         gr, gt = result.geo_errors[sid]
-        typer.echo(
-            f"  {sid:<10} {pt * 100:8.2f} cm {pr:7.3f} deg {gt * 100:12.2f} cm {gr:7.3f} deg"
-        )
-    worst_plot = max(result.plot_errors.values(), key=lambda e: e[1])
-    worst_geo = max(result.geo_errors.values(), key=lambda e: e[1])
-    typer.echo(
-        f"  worst: plot frame {worst_plot[1] * 100:.2f} cm / {max(e[0] for e in result.plot_errors.values()):.3f} deg, "
-        f"georeferenced {worst_geo[1] * 100:.2f} cm / {max(e[0] for e in result.geo_errors.values()):.3f} deg"
+        if sid in result.plot_errors:
+            pr, pt = result.plot_errors[sid]
+            plot = f"{pt * 100:8.2f} cm {pr:7.3f} deg"
+        else:
+            plot = f"{'(the plot frame)':>22}"  # the reference: zero by construction
+        typer.echo(f"  {sid:<10} {plot} {gt * 100:12.2f} cm {gr:7.3f} deg")
+    plot_errors, geo_errors = result.plot_errors.values(), result.geo_errors.values()
+    worst = (
+        [
+            f"plot frame {max(e[1] for e in plot_errors) * 100:.2f} cm / "
+            f"{max(e[0] for e in plot_errors):.3f} deg"
+        ]
+        if plot_errors
+        else []
     )
+    worst.append(
+        f"georeferenced {max(e[1] for e in geo_errors) * 100:.2f} cm / "
+        f"{max(e[0] for e in geo_errors):.3f} deg"
+    )
+    typer.echo(f"  worst: {', '.join(worst)}")
     typer.echo("")
     typer.echo(f"merged LAZ:  {result.merged}")
     for report in result.reports:
