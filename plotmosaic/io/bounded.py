@@ -19,11 +19,9 @@ from plotmosaic.config.align import AlignConfig
 from plotmosaic.config.merge import CHUNK_SIZE
 from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.errors import InputError
+from plotmosaic.io import cells
 from plotmosaic.io.cloud import PointCloud
 from plotmosaic.io.las import file_format, iter_chunks, read_cloud, read_header_info
-
-_BITS = 21  # per axis: three signed cell indices packed into one int64 key
-_HALF = 1 << (_BITS - 1)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -151,11 +149,10 @@ class _FirstPerCell:
         return np.floor(local, out=local).astype(np.int64)
 
     def _fits(self, fine: np.ndarray) -> bool:
-        return (fine.min() >> self.level) >= -_HALF and (fine.max() >> self.level) < _HALF
+        return cells.fits(fine.min() >> self.level, fine.max() >> self.level)
 
     def _pack(self, fine: np.ndarray) -> np.ndarray:
-        idx = (fine >> self.level) + _HALF
-        return (idx[:, 0] << (2 * _BITS)) | (idx[:, 1] << _BITS) | idx[:, 2]
+        return cells.pack(fine >> self.level)
 
     def add(self, xyz: np.ndarray) -> None:
         if not len(xyz):

@@ -9,6 +9,7 @@ import numpy as np
 from plotmosaic.config.register import TieConfig
 from plotmosaic.errors import InputError
 from plotmosaic.graph.prepared import load_points
+from plotmosaic.io import cells
 from plotmosaic.io.bounded import read_scan_points
 from plotmosaic.io.frame import Frame, apply_transform
 from plotmosaic.io.las import PointCloud, las_offsets, read_cloud
@@ -33,9 +34,6 @@ def _scan_points(
     return read_scan_points(path, config.read, config.align).xyz
 
 
-KEY_BITS = 21  # per axis of a packed voxel key: 2M voxels a side, 105 km at the default 5 cm
-
-
 class _VoxelSums:
     """Running per-voxel sums and counts over a plot's scans, one scan in memory at a time: the
     plot's centroids without concatenating its scans (memory follows the occupied voxels)."""
@@ -53,15 +51,13 @@ class _VoxelSums:
         if self.origin is None:
             self.origin = Frame.around(xyz).offset
         local = xyz - self.origin
-        half = 1 << (KEY_BITS - 1)
-        ijk = np.floor(local / self.size).astype(np.int64) + half
-        if ijk.min() < 0 or ijk.max() >= 2 * half:
+        ijk = np.floor(local / self.size).astype(np.int64)
+        if not cells.fits(ijk.min(), ijk.max()):
             raise InputError(
-                f"the plot spans more than {2 * half} voxels of {self.size} m a side: "
+                f"the plot spans more than {2 * cells.HALF} voxels of {self.size} m a side: "
                 "raise [tie] plot_voxel"
             )
-        keys = (ijk[:, 0] << (2 * KEY_BITS)) | (ijk[:, 1] << KEY_BITS) | ijk[:, 2]
-        self._merge(keys, local)
+        self._merge(cells.pack(ijk), local)
 
     def _merge(self, keys: np.ndarray, local: np.ndarray) -> None:
         # the scan reduced to its voxels first, then merged into the sorted running ones
