@@ -17,7 +17,15 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from plotmosaic.config.report import AlsFitConfig
-from plotmosaic.report.slice import GridExtent, Ground, cell_keys, cell_minima, ground_model
+from plotmosaic.report.slice import (
+    GridExtent,
+    Ground,
+    cell_keys,
+    cell_minima,
+    flat_keys,
+    ground_model,
+    runs,
+)
 
 NMAD_SCALE = 1.4826  # NMAD = this x median absolute deviation: the std of a normal distribution
 
@@ -99,10 +107,9 @@ def _tops(xyz: np.ndarray, cell: float, band: float) -> tuple[np.ndarray, np.nda
     if not len(xyz):
         return np.zeros((0, 2), np.int64), np.zeros(0), np.zeros(0, np.int64)
     keys = cell_keys(xyz, cell)
-    cells, inverse = np.unique(keys, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
-    top = np.full(len(cells), -np.inf)
-    np.maximum.at(top, inverse, xyz[:, 2])
+    order, starts, inverse = runs(flat_keys(keys))
+    cells = keys[order[starts]]
+    top = np.maximum.reduceat(xyz[:, 2][order], starts)
     near = np.bincount(inverse, xyz[:, 2] >= top[inverse] - band, minlength=len(cells))
     return cells, top, near.astype(np.int64)
 

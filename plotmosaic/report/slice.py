@@ -39,7 +39,7 @@ def cell_keys(xy: np.ndarray, cell: float) -> np.ndarray:
     return out
 
 
-def _runs(flat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def runs(flat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(order, run starts, inverse) of flat keys: np.unique(return_index, return_inverse) by one plain sort."""
     order, starts = groups(flat)
     inverse = np.empty(len(flat), np.int64)
@@ -54,7 +54,7 @@ def cell_floor(xyz: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray, np
     keys = cell_keys(xyz, cell)
     if not len(keys):
         return np.zeros((0, 2), np.int64), np.zeros(0), np.zeros(0, np.int64)
-    order, starts, inverse = _runs(flat_keys(keys))
+    order, starts, inverse = runs(flat_keys(keys))
     zmin = np.minimum.reduceat(xyz[:, 2][order], starts)
     return keys[order[starts]], zmin, inverse
 
@@ -72,7 +72,7 @@ def merge_minima(
     keys, z = np.vstack([a[0], b[0]]), np.concatenate([a[1], b[1]])
     if not len(keys):
         return keys, z
-    order, starts, _ = _runs(flat_keys(keys))
+    order, starts, _ = runs(flat_keys(keys))
     return keys[order[starts]], np.minimum.reduceat(z[order], starts)
 
 
