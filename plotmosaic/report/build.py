@@ -37,7 +37,7 @@ def plot_views(inp: ReportInput, cfg: ReportConfig, seed: int) -> list[PlotView]
     for plot, scans in inp.plots.items():
         v = collect(plot, scans, inp.paths, inp.poses, inp.reader, cfg, seed)
         if plot not in inp.judged_in:
-            v = with_distances(v, inp.graph, cfg)
+            v = with_distances(v, inp.graph, cfg, seed)
         views_.append(with_als_fit(v, inp.als_xyz, cfg))
     return views_
 

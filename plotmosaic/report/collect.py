@@ -78,11 +78,12 @@ def kept_edges(G: nx.Graph, scans: list[str]) -> list[tuple[str, str]]:
     )
 
 
-def with_distances(view: PlotView, G: nx.Graph, cfg: ReportConfig) -> PlotView:
+def with_distances(view: PlotView, G: nx.Graph, cfg: ReportConfig, seed: int) -> PlotView:
     """The view with the cloud-to-cloud distances of its kept edges."""
     trees: dict = {}
+    rng = np.random.default_rng(seed)
     edges = [
-        edge_distances(s, t, view.thinned, trees, cfg.distance)
+        edge_distances(s, t, view.thinned, trees, cfg.distance, rng)
         for s, t in kept_edges(G, list(view.scans))
         if s in view.thinned and t in view.thinned
     ]

@@ -100,7 +100,7 @@ def _stem_inset(ax, st: Stem, colours: dict, origin: np.ndarray, number: int) ->
 
 
 def plot_edge_distances(
-    path: Path, edges: list[dict], origin: np.ndarray, colour_max: float, cell: float = 0.25
+    path: Path, edges: list[dict], origin: np.ndarray, colour_max: float, cell: float = 0.5
 ) -> Path:
     """Per edge: histogram of distances to the other scan's local surface in the overlap, and a map of them from above.
 
