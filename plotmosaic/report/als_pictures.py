@@ -12,6 +12,9 @@ import numpy as np
 from plotmosaic.io.pictures import pyplot, savefig
 from plotmosaic.report.als_fit import AlsFit, Raster
 
+# fixed margins of a map beside a histogram: a tight layout is a second pass over every text
+MARGINS = {"left": 0.05, "right": 0.98, "top": 0.92, "bottom": 0.1, "wspace": 0.25}
+
 
 def _extent(r: Raster, origin: np.ndarray) -> tuple[float, float, float, float]:
     x0, x1, y0, y1 = r.extent
@@ -44,7 +47,7 @@ def plot_ground_difference(path: Path, fit: AlsFit, origin: np.ndarray, colour_m
     )
     g = fit.ground
     values = np.clip(fit.ground_values, -2 * colour_max, 2 * colour_max) * 100
-    hist.hist(values, bins=60, color="tab:blue")
+    hist.stairs(*np.histogram(values, 60), fill=True, color="tab:blue")  # one path, not 60 bars
     hist.axvline(0, color="grey", lw=0.8)
     hist.axvline(g.median * 100, color="black", ls="--", lw=1.2, label="median")
     for sign in (-1, 1):
@@ -56,7 +59,7 @@ def plot_ground_difference(path: Path, fit: AlsFit, origin: np.ndarray, colour_m
         fontsize=10,
     )
     hist.legend(fontsize=8)
-    fig.tight_layout()
+    fig.subplots_adjust(**MARGINS)
     return savefig(fig, path, tight=False)
 
 
@@ -89,7 +92,7 @@ def plot_canopy(path: Path, fit: AlsFit, origin: np.ndarray) -> Path:
     sc.set_title(f"median {c.median:+.2f} m, NMAD {c.nmad:.2f} m ({c.count} cells)", fontsize=10)
     sc.set_aspect("equal")
     sc.legend(fontsize=8)
-    fig.tight_layout()
+    fig.subplots_adjust(**MARGINS)
     return savefig(fig, path, tight=False)
 
 
@@ -113,5 +116,5 @@ def plot_scan_residuals(path: Path, fit: AlsFit) -> Path:
     g_ax.set_title("ground, median and NMAD", fontsize=10)
     c_ax.set_title("canopy top, median and NMAD", fontsize=10)
     fig.suptitle(f"plot {fit.plot}: each scan against the ALS")
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.08, right=0.98, top=0.86, bottom=0.12 + 0.1 * (len(names) > 6))
     return savefig(fig, path, tight=False)

@@ -38,6 +38,10 @@ def plot_scans(
         ax.set_xlabel("x (m)" if not origin.any() else f"x - {origin[0]:.0f} (m)")
     top.set_ylabel("y (m)" if not origin.any() else f"y - {origin[1]:.0f} (m)")
     side.set_ylabel("z (m)" if not origin.any() else f"z - {origin[2]:.0f} (m)")
-    top.legend(markerscale=12, fontsize=8, loc="best")
+    # below the views, never over the points: loc="best" scores every point at every candidate place
+    fig.legend(
+        markerscale=12, fontsize=8, loc="lower center", ncol=min(len(clouds), 8), frameon=False
+    )
+    fig.subplots_adjust(left=0.06, right=0.98, top=0.9, bottom=0.15, wspace=0.2)
     fig.suptitle(title)
-    return savefig(fig, path)
+    return savefig(fig, path, tight=False)

@@ -12,6 +12,7 @@ import networkx as nx
 import numpy as np
 
 from plotmosaic.io.pictures import pyplot, savefig
+from plotmosaic.report.pictures import dots
 from plotmosaic.report.slice import Ground, Stem, cell_minima, ground_model
 
 
@@ -40,19 +41,14 @@ def plot_breast_slice(
     ax = fig.add_subplot(gs[:, :2])
     for name, xyz in slices.items():
         p = xyz[:, :2] - origin[:2]
-        ax.scatter(
-            p[:, 0],
-            p[:, 1],
-            s=1.5,
-            color=colours[name],
-            label=f"{name} ({len(p)} pts)",
-            rasterized=True,
-        )
+        dots(ax, p[:, 0], p[:, 1], 1.5, colours[name], label=f"{name} ({len(p)} pts)")
     for k, st in enumerate(chosen):
         c = st.centre - origin[:2]
         h = st.radius + 0.15
         ax.add_patch(
-            pyplot().Rectangle((c[0] - h, c[1] - h), 2 * h, 2 * h, fill=False, ec="black", lw=0.8)
+            pyplot().Rectangle(
+                (c[0] - h, c[1] - h), 2 * h, 2 * h, fill=False, ec="black", lw=0.8, zorder=3
+            )
         )
         ax.text(c[0] + h, c[1] + h, f" {k + 1}", fontsize=9, weight="bold")
     ax.set_aspect("equal")
@@ -72,14 +68,17 @@ def _stem_inset(ax, st: Stem, colours: dict, origin: np.ndarray, number: int) ->
     h = st.radius + 0.12
     for name, p in st.points.items():
         q = p - origin[:2]
-        ax.scatter(
+        dots(
+            ax,
             q[:, 0],
             q[:, 1],
-            s=6,
-            color=colours.get(name, "grey"),
+            6,
+            colours.get(name, "grey"),
             label=name if name in st.arcs else None,
         )
-    ax.add_patch(pyplot().Circle(tuple(c), st.radius, fill=False, ls="--", lw=0.7, ec="black"))
+    ax.add_patch(
+        pyplot().Circle(tuple(c), st.radius, fill=False, ls="--", lw=0.7, ec="black", zorder=3)
+    )
     ax.set_xlim(c[0] - h, c[0] + h)
     ax.set_ylim(c[1] - h, c[1] + h)
     ax.set_aspect("equal")
