@@ -53,3 +53,19 @@ def test_a_2_cm_lift_reads_2_cm_from_a_sample_as_from_all_points():
         "source", "target", clouds, {}, cfg, np.random.default_rng(0), sample=20_000
     )
     np.testing.assert_array_equal(again["distances"], part["distances"])  # seeded
+
+
+def test_local_normals_of_lines_and_blobs_are_unit_eigenvectors():
+    """Neighbours on a line (a double smallest eigenvalue), all in one point, or spread evenly:
+    the normal is still a unit eigenvector of the smallest eigenvalue."""
+    rng = np.random.default_rng(2)
+    line = np.linspace(0, 1, 6)[:, None] * [1.0, 2.0, 0.5]
+    cube = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1], [0.5, 0.5, 0.5]])
+    nb = np.stack([line, np.zeros((6, 3)), cube, *rng.normal(size=(50, 6, 3))])
+    _, normal = local_normals(nb)
+    np.testing.assert_allclose(np.linalg.norm(normal, axis=1), 1.0, atol=1e-9)
+    q = nb - nb.mean(axis=1, keepdims=True)
+    scatter = np.einsum("nki,nkj->nij", q, q)
+    smallest = np.linalg.eigvalsh(scatter)[:, 0]
+    residual = np.einsum("nij,nj->ni", scatter, normal) - smallest[:, None] * normal
+    np.testing.assert_allclose(residual, 0.0, atol=1e-9)

@@ -38,16 +38,50 @@ def spacing(tree: cKDTree, xyz: np.ndarray, k: int, sample: int = 2000) -> float
 
 
 def local_normals(nb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(centre, unit normal) of the plane through each row's neighbours (n, k, 3): the smallest
-    eigenvector of their scatter, whose six entries are summed column by column (an (n, 3, 3)
-    einsum costs more than the eigen solve)."""
+    """(centre, unit normal) of the plane through each row's neighbours (n, k, 3): the
+    eigenvector of their scatter's smallest eigenvalue."""
     centre = nb.mean(axis=1)
     q = nb - centre[:, None, :]
-    scatter = np.empty((len(q), 3, 3))
-    for i in range(3):
-        for j in range(i, 3):
-            scatter[:, i, j] = scatter[:, j, i] = np.einsum("nk,nk->n", q[:, :, i], q[:, :, j])
-    return centre, np.linalg.eigh(scatter)[1][:, :, 0]
+    s = {
+        (i, j): np.einsum("nk,nk->n", q[:, :, i], q[:, :, j]) for i in range(3) for j in range(i, 3)
+    }
+    return centre, _smallest_eigenvector(s)
+
+
+def _smallest_eigenvector(s: dict) -> np.ndarray:
+    """Per row of a symmetric 3 x 3 matrix given by its six entries s[(i, j)], i <= j: the
+    smallest eigenvalue in closed form (the trigonometric solution of the characteristic cubic),
+    its eigenvector as the longest cross product of two rows of (S - lambda I). A batched eigh
+    pays a LAPACK call per matrix. Rows where that eigenvalue is (nearly) double, whose
+    eigenvector the cross products do not fix, go to eigh."""
+    a00, a11, a22, a01, a02, a12 = (s[k] for k in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)))
+    mean = (a00 + a11 + a22) / 3
+    b00, b11, b22 = a00 - mean, a11 - mean, a22 - mean
+    p = np.sqrt((b00**2 + b11**2 + b22**2 + 2 * (a01**2 + a02**2 + a12**2)) / 6)
+    det = b00 * (b11 * b22 - a12**2) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        half = np.clip(det / (2 * p**3), -1, 1)
+    lam = mean + 2 * p * np.cos(np.arccos(np.nan_to_num(half)) / 3 + 2 * np.pi / 3)
+    rows = (
+        np.stack([a00 - lam, a01, a02], 1),
+        np.stack([a01, a11 - lam, a12], 1),
+        np.stack([a02, a12, a22 - lam], 1),
+    )
+    cross = np.stack(
+        [np.cross(rows[0], rows[1]), np.cross(rows[0], rows[2]), np.cross(rows[1], rows[2])], 1
+    )
+    size = np.einsum("nki,nki->nk", cross, cross)
+    pick = size.argmax(axis=1)
+    best = cross[np.arange(len(cross)), pick]
+    norm = np.sqrt(size[np.arange(len(cross)), pick])
+    weak = norm <= 1e-9 * (3 * mean) ** 2
+    out = best / np.where(weak, 1.0, norm)[:, None]
+    if weak.any():
+        full = np.empty((int(weak.sum()), 3, 3))
+        for (i, j), v in s.items():
+            full[:, i, j] = full[:, j, i] = v[weak]
+        out[weak] = np.linalg.eigh(full)[1][:, :, 0]
+    return out
 
 
 def edge_distances(
