@@ -8,8 +8,7 @@ tie-to-als folder. Each placed scan's error is taken in its own frame, xi = Log(
 divided by that axis's sigma. Printed per run and over all runs: the share of translation and of
 rotation components within 1 and 2 sigma (68 % and 95 % if the sigmas are right), in the plot
 frame (truth in the reference scan's true frame; the reference itself, the frame, left out) and
-georeferenced (truth in UTM). Each plot's anchor (plot -> ALS) is listed too: its true error
-against its sigma, since every georeferenced scan of a plot shares it.
+georeferenced (truth in UTM), then the share within 1 sigma of each axis over all runs.
 
 --resolve: the poses are solved again with the current code instead of read from the folders:
 each plot's pose graph from REG's stored edges (graph.json, the placement/ cache), then the region
@@ -185,6 +184,11 @@ def main() -> None:
     for frame, zs in every.items():
         if zs:
             print(row("**all**", frame, np.vstack(zs)))
+    for frame, zs in every.items():
+        if zs:
+            z = np.vstack(zs)
+            within = " ".join(f"{100 * np.mean(z[:, k] < 1):.0f}" for k in range(6))
+            print(f"{frame}: share within 1 sigma by axis (rx ry rz tx ty tz): {within} %")
 
 
 if __name__ == "__main__":

@@ -11,8 +11,10 @@ is divided by its variance factor
 
 where C_pred is the covariance of the relative pose the solution predicts for that edge (the joint
 marginal of its two scans). Iterated a few times (each factor changes the others' redundancy), then
-the marginals of the last solve are the scans' covariances. A group without redundancy (a tree, or
-one anchor a plot) keeps its information: nothing observes its scale.
+the marginals at the last solve's poses are the scans' covariances. The loops' factors are floored
+twice: for the solve's weights and, lower in rotation, for the reported sigmas (see the floors
+below). A group without redundancy (a tree, or one anchor a plot) keeps its information: nothing
+observes its scale.
 """
 
 from __future__ import annotations
@@ -34,10 +36,16 @@ MIN_REDUNDANCY = 6.0
 # one edge's squared whitened residual counts at most this much (chi2, 6 dof, p = 0.999): a wrong
 # edge the robust kernel already discounts must not inflate its whole group
 MAX_EDGE_CHI2 = 22.46
-# a group's sigmas shrink at most 2x: loop residuals see only the part of a pair's error that
-# differs between pairs; what neighbouring pairs share (same scene, same sampling) cancels around
-# a loop yet moves every scan. They grow at most 1000x.
-FACTOR_RANGE = (0.25, 1e6)
+# Loop residuals see only the part of a pair's error that differs between pairs; what neighbouring
+# pairs share (same stems, same sampling) cancels around a loop yet moves every scan. So the loops'
+# variance factors are trusted only so far below 1, differently for the two uses:
+# the solve's weights shrink a group's sigmas at most 2x: trusting the loops' relative weighting of
+# rotation and translation further makes the poses worse;
+SOLVE_FLOOR = {"rotation": 0.25, "translation": 0.25}
+# the reported sigmas shrink at most ~4.5x in rotation and ~1.6x in translation, where the shared
+# error mostly lies: so they cover the true errors as often as they claim (results/uncertainty.md).
+REPORT_FLOOR = {"rotation": 0.05, "translation": 0.4}
+MAX_FACTOR = 1e6  # a group's sigmas grow at most 1000x
 
 
 def edge_group(G: nx.Graph, u: str, v: str) -> str:
@@ -48,22 +56,33 @@ def edge_group(G: nx.Graph, u: str, v: str) -> str:
 
 @dataclass
 class Scales:
-    """Variance factor of each (group, block): the information of its edges is divided by it."""
+    """The loops' variance factor of each (group, block), as observed; the information of its edges
+    is divided by it, floored for the solve (`SOLVE_FLOOR`) or for the reported sigmas
+    (`REPORT_FLOOR`)."""
 
-    factors: dict[tuple[str, str], float] = field(default_factory=dict)
+    observed: dict[tuple[str, str], float] = field(default_factory=dict)
     redundancy: dict[tuple[str, str], float] = field(default_factory=dict)
 
-    def apply(self, group: str, info: np.ndarray) -> np.ndarray:
+    def factor(self, key: tuple[str, str], floor: dict[str, float]) -> float:
+        return float(np.clip(self.observed.get(key, 1.0), floor[key[1]], MAX_FACTOR))
+
+    def apply(self, group: str, info: np.ndarray, floor: dict[str, float]) -> np.ndarray:
         d = np.ones(6)
         for block, sl in BLOCKS.items():
-            d[sl] = 1.0 / np.sqrt(self.factors.get((group, block), 1.0))
+            d[sl] = 1.0 / np.sqrt(self.factor((group, block), floor))
         return info * np.outer(d, d)
 
     def as_dict(self) -> dict:
-        """JSON form: "group/block" -> {"factor", "redundancy"}."""
+        """JSON form: "group/block" -> {"factor" (the reported sigmas'), "solve_factor",
+        "observed" (the loops'), "redundancy"}."""
         return {
-            f"{g}/{b}": {"factor": f, "redundancy": self.redundancy.get((g, b), 0.0)}
-            for (g, b), f in sorted(self.factors.items())
+            f"{g}/{b}": {
+                "factor": self.factor((g, b), REPORT_FLOOR),
+                "solve_factor": self.factor((g, b), SOLVE_FLOOR),
+                "observed": f,
+                "redundancy": self.redundancy.get((g, b), 0.0),
+            }
+            for (g, b), f in sorted(self.observed.items())
         }
 
 
@@ -107,6 +126,11 @@ class EdgeInformation:
     config: PoseGraphConfig
     scales: Scales = field(default_factory=Scales)
     held: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
+    floor: dict[str, float] = field(default_factory=lambda: SOLVE_FLOOR)
+
+    def reporting(self) -> EdgeInformation:
+        """The same edges and factors, floored for the reported sigmas."""
+        return EdgeInformation(self.G, self.config, self.scales, self.held, REPORT_FLOOR)
 
     def of(self, u: str, v: str) -> np.ndarray:
         key = (u, v) if u <= v else (v, u)
@@ -117,7 +141,7 @@ class EdgeInformation:
                 if e.get("posterior")
                 else condition_information(e.get("information"), e.get("inlier_rmse"), self.config)
             )
-        return self.scales.apply(edge_group(self.G, u, v), self.held[key])
+        return self.scales.apply(edge_group(self.G, u, v), self.held[key], self.floor)
 
 
 def noise_model(info: np.ndarray, config: PoseGraphConfig):
@@ -215,24 +239,24 @@ def variance_components(
 
 
 def update_scales(scales: Scales, quad: dict, red: dict) -> Scales:
-    """Each group's factors times their newly observed variance factors: a factor per block where
-    each block has the redundancy, one for the whole group where only both together have it, none
-    where the group has not (its information kept)."""
-    factors, redundancy = dict(scales.factors), dict(scales.redundancy)
+    """Each group's observed factors: the factors the solve used times their newly observed
+    variance factors; a factor per block where each block has the redundancy, one for the whole
+    group where only both together have it, none where the group has not (its information kept)."""
+    observed, redundancy = dict(scales.observed), dict(scales.redundancy)
     redundancy.update(red)
     for group in sorted({g for g, _ in red}):
         keys = [(group, b) for b in BLOCKS]
         r = [red.get(k, 0.0) for k in keys]
         q = [quad.get(k, 0.0) for k in keys]
         if min(r) >= MIN_REDUNDANCY:
-            observed = [qi / ri for qi, ri in zip(q, r, strict=True)]
+            s2 = [qi / ri for qi, ri in zip(q, r, strict=True)]
         elif sum(r) >= MIN_REDUNDANCY:
-            observed = [sum(q) / sum(r)] * len(keys)
+            s2 = [sum(q) / sum(r)] * len(keys)
         else:
             continue
-        for k, s2 in zip(keys, observed, strict=True):
-            factors[k] = float(np.clip(factors.get(k, 1.0) * s2, *FACTOR_RANGE))
-    return Scales(factors=factors, redundancy=redundancy)
+        for k, s2k in zip(keys, s2, strict=True):
+            observed[k] = scales.factor(k, SOLVE_FLOOR) * s2k
+    return Scales(observed=observed, redundancy=redundancy)
 
 
 def marginal_covariances(graph, result, keys: dict[str, int]) -> dict[str, np.ndarray]:

@@ -284,27 +284,10 @@ def _solve(G: nx.Graph, reference: str, config: PoseGraphConfig, information: Ed
     init = spanning_tree_poses(G, reference)
     placed = sorted(init)
     keys = {name: gtsam.symbol("x", n) for n, name in enumerate(placed)}
-    graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     for name in placed:
         values.insert(keys[name], _pose3(init[name]))
-    graph.add(
-        gtsam.PriorFactorPose3(
-            keys[reference], gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
-        )
-    )
-    for u, v, e in kept(G).edges(data=True):
-        if u not in keys or v not in keys:
-            continue
-        info = information.of(u, v)
-        graph.add(
-            gtsam.BetweenFactorPose3(
-                keys[e["target"]],
-                keys[e["source"]],
-                _pose3(e["transform"]),
-                noise_model(info, config),
-            )
-        )
+    graph = _factor_graph(G, reference, keys, config, information)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(config.max_iterations)
     params.setRelativeErrorTol(1e-10)
@@ -320,9 +303,34 @@ def _solve(G: nx.Graph, reference: str, config: PoseGraphConfig, information: Ed
     return sol, graph, result, keys
 
 
+def _factor_graph(
+    G: nx.Graph, reference: str, keys: dict[str, int], config: PoseGraphConfig, information
+):
+    """The reference fixed at the identity and one between-factor per kept edge."""
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(
+        gtsam.PriorFactorPose3(
+            keys[reference], gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
+        )
+    )
+    for u, v, e in kept(G).edges(data=True):
+        if u not in keys or v not in keys:
+            continue
+        graph.add(
+            gtsam.BetweenFactorPose3(
+                keys[e["target"]],
+                keys[e["source"]],
+                _pose3(e["transform"]),
+                noise_model(information.of(u, v), config),
+            )
+        )
+    return graph
+
+
 def _calibrated(G: nx.Graph, reference: str, config: PoseGraphConfig, information, solved):
     """The last solve again with each edge group's information scaled by its residuals (rounds of
-    variance components), then every placed scan's marginal covariance, once."""
+    variance components), then every placed scan's marginal covariance, once, at those poses with
+    the factors floored for reporting (covariance.REPORT_FLOOR)."""
     sol, graph, result, keys = solved
     if config.calibration_rounds and redundancy_dof(kept(G), set(keys)) > 0:
         # plain least squares while calibrating: a robust kernel discounts the very residuals
@@ -336,8 +344,9 @@ def _calibrated(G: nx.Graph, reference: str, config: PoseGraphConfig, informatio
             )
             information.scales = update_scales(information.scales, quad, red)
         sol, graph, result, keys = _solve(G, reference, config, information)
+    reported = _factor_graph(G, reference, keys, config, information.reporting())
     sol.covariances, sol.sigmas, sol.about_plot = scan_covariances(
-        G, graph, result, keys, sol.poses
+        G, reported, result, keys, sol.poses
     )
     sol.scales = information.scales.as_dict()
     return sol
