@@ -24,8 +24,7 @@ def subsample(xyz: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
 
 def origin_of(clouds: dict[str, np.ndarray]) -> np.ndarray:
     """A round-metre origin for axis labels, so UTM clouds plot as metres from a corner."""
-    xyz = np.vstack(list(clouds.values()))
-    lo = xyz.min(axis=0)
+    lo = np.min([p.min(axis=0) for p in clouds.values() if len(p)], axis=0)  # no stacked copy
     return np.floor(lo / 10.0) * 10.0 if np.abs(lo).max() > 1e4 else np.zeros(3)
 
 

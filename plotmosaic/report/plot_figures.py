@@ -97,8 +97,10 @@ def slice_figure(v: PlotView, origin: np.ndarray, inp: ReportInput, cfg: ReportC
 
 
 def map_figure(v: PlotView, origin: np.ndarray, inp: ReportInput, unsure: set, background) -> list:
-    positions = {
-        s: scan_position(inp.poses[s], v.thinned.get(s)) for s in v.scans if s in inp.poses
+    positions = {  # the stations the view found, else the poses' origins
+        s: v.stations[s] if s in v.stations else scan_position(inp.poses[s], v.thinned.get(s))
+        for s in v.scans
+        if s in inp.poses
     }
     png = views.plot_map(
         inp.out / f"{v.plot}_map.png",
