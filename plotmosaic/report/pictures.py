@@ -15,6 +15,12 @@ def dots(ax, x, y, s: float, color, **kwargs):
     return ax.plot(x, y, "o", ms=float(np.sqrt(s)), color=color, ls="none", **kwargs)
 
 
+def scan_colours(names: list[str]) -> dict[str, tuple]:
+    """One colour per scan, the same in every picture of a page."""
+    cmap = pyplot().get_cmap("tab10" if len(names) <= 10 else "tab20")
+    return {n: cmap(k % cmap.N) for k, n in enumerate(names)}
+
+
 def plot_scans(
     path: Path, clouds: dict[str, np.ndarray], title: str, origin: np.ndarray | None = None
 ) -> Path:
@@ -23,12 +29,11 @@ def plot_scans(
     fig, (top, side) = pyplot().subplots(
         1, 2, figsize=(13, 5.5), gridspec_kw={"width_ratios": [1, 1.3]}
     )
-    cmap = pyplot().get_cmap("tab10" if len(clouds) <= 10 else "tab20")
-    for n, (name, xyz) in enumerate(clouds.items()):
+    # the ALS, in the background, takes no scan's colour
+    colours = scan_colours([n for n in clouds if n != "ALS"])
+    for name, xyz in clouds.items():
         xyz = xyz - origin
-        colour = (
-            "lightgrey" if name == "ALS" else cmap(n % cmap.N)
-        )  # the reference stays in the background
+        colour = colours.get(name, "lightgrey")
         dots(top, xyz[:, 0], xyz[:, 1], 0.3, colour, label=name, rasterized=True)
         dots(side, xyz[:, 0], xyz[:, 2], 0.3, colour, rasterized=True)
     top.set_aspect("equal")

@@ -13,7 +13,7 @@ import numpy as np
 from plotmosaic.config.report import ReportConfig
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.report.collect import als_under, sample
-from plotmosaic.report.views import scan_colours
+from plotmosaic.report.pictures import scan_colours
 
 BYTES_PER_POINT = 21  # three float32 coordinates as plotly writes them (base64), with the framing
 ALS_AROUND = 10.0  # ALS shown this far (m) around the scans: the ground they stand on

@@ -12,13 +12,8 @@ import networkx as nx
 import numpy as np
 
 from plotmosaic.io.pictures import pyplot, savefig
-from plotmosaic.report.pictures import dots
+from plotmosaic.report.pictures import dots, scan_colours
 from plotmosaic.report.slice import Ground, Stem, cell_minima, ground_model
-
-
-def scan_colours(names: list[str]) -> dict[str, tuple]:
-    cmap = pyplot().get_cmap("tab10" if len(names) <= 10 else "tab20")
-    return {n: cmap(k % cmap.N) for k, n in enumerate(names)}
 
 
 def plot_breast_slice(
