@@ -1,0 +1,89 @@
+"""A big plot's ALS placements as a register-plot worker runs them: CPU per placement, where it goes.
+
+    python benchmarks/placements.py SIM/manifest.toml --n 6 --prepared DIR [--compare REG/placement]
+    python benchmarks/placements.py SIM/manifest.toml --n 4 --prepared DIR --profile p.prof
+
+The first `--n` scan -> ALS jobs of the manifest's big plots (register-plot's own jobs: same keys,
+settings and seed) run one after another in this process with a thread budget of 1, as one pool
+worker of `-j 2` runs them: the tile is loaded, and its memo kept, across the placements. Scans are
+prepared into `--prepared` (a copy of REG/prepared skips that). The clock is the process's CPU.
+Printed per placement: its CPU and the coarse stage's own timings (wall, within the placement);
+`--compare REG/placement`: whether each transform and confidence equal that run's to the bit;
+`--profile FILE`: cProfile of the placements alone (sort it with pstats).
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import json
+import time
+from pathlib import Path
+
+from plotmosaic.config.register import RegisterConfig
+from plotmosaic.graph.executor import run_pair_job, with_reading
+from plotmosaic.graph.pairs import manifest_positions
+from plotmosaic.graph.placement import placement_jobs
+from plotmosaic.manifest import load_manifest
+from plotmosaic.parallel import set_threads
+
+
+def jobs(manifest_path: str, prepared: str, seed: int = 0):
+    """register-plot's placement jobs of every big plot without positions (default settings)."""
+    manifest, config = load_manifest(manifest_path), RegisterConfig()
+    out = []
+    for plot in manifest.plots:
+        if len(plot.scans) > config.pairs.all_pairs_up_to and manifest_positions(plot) is None:
+            found = placement_jobs(
+                manifest,
+                plot,
+                config.placement.model_dump_json(),
+                seed,
+                prepared,
+                config.align.model_dump_json(),
+            )
+            out += with_reading(found, config.read)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("manifest")
+    ap.add_argument("--n", type=int, default=4, help="placements run (the first n scans)")
+    ap.add_argument("--prepared", required=True, help="prepared-cloud cache folder")
+    ap.add_argument("--compare", help="a register-plot run's placement/ folder")
+    ap.add_argument("--profile", help="write cProfile stats of the placements here")
+    args = ap.parse_args()
+    set_threads(1)
+    todo = jobs(args.manifest, args.prepared)[: args.n]
+    profiler = cProfile.Profile() if args.profile else None
+    total, differ = 0.0, 0
+    for job in todo:
+        t = time.process_time()
+        if profiler:
+            profiler.enable()
+        record = run_pair_job(job)
+        if profiler:
+            profiler.disable()
+        cpu = time.process_time() - t
+        total += cpu
+        coarse = (record.get("coarse") or {}).get("timing", {})
+        line = f"{job.source}: {record['status']}, {cpu:.2f} CPU s; coarse " + ", ".join(
+            f"{k} {v:.2f}" for k, v in coarse.items()
+        )
+        if args.compare:
+            cached = Path(args.compare) / f"{job.key}.json"
+            other = json.loads(cached.read_text()) if cached.is_file() else {}
+            same = all(record.get(k) == other.get(k) for k in ("status", "transform", "confidence"))
+            differ += not same
+            line += "; same bits" if same else "; DIFFERENT from the run's"
+        print(line, flush=True)
+    print(f"{len(todo)} placements: {total:.1f} CPU s ({total / max(1, len(todo)):.2f} each)")
+    if args.compare:
+        print("all the same to the bit" if not differ else f"{differ} differ")
+    if profiler:
+        profiler.dump_stats(args.profile)
+
+
+if __name__ == "__main__":
+    main()
