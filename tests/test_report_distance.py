@@ -35,13 +35,10 @@ def test_a_2_cm_lift_reads_2_cm_from_a_sample_as_from_all_points():
         "target": _surface(rng, 200_000),
         "source": _surface(rng, 120_000) + [0, 0, 0.02],
     }
-    cfg = DistanceConfig()
-    every = edge_distances(
-        "source", "target", clouds, {}, cfg, np.random.default_rng(0), sample=len(clouds["source"])
-    )
-    part = edge_distances(
-        "source", "target", clouds, {}, cfg, np.random.default_rng(0), sample=20_000
-    )
+    whole = DistanceConfig(sample=len(clouds["source"]))
+    cfg = DistanceConfig(sample=20_000)
+    every = edge_distances("source", "target", clouds, {}, whole, np.random.default_rng(0))
+    part = edge_distances("source", "target", clouds, {}, cfg, np.random.default_rng(0))
     assert len(every["distances"]) > 100_000
     assert 10_000 < len(part["distances"]) <= 20_000
     # the surface tilts by up to ~10 deg: the distance along its normal is 2 cm x cos(tilt)
@@ -49,9 +46,7 @@ def test_a_2_cm_lift_reads_2_cm_from_a_sample_as_from_all_points():
     assert abs(part["median"] - every["median"]) < 0.0003
     assert abs(part["p90"] - every["p90"]) < 0.0005
     assert part["share"] > 0.95
-    again = edge_distances(
-        "source", "target", clouds, {}, cfg, np.random.default_rng(0), sample=20_000
-    )
+    again = edge_distances("source", "target", clouds, {}, cfg, np.random.default_rng(0))
     np.testing.assert_array_equal(again["distances"], part["distances"])  # seeded
 
 

@@ -96,6 +96,12 @@ class DistanceConfig(BaseModel):
         le=10_000_000,
         description="cap per scan after thinning: bounds memory and KD-tree time",
     )
+    sample: int = Field(
+        50_000,
+        ge=1000,
+        le=10_000_000,
+        description="source points measured an edge, a seeded subset: thousands stay in the overlap",
+    )
     neighbourhood: float = Field(
         0.15,
         gt=0,

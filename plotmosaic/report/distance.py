@@ -91,7 +91,6 @@ def edge_distances(
     trees: dict,
     cfg: DistanceConfig,
     rng: np.random.Generator,
-    sample: int = 50_000,
 ) -> dict:
     """Distance of each source point to the plane through its nearest target points, in the overlap.
 
@@ -99,7 +98,7 @@ def edge_distances(
     `neighbourhood`, or within the target's own spacing where it is sparser, as an ALS tile): elsewhere a nearest-neighbour distance measures the other scan's point spacing
     (foliage, far ground), not the registration. The local plane (CloudCompare's C2C with a local
     model) takes the target's sampling out of the figure, so a few millimetres mean aligned.
-    At most `sample` source points are measured, a seeded random subset: the overlap still holds
+    At most `cfg.sample` source points are measured, a seeded random subset: the overlap still holds
     thousands of them, whose median and 90 % stay within their sampling noise of all points'.
     `trees` holds each target's KD-tree and plane reach across the edges of a plot.
     """
@@ -112,8 +111,8 @@ def edge_distances(
         )
     tree, radius = trees[target]
     src = clouds[source]
-    if len(src) > sample:
-        src = src[np.sort(rng.choice(len(src), sample, replace=False))]
+    if len(src) > cfg.sample:
+        src = src[np.sort(rng.choice(len(src), cfg.sample, replace=False))]
     _, idx = tree.query(src, k=cfg.neighbours, distance_upper_bound=radius)
     ok = (idx < len(tgt)).all(axis=1)
     p = src[ok]
