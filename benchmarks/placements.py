@@ -2,6 +2,8 @@
 
     python benchmarks/placements.py SIM/manifest.toml --n 6 --prepared DIR [--compare REG/placement]
     python benchmarks/placements.py SIM/manifest.toml --n 4 --prepared DIR --profile p.prof
+    python benchmarks/placements.py SIM/manifest.toml --pick 0,5,10 --prepared DIR \
+        --coarse '{"fpfh": false}' --compare REG/placement      # one coarse setting changed
 
 The first `--n` scan -> ALS jobs of the manifest's big plots (register-plot's own jobs: same keys,
 settings and seed) run one after another in this process with a thread budget of 1, as one pool
@@ -9,17 +11,20 @@ worker of `-j 2` runs them: the tile is loaded, and its memo kept, across the pl
 prepared into `--prepared` (a copy of REG/prepared skips that). The clock is the process's CPU.
 Printed per placement: its CPU and the coarse stage's own timings (wall, within the placement);
 `--compare REG/placement`: whether each transform and confidence equal that run's to the bit;
-`--profile FILE`: cProfile of the placements alone (sort it with pstats).
+`--profile FILE`: cProfile of the placements alone (sort it with pstats); `--coarse JSON`: the
+placements' coarse settings updated (compared with `--compare` against the default's records).
 """
 
 from __future__ import annotations
 
 import argparse
 import cProfile
+import dataclasses
 import json
 import time
 from pathlib import Path
 
+from plotmosaic.config.align import AlignConfig
 from plotmosaic.config.register import RegisterConfig
 from plotmosaic.graph.executor import run_pair_job, with_reading
 from plotmosaic.graph.pairs import manifest_positions
@@ -46,23 +51,35 @@ def jobs(manifest_path: str, prepared: str, seed: int = 0):
     return out
 
 
+def changed(job, coarse_json: str):
+    """The job with its coarse settings updated (its key kept: records compare with the default's)."""
+    config = AlignConfig.model_validate_json(job.config_json)
+    coarse = config.coarse.model_copy(update=json.loads(coarse_json))
+    return dataclasses.replace(
+        job, config_json=config.model_copy(update={"coarse": coarse}).model_dump_json()
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("manifest")
     ap.add_argument("--n", type=int, default=4, help="placements run (the first n scans)")
+    ap.add_argument("--pick", help="placements run by index, e.g. 0,5,10 (instead of --n)")
+    ap.add_argument("--coarse", help="coarse settings changed, JSON, e.g. '{\"fpfh\": false}'")
     ap.add_argument("--prepared", required=True, help="prepared-cloud cache folder")
     ap.add_argument("--compare", help="a register-plot run's placement/ folder")
     ap.add_argument("--profile", help="write cProfile stats of the placements here")
     args = ap.parse_args()
     set_threads(1)
-    todo = jobs(args.manifest, args.prepared)[: args.n]
+    found = jobs(args.manifest, args.prepared)
+    todo = [found[int(i)] for i in args.pick.split(",")] if args.pick else found[: args.n]
     profiler = cProfile.Profile() if args.profile else None
     total, differ = 0.0, 0
     for job in todo:
         t = time.process_time()
         if profiler:
             profiler.enable()
-        record = run_pair_job(job)
+        record = run_pair_job(changed(job, args.coarse) if args.coarse else job)
         if profiler:
             profiler.disable()
         cpu = time.process_time() - t
