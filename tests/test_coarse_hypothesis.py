@@ -118,7 +118,7 @@ def test_verification_keeps_a_start_s_results_when_other_generators_agree_with_i
     not run again, and its row names the generator that agreed."""
     config = CoarseConfig()
     cloud = _stand(np.random.default_rng(5))
-    verifier = Verifier(cloud, cloud, False, config, np.random.default_rng(0))
+    verifier = Verifier(cloud, Levels(cloud), False, config, np.random.default_rng(0))
     icps = []
     real = verification._refine
     monkeypatch.setattr(verification, "_refine", lambda *args: icps.append(args[2]) or real(*args))

@@ -166,7 +166,7 @@ def test_fpfh_voxel_is_shared_and_respects_both_caps():
     rng = np.random.default_rng(0)
     small, wide = rng.uniform(0, 12, (20_000, 3)), rng.uniform(0, 36, (60_000, 3))
     c = CoarseConfig(fpfh_max_points=2_000, fpfh_max_points_larger=8_000)
-    voxel = features3d.shared_voxel([small, wide], c)
+    voxel = features3d.shared_voxel([features3d.voxel_count(p) for p in (small, wide)], c)
     n = sorted(len(voxel_centroids(p, voxel)) for p in (small, wide))
     assert n[0] <= 2_000 and n[1] <= 8_000
     # one step finer breaks a cap: the voxel is the finest that fits

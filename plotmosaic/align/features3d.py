@@ -10,6 +10,7 @@ Everything is seeded and bounded (points, samples), so the same inputs give the 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,17 +37,23 @@ class Features:
     descriptors: np.ndarray  # (N, 33)
 
 
-def shared_voxel(clouds: list[np.ndarray], config: CoarseConfig) -> float:
+def voxel_count(points: np.ndarray) -> Callable[[float], int]:
+    """The points left of `points` at a voxel size: what `shared_voxel` asks of a cloud."""
+    return lambda voxel: len(voxel_centroids(points, voxel))
+
+
+def shared_voxel(counts: list[Callable[[float], int]], config: CoarseConfig) -> float:
     """One FPFH voxel for both clouds: descriptors compare only at the same scale.
 
     Grown from `fpfh_voxel` until the smaller cloud holds at most `fpfh_max_points` and the larger
     at most `fpfh_max_points_larger` (a 6 m boxed view against a 30 m one: 2,600 and 11,000 points
     at 0.3 m; each capped on its own, the larger grew to 0.5 m and no descriptor matched).
+    `counts`: each cloud's points at a voxel size (`voxel_count`, or one kept in the cloud's memo).
     """
     c = config
     voxel = c.fpfh_voxel
     for _ in range(64):  # bounded: each step removes ~30 % of the points
-        n = sorted(len(voxel_centroids(p, voxel)) for p in clouds)
+        n = sorted(count(voxel) for count in counts)
         if n[0] <= c.fpfh_max_points and n[-1] <= c.fpfh_max_points_larger:
             break
         voxel *= 1.2
@@ -58,7 +65,7 @@ def fpfh_features(points: np.ndarray, config: CoarseConfig, voxel: float | None 
     c = config
     # a common voxel, not a random subset: a subset would put the two clouds' points in different
     # places and leave almost no repeatable descriptors (8 right matches of 1,900 on MLS views)
-    voxel = shared_voxel([points], c) if voxel is None else voxel
+    voxel = shared_voxel([voxel_count(points)], c) if voxel is None else voxel
     pts = voxel_centroids(points, voxel)
     scale = voxel / c.fpfh_voxel  # neighbourhoods keep their size in voxels
     desc = fpfh(pts, c.fpfh_normal_radius * scale, c.fpfh_radius * scale, c.fpfh_max_nn)

@@ -12,13 +12,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from plotmosaic.align import stemmap
+from plotmosaic.align import features3d, stemmap
 from plotmosaic.align.levelling import Vertical, rotate, vertical_hypotheses
 from plotmosaic.align.memo import CloudMemo, Shelf
 from plotmosaic.align.normals import local_shape
 from plotmosaic.align.rasters import PointFeatures, height_above_ground, point_features
 from plotmosaic.align.sampling import sample
-from plotmosaic.align.voxel import voxel_centroids
+from plotmosaic.align.voxel import thin, voxel_centroids
 from plotmosaic.config.coarse import CoarseConfig
 
 AIRBORNE = {"als", "uls"}
@@ -86,6 +86,38 @@ class Levels:
             return stemmap.stem_map(lv.points, lv.normals, lv.hag, config)
 
         return self.shelf.get(("stems", v.name), make)
+
+    def ground_tree(self, v: Vertical, config: CoarseConfig) -> cKDTree | None:
+        """KD-tree of the ground cells' xy of the cloud levelled under `v` (Levelled.ground_tree)."""
+        return self.shelf.get(("ground", v.name), lambda: self.level(v, config).ground_tree(config))
+
+    def voxels(self, voxel: float) -> int:
+        """Points of the cloud at `voxel` (features3d.voxel_count: every pair's FPFH voxel search
+        asks a target for the same few sizes)."""
+        return self.shelf.get(
+            ("voxels", voxel), lambda: len(voxel_centroids(self.cloud.points, voxel))
+        )
+
+    def fpfh(self, config: CoarseConfig, voxel: float) -> features3d.Features:
+        """FPFH of the cloud at `voxel`."""
+        return self.shelf.get(
+            ("fpfh", voxel), lambda: features3d.fpfh_features(self.cloud.points, config, voxel)
+        )
+
+    def verify_sample(self, config: CoarseConfig) -> tuple:
+        """(points, normals, KD-tree): one point (and its own normal) per verify cube, the
+        coarse verification's target."""
+
+        def make() -> tuple:
+            pts, nrm = self.cloud.points, self.cloud.normals
+            keep = thin(pts, config.verify_voxel)
+            return (
+                pts[keep],
+                nrm[keep],
+                cKDTree(pts[keep], balanced_tree=False, compact_nodes=False),
+            )
+
+        return self.shelf.get(("verify",), make)
 
 
 def coarse_cloud(

@@ -6,21 +6,16 @@ from __future__ import annotations
 import numpy as np
 
 from plotmosaic.align import features3d
-from plotmosaic.align.coarse.clouds import CoarseCloud, homogeneous
+from plotmosaic.align.coarse.clouds import Levels, homogeneous
 from plotmosaic.align.coarse.hypothesis import Start
 from plotmosaic.align.levelling import rotate
 from plotmosaic.config.coarse import CoarseConfig
 
 
-def fpfh_matches(
-    src: CoarseCloud, tgt: CoarseCloud, config: CoarseConfig
-) -> tuple[np.ndarray, np.ndarray]:
+def fpfh_matches(src: Levels, tgt: Levels, config: CoarseConfig) -> tuple[np.ndarray, np.ndarray]:
     """Mutually matched FPFH points (source, target), local frames."""
-    voxel = features3d.shared_voxel([src.points, tgt.points], config)
-    fs, ft = (
-        features3d.fpfh_features(src.points, config, voxel),
-        features3d.fpfh_features(tgt.points, config, voxel),
-    )
+    voxel = features3d.shared_voxel([src.voxels, tgt.voxels], config)
+    fs, ft = src.fpfh(config, voxel), tgt.fpfh(config, voxel)
     i, j = features3d.mutual_matches(fs, ft)
     return fs.points[i], ft.points[j]
 

@@ -209,7 +209,7 @@ def raster_starts(
         hyps = search(ls, lt, weights, config, prior_l)[
             : config.hypotheses if k == 0 else config.secondary_hypotheses
         ]
-        ground_tree = lt.ground_tree(config)
+        ground_tree = tgt.ground_tree(vt, config)
         if k == 0:
             hyps = hyps + _small_scene(ls, lt, weights, config, prior_l)
         for h in hyps:

@@ -14,7 +14,7 @@ def slice_starts(src: Levels, tgt: Levels, pairs, config: CoarseConfig) -> list[
     out = []
     for vs, vt in pairs:
         ls, lt = src.level(vs, config), tgt.level(vt, config)
-        ground_tree = lt.ground_tree(config)
+        ground_tree = tgt.ground_tree(vt, config)
         for h in slices.slice_search(ls.points, ls.hag, lt.points, lt.hag, config):
             A = hypothesis_transform(
                 ls, lt, ground_tree, config, yaw=h.yaw, t_xy=h.t_xy, centre=h.centre

@@ -74,7 +74,7 @@ class _Generators:
         if config.fpfh:
             t = time.perf_counter()
             if self.matches is None:
-                self.matches = fpfh_matches(src.cloud, tgt.cloud, config)
+                self.matches = fpfh_matches(src, tgt, config)
             own = chosen[: max(0, config.fpfh_vertical_pairs - first)]
             out += fpfh_starts(self.matches, own, config, self.rng, six_dof=first == 0)
             _clock(timing, "fpfh", t)
@@ -114,7 +114,7 @@ def coarse_align(
     timing = {"levelling": time.perf_counter() - start}
     prior = None if prior is None else np.asarray(prior, dtype=float)
     airborne = source.kind in AIRBORNE or target.kind in AIRBORNE
-    verify = Verifier(src.cloud, tgt.cloud, airborne, config, rng)
+    verify = Verifier(src.cloud, tgt, airborne, config, rng)
     # generators draw from their own stream: adding one changes no other
     generate = _Generators(
         src,

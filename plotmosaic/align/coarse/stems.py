@@ -21,7 +21,7 @@ def stem_starts(
         found = stemmap.match_stem_maps(ms, mt, config, rng)
         if not found:
             continue
-        ground_tree = lt.ground_tree(config)
+        ground_tree = tgt.ground_tree(vt, config)
         for yaw, t_xy, n in found:
             A = hypothesis_transform(
                 ls, lt, ground_tree, config, yaw=yaw, t_xy=t_xy, centre=np.zeros(2)

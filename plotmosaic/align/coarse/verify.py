@@ -8,9 +8,8 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from plotmosaic.align.coarse.clouds import CoarseCloud
+from plotmosaic.align.coarse.clouds import CoarseCloud, Levels
 from plotmosaic.align.coarse.hypothesis import Hypothesis, Start
 from plotmosaic.align.icp import evaluate, point_to_plane_icp
 from plotmosaic.align.sampling import sample
@@ -109,9 +108,7 @@ class Verifier:
     """Screens starts (short ICP), refines the best distinct ones, and ranks them; each start and each
     refinement is computed once, so a second call with more starts only pays for the new ones."""
 
-    def __init__(
-        self, src: CoarseCloud, tgt: CoarseCloud, airborne: bool, config: CoarseConfig, rng
-    ):
+    def __init__(self, src: CoarseCloud, tgt: Levels, airborne: bool, config: CoarseConfig, rng):
         self.config = config
         d = config.verify_distance_airborne if airborne else config.verify_distance_ground
         self.d = d
@@ -120,12 +117,7 @@ class Verifier:
         )
         # verification in the clouds' local frames (each hypothesis carries its own verticals); one kept
         # point (and its own normal: averaged axial normals cancel) per verify cube
-        keep = thin(tgt.points, config.verify_voxel)
-        self.tgt_v = (
-            tgt.points[keep],
-            tgt.normals[keep],
-            cKDTree(tgt.points[keep], balanced_tree=False, compact_nodes=False),
-        )
+        self.tgt_v = tgt.verify_sample(config)  # the target's memo: one per target cloud
         keep = thin(src.points, config.verify_voxel)
         keep = keep[sample(len(keep), config.verify_points, rng)]
         self.src_v = src.points[keep]
