@@ -74,6 +74,11 @@ def main() -> None:
     found = jobs(args.manifest, args.prepared)
     todo = [found[int(i)] for i in args.pick.split(",")] if args.pick else found[: args.n]
     profiler = cProfile.Profile() if args.profile else None
+    # the run's record of each scan's placement, whatever settings its key was made with
+    earlier = {}
+    for path in sorted(Path(args.compare).glob("*.json")) if args.compare else []:
+        record = json.loads(path.read_text())
+        earlier[record.get("source")] = record
     total, differ = 0.0, 0
     for job in todo:
         t = time.process_time()
@@ -89,8 +94,7 @@ def main() -> None:
             f"{k} {v:.2f}" for k, v in coarse.items()
         )
         if args.compare:
-            cached = Path(args.compare) / f"{job.key}.json"
-            other = json.loads(cached.read_text()) if cached.is_file() else {}
+            other = earlier.get(job.source, {})
             same = all(record.get(k) == other.get(k) for k in ("status", "transform", "confidence"))
             differ += not same
             line += "; same bits" if same else "; DIFFERENT from the run's"

@@ -7,6 +7,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from plotmosaic.config.align import AlignConfig
+from plotmosaic.config.coarse import CoarseConfig
 from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.config.report import ReportConfig
 from plotmosaic.config.scale import PlacedPriors, SignatureConfig
@@ -98,6 +99,12 @@ def graph_align_config() -> AlignConfig:
     return AlignConfig(min_confidence=0.0)
 
 
+def placement_align_config() -> AlignConfig:
+    """Scan -> ALS tile settings: no FPFH starts (an ALS tile's sparse returns give FPFH no
+    distinctive features to match; benchmarks/results/speed.md, the large plot's placements)."""
+    return AlignConfig(coarse=CoarseConfig(fpfh=False))
+
+
 class RegisterOptions(BaseModel):
     """register-plot's own settings (beside its pairwise and pose-graph settings)."""
 
@@ -148,7 +155,7 @@ class RegisterConfig(RegisterOptions):
         default_factory=PairSelection, description="which pairs are registered"
     )
     placement: AlignConfig = Field(
-        default_factory=AlignConfig, description="scan -> ALS: verified poses only"
+        default_factory=placement_align_config, description="scan -> ALS: verified poses only"
     )
     report: ReportConfig = Field(default_factory=ReportConfig, description="the report's pictures")
     read: ReadingConfig = Field(

@@ -31,6 +31,7 @@ from plotmosaic.config.register import (
     TieConfig,
     TieOptions,
     graph_align_config,
+    placement_align_config,
 )
 from plotmosaic.config.report import ReportConfig
 
@@ -44,6 +45,11 @@ class RegisterSection(RegisterOptions):
         le=1,
         description="judge floor of register-plot's pairs (replaces align.min_confidence there): "
         "unsure pairs still become edges, a loop must confirm them",
+    )
+    placement_fpfh: bool = Field(
+        placement_align_config().coarse.fpfh,
+        description="FPFH starts when placing a scan on the ALS tile (replaces align.coarse.fpfh "
+        "there): a tile's sparse returns give FPFH nothing distinctive to match",
     )
 
 
@@ -79,16 +85,20 @@ class Settings(BaseModel):
         return self.align.model_copy(deep=True)
 
     def register_config(self) -> RegisterConfig:
-        own = self.register_plot.model_dump(exclude={"pair_min_confidence"})
+        own = self.register_plot.model_dump(exclude={"pair_min_confidence", "placement_fpfh"})
         pairwise = self.align.model_copy(
             deep=True, update={"min_confidence": self.register_plot.pair_min_confidence}
+        )
+        placement = self.align.model_copy(deep=True)
+        placement.coarse = placement.coarse.model_copy(
+            update={"fpfh": self.register_plot.placement_fpfh}
         )
         return RegisterConfig(
             **own,
             align=pairwise,
             graph=self.posegraph.model_copy(deep=True),
             pairs=self.pairs.model_copy(deep=True),
-            placement=self.align.model_copy(deep=True),
+            placement=placement,
             report=self.report.model_copy(deep=True),
             read=self.read,
         )
