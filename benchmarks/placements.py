@@ -26,29 +26,15 @@ from pathlib import Path
 
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.config.register import RegisterConfig
-from plotmosaic.graph.executor import run_pair_job, with_reading
-from plotmosaic.graph.pairs import manifest_positions
-from plotmosaic.graph.placement import placement_jobs
+from plotmosaic.graph.executor import run_pair_job
 from plotmosaic.manifest import load_manifest
 from plotmosaic.parallel import set_threads
+from plotmosaic.stages.register_plot.place import placement_plan
 
 
 def jobs(manifest_path: str, prepared: str, seed: int = 0):
     """register-plot's placement jobs of every big plot without positions (default settings)."""
-    manifest, config = load_manifest(manifest_path), RegisterConfig()
-    out = []
-    for plot in manifest.plots:
-        if len(plot.scans) > config.pairs.all_pairs_up_to and manifest_positions(plot) is None:
-            found = placement_jobs(
-                manifest,
-                plot,
-                config.placement.model_dump_json(),
-                seed,
-                prepared,
-                config.align.model_dump_json(),
-            )
-            out += with_reading(found, config.read)
-    return out
+    return placement_plan(load_manifest(manifest_path), RegisterConfig(), seed, Path(prepared))
 
 
 def changed(job, coarse_json: str):

@@ -36,6 +36,25 @@ class Priors:
     ]  # plot id -> its scan -> ALS node edges (none unless als_anchors)
 
 
+def placement_plan(
+    manifest: Manifest, config: RegisterConfig, seed: int, prepared: Path
+) -> list[PairJob]:
+    """The scan -> ALS tile jobs of every big plot without positions (prepared clouds in `prepared`)."""
+    jobs = []
+    for plot in manifest.plots:
+        if len(plot.scans) > config.pairs.all_pairs_up_to and manifest_positions(plot) is None:
+            plot_jobs = placement_jobs(
+                manifest,
+                plot,
+                config.placement.model_dump_json(),
+                seed,
+                str(prepared),
+                config.align.model_dump_json(),
+            )
+            jobs += with_reading(plot_jobs, config.read)
+    return jobs
+
+
 def place_scans(
     manifest: Manifest,
     config: RegisterConfig,
@@ -48,20 +67,7 @@ def place_scans(
     progress: bool = True,
 ) -> tuple[dict[str, np.ndarray], list[PairJob], dict[str, dict]]:
     """Scans of big plots without positions registered to the ALS tile (N pairs instead of N(N-1)/2)."""
-    if not config.place_on_als:
-        return {}, [], {}
-    jobs = []
-    for plot in manifest.plots:
-        if len(plot.scans) > config.pairs.all_pairs_up_to and manifest_positions(plot) is None:
-            plot_jobs = placement_jobs(
-                manifest,
-                plot,
-                config.placement.model_dump_json(),
-                seed,
-                str(out / "prepared"),
-                config.align.model_dump_json(),
-            )
-            jobs += with_reading(plot_jobs, config.read)
+    jobs = placement_plan(manifest, config, seed, out / "prepared") if config.place_on_als else []
     if not jobs:
         return {}, [], {}
     records, _ = compute_pairs(
