@@ -204,3 +204,11 @@ def run_merge(site: Path, out: Path, **options) -> MergeSummary:
     """merge_scans over a site's manifest and poses, in this process (force: a test reruns it)."""
     manifest, poses = load_manifest(site / "manifest.toml"), load_poses(site / "poses.json")
     return merge_scans(manifest, poses, out, MergeConfig(force=True, **options), progress=False)
+
+
+def plane_basis(normal) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(unit normal, u, v): an orthonormal frame whose u and v span the plane of `normal`."""
+    n = np.asarray(normal, dtype=float) / np.linalg.norm(normal)
+    u = np.cross(n, [1.0, 0.0, 0.0])
+    u /= np.linalg.norm(u)
+    return n, u, np.cross(n, u)

@@ -4,6 +4,7 @@ back, and measuring a seeded sample of the source keeps the figures of all its p
 from __future__ import annotations
 
 import numpy as np
+from builders import plane_basis
 
 from plotmosaic.config.report import DistanceConfig
 from plotmosaic.report.distance import edge_distances, local_normals
@@ -18,10 +19,7 @@ def _surface(rng: np.random.Generator, n: int) -> np.ndarray:
 
 def test_local_normals_are_the_planes_normals():
     rng = np.random.default_rng(0)
-    normal = np.array([0.3, -0.2, 1.0]) / np.linalg.norm([0.3, -0.2, 1.0])
-    u = np.cross(normal, [1.0, 0, 0])
-    u /= np.linalg.norm(u)
-    v = np.cross(normal, u)
+    normal, u, v = plane_basis([0.3, -0.2, 1.0])
     ab = rng.normal(size=(500, 6, 2))
     nb = ab[..., :1] * u + ab[..., 1:] * v + rng.normal(size=(500, 1, 3))
     centre, got = local_normals(nb)

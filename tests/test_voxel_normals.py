@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from builders import plane_basis
 from scipy.spatial import cKDTree
 
 from plotmosaic.align.normals import (
@@ -89,10 +90,7 @@ def test_thin_keeps_the_first_point_of_each_cube():
 
 def test_local_shape_on_a_plane_a_line_and_a_scatter():
     rng = np.random.default_rng(1)
-    n = np.array([0.3, -0.2, 1.0]) / np.linalg.norm([0.3, -0.2, 1.0])
-    u = np.cross(n, [1.0, 0.0, 0.0])
-    u /= np.linalg.norm(u)
-    v = np.cross(n, u)
+    n, u, v = plane_basis([0.3, -0.2, 1.0])
     ab = rng.uniform(-2, 2, (8000, 2))
     plane = ab[:, :1] * u + ab[:, 1:] * v + rng.normal(0, 0.002, (8000, 1)) * n
     line = np.column_stack([rng.normal(0, 0.003, (2000, 2)), rng.uniform(0, 4, 2000)]) + [
