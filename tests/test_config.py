@@ -206,10 +206,13 @@ def test_config_needs_exactly_one_of_defaults_or_check(tmp_path):
     assert_one_line_error(invoke("config", "--defaults", "--check", tmp_path / "x.toml"), code=2)
 
 
-def test_placements_run_without_fpfh_unless_asked():
-    # pairs keep FPFH; scan -> ALS placements do not, and [register_plot] placement_fpfh restores it
-    assert RegisterConfig().align.coarse.fpfh and not RegisterConfig().placement.coarse.fpfh
-    on = settings_from_dict({"register_plot": {"placement_fpfh": True}}).register_config()
-    assert on.placement.coarse.fpfh and on.align.coarse.fpfh
+def test_pairs_onto_the_als_run_without_fpfh_unless_asked():
+    # scan pairs keep FPFH; placements and plot -> ALS anchors do not, unless asked
+    assert RegisterConfig().align.coarse.fpfh
+    assert not RegisterConfig().placement.coarse.fpfh and not TieConfig().align.coarse.fpfh
+    on = settings_from_dict(
+        {"register_plot": {"placement_fpfh": True}, "tie_to_als": {"anchor_fpfh": True}}
+    )
+    assert on.register_config().placement.coarse.fpfh and on.tie_config().align.coarse.fpfh
     off = settings_from_dict({"align": {"coarse": {"fpfh": False}}}).register_config()
     assert not off.align.coarse.fpfh and not off.placement.coarse.fpfh

@@ -99,9 +99,9 @@ def graph_align_config() -> AlignConfig:
     return AlignConfig(min_confidence=0.0)
 
 
-def placement_align_config() -> AlignConfig:
-    """Scan -> ALS tile settings: no FPFH starts (an ALS tile's sparse returns give FPFH no
-    distinctive features to match; benchmarks/results/speed.md, the large plot's placements)."""
+def als_pair_align_config() -> AlignConfig:
+    """A TLS scan or plot onto an ALS tile (placements, anchors): no FPFH starts, an ALS tile's
+    sparse returns give FPFH nothing distinctive to match (benchmarks/results/speed.md)."""
     return AlignConfig(coarse=CoarseConfig(fpfh=False))
 
 
@@ -155,7 +155,7 @@ class RegisterConfig(RegisterOptions):
         default_factory=PairSelection, description="which pairs are registered"
     )
     placement: AlignConfig = Field(
-        default_factory=placement_align_config, description="scan -> ALS: verified poses only"
+        default_factory=als_pair_align_config, description="scan -> ALS: verified poses only"
     )
     report: ReportConfig = Field(default_factory=ReportConfig, description="the report's pictures")
     read: ReadingConfig = Field(
@@ -194,7 +194,7 @@ class TieConfig(TieOptions):
     """Settings of tie-to-als."""
 
     align: AlignConfig = Field(
-        default_factory=AlignConfig, description="registration of each plot to the ALS"
+        default_factory=als_pair_align_config, description="registration of each plot to the ALS"
     )
     graph: PoseGraphConfig = Field(
         default_factory=PoseGraphConfig, description="the region's pose graph, ALS fixed"

@@ -30,8 +30,8 @@ from plotmosaic.config.register import (
     RegisterOptions,
     TieConfig,
     TieOptions,
+    als_pair_align_config,
     graph_align_config,
-    placement_align_config,
 )
 from plotmosaic.config.report import ReportConfig
 
@@ -47,8 +47,18 @@ class RegisterSection(RegisterOptions):
         "unsure pairs still become edges, a loop must confirm them",
     )
     placement_fpfh: bool = Field(
-        placement_align_config().coarse.fpfh,
+        als_pair_align_config().coarse.fpfh,
         description="FPFH starts when placing a scan on the ALS tile (replaces align.coarse.fpfh "
+        "there): a tile's sparse returns give FPFH nothing distinctive to match",
+    )
+
+
+class TieSection(TieOptions):
+    """tie-to-als's own settings; its pairwise and pose-graph settings are [align], [posegraph]."""
+
+    anchor_fpfh: bool = Field(
+        als_pair_align_config().coarse.fpfh,
+        description="FPFH starts when registering a plot to the ALS (replaces align.coarse.fpfh "
         "there): a tile's sparse returns give FPFH nothing distinctive to match",
     )
 
@@ -71,7 +81,7 @@ class Settings(BaseModel):
     register_plot: RegisterSection = Field(
         default_factory=RegisterSection, description="register-plot"
     )
-    tie_to_als: TieOptions = Field(default_factory=TieOptions, description="tie-to-als")
+    tie_to_als: TieSection = Field(default_factory=TieSection, description="tie-to-als")
     merge: MergeConfig = Field(default_factory=MergeConfig, description="merge")
     report: ReportConfig = Field(
         default_factory=ReportConfig, description="report of register-plot and tie-to-als"
@@ -89,24 +99,26 @@ class Settings(BaseModel):
         pairwise = self.align.model_copy(
             deep=True, update={"min_confidence": self.register_plot.pair_min_confidence}
         )
-        placement = self.align.model_copy(deep=True)
-        placement.coarse = placement.coarse.model_copy(
-            update={"fpfh": self.register_plot.placement_fpfh}
-        )
         return RegisterConfig(
             **own,
             align=pairwise,
             graph=self.posegraph.model_copy(deep=True),
             pairs=self.pairs.model_copy(deep=True),
-            placement=placement,
+            placement=self._onto_als(self.register_plot.placement_fpfh),
             report=self.report.model_copy(deep=True),
             read=self.read,
         )
 
+    def _onto_als(self, fpfh: bool) -> AlignConfig:
+        """[align] for a TLS cloud onto an ALS tile, with its own FPFH switch."""
+        config = self.align.model_copy(deep=True)
+        config.coarse = config.coarse.model_copy(update={"fpfh": fpfh})
+        return config
+
     def tie_config(self) -> TieConfig:
         return TieConfig(
-            **self.tie_to_als.model_dump(),
-            align=self.align.model_copy(deep=True),
+            **self.tie_to_als.model_dump(exclude={"anchor_fpfh"}),
+            align=self._onto_als(self.tie_to_als.anchor_fpfh),
             graph=self.posegraph.model_copy(deep=True),
             report=self.report.model_copy(deep=True),
             read=self.read,
