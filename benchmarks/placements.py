@@ -24,6 +24,8 @@ import json
 import time
 from pathlib import Path
 
+import numpy as np
+
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.config.register import RegisterConfig
 from plotmosaic.graph.executor import run_pair_job
@@ -43,6 +45,18 @@ def changed(job, coarse_json: str):
     coarse = config.coarse.model_copy(update=json.loads(coarse_json))
     return dataclasses.replace(
         job, config_json=config.model_copy(update={"coarse": coarse}).model_dump_json()
+    )
+
+
+def _difference(record: dict, other: dict) -> str:
+    """How a placement differs from the run's: its status, pose (cm / deg) and confidence."""
+    if record.get("status") != other.get("status") or "transform" not in other:
+        return f"status {record.get('status')} (the run's {other.get('status')})"
+    a, b = np.asarray(record["transform"]), np.asarray(other["transform"])
+    cos = np.clip((np.trace(a[:3, :3].T @ b[:3, :3]) - 1) / 2, -1, 1)
+    return (
+        f"pose {100 * np.linalg.norm(a[:3, 3] - b[:3, 3]):.4f} cm / {np.degrees(np.arccos(cos)):.5f} deg"
+        f" from the run's, confidence {record.get('confidence', 0):.3f} (the run's {other.get('confidence', 0):.3f})"
     )
 
 
@@ -83,7 +97,7 @@ def main() -> None:
             other = earlier.get(job.source, {})
             same = all(record.get(k) == other.get(k) for k in ("status", "transform", "confidence"))
             differ += not same
-            line += "; same bits" if same else "; DIFFERENT from the run's"
+            line += "; same bits" if same else "; " + _difference(record, other)
         print(line, flush=True)
     print(f"{len(todo)} placements: {total:.1f} CPU s ({total / max(1, len(todo)):.2f} each)")
     if args.compare:

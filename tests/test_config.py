@@ -216,3 +216,15 @@ def test_pairs_onto_the_als_run_without_fpfh_unless_asked():
     assert on.register_config().placement.coarse.fpfh and on.tie_config().align.coarse.fpfh
     off = settings_from_dict({"align": {"coarse": {"fpfh": False}}}).register_config()
     assert not off.align.coarse.fpfh and not off.placement.coarse.fpfh
+
+
+def test_placements_settle_on_one_generator_pairs_and_anchors_on_two():
+    # a placement is a prior the pairs verify again; scan pairs and plot -> ALS anchors are results
+    assert RegisterConfig().placement.coarse.settled_generators == 1
+    assert RegisterConfig().align.coarse.settled_generators == 2
+    assert TieConfig().align.coarse.settled_generators == 2
+    defaults = settings_from_dict({})
+    assert defaults.register_config().placement == RegisterConfig().placement
+    two = settings_from_dict({"register_plot": {"placement_settled_generators": 2}})
+    assert two.register_config().placement.coarse.settled_generators == 2
+    assert two.register_config().align.coarse.settled_generators == 2

@@ -105,6 +105,13 @@ def als_pair_align_config() -> AlignConfig:
     return AlignConfig(coarse=CoarseConfig(fpfh=False))
 
 
+def placement_align_config() -> AlignConfig:
+    """A scan onto the ALS tile to place it: as any TLS -> ALS pair, but its search stops at the first
+    vertical pair once one generator's pose is clearly ahead; a placement is a prior and an edge
+    that the pairs it implies verify again (benchmarks/results/speed.md)."""
+    return AlignConfig(coarse=CoarseConfig(fpfh=False, settled_generators=1))
+
+
 class RegisterOptions(BaseModel):
     """register-plot's own settings (beside its pairwise and pose-graph settings)."""
 
@@ -155,7 +162,7 @@ class RegisterConfig(RegisterOptions):
         default_factory=PairSelection, description="which pairs are registered"
     )
     placement: AlignConfig = Field(
-        default_factory=als_pair_align_config, description="scan -> ALS: verified poses only"
+        default_factory=placement_align_config, description="scan -> ALS: verified poses only"
     )
     report: ReportConfig = Field(default_factory=ReportConfig, description="the report's pictures")
     read: ReadingConfig = Field(

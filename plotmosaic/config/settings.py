@@ -32,6 +32,7 @@ from plotmosaic.config.register import (
     TieOptions,
     als_pair_align_config,
     graph_align_config,
+    placement_align_config,
 )
 from plotmosaic.config.report import ReportConfig
 
@@ -47,9 +48,17 @@ class RegisterSection(RegisterOptions):
         "unsure pairs still become edges, a loop must confirm them",
     )
     placement_fpfh: bool = Field(
-        als_pair_align_config().coarse.fpfh,
+        placement_align_config().coarse.fpfh,
         description="FPFH starts when placing a scan on the ALS tile (replaces align.coarse.fpfh "
         "there): a tile's sparse returns give FPFH nothing distinctive to match",
+    )
+    placement_settled_generators: int = Field(
+        placement_align_config().coarse.settled_generators,
+        ge=1,
+        le=3,
+        description="generators that must agree before a placement's search stops at the first "
+        "vertical pair (replaces align.coarse.settled_generators there): a placement is a prior "
+        "the pairs verify again, and one clear pose ahead of its rivals is enough",
     )
 
 
@@ -95,7 +104,9 @@ class Settings(BaseModel):
         return self.align.model_copy(deep=True)
 
     def register_config(self) -> RegisterConfig:
-        own = self.register_plot.model_dump(exclude={"pair_min_confidence", "placement_fpfh"})
+        own = self.register_plot.model_dump(
+            exclude={"pair_min_confidence", "placement_fpfh", "placement_settled_generators"}
+        )
         pairwise = self.align.model_copy(
             deep=True, update={"min_confidence": self.register_plot.pair_min_confidence}
         )
@@ -104,15 +115,20 @@ class Settings(BaseModel):
             align=pairwise,
             graph=self.posegraph.model_copy(deep=True),
             pairs=self.pairs.model_copy(deep=True),
-            placement=self._onto_als(self.register_plot.placement_fpfh),
+            placement=self._onto_als(
+                self.register_plot.placement_fpfh, self.register_plot.placement_settled_generators
+            ),
             report=self.report.model_copy(deep=True),
             read=self.read,
         )
 
-    def _onto_als(self, fpfh: bool) -> AlignConfig:
-        """[align] for a TLS cloud onto an ALS tile, with its own FPFH switch."""
+    def _onto_als(self, fpfh: bool, settled_generators: int | None = None) -> AlignConfig:
+        """[align] for a TLS cloud onto an ALS tile, with its own FPFH switch (and settling rule)."""
         config = self.align.model_copy(deep=True)
-        config.coarse = config.coarse.model_copy(update={"fpfh": fpfh})
+        update: dict[str, Any] = {"fpfh": fpfh}
+        if settled_generators is not None:
+            update["settled_generators"] = settled_generators
+        config.coarse = config.coarse.model_copy(update=update)
         return config
 
     def tie_config(self) -> TieConfig:
