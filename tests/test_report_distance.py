@@ -7,7 +7,7 @@ import numpy as np
 from builders import plane_basis
 
 from plotmosaic.config.report import DistanceConfig
-from plotmosaic.report.distance import edge_distances, local_normals
+from plotmosaic.report.distance import edge_distances, local_normals, target_index
 
 
 def _surface(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -35,8 +35,10 @@ def test_a_2_cm_lift_reads_2_cm_from_a_sample_as_from_all_points():
     }
     whole = DistanceConfig(sample=len(clouds["source"]))
     cfg = DistanceConfig(sample=20_000)
-    every = edge_distances("source", "target", clouds, {}, whole, np.random.default_rng(0))
-    part = edge_distances("source", "target", clouds, {}, cfg, np.random.default_rng(0))
+    index = target_index(clouds["target"], cfg)
+    src = clouds["source"]
+    every = edge_distances("source", "target", src, index, whole, np.random.default_rng(0))
+    part = edge_distances("source", "target", src, index, cfg, np.random.default_rng(0))
     assert len(every["distances"]) > 100_000
     assert 10_000 < len(part["distances"]) <= 20_000
     # the surface tilts by up to ~10 deg: the distance along its normal is 2 cm x cos(tilt)
@@ -44,7 +46,7 @@ def test_a_2_cm_lift_reads_2_cm_from_a_sample_as_from_all_points():
     assert abs(part["median"] - every["median"]) < 0.0003
     assert abs(part["p90"] - every["p90"]) < 0.0005
     assert part["share"] > 0.95
-    again = edge_distances("source", "target", clouds, {}, cfg, np.random.default_rng(0))
+    again = edge_distances("source", "target", src, index, cfg, np.random.default_rng(0))
     np.testing.assert_array_equal(again["distances"], part["distances"])  # seeded
 
 

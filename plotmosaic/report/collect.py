@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import networkx as nx
@@ -13,8 +14,9 @@ import numpy as np
 from plotmosaic.config.report import ReportConfig
 from plotmosaic.graph.prepared import points_reader
 from plotmosaic.io.frame import apply_transform
+from plotmosaic.parallel import in_two_threads
 from plotmosaic.report.als_fit import als_fit
-from plotmosaic.report.distance import edge_distances, scan_medians, thin
+from plotmosaic.report.distance import edge_distances, scan_medians, target_index, thin
 from plotmosaic.report.model import PlotView
 from plotmosaic.report.slice import (
     breast_height_slice,
@@ -32,6 +34,33 @@ def read_scan(path: Path) -> np.ndarray:
     return points_reader({})(path)
 
 
+@dataclass(frozen=True, eq=False)
+class _ScanPart:
+    """What the page keeps of one placed scan."""
+
+    minima: tuple[np.ndarray, np.ndarray]  # its DTM cells' keys and lowest z
+    low: np.ndarray  # its low stratum, thinned
+    thinned: np.ndarray
+    station: np.ndarray
+
+
+def _scan_part(
+    path: Path,
+    pose: np.ndarray,
+    reader: Callable[[Path], np.ndarray],
+    cfg: ReportConfig,
+    rng: np.random.Generator,
+) -> _ScanPart:
+    xyz = apply_transform(pose, reader(path))
+    floor = cell_floor(xyz, cfg.slice.dtm_cell)  # one cell pass: ground model and stratum
+    # memory: the stratum kept grows with the area, not with the points
+    low = thin(low_stratum(xyz, cfg.slice, floor), cfg.slice.stratum_voxel, len(xyz), rng)
+    thinned = thin(xyz, cfg.distance.voxel, cfg.distance.max_points, rng)
+    return _ScanPart(
+        minima=floor[:2], low=low, thinned=thinned, station=scan_position(pose, thinned)
+    )
+
+
 def collect(
     plot: str,
     scans: list[str],
@@ -41,28 +70,29 @@ def collect(
     cfg: ReportConfig,
     seed: int,
 ) -> PlotView:
-    """One read per placed scan; the slice, stems and thinned clouds of the plot."""
-    rng = np.random.default_rng(seed)
-    minima = (np.zeros((0, 2), np.int64), np.zeros(0))
-    low, thinned, per_scan, stations = {}, {}, {}, {}
-    for sid in scans:
-        if sid not in poses or sid not in paths:
-            continue
-        xyz = apply_transform(poses[sid], reader(paths[sid]))
-        floor = cell_floor(xyz, cfg.slice.dtm_cell)  # one cell pass: ground model and stratum
-        per_scan[sid] = floor[:2]
-        minima = merge_minima(minima, floor[:2])
-        # memory: the stratum kept grows with the area, not with the points
-        low[sid] = thin(low_stratum(xyz, cfg.slice, floor), cfg.slice.stratum_voxel, len(xyz), rng)
-        del floor
-        thinned[sid] = thin(xyz, cfg.distance.voxel, cfg.distance.max_points, rng)
-        stations[sid] = scan_position(poses[sid], thinned[sid])
-        del xyz
-    view = PlotView(
-        plot=plot, scans=tuple(scans), thinned=thinned, scan_minima=per_scan, stations=stations
+    """One read per placed scan, two scans at a time (each seeded by its place in `scans`, so the
+    page does not depend on the threads); the slice, stems and thinned clouds of the plot."""
+    placed = [(k, sid) for k, sid in enumerate(scans) if sid in poses and sid in paths]
+    parts = in_two_threads(
+        lambda job: _scan_part(
+            paths[job[1]], poses[job[1]], reader, cfg, np.random.default_rng([seed, job[0]])
+        ),
+        placed,
     )
-    if not low:
+    minima = (np.zeros((0, 2), np.int64), np.zeros(0))
+    for part in parts:  # in the scans' order: the ground model does not depend on the threads
+        minima = merge_minima(minima, part.minima)
+    ids = [sid for _, sid in placed]
+    view = PlotView(
+        plot=plot,
+        scans=tuple(scans),
+        thinned={sid: p.thinned for sid, p in zip(ids, parts, strict=True)},
+        scan_minima={sid: p.minima for sid, p in zip(ids, parts, strict=True)},
+        stations={sid: p.station for sid, p in zip(ids, parts, strict=True)},
+    )
+    if not parts:
         return view
+    low = {sid: p.low for sid, p in zip(ids, parts, strict=True)}
     ground = ground_model(minima, cfg.slice.dtm_cell, cfg.slice.dtm_spike)
     slices = breast_height_slice(low, ground, cfg.slice)
     return dataclasses.replace(
@@ -79,15 +109,33 @@ def kept_edges(G: nx.Graph, scans: list[str]) -> list[tuple[str, str]]:
 
 
 def with_distances(view: PlotView, G: nx.Graph, cfg: ReportConfig, seed: int) -> PlotView:
-    """The view with the cloud-to-cloud distances of its kept edges."""
-    trees: dict = {}
-    rng = np.random.default_rng(seed)
+    """The view with the cloud-to-cloud distances of its kept edges: each target indexed once,
+    edges two at a time, each seeded by its place among the kept edges."""
     edges = [
-        edge_distances(s, t, view.thinned, trees, cfg.distance, rng)
+        (s, t)
         for s, t in kept_edges(G, list(view.scans))
         if s in view.thinned and t in view.thinned
     ]
-    return dataclasses.replace(view, edges=edges, medians=scan_medians(edges))
+    targets = sorted({t for _, t in edges})
+    index = dict(
+        zip(
+            targets,
+            in_two_threads(lambda t: target_index(view.thinned[t], cfg.distance), targets),
+            strict=True,
+        )
+    )
+    measured = in_two_threads(
+        lambda job: edge_distances(
+            job[1][0],
+            job[1][1],
+            view.thinned[job[1][0]],
+            index[job[1][1]],
+            cfg.distance,
+            np.random.default_rng([seed, job[0]]),
+        ),
+        list(enumerate(edges)),
+    )
+    return dataclasses.replace(view, edges=measured, medians=scan_medians(measured))
 
 
 def with_als_fit(view: PlotView, als_xyz: np.ndarray | None, cfg: ReportConfig) -> PlotView:

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 from plotmosaic.align.voxel import groups
 from plotmosaic.config.report import DistanceConfig
+from plotmosaic.parallel import inner_workers
 from plotmosaic.report.slice import flat_keys
 
 
@@ -84,36 +87,45 @@ def _smallest_eigenvector(s: dict) -> np.ndarray:
     return out
 
 
+@dataclass(frozen=True, eq=False)
+class TargetIndex:
+    """A target cloud's KD-tree and how far its local planes reach (built once per target)."""
+
+    points: np.ndarray
+    tree: cKDTree
+    radius: float
+
+
+def target_index(tgt: np.ndarray, cfg: DistanceConfig) -> TargetIndex:
+    """The index edge_distances measures against: within `neighbourhood`, or the target's own
+    spacing where it is sparser (an ALS tile)."""
+    tree = cKDTree(tgt, balanced_tree=False, compact_nodes=False)  # builds faster, same answers
+    reach = max(cfg.neighbourhood, cfg.spacing_factor * spacing(tree, tgt, cfg.neighbours))
+    return TargetIndex(points=tgt, tree=tree, radius=reach)
+
+
 def edge_distances(
     source: str,
     target: str,
-    clouds: dict[str, np.ndarray],
-    trees: dict,
+    src: np.ndarray,
+    index: TargetIndex,
     cfg: DistanceConfig,
     rng: np.random.Generator,
 ) -> dict:
     """Distance of each source point to the plane through its nearest target points, in the overlap.
 
     The overlap is where the target is dense around the source point (all `neighbours` within
-    `neighbourhood`, or within the target's own spacing where it is sparser, as an ALS tile): elsewhere a nearest-neighbour distance measures the other scan's point spacing
-    (foliage, far ground), not the registration. The local plane (CloudCompare's C2C with a local
-    model) takes the target's sampling out of the figure, so a few millimetres mean aligned.
+    the index's reach): elsewhere a nearest-neighbour distance measures the other scan's point
+    spacing (foliage, far ground), not the registration. The local plane (CloudCompare's C2C with a
+    local model) takes the target's sampling out of the figure, so a few millimetres mean aligned.
     At most `cfg.sample` source points are measured, a seeded random subset: the overlap still holds
     thousands of them, whose median and 90 % stay within their sampling noise of all points'.
-    `trees` holds each target's KD-tree and plane reach across the edges of a plot.
     """
-    tgt = clouds[target]
-    if target not in trees:
-        tree = cKDTree(tgt, balanced_tree=False, compact_nodes=False)  # builds faster, same answers
-        trees[target] = (
-            tree,
-            max(cfg.neighbourhood, cfg.spacing_factor * spacing(tree, tgt, cfg.neighbours)),
-        )
-    tree, radius = trees[target]
-    src = clouds[source]
+    tgt, tree, radius = index.points, index.tree, index.radius
     if len(src) > cfg.sample:
         src = src[np.sort(rng.choice(len(src), cfg.sample, replace=False))]
-    _, idx = tree.query(src, k=cfg.neighbours, distance_upper_bound=radius)
+    # split across the thread budget: the same answers
+    _, idx = tree.query(src, k=cfg.neighbours, distance_upper_bound=radius, workers=inner_workers())
     ok = (idx < len(tgt)).all(axis=1)
     p = src[ok]
     centre, normal = local_normals(tgt[idx[ok]])
