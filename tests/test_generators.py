@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from plotmosaic.align import features3d, slices, stemmap
-from plotmosaic.align.coarse import CoarseConfig, coarse_align
+from plotmosaic.align.coarse import CoarseConfig, coarse_align, stage
 from plotmosaic.align.levelling import Z, angle_deg, vertical_hypotheses
 from plotmosaic.align.normals import local_shape
 from plotmosaic.align.rasters import height_above_ground
@@ -277,3 +277,25 @@ def test_slice_search_finds_heading_and_shift_of_a_levelled_view(views):
     A[2, 3] = truth[2, 3]  # the height comes from the ground, not from this search
     deg, m = pose_error(A, truth)
     assert deg < 3.0 and m < 1.0, (deg, m, [round(h.score, 3) for h in found])
+
+
+def test_fpfh_runs_only_when_the_cheap_generators_do_not_settle(monkeypatch):
+    """The raster search and the stem map agree on the sloped pair: FPFH's descriptors are never
+    computed. Without the stem map the raster search alone cannot settle: FPFH runs once, and
+    agrees on the same pose."""
+    calls = []
+    real = stage.fpfh_matches
+    monkeypatch.setattr(stage, "fpfh_matches", lambda *a: calls.append(1) or real(*a))
+    pts = voxel_centroids(sloped_forest(1), 0.1)
+    src, tgt = pts[pts[:, 0] < 4.0], pts[pts[:, 0] > -4.0]
+    T = rigid([35, -15, 120], [6.0, -9.0, 3.0], src.mean(axis=0))
+    truth = np.linalg.inv(T)
+    cheap = coarse_align(Cloud(move(T, src)), Cloud(tgt), CoarseConfig(max_points=40_000))
+    assert cheap.levelling["vertical_pairs_skipped"] > 0 and calls == []
+    assert "fpfh" not in cheap.timing
+    no_stems = CoarseConfig(max_points=40_000, stems=False)
+    costly = coarse_align(Cloud(move(T, src)), Cloud(tgt), no_stems)
+    assert calls == [1] and "fpfh" in costly.timing
+    for result in (cheap, costly):
+        deg, m = pose_error(result.transform, truth)
+        assert deg < 1.0 and m < 0.2, (deg, m)

@@ -48,8 +48,9 @@ def _clock(timing: dict, name: str, t: float) -> None:
 
 
 class _Generators:
-    """The generators under some vertical pairs, each timed into `timing`; the FPFH matches (which
-    need no vertical) computed once."""
+    """The generators under some vertical pairs, each timed into `timing` and drawing from its own
+    random stream (so the order they run in changes none of them); the FPFH matches (which need no
+    vertical) computed once."""
 
     def __init__(
         self,
@@ -58,31 +59,48 @@ class _Generators:
         weights: dict[str, float],
         config: CoarseConfig,
         prior: np.ndarray | None,
-        rng: np.random.Generator,
+        seed: int,
         timing: dict,
     ) -> None:
         self.src, self.tgt, self.weights, self.config = src, tgt, weights, config
-        self.prior, self.rng, self.timing = prior, rng, timing
+        self.prior, self.timing = prior, timing
+        self.fpfh_rng = np.random.default_rng([seed, 1])
+        self.stems_rng = np.random.default_rng([seed, 2])
         self.matches = None
+        self.cell: float | None = None  # the raster cell of the first vertical pair
 
-    def __call__(self, first: int, chosen) -> tuple[list[Start], float | None]:
-        """(starts, raster cell) under the vertical pairs `chosen`, the first of which is pair `first`."""
-        src, tgt, config, timing = self.src, self.tgt, self.config, self.timing
+    def raster(self, first: int, chosen) -> list[Start]:
         t = time.perf_counter()
-        out, cell = raster_starts(src, tgt, chosen, self.weights, config, self.prior, first)
-        _clock(timing, "search", t)
-        if config.fpfh:
-            t = time.perf_counter()
-            if self.matches is None:
-                self.matches = fpfh_matches(src, tgt, config)
-            own = chosen[: max(0, config.fpfh_vertical_pairs - first)]
-            out += fpfh_starts(self.matches, own, config, self.rng, six_dof=first == 0)
-            _clock(timing, "fpfh", t)
-        if config.stems:
-            t = time.perf_counter()
-            out += stem_starts(src, tgt, chosen, config, self.rng)
-            _clock(timing, "stems", t)
-        return out, cell
+        out, cell = raster_starts(
+            self.src, self.tgt, chosen, self.weights, self.config, self.prior, first
+        )
+        self.cell = cell if self.cell is None else self.cell
+        _clock(self.timing, "search", t)
+        return out
+
+    def fpfh(self, first: int, chosen) -> list[Start]:
+        config = self.config
+        if not config.fpfh:
+            return []
+        t = time.perf_counter()
+        if self.matches is None:
+            self.matches = fpfh_matches(self.src, self.tgt, config)
+        own = chosen[: max(0, config.fpfh_vertical_pairs - first)]
+        out = fpfh_starts(self.matches, own, config, self.fpfh_rng, six_dof=first == 0)
+        _clock(self.timing, "fpfh", t)
+        return out
+
+    def stems(self, chosen) -> list[Start]:
+        if not self.config.stems:
+            return []
+        t = time.perf_counter()
+        out = stem_starts(self.src, self.tgt, chosen, self.config, self.stems_rng)
+        _clock(self.timing, "stems", t)
+        return out
+
+    def __call__(self, first: int, chosen) -> list[Start]:
+        """Every generator's starts under the vertical pairs `chosen`, the first of which is pair `first`."""
+        return self.raster(first, chosen) + self.fpfh(first, chosen) + self.stems(chosen)
 
 
 def coarse_align(
@@ -115,34 +133,34 @@ def coarse_align(
     prior = None if prior is None else np.asarray(prior, dtype=float)
     airborne = source.kind in AIRBORNE or target.kind in AIRBORNE
     verify = Verifier(src.cloud, tgt, airborne, config, rng)
-    # generators draw from their own stream: adding one changes no other
     generate = _Generators(
-        src,
-        tgt,
-        weights(source.kind, target.kind, config),
-        config,
-        prior,
-        np.random.default_rng([seed, 1]),
-        timing,
+        src, tgt, weights(source.kind, target.kind, config), config, prior, seed, timing
     )
-    starts, cell = generate(0, pairs[:1])
-    if prior is not None:
-        # never merged away
-        starts.append(Start(T=prior, generator="prior", vertical="prior", prior=True))
-    starts = unique_starts(starts, config)
-    settled = False
-    if config.settle_early and len(pairs) > 1:
-        t = time.perf_counter()
-        # refined only when two generators' screened poses already agree: otherwise it cannot settle
-        if verify.agreed(starts):
-            results, confidence = verify(starts)
-            settled = verification.settled(results, confidence, config)
-        _clock(timing, "verify", t)
-    if not settled:
+    first = pairs[:1]
+    raster, stems = generate.raster(0, first), generate.stems(first)
+    # the prior is never merged away
+    own = [] if prior is None else [Start(T=prior, generator="prior", vertical="prior", prior=True)]
+    early = config.settle_early and len(pairs) > 1
+    # the cheap generators first: FPFH's descriptors cost as much as the raster search, and where
+    # the raster and the stem map already agree on a clear pose they add nothing
+    found = (
+        _settle(verify, unique_starts(raster + stems + own, config), config, timing)
+        if early
+        else None
+    )
+    if found is None:
+        fpfh = generate.fpfh(0, first)
+        starts = unique_starts(raster + fpfh + stems + own, config)
+        found = _settle(verify, starts, config, timing) if early and fpfh else None
+    if found is None:
         starts = _more_starts(generate, pairs, starts)
         t = time.perf_counter()
-        results, confidence = verify(starts)
+        found = verify(starts)
         _clock(timing, "verify", t)
+        settled = False
+    else:
+        settled = True
+    results, confidence = found
     searched = pairs if len(pairs) == 1 or not settled else pairs[:1]
     return CoarseResult(
         transform=results[0].T,
@@ -152,7 +170,7 @@ def coarse_align(
         levelling={
             "source": src.cloud.info,
             "target": tgt.cloud.info,
-            "raster_cell": cell,
+            "raster_cell": generate.cell,
             "vertical_pairs": [f"{a.name}/{b.name}" for a, b in searched],
             "vertical_pairs_skipped": len(pairs) - len(searched),
             "hypotheses_by_generator": {
@@ -186,13 +204,25 @@ def _coarse_clouds(
     )
 
 
+def _settle(verify: Verifier, starts: list[Start], config: CoarseConfig, timing: dict):
+    """(hypotheses, confidence) when the first vertical pair's starts settle the pose, else None.
+    Refined only when two generators' screened poses already agree: otherwise it cannot settle."""
+    t = time.perf_counter()
+    try:
+        if not verify.agreed(starts):
+            return None
+        results, confidence = verify(starts)
+        return (results, confidence) if verification.settled(results, confidence, config) else None
+    finally:
+        _clock(timing, "verify", t)
+
+
 def _more_starts(generate: _Generators, pairs, starts: list[Start]) -> list[Start]:
     """The starts with those of the other vertical pairs and of the slice search (only now: a
     settled pair needs no finer search)."""
     config = generate.config
     if len(pairs) > 1:
-        more, _ = generate(1, pairs[1:])
-        starts = unique_starts(starts + more, config)
+        starts = unique_starts(starts + generate(1, pairs[1:]), config)
     if config.slices:
         t = time.perf_counter()
         more = slice_starts(
