@@ -152,14 +152,12 @@ def coarse_align(
         fpfh = generate.fpfh(0, first)
         starts = unique_starts(raster + fpfh + stems + own, config)
         found = _settle(verify, starts, config, timing) if early and fpfh else None
-    if found is None:
+    settled = found is not None
+    if not settled:
         starts = _more_starts(generate, pairs, starts)
         t = time.perf_counter()
         found = verify(starts)
         _clock(timing, "verify", t)
-        settled = False
-    else:
-        settled = True
     results, confidence = found
     searched = pairs if len(pairs) == 1 or not settled else pairs[:1]
     return CoarseResult(
