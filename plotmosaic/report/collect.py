@@ -73,12 +73,12 @@ def collect(
     """One read per placed scan, two scans at a time (each seeded by its place in `scans`, so the
     page does not depend on the threads); the slice, stems and thinned clouds of the plot."""
     placed = [(k, sid) for k, sid in enumerate(scans) if sid in poses and sid in paths]
-    parts = in_two_threads(
-        lambda job: _scan_part(
-            paths[job[1]], poses[job[1]], reader, cfg, np.random.default_rng([seed, job[0]])
-        ),
-        placed,
-    )
+
+    def part(job: tuple[int, str]) -> _ScanPart:
+        k, sid = job
+        return _scan_part(paths[sid], poses[sid], reader, cfg, np.random.default_rng([seed, k]))
+
+    parts = in_two_threads(part, placed)
     minima = (np.zeros((0, 2), np.int64), np.zeros(0))
     for part in parts:  # in the scans' order: the ground model does not depend on the threads
         minima = merge_minima(minima, part.minima)
@@ -124,17 +124,15 @@ def with_distances(view: PlotView, G: nx.Graph, cfg: ReportConfig, seed: int) ->
             strict=True,
         )
     )
-    measured = in_two_threads(
-        lambda job: edge_distances(
-            job[1][0],
-            job[1][1],
-            view.thinned[job[1][0]],
-            index[job[1][1]],
-            cfg.distance,
-            np.random.default_rng([seed, job[0]]),
-        ),
-        list(enumerate(edges)),
-    )
+
+    def measure(job: tuple[int, tuple[str, str]]) -> dict:
+        k, (source, target) = job
+        rng = np.random.default_rng([seed, k])
+        return edge_distances(
+            source, target, view.thinned[source], index[target], cfg.distance, rng
+        )
+
+    measured = in_two_threads(measure, list(enumerate(edges)))
     return dataclasses.replace(view, edges=measured, medians=scan_medians(measured))
 
 
