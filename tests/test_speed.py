@@ -8,9 +8,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from plotmosaic.align import prepare
+from plotmosaic.align.pipeline import AlignRequest, align_clouds
 from plotmosaic.config.report import ReportConfig, SliceConfig
 from plotmosaic.graph.executor import _POOL, close_pool, run_pairs
-from plotmosaic.io.frame import translation
+from plotmosaic.io.frame import column_bounds, translation
 from plotmosaic.io.las import PointCloud, read_cloud, write_cloud
 from plotmosaic.poses import Poses, ScanPose
 from plotmosaic.report.distance import thin
@@ -133,3 +135,24 @@ def test_a_plot_moved_as_one_piece_is_judged_in_register_plots_report(tmp_path):
     result, earlier, page = _rigid_case(tmp_path / "b", 2 * cfg.rigid_translation)
     assert rigid_plots(result, earlier, page, cfg) == {}  # moved within the plot: judged anew
     assert rigid_plots(result, earlier, tmp_path / "missing.html", cfg) == {}
+
+
+@pytest.mark.parametrize("n", [1, 7, 32_768, 32_769, 100_003])
+def test_column_bounds_by_blocks_are_the_columns_min_and_max(n):
+    xyz = np.random.default_rng(n).normal(size=(n, 3)) * [30, 30, 5] + [5e5, 4.2e6, 1200]
+    plain = np.array([[xyz[:, i].min(), xyz[:, i].max()] for i in range(3)])
+    assert np.array_equal(column_bounds(xyz), plain)
+    xyz[n // 2, 1] = np.nan  # a NaN still shows, as numpy's min and max show it
+    assert np.isnan(column_bounds(xyz)[1]).all() and np.array_equal(column_bounds(xyz)[0], plain[0])
+
+
+def test_align_drops_each_clouds_stray_points_once(small_sim, monkeypatch):
+    """The kinds and the preparation share one robust_points per cloud (each a pass over every point)."""
+    calls = []
+    real = prepare.stray_mask
+    monkeypatch.setattr(
+        prepare, "stray_mask", lambda xyz, *a: calls.append(len(xyz)) or real(xyz, *a)
+    )
+    src, tgt = (read_cloud(small_sim.scan_paths[f"P1-S{i}"]) for i in (1, 0))
+    align_clouds(src, tgt, AlignRequest())
+    assert calls == [len(src), len(tgt)]

@@ -17,6 +17,7 @@ from plotmosaic.align.sampling import sample
 from plotmosaic.align.viewpoint import crowding
 from plotmosaic.config.align import ViewpointConfig
 from plotmosaic.config.kinds import KindConfig
+from plotmosaic.io.frame import column_bounds
 
 DEFAULT_KIND = "tls"  # what a cloud too small or too thin to tell is registered as
 
@@ -101,7 +102,7 @@ def kind_evidence(
 ) -> KindEvidence:
     """The figures of `xyz` (file coordinates: a station in its own frame sits at the origin)."""
     n = len(xyz)
-    extent = float(np.ptp(xyz[:, :2], axis=0).max()) if n else 0.0
+    extent = float(np.diff(column_bounds(xyz)[:2], axis=1).max()) if n else 0.0
     if n < config.min_points or extent < config.min_extent_m:
         nan = float("nan")
         return KindEvidence(

@@ -18,7 +18,13 @@ from plotmosaic.align.fine import FineResult, final_icp
 from plotmosaic.align.floors import blunt_fit, check_quality
 from plotmosaic.align.kinds import KindDetection, detect_kind
 from plotmosaic.align.level_icp import incremental_steps
-from plotmosaic.align.prepare import MIN_POINTS, PreparedCloud, prepare_cloud, robust_points
+from plotmosaic.align.prepare import (
+    MIN_POINTS,
+    PreparedCloud,
+    RobustPoints,
+    prepare_cloud,
+    robust_points,
+)
 from plotmosaic.align.register import global_search, register_prepared
 from plotmosaic.align.result import METHOD, PairResult
 from plotmosaic.config.align import KINDS, AlignConfig, default_levels
@@ -82,15 +88,12 @@ def pair_kinds(
     return sk, tk, detected
 
 
-def _robust(
-    cloud: PointCloud, config: AlignConfig, name: str
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """The points without stray ones and their (3, 2) bounds; a cloud too small to register is
-    left to prepare_cloud, which names it."""
+def _robust(cloud: PointCloud, config: AlignConfig, name: str) -> RobustPoints | None:
+    """The points without stray ones, made once for the kinds and the preparation; None for a cloud
+    too small to register (prepare_cloud names it)."""
     if len(cloud) < MIN_POINTS:
-        return cloud.xyz, None
-    xyz, _, bounds = robust_points(cloud.xyz, config.stray, name)
-    return xyz, bounds
+        return None
+    return robust_points(cloud.xyz, config.stray, name)
 
 
 def prepare_pair(
@@ -102,12 +105,14 @@ def prepare_pair(
     levels_target: int,
     config: AlignConfig,
     seed: int = 0,
+    robust: tuple[RobustPoints | None, RobustPoints | None] = (None, None),
 ) -> tuple[PreparedCloud, PreparedCloud]:
-    """Both clouds prepared at once (source with `seed`, target with `seed + 1`)."""
+    """Both clouds prepared at once (source with `seed`, target with `seed + 1`); `robust`: their
+    points without stray ones where the caller made them already."""
     return both(
-        lambda job: prepare_cloud(*job),
-        (source, source_kind, levels_source, config, seed, "source"),
-        (target, target_kind, levels_target, config, seed + 1, "target"),
+        lambda job: prepare_cloud(*job[:-1], robust=job[-1]),
+        (source, source_kind, levels_source, config, seed, "source", robust[0]),
+        (target, target_kind, levels_target, config, seed + 1, "target", robust[1]),
     )
 
 
@@ -142,14 +147,19 @@ def align_clouds(
     config, seed = request.config, request.seed
     t0 = time.perf_counter()
     say = progress or (lambda msg: None)
-    # the source's bounding box as registration sees it (stray points dropped, as prepare does)
-    src_xyz, src_bounds = _robust(source, config, "source")
+    # the points as registration sees them (stray points dropped): the source's bounding box, the
+    # kinds and the preparation
+    robust = _robust(source, config, "source"), _robust(target, config, "target")
     source_kind, target_kind = request.source_kind, request.target_kind
     if source_kind is None or target_kind is None:
         say("detecting sensor kinds")
-    tgt_xyz = _robust(target, config, "target")[0] if target_kind is None else None
-    sk, tk, detected = pair_kinds(src_xyz, tgt_xyz, source_kind, target_kind, config, seed)
-    del src_xyz, tgt_xyz  # copies when stray points were dropped: not held through prepare
+    sk, tk, detected = pair_kinds(
+        *(cloud.xyz if r is None else r.xyz for cloud, r in zip((source, target), robust)),
+        source_kind,
+        target_kind,
+        config,
+        seed,
+    )
     t_kinds = time.perf_counter() - t0
     say("preparing source and target")
     src, tgt = prepare_pair(
@@ -161,6 +171,7 @@ def align_clouds(
         request.levels_target or default_levels(tk),
         config,
         seed,
+        robust,
     )
     if request.save_levels is not None:
         say("saving levels")
@@ -176,8 +187,8 @@ def align_clouds(
         **{k: v for k, v in result.timings.items() if k not in STEP_ENTRIES},
     }
     result.steps = {**result.steps, **steps}
-    if src_bounds is not None:
-        result.source_centre = [float(v) for v in src_bounds.mean(axis=1)]
+    if robust[0] is not None:
+        result.source_centre = [float(v) for v in robust[0].bounds.mean(axis=1)]
     result.detected_kinds = {role: d.to_dict() for role, d in detected.items()}
     result.seconds = time.perf_counter() - t0
     return result

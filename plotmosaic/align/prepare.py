@@ -72,10 +72,12 @@ def prepare_cloud(
     config: AlignConfig,
     seed: int = 0,
     name: str = "cloud",
+    robust: RobustPoints | None = None,
 ) -> PreparedCloud:
     """The cloud in its local frame: delta0 grid and its KD-tree, the final ICP's source sample, the
     labelled level sample with its normals and shape features, and the scanner where it is known.
-    Every random draw comes from `seed`, in a fixed order."""
+    Every random draw comes from `seed`, in a fixed order. `robust`: the cloud's `robust_points`
+    when the caller has them already (align detects kinds on them), so they are made once."""
     t0 = time.perf_counter()
     if len(cloud) < MIN_POINTS:
         raise InputError(
@@ -84,9 +86,10 @@ def prepare_cloud(
     if levels < 1:
         raise InputError(f"{name}: levels must be >= 1, got {levels}")
     rng = np.random.default_rng(seed)
-    xyz, strays, bounds = robust_points(
+    robust = robust or robust_points(
         cloud.xyz, getattr(config, "stray", None) or StrayConfig(), name
     )
+    xyz, strays, bounds = robust.xyz, robust.dropped, robust.bounds
     frame = Frame.of_bounds(bounds)
     points, fine_points = _grids(xyz, frame, bounds, config, rng, name)
     tree = cKDTree(
@@ -195,12 +198,18 @@ def _level_sample(
     return _LevelSample(level_points, cube_sizes, normals, features, counts, radius, stems)
 
 
-def robust_points(
-    xyz: np.ndarray, stray: StrayConfig, name: str
-) -> tuple[np.ndarray, int, np.ndarray]:
-    """The cloud without its detached stray points, how many were dropped and its columns' (min, max)
-    (3, 2: computed once, shared by the stray check, the frame and the voxel grid); refuses an
-    extent no grid can hold."""
+@dataclass(frozen=True, eq=False)
+class RobustPoints:
+    """A cloud's points without its detached stray points."""
+
+    xyz: np.ndarray  # the input array itself when nothing was dropped
+    dropped: int
+    bounds: np.ndarray  # (3, 2) columns' (min, max): shared by the stray check, frame and grid
+
+
+def robust_points(xyz: np.ndarray, stray: StrayConfig, name: str) -> RobustPoints:
+    """The cloud without its detached stray points (align.outliers); refuses an extent no grid can
+    hold."""
     bounds = column_bounds(xyz)
     keep = stray_mask(xyz, stray, bounds)
     dropped = int(len(keep) - keep.sum())
@@ -217,4 +226,4 @@ def robust_points(
             f"{name}: the cloud spans {span.round(0).tolist()} m (after dropping {dropped} stray "
             f"points), more than {MAX_EXTENT_M:.0f} m; crop it or remove the far points"
         )
-    return xyz, dropped, bounds
+    return RobustPoints(xyz, dropped, bounds)

@@ -10,10 +10,23 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+# rows whose columns are reduced while they sit in cache (32k rows of float64 xyz: 768 kB)
+BOUNDS_BLOCK = 1 << 15
+
 
 def column_bounds(xyz: np.ndarray) -> np.ndarray:
-    """(3, 2): each column's (min, max), column by column (axis-0 reductions over (N, 3) are slower)."""
-    return np.array([[xyz[:, i].min(), xyz[:, i].max()] for i in range(3)], dtype=np.float64)
+    """(3, 2): each column's (min, max). Column by column (axis-0 reductions over (N, 3) are slower),
+    block by block: a block's three columns share its cache lines, so a large cloud is read from
+    memory once instead of six times. Exact: min and max do not depend on the order."""
+    n = len(xyz)
+    if n <= BOUNDS_BLOCK:
+        return np.array([[xyz[:, i].min(), xyz[:, i].max()] for i in range(3)], dtype=np.float64)
+    blocks = [
+        [(xyz[s : s + BOUNDS_BLOCK, i].min(), xyz[s : s + BOUNDS_BLOCK, i].max()) for i in range(3)]
+        for s in range(0, n, BOUNDS_BLOCK)
+    ]
+    per = np.asarray(blocks, dtype=np.float64)  # (blocks, 3, 2)
+    return np.column_stack([per[:, :, 0].min(axis=0), per[:, :, 1].max(axis=0)])
 
 
 def translation(t) -> np.ndarray:
