@@ -21,7 +21,9 @@ Cases (the targets of the speed issue are in benchmarks/results/speed.md):
             (`plotmosaic simulate DIR --preset large --points-per-scan 10000000`) skips it.
 
 The chains (demo, large10m) print their total, then one row per stage (its read floor left empty).
-Measure on a quiet machine (nothing else running) or compare CPU seconds only.
+Measure on a quiet machine (nothing else running) or compare CPU seconds only. Each case's row
+ends with the box gauge: the CPU seconds of fixed numpy / scipy work (KD-tree, FFT, sort) run just
+before it, which moves with the machine's speed and not with plotmosaic's code.
 """
 
 from __future__ import annotations
@@ -72,6 +74,29 @@ def simulated(work: Path, name: str, preset: str, points: int) -> Path:
         args = ["simulate", str(folder), "--preset", preset, "--points-per-scan", str(points)]
         subprocess.run([*PLOTMOSAIC, *args], check=True, stdout=subprocess.DEVNULL)
     return folder
+
+
+# The box's own speed at the moment, from work that does not depend on plotmosaic's code (KD-tree
+# queries, FFTs, a sort: the kernels a pair is made of), one thread: this box's speed drifts by up
+# to 45 % within the hour, so a case's figures are compared across runs beside their gauge.
+GAUGE = """
+import time, numpy as np
+from scipy import fft
+from scipy.spatial import cKDTree
+rng = np.random.default_rng(0)
+t = time.process_time()
+pts = rng.random((1_000_000, 3)) * 50
+cKDTree(pts).query(pts[:200_000], k=16, workers=1)
+fft.irfft2(fft.rfft2(rng.random((16, 512, 512)), workers=1), workers=1)
+np.sort(rng.integers(0, 2**40, 8_000_000))
+print(time.process_time() - t)
+"""
+
+
+def gauge() -> float:
+    """CPU seconds of the fixed gauge work in a fresh process, now."""
+    out = subprocess.run([sys.executable, "-c", GAUGE], check=True, capture_output=True, text=True)
+    return float(out.stdout)
 
 
 def read_floor(paths: list[Path]) -> Run:
@@ -154,17 +179,21 @@ def main() -> None:
         "large1m": lambda: register(a.work, a.jobs, "large", 1_000_000),
         "large10m": lambda: chain(a.work, a.jobs, "large", 10_000_000),
     }
-    print("| case | wall (s) | CPU (s) | peak (MB) | read floor wall (s) | wall / floor |")
-    print("|---|---|---|---|---|---|")
+    print(
+        "| case | wall (s) | CPU (s) | peak (MB) | read floor wall (s) | wall / floor "
+        "| box gauge (CPU s) |"
+    )
+    print("|---|---|---|---|---|---|---|")
     for name in a.cases.split(","):
+        box = gauge()
         run, floor, *stages = cases[name]()
         print(
             f"| {name} | {run.wall_s:.1f} | {run.cpu_s:.1f} | {run.peak_mb:.0f} "
-            f"| {floor.wall_s:.1f} | {run.wall_s / floor.wall_s:.1f} |",
+            f"| {floor.wall_s:.1f} | {run.wall_s / floor.wall_s:.1f} | {box:.2f} |",
             flush=True,
         )
         for stage, r in (stages[0] if stages else {}).items():
-            print(f"| {name}: {stage} | {r.wall_s:.1f} | {r.cpu_s:.1f} | {r.peak_mb:.0f} | | |")
+            print(f"| {name}: {stage} | {r.wall_s:.1f} | {r.cpu_s:.1f} | {r.peak_mb:.0f} | | | |")
 
 
 if __name__ == "__main__":
