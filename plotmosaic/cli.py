@@ -109,7 +109,8 @@ class OneLineErrors(TyperGroup):
             message = " ".join(exc.format_message().split())
             typer.echo(f"error: {message}{where}", err=True)
             code = InputError.exit_code
-        except click_errors.Abort:  # click's form of Ctrl-C at a prompt or EOF
+        # click's form of Ctrl-C at a prompt or EOF (defined by typer, not in typer._click)
+        except typer.Abort:
             typer.echo("interrupted", err=True)
             code = INTERRUPTED
         if standalone_mode:

@@ -7,6 +7,7 @@ import sys
 
 import numpy as np
 import pytest
+import typer
 from helpers import assert_one_line_error, invoke
 
 from plotmosaic.io import PointCloud, write_cloud
@@ -113,3 +114,15 @@ def test_sigterm_while_the_command_layer_imports_is_an_interrupt():
     proc.wait(timeout=60)
     assert proc.returncode == 130, rest[-500:]
     assert rest.rstrip().splitlines()[-1] == "interrupted"
+
+
+def test_clicks_abort_exits_130_with_one_line(good_laz, monkeypatch):
+    """click's Ctrl-C at a prompt (typer.Abort) ends as an interrupt; the handler that catches it
+    once named a class typer does not have, and turned any error passing by into an AttributeError."""
+
+    def aborted(*args, **kwargs):
+        raise typer.Abort()
+
+    monkeypatch.setattr("plotmosaic.commands.info._describe_file", aborted)
+    result = run_info(good_laz)
+    assert result.exit_code == 130 and "interrupted" in result.output

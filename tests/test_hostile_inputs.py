@@ -234,9 +234,11 @@ def test_unwritable_outputs_are_refused_before_work(small_sim, tmp_path, monkeyp
     def started(*args, **kwargs):
         raise AssertionError("the work started before the output location was checked")
 
+    # patched where the commands look them up: a command module first imported under a patch of
+    # the defining module would keep the stub for every later test of the process
     for where in (
-        "plotmosaic.align.pipeline.align_files",
-        "plotmosaic.stages.register_plot.register_plot",
+        "plotmosaic.commands.align.align_files",
+        "plotmosaic.commands.register.register_plot",
         "plotmosaic.commands.merge.merge_scans",
     ):
         monkeypatch.setattr(where, started)
