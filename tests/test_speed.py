@@ -14,6 +14,7 @@ from plotmosaic.config.report import ReportConfig, SliceConfig
 from plotmosaic.graph.executor import _POOL, close_pool, run_pairs
 from plotmosaic.io.frame import column_bounds, translation
 from plotmosaic.io.las import PointCloud, read_cloud, write_cloud
+from plotmosaic.parallel import threads
 from plotmosaic.poses import Poses, ScanPose
 from plotmosaic.report.distance import thin
 from plotmosaic.report.runs import rigid_plots
@@ -156,3 +157,17 @@ def test_align_drops_each_clouds_stray_points_once(small_sim, monkeypatch):
     src, tgt = (read_cloud(small_sim.scan_paths[f"P1-S{i}"]) for i in (1, 0))
     align_clouds(src, tgt, AlignRequest())
     assert calls == [len(src), len(tgt)]
+
+
+def worker_threads(job) -> dict:
+    return {"key": job, "threads": threads()}
+
+
+def test_a_stages_last_jobs_get_the_whole_thread_budget():
+    """Two workers of one thread each; the last two jobs (the stage's tail, which may run alone)
+    may use both threads, so no core idles while they finish."""
+    try:
+        records = run_pairs(list("abcde"), progress=False, n_jobs=2, worker=worker_threads)
+    finally:
+        close_pool()
+    assert {r["key"]: r["threads"] for r in records} == {"a": 1, "b": 1, "c": 1, "d": 2, "e": 2}

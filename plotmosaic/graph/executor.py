@@ -177,11 +177,12 @@ def run_pair_job(job: PairJob) -> dict:
     return record
 
 
-def _limit_threads(n: int = 1) -> None:
-    """Pool initializer: this worker's share of the thread budget, set before numpy/open3d are imported."""
+def _limit_threads(n: int = 1, most: int | None = None) -> None:
+    """Pool initializer: this worker's share of the thread budget for BLAS, set before numpy/open3d
+    are imported; `most`, the run's whole budget, is what a job may be given (call_with_threads)."""
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = str(n)
-    set_threads(n)  # two-thread maps and KD-tree queries inside take what this worker has
+    set_threads(most or n)  # two-thread maps and KD-tree queries take what their job is given
     bind_to_parent()  # a SIGKILLed run leaves no orphaned workers
 
 
@@ -264,8 +265,8 @@ def run_pairs(
 _POOL: dict[tuple[int, int], ProcessPoolExecutor] = {}
 
 
-def _pool(workers: int, per_worker: int) -> ProcessPoolExecutor:
-    shape = (workers, per_worker)
+def _pool(workers: int, per_worker: int, most: int) -> ProcessPoolExecutor:
+    shape = (workers, per_worker, most)
     pool = _POOL.get(shape)
     if pool is not None and not getattr(pool, "_broken", False):
         return pool
@@ -275,7 +276,7 @@ def _pool(workers: int, per_worker: int) -> ProcessPoolExecutor:
         workers,
         mp_context=_DeafSpawnContext(),
         initializer=_limit_threads,
-        initargs=(per_worker,),
+        initargs=(per_worker, most),
     )
     return pool
 
@@ -333,9 +334,16 @@ def _run_local(jobs, tick, n_jobs, worker) -> None:
         for job in jobs:
             tick(call_with_threads(budget(n_jobs), worker, job))
         return
+    most = budget(n_jobs)
     try:
-        pool = _pool(workers, per_worker)
-        pending = {pool.submit(worker, job): job for job in jobs}
+        pool = _pool(workers, per_worker, most)
+        # a stage's last `workers` jobs get the whole budget: as the others end, the cores they free
+        # would idle while the last jobs run alone (results do not depend on a job's threads)
+        tail = len(jobs) - workers
+        pending = {
+            pool.submit(call_with_threads, most if i >= tail else per_worker, worker, job): job
+            for i, job in enumerate(jobs)
+        }
         while pending:
             finished, _ = wait(pending, return_when=FIRST_COMPLETED)
             for fut in finished:
