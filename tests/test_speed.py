@@ -163,11 +163,15 @@ def worker_threads(job) -> dict:
     return {"key": job, "threads": threads()}
 
 
-def test_a_stages_last_jobs_get_the_whole_thread_budget():
-    """Two workers of one thread each; the last two jobs (the stage's tail, which may run alone)
-    may use both threads, so no core idles while they finish."""
+@pytest.mark.parametrize("cores", [2, 4])
+def test_a_stages_last_jobs_get_the_whole_thread_budget(cores, monkeypatch):
+    """Two workers of one thread each; where -j is the whole machine, the last two jobs (the stage's
+    tail, which may run alone) may use both threads, so no core idles while they finish. A smaller
+    -j leaves the other cores alone."""
+    monkeypatch.setattr("plotmosaic.graph.executor.os.cpu_count", lambda: cores)
     try:
         records = run_pairs(list("abcde"), progress=False, n_jobs=2, worker=worker_threads)
     finally:
         close_pool()
-    assert {r["key"]: r["threads"] for r in records} == {"a": 1, "b": 1, "c": 1, "d": 2, "e": 2}
+    tail = 2 if cores == 2 else 1
+    assert {r["key"]: r["threads"] for r in records} == dict(zip("abcde", [1, 1, 1, tail, tail]))

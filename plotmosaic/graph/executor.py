@@ -338,8 +338,9 @@ def _run_local(jobs, tick, n_jobs, worker) -> None:
     try:
         pool = _pool(workers, per_worker, most)
         # a stage's last `workers` jobs get the whole budget: as the others end, the cores they free
-        # would idle while the last jobs run alone (results do not depend on a job's threads)
-        tail = len(jobs) - workers
+        # would idle while the last jobs run alone (results do not depend on a job's threads). Only
+        # when the budget is the whole machine: a smaller -j leaves the other cores to other work.
+        tail = len(jobs) - workers if most >= (os.cpu_count() or 1) else len(jobs)
         pending = {
             pool.submit(call_with_threads, most if i >= tail else per_worker, worker, job): job
             for i, job in enumerate(jobs)
