@@ -262,7 +262,7 @@ def run_pairs(
 # The run's process pool, kept for its next stage with the same shape: preparing the scans and then
 # registering their pairs use one spawn of the workers (each spawn imports numpy, scipy, ... anew)
 # instead of two, and a worker's memo of the clouds it prepared or loaded serves its later pairs.
-_POOL: dict[tuple[int, int], ProcessPoolExecutor] = {}
+_POOL: dict[tuple[int, int, int], ProcessPoolExecutor] = {}  # (workers, threads each, most a job)
 
 
 def _pool(workers: int, per_worker: int, most: int) -> ProcessPoolExecutor:
