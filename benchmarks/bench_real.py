@@ -14,6 +14,9 @@ pose with exit 0 keeps its result JSON in OUT/wrong/.
     nice -n 10 .venv/bin/python benchmarks/bench_real.py --n 50 --n-true 50 -j 2 --out /tmp/real   # extends
     nice -n 10 .venv/bin/python benchmarks/bench_real.py --out /tmp/real --redraw --figure real.png
     nice -n 10 .venv/bin/python benchmarks/bench_real.py --cases mls-boxed6m --n 3 --protocol paper --methods forestalign
+
+`--methods forestalign-placement` runs plotmosaic with register-plot's settings for placing a scan on an
+airborne tile (the cases whose target is airborne: uas-strip-als, uas-als, mls-uas).
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ import sys
 import time
 from pathlib import Path
 
-from plotmosaic.bench.methods import METHODS, available
+from plotmosaic.bench.methods import METHODS, OURS, available
 from plotmosaic.bench.real_cases import ALL_CASES, CASES
 from plotmosaic.bench.real_suite import (
     CASES_FILE,
@@ -189,12 +192,12 @@ def redraw(folders: list[Path], out: Path, command: str, figure: Path | None) ->
     commands = [c for f in folders for c in _info_commands(f)]
     paths = write_outputs(rows, info, out, "\n".join(commands) or command, figure)
     print(markdown(summarise(rows)))
-    fa = [r for r in rows if r["method"] == "forestalign"]
+    fa = [r for r in rows if r["method"] in OURS]
     wrong = [r for r in fa if r["outcome"] == "wrong"]
-    print(f"forestalign wrong poses with exit 0: {len(wrong)} of {len(fa)} trials")
+    print(f"plotmosaic wrong poses with exit 0: {len(wrong)} of {len(fa)} trials")
     for r in wrong:
         print(
-            f"  {r['case']} {r['protocol']} seed {r['seed']} trial {r['trial']}: {r['rotation_deg']:.2f} deg / "
+            f"  {r['case']} {r['protocol']} {r['method']} seed {r['seed']} trial {r['trial']}: {r['rotation_deg']:.2f} deg / "
             f"{r['translation_m']:.2f} m, confidence {r.get('confidence')}, judge {r.get('judge_score')}, "
             f"rival {r.get('rival_score')}, {r.get('result_json', '-')}"
         )

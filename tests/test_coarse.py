@@ -8,7 +8,7 @@ import pytest
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
-from plotmosaic.align.coarse import CoarseConfig, coarse_align
+from plotmosaic.align.coarse import CoarseConfig, coarse_align, raster
 from plotmosaic.align.levelling import estimate_up, rotation_between
 from plotmosaic.align.rasters import MaskedNCC, Raster
 from plotmosaic.io import Frame, read_cloud
@@ -103,3 +103,39 @@ def test_coarse_finds_drone_clip_inside_als_from_far_away(spanner_dir):
     again = coarse_align(src, tgt, CoarseConfig(), seed=0)
     # deterministic up to the summation order of Open3D's parallel reductions
     np.testing.assert_allclose(again.transform, result.transform, atol=1e-9)
+
+
+def test_heading_pyramid_scores_every_heading_on_coarser_cells_and_finds_the_same_pose(
+    spanner_dir, monkeypatch
+):
+    """The ground-based MLS clip placed on the ALS clip from far away, as register-plot places a scan
+    on a tile: every heading is scored on cells twice the raster cell, and only the best
+    `pyramid_headings` (and half steps beside the best of them) on the raster cell; the pose is the
+    one every heading on the raster cell finds (the clips' own co-registration is ~0.4 m off)."""
+    mls = read_cloud(spanner_dir / "MLS_Clip.laz", attributes=False).xyz
+    als = read_cloud(spanner_dir / "ALS_Clip.laz", attributes=False).xyz
+    R = Rotation.from_euler("xyz", [4, -3, 115], degrees=True).as_matrix()
+    c = mls.mean(axis=0)
+    P = np.eye(4)
+    P[:3, :3], P[:3, 3] = R, c - R @ c + [-10.0, 7.0, 3.0]
+    src, tgt = prepare(mls @ P[:3, :3].T + P[:3, 3], "mls"), prepare(als, "als")
+    truth = to_local_transform(np.linalg.inv(P), src.frame, tgt.frame)
+    config = CoarseConfig(fpfh=False, settled_generators=1)
+    every = coarse_align(src, tgt, config, seed=0)
+    cells: list[float] = []
+    real = raster._Correlation.peaks
+    monkeypatch.setattr(
+        raster._Correlation, "peaks", lambda self, y: cells.append(self.cell) or real(self, y)
+    )
+    pyramid = config.model_copy(update={"heading_pyramid": 2})
+    result = coarse_align(src, tgt, pyramid, seed=0)
+    dt, dr = pose_error(result.transform, every.transform)
+    assert dt < 0.01 and dr < 0.05, (dt, dr)
+    dt, dr = pose_error(result.transform, truth)
+    assert dt < 0.5 and dr < 2.0, (dt, dr)
+    base = min(cells)
+    pairs = cells.count(2 * base) // 90  # vertical pairs searched: 90 headings at 4 deg each
+    assert pairs >= 1 and cells.count(2 * base) == 90 * pairs
+    assert set(cells) == {base, 2 * base}
+    fine = cells.count(base)
+    assert fine <= pairs * (pyramid.pyramid_headings + 2 * pyramid.refine_headings) < 90 * pairs

@@ -206,16 +206,23 @@ def test_config_needs_exactly_one_of_defaults_or_check(tmp_path):
     assert_one_line_error(invoke("config", "--defaults", "--check", tmp_path / "x.toml"), code=2)
 
 
-def test_pairs_onto_the_als_run_without_fpfh_unless_asked():
-    # scan pairs keep FPFH; placements and plot -> ALS anchors do not, unless asked
+def test_pairs_onto_the_als_keep_fpfh_unless_turned_off():
+    # a real UAS strip onto its ALS found its pose only by FPFH: placements and anchors keep it
     assert RegisterConfig().align.coarse.fpfh
-    assert not RegisterConfig().placement.coarse.fpfh and not TieConfig().align.coarse.fpfh
-    on = settings_from_dict(
-        {"register_plot": {"placement_fpfh": True}, "tie_to_als": {"anchor_fpfh": True}}
+    assert RegisterConfig().placement.coarse.fpfh and TieConfig().align.coarse.fpfh
+    defaults = settings_from_dict({})
+    assert defaults.register_config().placement.coarse.fpfh
+    assert defaults.tie_config().align == TieConfig().align
+    off = settings_from_dict(
+        {"register_plot": {"placement_fpfh": False}, "tie_to_als": {"anchor_fpfh": False}}
     )
-    assert on.register_config().placement.coarse.fpfh and on.tie_config().align.coarse.fpfh
-    off = settings_from_dict({"align": {"coarse": {"fpfh": False}}}).register_config()
-    assert not off.align.coarse.fpfh and not off.placement.coarse.fpfh
+    assert (
+        not off.register_config().placement.coarse.fpfh and not off.tie_config().align.coarse.fpfh
+    )
+    assert off.register_config().align.coarse.fpfh  # scan pairs keep it
+    everywhere = settings_from_dict({"align": {"coarse": {"fpfh": False}}})
+    assert not everywhere.register_config().placement.coarse.fpfh
+    assert not everywhere.tie_config().align.coarse.fpfh
 
 
 def test_placements_settle_on_one_generator_pairs_and_anchors_on_two():
@@ -228,3 +235,15 @@ def test_placements_settle_on_one_generator_pairs_and_anchors_on_two():
     two = settings_from_dict({"register_plot": {"placement_settled_generators": 2}})
     assert two.register_config().placement.coarse.settled_generators == 2
     assert two.register_config().align.coarse.settled_generators == 2
+
+
+def test_only_placements_score_headings_on_coarser_cells_first():
+    # a placement is a prior the pairs verify again; scan pairs and plot -> ALS anchors are results
+    assert RegisterConfig().placement.coarse.heading_pyramid == 2
+    assert RegisterConfig().align.coarse.heading_pyramid == 1
+    assert TieConfig().align.coarse.heading_pyramid == 1
+    defaults = settings_from_dict({})
+    assert defaults.register_config().placement == RegisterConfig().placement
+    off = settings_from_dict({"register_plot": {"placement_heading_pyramid": 1}})
+    assert off.register_config().placement.coarse.heading_pyramid == 1
+    assert off.register_config().placement.coarse.settled_generators == 1

@@ -1,6 +1,8 @@
 """The methods a benchmark compares, all behind one call: source' -> target, file coordinates.
 
   forestalign  plotmosaic's pipeline (global coarse stage on; `--no-coarse` starts it at identity)
+  forestalign-placement  the same with register-plot's settings for placing a scan on an airborne
+               tile (no FPFH, one generator settles, headings scored on coarser cells first)
   icp          Open3D point-to-point ICP from identity (the paper's "standard ICP")
   fpfh-ransac  Open3D FPFH features + RANSAC, refined by the same ICP (a standard global method)
   cpd          rigid Coherent Point Drift from probreg (optional; the paper's Table 3 baseline; scale fixed,
@@ -21,11 +23,13 @@ from plotmosaic.align.pipeline import AlignRequest, align_clouds, register_prepa
 from plotmosaic.align.prepare import prepare_cloud
 from plotmosaic.config.align import AlignConfig, default_levels
 from plotmosaic.config.bench import CpdConfig, IcpConfig, MethodsConfig
+from plotmosaic.config.register import placement_align_config
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.io.frame import Frame, to_global_transform
 from plotmosaic.io.las import PointCloud
 
-METHODS = ("forestalign", "icp", "fpfh-ransac", "cpd")
+METHODS = ("forestalign", "forestalign-placement", "icp", "fpfh-ransac", "cpd")
+OURS = ("forestalign", "forestalign-placement")  # plotmosaic's own: a wrong pose with exit 0 counts
 
 
 @dataclass
@@ -95,9 +99,9 @@ def run_method(name: str, pair: PairInput, config: MethodsConfig, seed: int) -> 
 # ---------------------------------------------------------------- forestalign
 
 
-def _forestalign(pair: PairInput, config: MethodsConfig, seed: int):
-    """plotmosaic's PairResult (RegistrationFailed when it refuses)."""
-    cfg = AlignConfig()
+def _forestalign(pair: PairInput, config: MethodsConfig, seed: int, cfg: AlignConfig | None = None):
+    """plotmosaic's PairResult (RegistrationFailed when it refuses), with `cfg` (default settings)."""
+    cfg = cfg or AlignConfig()
     init = None
     if config.no_coarse:
         cfg = cfg.model_copy(update={"coarse": cfg.coarse.model_copy(update={"enabled": False})})
@@ -114,6 +118,11 @@ def _forestalign(pair: PairInput, config: MethodsConfig, seed: int):
     kind = pair.source_kind.lower()
     src = prepare_cloud(pair.source, kind, default_levels(kind), cfg, seed, "source")
     return register_prepared(src, pair.target_prepared, cfg, init, seed)
+
+
+def _forestalign_placement(pair: PairInput, config: MethodsConfig, seed: int):
+    """plotmosaic's PairResult as register-plot places a scan on the ALS tile."""
+    return _forestalign(pair, config, seed, placement_align_config())
 
 
 def prepare_target(pair: PairInput, seed: int):
@@ -259,4 +268,10 @@ def _cpd(pair: PairInput, config: MethodsConfig, seed: int) -> np.ndarray:
     return to_global_transform(T, frame, frame)
 
 
-_RUNNERS = {"forestalign": _forestalign, "icp": _icp, "fpfh-ransac": _fpfh_ransac, "cpd": _cpd}
+_RUNNERS = {
+    "forestalign": _forestalign,
+    "forestalign-placement": _forestalign_placement,
+    "icp": _icp,
+    "fpfh-ransac": _fpfh_ransac,
+    "cpd": _cpd,
+}

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plotmosaic.bench.methods import PairInput, prepare_target, run_method
+from plotmosaic.bench.methods import OURS, PairInput, prepare_target, run_method
 from plotmosaic.bench.protocol import (
     PARAMS,
     is_success,
@@ -241,7 +241,7 @@ def run_trial(job: Trial) -> tuple[dict, list[dict]]:
     rows = []
     for method in job.methods:
         pair = PairInput(moved, case.target, case.source_kind, case.target_kind)
-        if method == "forestalign":
+        if method in OURS:
             pair.target_prepared = prepared
         out = run_method(method, pair, MethodsConfig(), seed=job.seed + job.trial)
         err = pose_error(out.transform, truth, centre)

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from plotmosaic.bench.figures import pyplot
+from plotmosaic.bench.methods import METHODS, OURS
 from plotmosaic.bench.protocol import PARAMS, rotation_angle
 from plotmosaic.config.bench import SUITE_PROTOCOLS
 from plotmosaic.io.atomic import write_text_atomic
@@ -31,7 +32,7 @@ def summarise(rows: list[dict]) -> list[dict]:
     for r in rows:
         groups.setdefault((r["case"], r["protocol"], r["method"]), []).append(r)
     cases = list(dict.fromkeys(k[0] for k in groups))
-    methods = ["forestalign", "icp", "fpfh-ransac", "cpd"]
+    methods = list(METHODS)
     order = sorted(
         groups,
         key=lambda k: (
@@ -135,7 +136,7 @@ def markdown(summary: list[dict]) -> str:
             str(s["n"]),
             str(s["found"]),
             str(s["refused"]),
-            f"**{s['wrong']}**" if s["wrong"] and s["method"] == "forestalign" else str(s["wrong"]),
+            f"**{s['wrong']}**" if s["wrong"] and s["method"] in OURS else str(s["wrong"]),
             f"{_fmt(s.get('rot_median_deg'))} / {_fmt(s.get('rot_worst_deg'))}",
             f"{_fmt(cm(s.get('t_median_m')), 1)} / {_fmt(cm(s.get('t_worst_m')), 1)}",
             rot,

@@ -81,6 +81,21 @@ class CoarseGenerators(BaseModel):
     refine_headings: int = Field(
         8, ge=0, le=64, description="best headings searched again at half a step either side"
     )
+    # a heading's shifts on cells k times larger cost ~1/k^2 of its FFTs; canopy and terrain (what
+    # an ALS tile shows) are smooth at that scale, so the full circle can run there first
+    heading_pyramid: int = Field(
+        1,
+        ge=1,
+        le=4,
+        description="the full circle of headings runs first on cells this many times larger, and "
+        "only its best headings on the raster cell (1: every heading on the raster cell)",
+    )
+    pyramid_headings: int = Field(
+        12,
+        ge=1,
+        le=90,
+        description="distinct headings of the coarser search searched again on the raster cell",
+    )
     blur_cells: float = Field(
         1.0, ge=0, le=10, description="Gaussian blur (cells) of the occupancy rasters"
     )

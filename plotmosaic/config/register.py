@@ -99,17 +99,12 @@ def graph_align_config() -> AlignConfig:
     return AlignConfig(min_confidence=0.0)
 
 
-def als_pair_align_config() -> AlignConfig:
-    """A TLS scan or plot onto an ALS tile (placements, anchors): no FPFH starts, an ALS tile's
-    sparse returns give FPFH nothing distinctive to match (benchmarks/results/speed.md)."""
-    return AlignConfig(coarse=CoarseConfig(fpfh=False))
-
-
 def placement_align_config() -> AlignConfig:
     """A scan onto the ALS tile to place it: as any TLS -> ALS pair, but its search stops at the first
-    vertical pair once one generator's pose is clearly ahead; a placement is a prior and an edge
-    that the pairs it implies verify again (benchmarks/results/speed.md)."""
-    return AlignConfig(coarse=CoarseConfig(fpfh=False, settled_generators=1))
+    vertical pair once one generator's pose is clearly ahead, and its headings are scored on coarser
+    cells first; a placement is a prior and an edge that the pairs it implies verify again
+    (benchmarks/results/speed.md)."""
+    return AlignConfig(coarse=CoarseConfig(settled_generators=1, heading_pyramid=2))
 
 
 class RegisterOptions(BaseModel):
@@ -201,7 +196,7 @@ class TieConfig(TieOptions):
     """Settings of tie-to-als."""
 
     align: AlignConfig = Field(
-        default_factory=als_pair_align_config, description="registration of each plot to the ALS"
+        default_factory=AlignConfig, description="registration of each plot to the ALS"
     )
     graph: PoseGraphConfig = Field(
         default_factory=PoseGraphConfig, description="the region's pose graph, ALS fixed"

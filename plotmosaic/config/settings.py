@@ -30,11 +30,13 @@ from plotmosaic.config.register import (
     RegisterOptions,
     TieConfig,
     TieOptions,
-    als_pair_align_config,
     graph_align_config,
     placement_align_config,
 )
 from plotmosaic.config.report import ReportConfig
+
+# a placement's own coarse-search settings, mapped onto [align.coarse] in its config
+_PLACEMENT = ("placement_fpfh", "placement_settled_generators", "placement_heading_pyramid")
 
 
 class RegisterSection(RegisterOptions):
@@ -49,8 +51,9 @@ class RegisterSection(RegisterOptions):
     )
     placement_fpfh: bool = Field(
         placement_align_config().coarse.fpfh,
-        description="FPFH starts when placing a scan on the ALS tile (replaces align.coarse.fpfh "
-        "there): a tile's sparse returns give FPFH nothing distinctive to match",
+        description="FPFH starts when placing a scan on the ALS tile (off here or in "
+        "align.coarse is off): they run only where the cheaper generators have not settled, and a real UAS "
+        "strip onto its ALS found its pose only by them",
     )
     placement_settled_generators: int = Field(
         placement_align_config().coarse.settled_generators,
@@ -60,15 +63,24 @@ class RegisterSection(RegisterOptions):
         "vertical pair (replaces align.coarse.settled_generators there): a placement is a prior "
         "the pairs verify again, and one clear pose ahead of its rivals is enough",
     )
+    placement_heading_pyramid: int = Field(
+        placement_align_config().coarse.heading_pyramid,
+        ge=1,
+        le=4,
+        description="a placement scores every heading on cells this many times larger first, and "
+        "only the best on the raster cell (replaces align.coarse.heading_pyramid there): the "
+        "tile's canopy and terrain are smooth at that scale, and the pairs verify the placement",
+    )
 
 
 class TieSection(TieOptions):
     """tie-to-als's own settings; its pairwise and pose-graph settings are [align], [posegraph]."""
 
     anchor_fpfh: bool = Field(
-        als_pair_align_config().coarse.fpfh,
-        description="FPFH starts when registering a plot to the ALS (replaces align.coarse.fpfh "
-        "there): a tile's sparse returns give FPFH nothing distinctive to match",
+        AlignConfig().coarse.fpfh,
+        description="FPFH starts when registering a plot to the ALS (off here or in "
+        "align.coarse is off): they run only where the cheaper generators have not settled, and a real UAS "
+        "strip onto its ALS found its pose only by them",
     )
 
 
@@ -104,9 +116,7 @@ class Settings(BaseModel):
         return self.align.model_copy(deep=True)
 
     def register_config(self) -> RegisterConfig:
-        own = self.register_plot.model_dump(
-            exclude={"pair_min_confidence", "placement_fpfh", "placement_settled_generators"}
-        )
+        own = self.register_plot.model_dump(exclude={"pair_min_confidence", *_PLACEMENT})
         pairwise = self.align.model_copy(
             deep=True, update={"min_confidence": self.register_plot.pair_min_confidence}
         )
@@ -116,19 +126,22 @@ class Settings(BaseModel):
             graph=self.posegraph.model_copy(deep=True),
             pairs=self.pairs.model_copy(deep=True),
             placement=self._onto_als(
-                self.register_plot.placement_fpfh, self.register_plot.placement_settled_generators
+                self.register_plot.placement_fpfh,
+                {
+                    "settled_generators": self.register_plot.placement_settled_generators,
+                    "heading_pyramid": self.register_plot.placement_heading_pyramid,
+                },
             ),
             report=self.report.model_copy(deep=True),
             read=self.read,
         )
 
-    def _onto_als(self, fpfh: bool, settled_generators: int | None = None) -> AlignConfig:
-        """[align] for a TLS cloud onto an ALS tile, with its own FPFH switch (and settling rule)."""
+    def _onto_als(self, fpfh: bool, search: dict[str, Any] | None = None) -> AlignConfig:
+        """[align] for a TLS cloud onto an ALS tile, with its own FPFH switch (off there, or off in
+        [align.coarse], is off) and a placement's own search settings."""
         config = self.align.model_copy(deep=True)
-        update: dict[str, Any] = {"fpfh": fpfh}
-        if settled_generators is not None:
-            update["settled_generators"] = settled_generators
-        config.coarse = config.coarse.model_copy(update=update)
+        fpfh = fpfh and config.coarse.fpfh
+        config.coarse = config.coarse.model_copy(update={"fpfh": fpfh, **(search or {})})
         return config
 
     def tie_config(self) -> TieConfig:

@@ -154,31 +154,30 @@ def search(
     """Exhaustive heading search; masked-NCC shift per heading; the best distinct peaks.
 
     `prior` (levelled source -> levelled target): search only headings within `prior_yaw_deg` of
-    it and shifts within `prior_shift_m` of where it puts the source centroid.
+    it and shifts within `prior_shift_m` of where it puts the source centroid. With
+    `heading_pyramid` > 1 the headings are first scored on coarser cells, and only the best
+    `pyramid_headings` of them searched on the raster cell.
     """
     corr = _Correlation(src, tgt, weights, config, prior)
     # coarse-to-fine in heading: the full circle at yaw_step_deg, then half steps either side of
     # the best headings (a peak is several steps wide once the rasters are blurred)
     step = np.radians(config.yaw_step_deg)
-    yaws = np.arange(0.0, 2 * np.pi, step)
+    yaws = [float(y) for y in np.arange(0.0, 2 * np.pi, step)]
     if prior is not None:
         yaws = [
             y for y in yaws if angle_diff(y, corr.prior_yaw) <= np.radians(config.prior_yaw_deg)
-        ] + [corr.prior_yaw % (2 * np.pi)]
-    # rasterising and FFTs release the GIL: headings two at a time
-    candidates = [
-        c for found in in_two_threads(corr.peaks, [float(y) for y in yaws]) for c in found
-    ]
-    best_yaws: list[float] = []
-    for c in sorted(candidates, key=lambda c: -c.score):
-        if all(angle_diff(c.yaw, y) > 1.5 * step for y in best_yaws):
-            best_yaws.append(c.yaw)
-        if len(best_yaws) >= config.refine_headings:
-            break
+        ] + [float(corr.prior_yaw % (2 * np.pi))]
+    if config.heading_pyramid > 1 and len(yaws) > config.pyramid_headings:
+        rough = config.model_copy(update={"cell": corr.cell * config.heading_pyramid})
+        coarse = _Correlation(src, tgt, weights, rough, prior)
+        yaws = _best_headings(_peaks(coarse, yaws), step, config.pyramid_headings)
+    candidates = _peaks(corr, yaws)
     refine = [
-        float((yaw + d) % (2 * np.pi)) for yaw in best_yaws for d in (-0.5 * step, 0.5 * step)
+        float((yaw + d) % (2 * np.pi))
+        for yaw in _best_headings(candidates, step, config.refine_headings)
+        for d in (-0.5 * step, 0.5 * step)
     ]
-    candidates += [c for found in in_two_threads(corr.peaks, refine) for c in found]
+    candidates += _peaks(corr, refine)
     candidates.sort(key=lambda c: -c.score)
     return distinct_peaks(
         candidates,
@@ -188,6 +187,23 @@ def search(
         centre=corr.centre,
         cell=corr.cell,
     )
+
+
+def _peaks(corr: _Correlation, yaws: list[float]) -> list[Peak]:
+    """Every heading's peaks; rasterising and FFTs release the GIL, so two headings at a time."""
+    return [c for found in in_two_threads(corr.peaks, yaws) for c in found]
+
+
+def _best_headings(candidates: list[Peak], step: float, most: int) -> list[float]:
+    """The headings of the best `most` peaks more than 1.5 steps apart (a peak's heading neighbours
+    score nearly as high: one heading stands for them)."""
+    best: list[float] = []
+    for c in sorted(candidates, key=lambda c: -c.score):
+        if len(best) >= most:
+            break
+        if all(angle_diff(c.yaw, y) > 1.5 * step for y in best):
+            best.append(c.yaw)
+    return best
 
 
 def raster_starts(
