@@ -51,8 +51,8 @@ class RegisterSection(RegisterOptions):
     )
     placement_fpfh: bool = Field(
         placement_align_config().coarse.fpfh,
-        description="FPFH starts when placing a scan on the ALS tile (off here or in "
-        "align.coarse is off): they run only where the cheaper generators have not settled, and a real UAS "
+        description="FPFH starts when placing a scan on the ALS tile (off here or in align.coarse "
+        "is off): they run only where the cheaper generators have not settled, and a real UAS "
         "strip onto its ALS found its pose only by them",
     )
     placement_settled_generators: int = Field(
@@ -78,8 +78,8 @@ class TieSection(TieOptions):
 
     anchor_fpfh: bool = Field(
         AlignConfig().coarse.fpfh,
-        description="FPFH starts when registering a plot to the ALS (off here or in "
-        "align.coarse is off): they run only where the cheaper generators have not settled, and a real UAS "
+        description="FPFH starts when registering a plot to the ALS (off here or in align.coarse "
+        "is off): they run only where the cheaper generators have not settled, and a real UAS "
         "strip onto its ALS found its pose only by them",
     )
 
@@ -127,21 +127,19 @@ class Settings(BaseModel):
             pairs=self.pairs.model_copy(deep=True),
             placement=self._onto_als(
                 self.register_plot.placement_fpfh,
-                {
-                    "settled_generators": self.register_plot.placement_settled_generators,
-                    "heading_pyramid": self.register_plot.placement_heading_pyramid,
-                },
+                settled_generators=self.register_plot.placement_settled_generators,
+                heading_pyramid=self.register_plot.placement_heading_pyramid,
             ),
             report=self.report.model_copy(deep=True),
             read=self.read,
         )
 
-    def _onto_als(self, fpfh: bool, search: dict[str, Any] | None = None) -> AlignConfig:
+    def _onto_als(self, fpfh: bool, **search: int) -> AlignConfig:
         """[align] for a TLS cloud onto an ALS tile, with its own FPFH switch (off there, or off in
-        [align.coarse], is off) and a placement's own search settings."""
+        [align.coarse], is off) and a placement's own coarse-search settings."""
         config = self.align.model_copy(deep=True)
         fpfh = fpfh and config.coarse.fpfh
-        config.coarse = config.coarse.model_copy(update={"fpfh": fpfh, **(search or {})})
+        config.coarse = config.coarse.model_copy(update={"fpfh": fpfh, **search})
         return config
 
     def tie_config(self) -> TieConfig:
