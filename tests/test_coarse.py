@@ -105,6 +105,13 @@ def test_coarse_finds_drone_clip_inside_als_from_far_away(spanner_dir):
     np.testing.assert_allclose(again.transform, result.transform, atol=1e-9)
 
 
+def test_headings_on_coarser_cells_first_only_where_a_cloud_is_airborne():
+    config = CoarseConfig()
+    assert raster.pyramid("tls", "als", config) == config.heading_pyramid == 2
+    assert raster.pyramid("uls", "als", config) == raster.pyramid("tls", "uls", config) == 2
+    assert raster.pyramid("tls", "tls", config) == raster.pyramid("mls", "tls", config) == 1
+
+
 def test_heading_pyramid_scores_every_heading_on_coarser_cells_and_finds_the_same_pose(
     spanner_dir, monkeypatch
 ):
@@ -121,14 +128,13 @@ def test_heading_pyramid_scores_every_heading_on_coarser_cells_and_finds_the_sam
     src, tgt = prepare(mls @ P[:3, :3].T + P[:3, 3], "mls"), prepare(als, "als")
     truth = to_local_transform(np.linalg.inv(P), src.frame, tgt.frame)
     config = CoarseConfig(fpfh=False, settled_generators=1)
-    every = coarse_align(src, tgt, config, seed=0)
+    every = coarse_align(src, tgt, config.model_copy(update={"heading_pyramid": 1}), seed=0)
     cells: list[float] = []
     real = raster._Correlation.peaks
     monkeypatch.setattr(
         raster._Correlation, "peaks", lambda self, y: cells.append(self.cell) or real(self, y)
     )
-    pyramid = config.model_copy(update={"heading_pyramid": 2})
-    result = coarse_align(src, tgt, pyramid, seed=0)
+    result = coarse_align(src, tgt, config, seed=0)
     dt, dr = pose_error(result.transform, every.transform)
     assert dt < 0.01 and dr < 0.05, (dt, dr)
     dt, dr = pose_error(result.transform, truth)
@@ -138,4 +144,8 @@ def test_heading_pyramid_scores_every_heading_on_coarser_cells_and_finds_the_sam
     assert pairs >= 1 and cells.count(2 * base) == 90 * pairs
     assert set(cells) == {base, 2 * base}
     fine = cells.count(base)
-    assert fine <= pairs * (pyramid.pyramid_headings + 2 * pyramid.refine_headings) < 90 * pairs
+    assert fine <= pairs * (config.pyramid_headings + 2 * config.refine_headings) < 90 * pairs
+    # two ground-based views: every heading on the raster cell
+    cells.clear()
+    coarse_align(prepare(mls @ P[:3, :3].T + P[:3, 3], "mls"), prepare(mls, "mls"), config, seed=0)
+    assert len(set(cells)) == 1 and len(cells) >= 90

@@ -235,15 +235,3 @@ def test_placements_settle_on_one_generator_pairs_and_anchors_on_two():
     two = settings_from_dict({"register_plot": {"placement_settled_generators": 2}})
     assert two.register_config().placement.coarse.settled_generators == 2
     assert two.register_config().align.coarse.settled_generators == 2
-
-
-def test_only_placements_score_headings_on_coarser_cells_first():
-    # a placement is a prior the pairs verify again; scan pairs and plot -> ALS anchors are results
-    assert RegisterConfig().placement.coarse.heading_pyramid == 2
-    assert RegisterConfig().align.coarse.heading_pyramid == 1
-    assert TieConfig().align.coarse.heading_pyramid == 1
-    defaults = settings_from_dict({})
-    assert defaults.register_config().placement == RegisterConfig().placement
-    off = settings_from_dict({"register_plot": {"placement_heading_pyramid": 1}})
-    assert off.register_config().placement.coarse.heading_pyramid == 1
-    assert off.register_config().placement.coarse.settled_generators == 1

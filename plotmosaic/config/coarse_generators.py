@@ -82,13 +82,15 @@ class CoarseGenerators(BaseModel):
         8, ge=0, le=64, description="best headings searched again at half a step either side"
     )
     # a heading's shifts on cells k times larger cost ~1/k^2 of its FFTs; canopy and terrain (what
-    # an ALS tile shows) are smooth at that scale, so the full circle can run there first
+    # an airborne cloud shows best) are smooth at that scale, stems (what ground pairs weigh most)
+    # are a cell wide
     heading_pyramid: int = Field(
-        1,
+        2,
         ge=1,
         le=4,
-        description="the full circle of headings runs first on cells this many times larger, and "
-        "only its best headings on the raster cell (1: every heading on the raster cell)",
+        description="where a cloud is airborne, the full circle of headings runs first on cells this "
+        "many times larger and only its best headings on the raster cell (1: every heading on the "
+        "raster cell); pairs of ground-based scans always search every heading on it",
     )
     pyramid_headings: int = Field(
         12,

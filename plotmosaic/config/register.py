@@ -101,10 +101,9 @@ def graph_align_config() -> AlignConfig:
 
 def placement_align_config() -> AlignConfig:
     """A scan onto the ALS tile to place it: as any TLS -> ALS pair, but its search stops at the first
-    vertical pair once one generator's pose is clearly ahead, and its headings are scored on coarser
-    cells first; a placement is a prior and an edge that the pairs it implies verify again
-    (benchmarks/results/speed.md)."""
-    return AlignConfig(coarse=CoarseConfig(settled_generators=1, heading_pyramid=2))
+    vertical pair once one generator's pose is clearly ahead; a placement is a prior and an edge
+    that the pairs it implies verify again (benchmarks/results/speed.md)."""
+    return AlignConfig(coarse=CoarseConfig(settled_generators=1))
 
 
 class RegisterOptions(BaseModel):

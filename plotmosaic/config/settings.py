@@ -36,7 +36,7 @@ from plotmosaic.config.register import (
 from plotmosaic.config.report import ReportConfig
 
 # a placement's own coarse-search settings, mapped onto [align.coarse] in its config
-_PLACEMENT = ("placement_fpfh", "placement_settled_generators", "placement_heading_pyramid")
+_PLACEMENT = ("placement_fpfh", "placement_settled_generators")
 
 
 class RegisterSection(RegisterOptions):
@@ -62,14 +62,6 @@ class RegisterSection(RegisterOptions):
         description="generators that must agree before a placement's search stops at the first "
         "vertical pair (replaces align.coarse.settled_generators there): a placement is a prior "
         "the pairs verify again, and one clear pose ahead of its rivals is enough",
-    )
-    placement_heading_pyramid: int = Field(
-        placement_align_config().coarse.heading_pyramid,
-        ge=1,
-        le=4,
-        description="a placement scores every heading on cells this many times larger first, and "
-        "only the best on the raster cell (replaces align.coarse.heading_pyramid there): the "
-        "tile's canopy and terrain are smooth at that scale, and the pairs verify the placement",
     )
 
 
@@ -128,7 +120,6 @@ class Settings(BaseModel):
             placement=self._onto_als(
                 self.register_plot.placement_fpfh,
                 settled_generators=self.register_plot.placement_settled_generators,
-                heading_pyramid=self.register_plot.placement_heading_pyramid,
             ),
             report=self.report.model_copy(deep=True),
             read=self.read,

@@ -30,6 +30,14 @@ def weights(source_kind: str, target_kind: str, config: CoarseConfig) -> dict[st
     return dict(config.weights_ground)
 
 
+def pyramid(source_kind: str, target_kind: str, config: CoarseConfig) -> int:
+    """How many raster cells wide the first heading pass's cells are: coarser only where a cloud is
+    airborne (canopy and terrain weigh most, smooth at that scale; stems are a cell wide)."""
+    if source_kind in AIRBORNE or target_kind in AIRBORNE:
+        return config.heading_pyramid
+    return 1
+
+
 class _Correlation:
     """The target's rasters on a cell no finer than `max_fft` allows, the masked NCC over them, and
     the best shifts of the source turned to a heading (`peaks`). `prior` (levelled source ->
@@ -150,12 +158,13 @@ def search(
     weights: dict[str, float],
     config: CoarseConfig,
     prior: np.ndarray | None = None,
+    pyramid: int = 1,
 ) -> list[Peak]:
     """Exhaustive heading search; masked-NCC shift per heading; the best distinct peaks.
 
     `prior` (levelled source -> levelled target): search only headings within `prior_yaw_deg` of
-    it and shifts within `prior_shift_m` of where it puts the source centroid. With
-    `heading_pyramid` > 1 the headings are first scored on coarser cells, and only the best
+    it and shifts within `prior_shift_m` of where it puts the source centroid. With `pyramid` > 1
+    the headings are first scored on cells `pyramid` times larger, and only the best
     `pyramid_headings` of them searched on the raster cell.
     """
     corr = _Correlation(src, tgt, weights, config, prior)
@@ -167,8 +176,8 @@ def search(
         yaws = [
             y for y in yaws if angle_diff(y, corr.prior_yaw) <= np.radians(config.prior_yaw_deg)
         ] + [float(corr.prior_yaw % (2 * np.pi))]
-    if config.heading_pyramid > 1 and len(yaws) > config.pyramid_headings:
-        rough = config.model_copy(update={"cell": corr.cell * config.heading_pyramid})
+    if pyramid > 1 and len(yaws) > config.pyramid_headings:
+        rough = config.model_copy(update={"cell": corr.cell * pyramid})
         coarse = _Correlation(src, tgt, weights, rough, prior)
         yaws = _best_headings(_peaks(coarse, yaws), step, config.pyramid_headings)
     candidates = _peaks(corr, yaws)
@@ -214,15 +223,17 @@ def raster_starts(
     config: CoarseConfig,
     prior: np.ndarray | None,
     first: int = 0,
+    pyramid: int = 1,
 ) -> tuple[list[Start], float | None]:
     """Starts of the raster search per vertical pair, and the raster cell used.
 
-    `first`: the index of `pairs[0]` among all vertical pairs (pair 0 gets the most hypotheses)."""
+    `first`: the index of `pairs[0]` among all vertical pairs (pair 0 gets the most hypotheses);
+    `pyramid`: see `search` (the narrow scene's finer search never coarsens)."""
     out, cell = [], None
     for k, (vs, vt) in enumerate(pairs, start=first):
         ls, lt = src.level(vs, config), tgt.level(vt, config)
         prior_l = None if prior is None else homogeneous(lt.R) @ prior @ homogeneous(ls.R.T)
-        hyps = search(ls, lt, weights, config, prior_l)[
+        hyps = search(ls, lt, weights, config, prior_l, pyramid)[
             : config.hypotheses if k == 0 else config.secondary_hypotheses
         ]
         ground_tree = tgt.ground_tree(vt, config)

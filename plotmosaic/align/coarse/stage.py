@@ -12,7 +12,7 @@ from plotmosaic.align.coarse import verify as verification
 from plotmosaic.align.coarse.clouds import AIRBORNE, Levels, remembered, vertical_pairs
 from plotmosaic.align.coarse.fpfh import fpfh_matches, fpfh_starts
 from plotmosaic.align.coarse.hypothesis import Hypothesis, Start
-from plotmosaic.align.coarse.raster import raster_starts, weights
+from plotmosaic.align.coarse.raster import pyramid, raster_starts, weights
 from plotmosaic.align.coarse.slices import slice_starts
 from plotmosaic.align.coarse.stems import stem_starts
 from plotmosaic.align.coarse.verify import GENERATORS, Verifier, unique_starts
@@ -57,12 +57,14 @@ class _Generators:
         src: Levels,
         tgt: Levels,
         weights: dict[str, float],
+        pyramid: int,
         config: CoarseConfig,
         prior: np.ndarray | None,
         seed: int,
         timing: dict,
     ) -> None:
-        self.src, self.tgt, self.weights, self.config = src, tgt, weights, config
+        self.src, self.tgt, self.weights, self.pyramid = src, tgt, weights, pyramid
+        self.config = config
         self.prior, self.timing = prior, timing
         self.fpfh_rng = np.random.default_rng([seed, 1])
         self.stems_rng = np.random.default_rng([seed, 2])
@@ -72,7 +74,7 @@ class _Generators:
     def raster(self, first: int, chosen) -> list[Start]:
         t = time.perf_counter()
         out, cell = raster_starts(
-            self.src, self.tgt, chosen, self.weights, self.config, self.prior, first
+            self.src, self.tgt, chosen, self.weights, self.config, self.prior, first, self.pyramid
         )
         self.cell = cell if self.cell is None else self.cell
         _clock(self.timing, "search", t)
@@ -133,8 +135,9 @@ def coarse_align(
     prior = None if prior is None else np.asarray(prior, dtype=float)
     airborne = source.kind in AIRBORNE or target.kind in AIRBORNE
     verify = Verifier(src.cloud, tgt, airborne, config, rng)
+    kinds = source.kind, target.kind
     generate = _Generators(
-        src, tgt, weights(source.kind, target.kind, config), config, prior, seed, timing
+        src, tgt, weights(*kinds, config), pyramid(*kinds, config), config, prior, seed, timing
     )
     first = pairs[:1]
     raster, stems = generate.raster(0, first), generate.stems(first)
