@@ -2,7 +2,7 @@
 
   forestalign  plotmosaic's pipeline (global coarse stage on; `--no-coarse` starts it at identity)
   forestalign-placement  the same with register-plot's settings for placing a scan on an airborne
-               tile (one generator settles, headings scored on coarser cells first)
+               tile (its search stops at the first vertical pair once one generator is clearly ahead)
   icp          Open3D point-to-point ICP from identity (the paper's "standard ICP")
   fpfh-ransac  Open3D FPFH features + RANSAC, refined by the same ICP (a standard global method)
   cpd          rigid Coherent Point Drift from probreg (optional; the paper's Table 3 baseline; scale fixed,

@@ -35,9 +35,6 @@ from plotmosaic.config.register import (
 )
 from plotmosaic.config.report import ReportConfig
 
-# a placement's own coarse-search settings, mapped onto [align.coarse] in its config
-_PLACEMENT = ("placement_fpfh", "placement_settled_generators")
-
 
 class RegisterSection(RegisterOptions):
     """register-plot's own settings; its pairwise and pose-graph settings are [align], [posegraph]."""
@@ -108,7 +105,9 @@ class Settings(BaseModel):
         return self.align.model_copy(deep=True)
 
     def register_config(self) -> RegisterConfig:
-        own = self.register_plot.model_dump(exclude={"pair_min_confidence", *_PLACEMENT})
+        own = self.register_plot.model_dump(
+            exclude={"pair_min_confidence", "placement_fpfh", "placement_settled_generators"}
+        )
         pairwise = self.align.model_copy(
             deep=True, update={"min_confidence": self.register_plot.pair_min_confidence}
         )
