@@ -215,10 +215,8 @@ class AlignConfig(BaseModel):
     level_cell: float = Field(
         0.2, gt=0, le=100, description="level steps run on one point per cube (m)"
     )
-    # the mixture and the level ICP need tens of thousands of points, the judge draws 4,000: a larger
-    # sample only costs (its features are the largest share of preparing a scan)
     level_max_points: int = Field(
-        50_000,
+        150_000,
         ge=1000,
         le=100_000_000,
         description="cap on the labelled sample (seeded): 8M-point TLS gives ~650k cubes",
