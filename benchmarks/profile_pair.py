@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/profile_pair.py SRC.laz TGT.laz --top 40
     .venv/bin/python benchmarks/profile_pair.py SRC.laz TGT.laz --save pair.prof   # for snakeviz etc.
+    .venv/bin/python benchmarks/profile_pair.py SRC.laz TGT.laz --plain   # stage CPU, no profiler
 
 The command runs in this process (cProfile sees every stage, imports included; worker processes are not
 profiled: a pair runs in one process). The thread budget is 1 by default, because cProfile sees only the
@@ -9,6 +10,9 @@ thread it runs in: two-thread maps would show up as time waiting on a lock. The 
 same figures as a quiet one, apart from cache effects. Printed first: the CPU of each stage and of the
 kernels the fixed cost is made of (rows overlap: a kernel runs inside a stage, an import inside
 whatever asked for it); then the functions by cumulative CPU time and by own CPU time.
+
+`--plain` runs the pair without the profiler (which inflates Python-heavy stages) and prints the stage
+timings the result records: with a thread budget of 1 a stage's wall time is its CPU time.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from plotmosaic.align.pipeline import AlignRequest, align_files
 from plotmosaic.cli import app
 from plotmosaic.parallel import set_threads
 
@@ -82,6 +87,23 @@ def summary(stats: pstats.Stats, total: float) -> str:
     return "\n".join(lines)
 
 
+def plain(source: Path, target: Path) -> str:
+    """Stage seconds of one unprofiled run in this process (CPU seconds at a thread budget of 1)."""
+    start = time.process_time()
+    result = align_files(source, target, AlignRequest())
+    total = time.process_time() - start
+    lines = [f"{'':44s} {'s':>7s}"]
+    for name, value in result.timings.items():
+        if isinstance(value, dict):  # a stage's parts (prepare_source, prepare_target)
+            value = ", ".join(f"{k} {v:.2f}" for k, v in value.items())
+            lines.append(f"  {name:42s} {value}")
+        else:
+            lines.append(f"  {name:42s} {value:7.2f}")
+    lines.append(f"  {'the pair, CPU (imports excluded)':42s} {total:7.2f}")
+    lines.append(f"  {'imports (own process)':42s} {bare_imports():7.2f}")
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("source", type=Path)
@@ -89,9 +111,13 @@ def main() -> None:
     ap.add_argument("--top", type=int, default=30, help="rows of each table")
     ap.add_argument("--threads", type=int, default=1, help="thread budget (1: every call is seen)")
     ap.add_argument("--save", type=Path, help="write the raw profile here")
+    ap.add_argument("--plain", action="store_true", help="no profiler: the stages' own timings")
     ap.add_argument("align_args", nargs="*", help="more `plotmosaic align` options, after --")
     args = ap.parse_args()
     set_threads(args.threads)
+    if args.plain:
+        print(plain(args.source, args.target))
+        return
     with tempfile.TemporaryDirectory() as tmp:
         argv = [
             "align",

@@ -53,6 +53,6 @@ def write_e57(path: Path, scans: list[tuple[str, np.ndarray, np.ndarray, dict]])
 # Bounds for single pairs of the `small` simulated preset (sparse TLS, ~18 m apart). The fixed 5 cm /
 # 3 cm TLS polish (AlignConfig.final_polish_fixed_kinds) removes the `large` preset's baseline
 # contraction and improves 6 of the preset's 8 pairs, but leaves P1-S1 -> P1-S0 0.103 deg / 2.2 cm
-# from the truth (0.059 deg before): benchmarks/results/graph.md.
+# from the truth (0.059 deg before): docs/method.md, final_polish_fixed_kinds.
 SIM_PAIR_MAX_DEG = 0.12
 SIM_PAIR_MAX_M = 0.025

@@ -140,7 +140,7 @@ def test_memos_belong_to_their_owner():
 # 0.103 deg in yaw since sparse TLS pairs polish at 5 cm / 3 cm (align/config.final_polish_fixed_kinds;
 # 0.059 deg before). That polish removes the `large` preset's contraction and makes 6 of the small
 # preset's 8 pairs better from the truth (mean error at the data 1.37 -> 0.93 cm); this one is
-# 0.04 deg worse, and every start that converges ends on it (benchmarks/results/graph.md).
+# 0.04 deg worse, and every start that converges ends on it (docs/method.md, final_polish_fixed_kinds).
 PAIR_MAX_DEG = 0.12
 
 
