@@ -116,6 +116,8 @@ def main() -> None:
     args = ap.parse_args()
     set_threads(args.threads)
     if args.plain:
+        if args.align_args:
+            ap.error("--plain runs the default settings: no align options after --")
         print(plain(args.source, args.target))
         return
     with tempfile.TemporaryDirectory() as tmp:
