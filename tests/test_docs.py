@@ -5,8 +5,15 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
+
+from plotmosaic.commands.align import LEVEL_NAMES, output_plan
+from plotmosaic.commands.bench import BENCH_NAMES
+from plotmosaic.commands.register import register_plan, tie_plan
+from plotmosaic.commands.report import PAGES, PAIR_FIGURES
+from plotmosaic.demo import DEMO_NAMES
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCUMENTS = sorted(
@@ -64,3 +71,21 @@ def test_broken_links_are_found(tmp_path):
 def test_relative_links_resolve(doc: Path):
     broken = broken_links(doc)
     assert not broken, f"{doc.relative_to(ROOT)}: " + "; ".join(broken)
+
+
+def test_cli_md_names_every_file_each_command_writes(tmp_path):
+    """docs/cli.md's table of outputs names every file a command's output plan lists."""
+    text = (ROOT / "docs" / "cli.md").read_text()
+    table = text.split("## What each command writes", 1)[1].split("\n## ", 1)[0]
+    align = output_plan(None, None, None, None, tmp_path / "R.json", None, False)
+    names = [p.name for p in align.files] + list(LEVEL_NAMES)
+    empty = SimpleNamespace(plots=[], scans=[], als=[], source=None)
+    poses = tmp_path / "p.json"
+    for plan in (
+        register_plan(empty, None, tmp_path, False),
+        tie_plan(empty, poses, None, tmp_path, False),
+    ):
+        names += list(plan.names)
+    names += [*BENCH_NAMES, *DEMO_NAMES, *PAGES, *PAIR_FIGURES]
+    missing = [n for n in names if f"`{n}" not in table]
+    assert not missing, missing

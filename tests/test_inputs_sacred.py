@@ -8,6 +8,7 @@ import hashlib
 import json
 import os
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -92,6 +93,24 @@ def test_align_out_through_a_symlink_or_hard_link_is_refused(plot):
     refused(plot, ["align", src, tgt, "--out", plot / "link.json"], "link.json", "SOURCE")
     os.link(tgt, plot / "hard.json")
     refused(plot, ["align", src, tgt, "--out", plot / "hard.json"], "hard.json", "TARGET")
+
+
+@pytest.mark.parametrize("name", ["r.json", "r.matrix.txt", "r.config-used.toml"])
+def test_align_refuses_each_existing_file_it_would_write_unless_forced(plot, name):
+    """RESULT.json and the two files beside it: refused before any work (exit 2 within a second,
+    the file unchanged); --force replaces them."""
+    src, tgt = plot / "P1" / "P1-S1.laz", plot / "P1" / "P1-S0.laz"
+    res = plot / "res"
+    res.mkdir()
+    (res / name).write_text("mine\n")
+    start = time.perf_counter()
+    refused(plot, ["align", src, tgt, "--out", res / "r.json"], str(res / name), "--force")
+    assert time.perf_counter() - start < 1.0
+    forced = invoke("align", src, tgt, "--out", res / "r.json", "--force")
+    assert forced.exit_code == 0, forced.output
+    assert json.loads((res / "r.json").read_text())["transform"]
+    assert (res / "r.matrix.txt").read_text().count("\n") >= 4
+    assert (res / "r.config-used.toml").read_text().startswith("#")
 
 
 def test_align_save_levels_never_writes_an_input(plot):
@@ -217,6 +236,16 @@ def test_report_never_writes_into_the_registration_folder_it_reads(plot):
     (reg / "report.html").write_text("<html>register-plot's page</html>\n")
     refused(plot, ["report", reg, "--out", reg], str(reg))
     refused(plot, ["report", reg, "--out", reg, "--force"], str(reg / "report.html"))
+
+
+def test_report_on_a_damaged_run_folder_leaves_every_file_as_it_was(plot):
+    """A failed command writes nothing: the folder's record is not touched before its inputs load."""
+    reg = plot / "reg"
+    plan = OutputPlan("register-plot", folder=reg, names=("poses.json", "graph.json"))
+    with claimed(check_outputs(plan)):
+        (reg / "poses.json").write_text('{"frame": "plot", "scans": {"P1-S0": ')  # cut short
+        (reg / "graph.json").write_text("{}")
+    refused(plot, ["report", reg], "poses.json")
 
 
 def test_manifest_from_never_writes_over_the_e57(tmp_path):

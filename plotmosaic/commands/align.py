@@ -19,7 +19,7 @@ from plotmosaic.commands.common import (
 )
 from plotmosaic.config.align import DEFAULT_LEVELS, KINDS, MAX_LEVELS
 from plotmosaic.errors import InputError
-from plotmosaic.io.atomic import check_output_dir, check_output_file, write_text_atomic
+from plotmosaic.io.atomic import check_output_dir, write_text_atomic
 from plotmosaic.io.las import read_header_info
 from plotmosaic.io.matrix import matrix_text
 from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed, inputs_of
@@ -64,7 +64,8 @@ def matrix_path(out: Path | None) -> Path | None:
 
 
 def output_plan(source, target, init, config, out, save_levels, force) -> OutputPlan:
-    """What `align` writes (RESULT.json, its matrix, its settings, the levels folder) and reads."""
+    """What `align` writes (RESULT.json with its matrix and settings beside it, the levels folder)
+    and reads: the three files beside --out are refused if they exist, unless --force."""
     used = config_used_path(out, save_levels)
     names = LEVEL_NAMES + ((CONFIG_USED,) if out is None else ())
     beside = (out, matrix_path(out), used) if out is not None else ()
@@ -129,12 +130,10 @@ def check_options(source_kind, target_kind, levels_source, levels_target, comple
         raise InputError(f"--complexity {complexity!r}: expected vmf or vmf+eigen")
 
 
-def check_files(source: Path, target: Path, plan: OutputPlan, used: Path | None) -> OutputPlan:
+def check_files(source: Path, target: Path, plan: OutputPlan) -> OutputPlan:
     """The inputs readable and large enough, the outputs writable: before any work."""
     check_point_counts([(source, "SOURCE"), (target, "TARGET")])
     plan = check_outputs(plan)
-    for path in (*plan.files, *([used] if used is not None else [])):
-        check_output_file(path)
     if plan.folder is not None:
         check_output_dir(plan.folder)
     return plan
@@ -205,7 +204,8 @@ def align_command(
     force: bool = typer.Option(
         False,
         "--force",
-        help="Write into a --save-levels folder that holds other files (they are left untouched).",
+        help="Replace RESULT.json and the two files beside it if they exist; write into a "
+        "--save-levels folder that holds other files (they are left untouched).",
     ),
 ) -> None:
     """Register SOURCE onto TARGET with ForestAlign; print the rotation, the motion of the source's
@@ -219,7 +219,7 @@ def align_command(
     )
     T0 = load_init(init) if init is not None else None
     plan = output_plan(source, target, init, config, out, save_levels, force)
-    plan = check_files(source, target, plan, config_used_path(out, save_levels))
+    plan = check_files(source, target, plan)
     console = Console(stderr=True)
     with claimed(plan), console.status("aligning") as status:
         request = AlignRequest(

@@ -11,8 +11,14 @@ from pydantic import ValidationError
 from plotmosaic.commands.common import CONFIG_HELP, handle_errors, no_empty_output, run_settings
 from plotmosaic.config.merge import MergeConfig
 from plotmosaic.errors import InputError
-from plotmosaic.io.atomic import check_output_file
-from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed, inputs_of, manifest_inputs
+from plotmosaic.io.outputs import (
+    OutputPlan,
+    check_not_inputs,
+    check_outputs,
+    claimed,
+    inputs_of,
+    manifest_inputs,
+)
 from plotmosaic.manifest import Manifest, load_manifest
 from plotmosaic.poses import load_poses
 from plotmosaic.stages.export import (
@@ -104,9 +110,9 @@ def export_command(
         cloud = cloud if cloud is not None else out.with_suffix(".laz")
         if not cloud.name.lower().endswith((".las", ".laz")):
             raise InputError(f"--cloud {cloud}: the pipeline writes a .las, .laz or .copc.laz file")
-    check_outputs(OutputPlan(f"export {to}", inputs, files=files + ((cloud,) if cloud else ())))
-    for path in files:
-        check_output_file(path, force=force)
+    check_outputs(OutputPlan(f"export {to}", inputs, files=files, force=force))
+    if cloud is not None:  # written by PDAL later, never over an input
+        check_not_inputs(OutputPlan(f"export {to}", inputs, files=(cloud,)))
     if to == "pdal":
         _pdal(job, cloud)
     elif to == "e57":

@@ -9,7 +9,7 @@ import typer
 
 from plotmosaic.commands.common import handle_errors
 from plotmosaic.errors import InputError
-from plotmosaic.io.atomic import atomic_output, check_output_file
+from plotmosaic.io.atomic import atomic_output
 from plotmosaic.io.e57 import E57Scan, is_e57, list_scans
 from plotmosaic.io.outputs import OutputPlan, check_outputs, inputs_of
 from plotmosaic.manifest import Manifest, Plot, Scan, ScanKind, check_id, dump_manifest, safe_id
@@ -80,8 +80,8 @@ def manifest_from_command(
     except ValueError as exc:
         raise InputError(f"--plot-id: {exc}") from None
     if out is not None:
-        check_outputs(OutputPlan("manifest-from", inputs_of([(path, "E57 file")]), files=(out,)))
-        check_output_file(out, force=force)
+        inputs = inputs_of([(path, "E57 file")])
+        check_outputs(OutputPlan("manifest-from", inputs, files=(out,), force=force))
     manifest = manifest_for(path, out.parent if out is not None else None, plot_id, kind, use_pose)
     text = dump_manifest(manifest)
     if out is None:

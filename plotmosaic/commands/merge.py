@@ -20,7 +20,7 @@ from plotmosaic.commands.common import (
 from plotmosaic.config.merge import MergeConfig
 from plotmosaic.config.settings import Settings
 from plotmosaic.errors import InputError
-from plotmosaic.io.atomic import check_output_dir, check_output_file
+from plotmosaic.io.atomic import check_output_dir
 from plotmosaic.io.outputs import OutputPlan, check_outputs, inputs_of, manifest_inputs
 from plotmosaic.manifest import load_manifest
 from plotmosaic.poses import load_poses
@@ -90,12 +90,9 @@ def merge_command(
     merge = settings.merge
     used = out / CONFIG_USED if merge.tiles else out.with_name(f"{out.stem}.{CONFIG_USED}")
     loaded = load_manifest(manifest)
-    check_outputs(output_plan(loaded, poses, config, out, used, merge.tiles))
+    check_outputs(output_plan(loaded, poses, config, out, used, merge))
     if merge.tiles:  # the output location is checked (with a real write probe) before any work
         check_output_dir(out.parent if str(out.parent) else Path("."))
-    else:
-        check_output_file(out, force=True)
-        check_output_file(used, force=True)
     # SIGINT / SIGTERM are the command wrapper's (commands/common.py): they unwind as KeyboardInterrupt
     with no_empty_output(out if merge.tiles else out.parent):  # a failed run leaves no folder
         summary = merge_scans(
@@ -122,14 +119,14 @@ def _with_options(settings: Settings, given: dict) -> Settings:
     return settings.model_copy(update={"merge": merge})
 
 
-def output_plan(manifest, poses: Path, config: Path | None, out: Path, used: Path, tiles: bool):
+def output_plan(manifest, poses: Path, config: Path | None, out: Path, used: Path, merge):
     """What `merge` writes (the cloud, its sidecar and settings; or a tile folder) and reads.
 
     A tile folder is swapped whole for the new one, so it may hold nothing merge did not write."""
     inputs = manifest_inputs(manifest) + inputs_of(
         [(poses, "poses file"), (config, "--config file")]
     )
-    if tiles:
+    if merge.tiles:
         names = ("tile_*.laz", TILE_INDEX, CONFIG_USED)
         return OutputPlan(
             "merge --tiles",
@@ -139,7 +136,8 @@ def output_plan(manifest, poses: Path, config: Path | None, out: Path, used: Pat
             replaces_folder=True,
             kind="tile folder",
         )
-    return OutputPlan("merge", inputs, files=(out, sidecar_path(out), used))
+    files = (out, sidecar_path(out), used)
+    return OutputPlan("merge", inputs, files=files, force=merge.force)
 
 
 def print_summary(summary: MergeSummary) -> None:

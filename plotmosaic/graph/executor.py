@@ -245,7 +245,7 @@ def run_pairs(
         if on_result is not None:
             on_result(record)
 
-    with progress_bar(progress, transient=False) as bar:
+    with progress_bar(progress) as bar:
         task = bar.add_task(label, total=len(jobs))
 
         def tick(record: dict) -> None:

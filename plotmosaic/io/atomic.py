@@ -192,6 +192,12 @@ def atomic_output(path: str | Path, force: bool = True) -> Iterator[Path]:
         raise
 
 
+def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
+    with atomic_output(path) as tmp:
+        tmp.write_bytes(data)
+    return Path(path)
+
+
 def write_text_atomic(path: str | Path, text: str) -> Path:
     """UTF-8 text; a file name that is not UTF-8 (a surrogate escape) is written as `\\udcff`."""
     with atomic_output(path) as tmp:

@@ -1,16 +1,19 @@
 """What a run will write, checked before any work: never an input, never a file the user made.
 
 Every command states its inputs (files it reads, folders it reads from) and its outputs (single
-files, or an output folder with the top-level names it writes there). `check_outputs` refuses,
-whatever --force says, an output that is or would replace an input (compared by resolved path and
-by inode, so symlinks and hard links are caught), and in an output folder:
+files with every sibling it writes beside them, or an output folder with the top-level names it
+writes there). `check_outputs` refuses, whatever --force says, an output that is or would replace an
+input (compared by resolved path and by inode, so symlinks and hard links are caught); an existing
+output file unless --force (every sibling is named in the plan, so a command that adds one cannot
+forget to check it); and in an output folder:
 
 - an existing entry of the run's own naming that no earlier run of the same command wrote (the
   user's own `report.md` in a register-plot folder): never replaced, even with --force;
 - other entries the run did not write: refused unless --force, and left untouched with it.
 
 `claimed` writes the folder's record (`.plotmosaic-run.json`: command -> names) before the work, so
-a re-run or a resumed run of the same command may replace what an earlier one wrote.
+a re-run or a resumed run of the same command may replace what an earlier one wrote; a run that
+fails having written nothing leaves the record as it found it, byte for byte.
 """
 
 from __future__ import annotations
@@ -24,7 +27,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from plotmosaic.errors import InputError
-from plotmosaic.io.atomic import TEMP_NAME, write_text_atomic
+from plotmosaic.io.atomic import (
+    TEMP_NAME,
+    check_output_file,
+    write_bytes_atomic,
+    write_text_atomic,
+)
 
 RECORD = ".plotmosaic-run.json"  # the output folder's record of the runs that wrote into it
 _KIND = "plotmosaic output folder record"
@@ -45,12 +53,12 @@ class OutputPlan:
 
     command: str
     inputs: tuple[Input, ...] = ()
-    files: tuple[Path, ...] = ()  # single output files (align --out, merge --out, sidecars)
+    files: tuple[Path, ...] = ()  # single output files, every sibling included (align --out, ...)
     folder: Path | None = None  # the output folder, if the run writes one
-    names: tuple[
-        str, ...
-    ] = ()  # top-level entries it writes there (files, sub-folders, `*` patterns)
-    force: bool = False  # write beside entries the run did not write (never over them)
+    names: tuple[str, ...] = ()  # top-level entries it writes there (files, folders, `*` patterns)
+    # replace existing output files; in a folder, write beside entries the run did not write
+    # (never over them)
+    force: bool = False
     replaces_folder: bool = False  # the whole folder is swapped for a new one (merge --tiles)
     kind: str = "output folder"  # how messages name the folder ("tile folder")
     legacy: str | None = None  # a sub-folder marking a folder this command wrote before records
@@ -221,16 +229,44 @@ def check_folder(plan: OutputPlan) -> None:
         )
 
 
+def check_files(plan: OutputPlan) -> None:
+    """Each output file writable, and not existing unless --force (exit 2, naming it)."""
+    for path in plan.files:
+        check_output_file(path, force=plan.force)
+
+
 def check_outputs(plan: OutputPlan) -> OutputPlan:
     """All pre-work checks of a run's outputs; returns the plan."""
     check_not_inputs(plan)
+    check_files(plan)
     check_folder(plan)
     return plan
 
 
+def _record_bytes(folder: Path) -> bytes | None:
+    try:
+        return (folder / RECORD).read_bytes()
+    except OSError:
+        return None
+
+
 def _write_record(folder: Path, record: RunRecord) -> None:
+    """The record written, unless it already says exactly that (a re-run changes nothing)."""
     runs = {c: list(n) for c, n in record.runs}
-    write_text_atomic(folder / RECORD, json.dumps({"kind": _KIND, "runs": runs}, indent=1))
+    text = json.dumps({"kind": _KIND, "runs": runs}, indent=1)
+    if _record_bytes(folder) != text.encode("utf-8"):
+        write_text_atomic(folder / RECORD, text)
+
+
+def _restore_record(folder: Path, before: bytes | None) -> None:
+    """The record put back as it was (removed if there was none)."""
+    if _record_bytes(folder) == before:
+        return
+    with contextlib.suppress(OSError):
+        if before is None:
+            (folder / RECORD).unlink()
+        else:
+            write_bytes_atomic(folder / RECORD, before)
 
 
 @contextlib.contextmanager
@@ -247,17 +283,18 @@ def claimed(plan: OutputPlan) -> Iterator[OutputPlan]:
         missing.append(current)
         current = current.parent
     before = set(_entries(folder))
-    had_record = (folder / RECORD).is_file()
-    _write_record(folder, read_record(folder).with_run(plan.command, plan.names))
     parent = Path(os.path.abspath(folder)).parent
-    if (parent / RECORD).is_file():  # a folder inside another run's folder (report in DIR/report)
+    records = {folder: _record_bytes(folder)}
+    _write_record(folder, read_record(folder).with_run(plan.command, plan.names))
+    if records.setdefault(parent, _record_bytes(parent)) is not None:
+        # a folder inside another run's folder (report in DIR/report)
         _write_record(parent, read_record(parent).with_run(plan.command, [folder.name]))
     try:
         yield plan
     except BaseException:
-        if not had_record and set(_entries(folder)) <= before:
-            with contextlib.suppress(OSError):
-                (folder / RECORD).unlink()
+        if set(_entries(folder)) <= before:  # the run wrote nothing: every record as it was
+            for where, was in records.items():
+                _restore_record(where, was)
             for d in missing:  # deepest first; only empty folders go
                 with contextlib.suppress(OSError):
                     d.rmdir()

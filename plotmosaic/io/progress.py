@@ -1,4 +1,7 @@
-"""The one progress bar of long runs (pairs, bench trials, merged points), drawn on stderr."""
+"""The one progress bar of long runs (pairs, bench trials, merged points), drawn on stderr.
+
+Bars are drawn only on a terminal, and cleared when they end: a log or a pipe gets no bar, and the
+error line of a command that fails is the only thing it prints on stderr."""
 
 from __future__ import annotations
 
@@ -13,9 +16,12 @@ from rich.progress import (
 )
 
 
-def progress_bar(
-    enabled: bool, label: str = "{task.description}", transient: bool = True
-) -> Progress:
+def shows_progress(enabled: bool) -> bool:
+    """Whether a bar asked for is drawn: only on a terminal's stderr."""
+    return enabled and Console(stderr=True).is_terminal
+
+
+def progress_bar(enabled: bool, label: str = "{task.description}") -> Progress:
     """A rich progress bar on stderr (stdout stays for results); disabled, it draws nothing."""
     return Progress(
         TextColumn(label),
@@ -24,6 +30,6 @@ def progress_bar(
         TimeElapsedColumn(),
         TimeRemainingColumn(),
         console=Console(stderr=True),
-        disable=not enabled,
-        transient=transient,
+        disable=not shows_progress(enabled),
+        transient=True,
     )

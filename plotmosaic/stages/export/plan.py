@@ -10,10 +10,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pyproj import CRS
-from rich.console import Console
 
 from plotmosaic.config.merge import MergeConfig
-from plotmosaic.io.progress import progress_bar
+from plotmosaic.io.progress import progress_bar, shows_progress
 from plotmosaic.manifest import Manifest
 from plotmosaic.poses import Poses
 from plotmosaic.stages.merge.plan import Source, output_crs, plan_sources
@@ -58,7 +57,7 @@ def plan_export(
 @contextlib.contextmanager
 def points_progress(enabled: bool, label: str, total: int) -> Iterator[Advance | None]:
     """A progress bar over `total` points on stderr (none when disabled or not a terminal)."""
-    if not enabled or not Console(stderr=True).is_terminal:
+    if not shows_progress(enabled):
         yield None
         return
     with progress_bar(True, f"{label} {{task.description}}") as bar:

@@ -4,14 +4,12 @@ from __future__ import annotations
 
 import contextlib
 
-from rich.console import Console
-
-from plotmosaic.io.progress import progress_bar
+from plotmosaic.io.progress import progress_bar, shows_progress
 
 
 def points_bar(enabled: bool, total: int):
     """A progress bar over points on stderr (nothing when disabled or not a terminal)."""
-    if not enabled or not Console(stderr=True).is_terminal:
+    if not shows_progress(enabled):
         return contextlib.nullcontext(None)
     return _ProgressTask(progress_bar(True, "merge {task.description}"), total)
 
