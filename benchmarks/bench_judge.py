@@ -28,6 +28,7 @@ from scipy.spatial.transform import Rotation
 
 from plotmosaic.align import judge
 from plotmosaic.align.pipeline import (
+    Start,
     blunt_fit,
     final_icp,
     global_search,
@@ -352,7 +353,7 @@ def run_case(
         if path.startswith("true") and T_true is None:
             continue
         try:
-            r = register_prepared(ps, pt, c, init, 0, stored=stored)
+            r = register_prepared(ps, pt, c, init, 0, start=Start.STORED if stored else Start.PRIOR)
             accepted = True
         except RegistrationFailed as exc:
             r, accepted = exc.result, False

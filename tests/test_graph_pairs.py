@@ -287,7 +287,7 @@ def test_graph_placed_scans_get_their_neighbours_verified_first(tmp_path):
     jobs = position_jobs(manifest, config, 0, tmp_path, poses, done)
     got = {frozenset((j.source, j.target)) for j in jobs}
     assert frozenset(("s1", "s0")) not in got  # tried already
-    assert all(j.stored and j.init is not None for j in jobs)  # a prior, verified first
+    assert all(j.start == "stored" and j.init is not None for j in jobs)  # a prior, verified first
     for j in jobs:
         assert "s15" not in (j.source, j.target)
         d = np.linalg.norm((poses[j.source] - poses[j.target])[:2, 3])
@@ -323,7 +323,9 @@ def test_a_small_plot_runs_a_spanning_tree_first_and_its_verified_priors_lead(tm
     first, deferred = tree_first(manifest, jobs, {}, set())
     # no positions: a star around the first scan (the plan's order), the other six pairs wait
     assert [(j.source, j.target) for j in first] == [(f"s{k}", "s0") for k in range(1, 5)]
-    assert len(deferred) == 6 and not any(j.stored or j.init is not None for j in deferred)
+    assert len(deferred) == 6 and not any(
+        j.start != "prior" or j.init is not None for j in deferred
+    )
     assert {j.key for j in first} | {j.key for j in deferred} == {j.key for j in jobs}
     # positions (e.g. stored poses): the nearest scans first; a verified prior before any search
     poses = _exact_grid(3)
@@ -332,11 +334,11 @@ def test_a_small_plot_runs_a_spanning_tree_first_and_its_verified_priors_lead(tm
     first, deferred = tree_first(manifest, jobs, placed, {"s3", "s4"})
     tree = nx.Graph([(j.source, j.target) for j in first])
     assert nx.is_tree(tree) and tree.number_of_nodes() == 5
-    assert (first[0].source, first[0].target) == ("s4", "s3") and first[0].stored
+    assert (first[0].source, first[0].target) == ("s4", "s3") and first[0].start == "stored"
     for j in first[1:]:
         d = np.linalg.norm((poses[j.source] - poses[j.target])[:2, 3])
         assert d == pytest.approx(18.0)  # grid neighbours, no diagonal
-        assert not j.stored  # a prior not verified first: the search runs
+        assert j.start == "prior"  # a prior not verified first: the search runs
 
 
 def test_loop_pairs_start_from_the_graph_and_pieces_are_joined_once(tmp_path):
@@ -346,7 +348,9 @@ def test_loop_pairs_start_from_the_graph_and_pieces_are_joined_once(tmp_path):
     ready = from_graph(jobs, poses)
     assert {(j.source, j.target) for j in ready} == {("s1", "s0"), ("s2", "s0"), ("s2", "s1")}
     for j in ready:
-        assert j.stored and j.key.startswith(by_pair[(j.source, j.target)].key + "-stored-")
+        assert j.start == "stored" and j.key.startswith(
+            by_pair[(j.source, j.target)].key + "-stored-"
+        )
         assert np.allclose(poses[j.target] @ np.asarray(j.init), poses[j.source])
     # s3 and s4 unplaced but verified together: one pair joins them to the placed piece
     ok = by_pair[("s4", "s3")]

@@ -5,7 +5,7 @@ import pytest
 from helpers import SIM_PAIR_MAX_DEG, SIM_PAIR_MAX_M, invoke, write_e57
 from scipy.spatial.transform import Rotation
 
-from plotmosaic.align.pipeline import prepare_pair, register_prepared
+from plotmosaic.align.pipeline import Start, prepare_pair, register_prepared
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import RegistrationFailed
 from plotmosaic.io.frame import inverse, pose_error
@@ -52,7 +52,7 @@ def pair(scans):
 
 def test_right_stored_pose_skips_the_search(pair):
     src, tgt, T, cfg = pair
-    res = register_prepared(src, tgt, cfg, T, stored=True)
+    res = register_prepared(src, tgt, cfg, T, start=Start.STORED)
     assert res.timings.get("coarse_skipped") == "stored pose verified"
     assert res.coarse["skipped"] == "stored pose verified" and res.coarse["stored_pose"]["verified"]
     assert "hypotheses" not in res.coarse  # no search ran
@@ -69,7 +69,7 @@ def test_wrong_stored_pose_runs_the_search(pair, deg, metres):
     src, tgt, T, cfg = pair
     stored = _off(T, deg, metres) if deg or metres else np.eye(4)
     try:
-        res = register_prepared(src, tgt, cfg, stored, stored=True)
+        res = register_prepared(src, tgt, cfg, stored, start=Start.STORED)
     except RegistrationFailed as exc:  # refused is allowed, a wrong pose with exit 0 is not
         assert exc.result is None or "coarse_skipped" not in exc.result.timings
         return

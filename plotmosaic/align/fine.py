@@ -6,12 +6,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from plotmosaic.align.icp import Mirror, point_to_plane_icp
+from plotmosaic.align.icp import Mirror, nearest, point_to_plane_icp
 from plotmosaic.align.memo import PairMemo
 from plotmosaic.align.prepare import PreparedCloud
+from plotmosaic.align.sampling import sample
 from plotmosaic.align.spacing import scale_factor, spacing
 from plotmosaic.config.align import AlignConfig, IcpStage
 from plotmosaic.io.frame import inverse
+
+LENS_SEED = 7  # the overlap samples' own stream: the same pose, the same samples
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -89,25 +92,60 @@ def final_icp(
     symmetric = (
         src.kind in config.final_symmetric_kinds and tgt.kind in config.final_symmetric_kinds
     )
-    res = point_to_plane_icp(
-        src.fine_points,
-        tgt.points,
-        tgt.target_normals,
-        T,
-        schedule,
-        tree=tgt.tree,
-        kernel_floor=kernel,
-        tol=config.final_tol,
-        mirror=Mirror(tgt.fine_points, src.points, src.tree, src.target_normals)
-        if symmetric
-        else None,
-        viewpoints=views,
-    )
-    return FineResult(
-        T=res.T,
-        p=src.fine_points[res.source_index],
-        q=tgt.points[res.target_index],
-        n=tgt.target_normals(res.target_index),
-        iterations=res.iterations,
-        reverse=False,
-    )
+
+    def run(T0: np.ndarray, forward: np.ndarray, backward: np.ndarray) -> FineResult:
+        res = point_to_plane_icp(
+            forward,
+            tgt.points,
+            tgt.target_normals,
+            T0,
+            schedule,
+            tree=tgt.tree,
+            kernel_floor=kernel,
+            tol=config.final_tol,
+            mirror=Mirror(backward, src.points, src.tree, src.target_normals)
+            if symmetric
+            else None,
+            viewpoints=views,
+        )
+        return FineResult(
+            T=res.T,
+            p=forward[res.source_index],
+            q=tgt.points[res.target_index],
+            n=tgt.target_normals(res.target_index),
+            iterations=res.iterations,
+            reverse=False,
+        )
+
+    fine = run(T, src.fine_points, tgt.fine_points)
+    if config.lens_max_share == 0:
+        return fine
+    d, _ = nearest(tgt.tree, _moved(src.fine_points, fine.T), config.lens_distance)
+    if np.isfinite(d).mean() >= config.lens_max_share:
+        return fine
+    # a thin overlap: the fine samples, drawn over the whole scans, put few points where the clouds
+    # meet, and those few leave the pose loose; again from there on samples of the shared part
+    forward, backward = lens_samples(src, tgt, fine.T, config)
+    if len(forward) <= len(fine.p):
+        return fine
+    again = run(fine.T, forward, backward)
+    return again if len(again.p) > len(fine.p) else fine
+
+
+def _moved(points: np.ndarray, T: np.ndarray) -> np.ndarray:
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def lens_samples(
+    src: PreparedCloud, tgt: PreparedCloud, T: np.ndarray, config: AlignConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Seeded samples of each cloud's points within `lens_distance` of the other at pose T (source
+    local -> target local): where the two clouds overlap, at most final_max_source_points each."""
+    rng = np.random.default_rng(LENS_SEED)
+    Ti = inverse(T)
+    out = []
+    for points, tree, A in ((src.points, tgt.tree, T), (tgt.points, src.tree, Ti)):
+        d, _ = nearest(tree, _moved(points, A), config.lens_distance)
+        near = points[np.isfinite(d)]
+        out.append(near[sample(len(near), config.final_max_source_points, rng)])
+    return out[0], out[1]

@@ -25,7 +25,7 @@ from plotmosaic.align.prepare import (
     prepare_cloud,
     robust_points,
 )
-from plotmosaic.align.register import global_search, register_prepared
+from plotmosaic.align.register import Start, global_search, register_prepared
 from plotmosaic.align.result import METHOD, PairResult
 from plotmosaic.config.align import KINDS, AlignConfig, default_levels
 from plotmosaic.config.reading import ReadingConfig
@@ -39,6 +39,7 @@ __all__ = [
     "AlignRequest",
     "FineResult",
     "PairResult",
+    "Start",
     "align_clouds",
     "align_files",
     "blunt_fit",

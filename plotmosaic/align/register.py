@@ -7,6 +7,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from enum import Enum
 
 import numpy as np
 
@@ -24,9 +25,19 @@ from plotmosaic.align.prepare import PreparedCloud
 from plotmosaic.align.result import PairResult
 from plotmosaic.align.sampling import sample
 from plotmosaic.config.align import AlignConfig
+from plotmosaic.errors import RegistrationFailed
 from plotmosaic.io.frame import rotation_deg, to_global_transform, to_local_transform
 
 Say = Callable[[str], None]
+
+
+class Start(str, Enum):
+    """How a pair's `init` is used."""
+
+    PRIOR = "prior"  # a prior of the coarse stage (or the start itself with it off)
+    STORED = "stored"  # verified first (a pose stored in the scans); searched when it does not hold
+    ONLY = "only"  # verified, refused when it does not hold (a placement's prior: thin pairs are
+    # left to the scan's map, where a search could find no more)
 
 
 def register_prepared(
@@ -36,14 +47,14 @@ def register_prepared(
     init: np.ndarray | None = None,
     seed: int = 0,
     progress: Say | None = None,
-    stored: bool = False,
+    start: Start = Start.PRIOR,
     memo: PairMemo | None = None,
 ) -> PairResult:
-    """Registration of two prepared clouds; `init` (source file -> target file) is a prior for the
-    coarse stage, or the start itself with the coarse stage off. `stored`: `init` is a pose stored
-    in the scan files (E57 `use_pose`): when it verifies (judge.verify_stored) the search is skipped,
-    else it is a prior like any other. `memo`: what this pair computes once, kept by its owner
-    across calls (a run registering a scan in several pairs); a fresh one by default."""
+    """Registration of two prepared clouds; `init` (source file -> target file) is used as `start`
+    says: a prior for the coarse stage (or the start itself with the coarse stage off), or a pose
+    to verify first (judge.verify_stored: the search is skipped when it holds; when it does not,
+    a stored pose is a prior like any other and a placement's is refused). `memo`: what this pair
+    computes once, kept by its owner across calls (a run registering a scan in several pairs)."""
     say = progress or _silent
     memo = memo or PairMemo()
     clock = _Clock()
@@ -52,10 +63,16 @@ def register_prepared(
     T = to_local_transform(
         np.eye(4) if init is None else np.asarray(init, dtype=float), src.frame, tgt.frame
     )
-    start = T.copy()
+    handed = T.copy()
     check = None
-    if stored and init is not None and config.judge.enabled:
+    if start is not Start.PRIOR and init is not None and config.judge.enabled:
         check = verify_stored_pose(src, tgt, T, config, say, memo)
+        if start is Start.ONLY and not check.verified:
+            raise RegistrationFailed(
+                "pair cannot be registered: not verified at its prior (failed "
+                + ", ".join(check.record["failed"])
+                + "): too thin a pair, left to the scans' maps"
+            )
     search = search_pose(src, tgt, config, T, init is not None, seed, check, say, memo)
     clock.mark("coarse")
     rng = np.random.default_rng(seed)
@@ -69,7 +86,7 @@ def register_prepared(
         say("final ICP")
         fine = final_icp(src, tgt, levels.T, config, memo)
     clock.mark("final_icp")
-    judged = judge_pose(src, tgt, config, fine, start, search, say, memo)
+    judged = judge_pose(src, tgt, config, fine, handed, search, say, memo)
     clock.mark("judge")
     say("quality")
     quality = measure(src, tgt, config, judged.fine, rng)
@@ -209,7 +226,8 @@ def judge_pose(
     verdict = judge_mod.judge(src, tgt, fine.T, candidates, config.judge, memo)
     if search.skipped:
         return Judged(fine=fine, verdict=verdict)
-    return recover(src, tgt, config, candidates, fine, verdict, say, memo)
+    judged = recover(src, tgt, config, candidates, fine, verdict, say, memo)
+    return look_again(src, tgt, config, candidates, judged, say, memo)
 
 
 def recover(
@@ -247,6 +265,51 @@ def recover(
     if keep:
         return Judged(fine=second_fine, verdict=second)
     return Judged(fine=fine, verdict=verdict)
+
+
+def weak(verdict: Verdict, config: AlignConfig) -> bool:
+    """Whether a verdict would be refused, or kept only as an unsure edge: beaten, blunt, below the
+    judge's floor, or less confident than `second_look_below`."""
+    jc = config.judge
+    return (
+        verdict.margin <= 0
+        or verdict.score < jc.min_score
+        or verdict.sharpness < jc.min_sharpness
+        or verdict.confidence < jc.second_look_below
+    )
+
+
+def look_again(
+    src: PreparedCloud,
+    tgt: PreparedCloud,
+    config: AlignConfig,
+    candidates: list[Candidate],
+    judged: Judged,
+    say: Say,
+    memo: PairMemo,
+) -> Judged:
+    """A weak verdict's second look (judge.second_look): from each distinct candidate, the level
+    stage, the final ICP and the judge with its one retry, as the first pose had them (the retry's
+    basin starts carry a pose a few degrees off onto the truth beside it); the most confident of
+    those that are not weak replaces the first pose, else the first verdict stands. The rivals
+    are refined once for the pair (the memo): each look pays for its own ICPs and basin only."""
+    if not config.coarse.enabled or not weak(judged.verdict, config):
+        return judged
+    c = judge_mod.centre(src, config.judge, memo.source)
+    starts = judge_mod.second_look(judged.fine.T, candidates, c, config.judge)
+    say(f"a second look from {len(starts)} other candidates")
+    rivals = [*candidates, Candidate(T=judged.fine.T, source="first pose")]
+    best = judged
+    for A in starts:
+        rng = np.random.default_rng(0)
+        fine = final_icp(src, tgt, level_stage(src, tgt, config, A, False, rng).T, config, memo)
+        verdict = judge_mod.judge(src, tgt, fine.T, rivals, config.judge, memo)
+        found = recover(src, tgt, config, rivals, fine, verdict, say, memo)
+        if weak(found.verdict, config):
+            continue
+        if best is judged or found.verdict.confidence > best.verdict.confidence:
+            best = found
+    return best
 
 
 def measure(

@@ -23,6 +23,7 @@ from plotmosaic.commands.common import (
 )
 from plotmosaic.config.register import PairSelection, RegisterOptions, TieOptions
 from plotmosaic.errors import InputError, PlotmosaicError
+from plotmosaic.graph.unplaced import unplaced_reasons
 from plotmosaic.io.atomic import check_output_dir
 from plotmosaic.io.outputs import (
     Input,
@@ -67,7 +68,7 @@ def register_plan(manifest, config: Path | None, out: Path, force: bool) -> Outp
         "register-plot",
         manifest_inputs(manifest) + inputs_of([(config, "--config file")]),
         folder=out,
-        names=(*_COMMON, "pairs", "prepared", "placement", *figures),
+        names=(*_COMMON, "pairs", "prepared", "placement", "maps", *figures),
         force=force,
         legacy="pairs",  # a folder register-plot wrote before folders had a record
     )
@@ -286,5 +287,5 @@ def _summary(G, solves, unplaced: list[str]) -> None:
                 " ".join(f"{np.degrees(v):.4f}" for v in s[:3]),
             )
         console.print(table)
-    if unplaced:
-        console.print(f"not placed (no usable pair): {', '.join(unplaced)}")
+    for u in unplaced_reasons(G, unplaced):
+        console.print(f"not placed: {u.line()}")

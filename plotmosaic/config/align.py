@@ -278,6 +278,19 @@ class AlignConfig(BaseModel):
         default_factory=lambda: ["tls"],
         description="pairs of these sensor kinds end with a symmetric ICP (empty: one direction)",
     )
+    # a pair whose fine sample lies mostly away from the other cloud overlaps thinly (sparse
+    # surveys, scans onto maps): its samples are drawn again from where the clouds meet
+    # (docs/method.md#fine-stage-settings)
+    lens_max_share: float = Field(
+        0.25,
+        ge=0,
+        le=1,
+        description="less of the source's fine sample this near the target: the last ICP runs"
+        " again on samples of the overlap (0: never)",
+    )
+    lens_distance: float = Field(
+        0.3, gt=0, le=10, description="a point this near (m) the other cloud is in the overlap"
+    )
     final_max_source_points: int = Field(
         40_000,
         ge=100,

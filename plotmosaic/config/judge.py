@@ -134,6 +134,22 @@ class JudgeConfig(BaseModel):
         default_factory=SceneConfig,
         description="each cloud must be a forest scene (extent, stems, not all planes)",
     )
+    # a low-overlap pair's truth often ranks low on the wide scales among many starts
+    # (docs/method.md#judge-settings): a refused pose gets one more look among them
+    second_look_rivals: int = Field(
+        12,
+        ge=0,
+        le=64,
+        description="distinct candidates beyond the rivals refined when the pose would be refused"
+        " (0: none); the sharpest one is tried as the pose",
+    )
+    second_look_below: float = Field(
+        0.25,
+        ge=0,
+        le=1,
+        description="confidence below which a pose gets that second look (also: blunt, beaten, or"
+        " below min_score)",
+    )
     global_rivals: bool = Field(
         True, description="after --no-coarse / --init also search the whole pair for rivals"
     )

@@ -10,7 +10,7 @@ from plotmosaic.config.align import AlignConfig
 from plotmosaic.config.coarse import CoarseConfig
 from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.config.report import ReportConfig
-from plotmosaic.config.scale import PlacedPriors, SignatureConfig
+from plotmosaic.config.scale import MapConfig, PlacedPriors, SignatureConfig
 
 
 class PairSelection(BaseModel):
@@ -48,6 +48,14 @@ class PoseGraphConfig(BaseModel):
     )
     max_information_ratio: float = Field(
         1e4, ge=1, le=1e12, description="cap on strongest / weakest direction"
+    )
+    # a scan placed on a sparse ALS tile is off by 0.02-0.12 deg and 0.3-1.5 cm (16 placements
+    # of a sparse understorey plot, docs/method.md#plot-settings), whatever its ICP information says
+    anchor_min_sigma_rotation_deg: float = Field(
+        0.05, gt=0, le=10, description="floor of an ALS placement edge's rotation sigma"
+    )
+    anchor_min_sigma_translation: float = Field(
+        0.01, gt=0, le=1, description="floor of an ALS placement edge's translation sigma (m)"
     )
     fallback_sigma_rotation_deg: float = Field(
         0.1, gt=0, le=45, description="when a pair carries no information matrix"
@@ -120,16 +128,18 @@ class RegisterOptions(BaseModel):
     place_on_als: bool = Field(
         True, description="big plots without positions: place each scan on the ALS first"
     )
+    # every placement the judge verified is used (a position, a prior and an anchor): a sparse
+    # survey's placements are right at confidences 0.26-0.49 (docs/method.md#plot-settings)
     placement_min_confidence: float = Field(
-        0.5,
+        0.0,
         ge=0,
         le=1,
-        description="a scan placed on the ALS less surely than "
-        "this is paired with every scan instead (a wrong place would pick wrong pairs)",
+        description="least judge confidence of an ALS placement that is used, beyond the judge's own"
+        " verdict (0: every verified placement)",
     )
-    # the ALS placements (those kept by placement_min_confidence) as edges to one ALS node per plot:
-    # they do not depend on the scan-to-scan edges, so they hold the far corners of a big plot
-    # where a chain of pairs drifts (docs/method.md#plot-settings)
+    # the ALS placements as edges to one ALS node per plot: they do not depend on the scan-to-scan
+    # edges, so they hold the far corners of a big plot where a chain of pairs drifts, and place a
+    # scan whose pairs are refused (docs/method.md#plot-settings)
     als_anchors: bool = Field(
         True, description="ALS placements of a plot's scans are edges of its pose graph"
     )
@@ -140,6 +150,10 @@ class RegisterOptions(BaseModel):
     placed_priors: PlacedPriors = Field(
         default_factory=PlacedPriors,
         description="priors from two ALS placements, verified before any search",
+    )
+    maps: MapConfig = Field(
+        default_factory=MapConfig,
+        description="scans without a verified pair placed onto their placed neighbours together",
     )
 
 

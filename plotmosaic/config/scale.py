@@ -99,3 +99,44 @@ class PlacedPriors(BaseModel):
         le=10,
         description="rounds of neighbour pairs between scans the verified graph has placed",
     )
+
+
+class MapConfig(BaseModel):
+    """Scan-to-map placement (graph/maps.py): a scan without a verified pair registered against
+    the union of the placed scans near it."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(
+        True, description="place scans without a verified pair onto their placed neighbours"
+    )
+    # a map measured at placements that the next solve moves is measured again from there: the
+    # rounds settle the survey as one (multi-view ICP through the pose graph)
+    rounds: int = Field(
+        3, ge=0, le=10, description="rounds of map placements, each from the last solve's poses"
+    )
+    settled_m: float = Field(
+        0.002, gt=0, le=1, description="no scan moved more (m) in a round: the maps are settled"
+    )
+    settled_deg: float = Field(0.005, gt=0, le=1, description="... nor turned more (deg)")
+    reach: float = Field(
+        2.0,
+        gt=0,
+        le=10,
+        description="placed scans within this many scan spacings of a scan form its map",
+    )
+    margin_m: float = Field(
+        2.0, ge=0, le=50, description="the map is cropped this far (m) beyond the scan's reach"
+    )
+    thin_voxel: float = Field(
+        0.1,
+        gt=0,
+        le=5,
+        description="voxel (m) of a whole-plot map, for a scan with no start (its memory bounded)",
+    )
+    edge_distance: float = Field(
+        0.1, gt=0, le=2, description="correspondences (m) that give a map member its share"
+    )
+    min_edge_points: int = Field(
+        200, ge=10, le=100_000, description="fewer correspondences: the member gets no edge"
+    )

@@ -46,12 +46,14 @@ SOLVE_FLOOR = {"rotation": 0.25, "translation": 0.25}
 # error mostly lies: so they cover the true errors as often as they claim (results/uncertainty.md).
 REPORT_FLOOR = {"rotation": 0.05, "translation": 0.4}
 MAX_FACTOR = 1e6  # a group's sigmas grow at most 1000x
+MAP_FLOOR = 1.0  # map edges (graph/maps.py) never shrink below their information
 
 
 def edge_group(G: nx.Graph, u: str, v: str) -> str:
-    """The kinds of an edge's two ends, sorted: "tls-tls", "als-tls", ..."""
-    kinds = sorted(str(G.nodes[n].get("kind", "unknown")) for n in (u, v))
-    return "-".join(kinds)
+    """The kinds of an edge's two ends, sorted: "tls-tls", "als-tls", ...; an edge measured on a
+    map ("tls-tls map") is a group of its own: its noise is not a pair's."""
+    kinds = "-".join(sorted(str(G.nodes[n].get("kind", "unknown")) for n in (u, v)))
+    return f"{kinds} map" if G.edges[u, v].get("via") == "map" else kinds
 
 
 @dataclass
@@ -64,7 +66,10 @@ class Scales:
     redundancy: dict[tuple[str, str], float] = field(default_factory=dict)
 
     def factor(self, key: tuple[str, str], floor: dict[str, float]) -> float:
-        return float(np.clip(self.observed.get(key, 1.0), floor[key[1]], MAX_FACTOR))
+        # a map's edges are measured at the poses the graph then keeps: their loops close by
+        # construction and cannot show them surer than their information
+        low = MAP_FLOOR if key[0].endswith(" map") else floor[key[1]]
+        return float(np.clip(self.observed.get(key, 1.0), low, MAX_FACTOR))
 
     def apply(self, group: str, info: np.ndarray, floor: dict[str, float]) -> np.ndarray:
         d = np.ones(6)
@@ -87,12 +92,16 @@ class Scales:
 
 
 def condition_information(
-    info: np.ndarray | None, rmse: float | None, config: PoseGraphConfig
+    info: np.ndarray | None, rmse: float | None, config: PoseGraphConfig, via: str | None = None
 ) -> np.ndarray:
-    """A well-conditioned 6x6 information: sigmas floored, strongest/weakest ratio capped."""
-    floors = np.array(
-        [np.radians(config.min_sigma_rotation_deg)] * 3 + [config.min_sigma_translation] * 3
+    """A well-conditioned 6x6 information: sigmas floored (an ALS placement's, `via` "als", at
+    what a scan's placement on the ALS is known to), strongest/weakest ratio capped."""
+    rot, trans = (
+        (config.anchor_min_sigma_rotation_deg, config.anchor_min_sigma_translation)
+        if via == "als"
+        else (config.min_sigma_rotation_deg, config.min_sigma_translation)
     )
+    floors = np.array([np.radians(rot)] * 3 + [trans] * 3)
     S = np.diag(floors)
     A = None
     if info is not None:
@@ -139,7 +148,9 @@ class EdgeInformation:
             self.held[key] = (
                 np.asarray(e["information"], dtype=np.float64)
                 if e.get("posterior")
-                else condition_information(e.get("information"), e.get("inlier_rmse"), self.config)
+                else condition_information(
+                    e.get("information"), e.get("inlier_rmse"), self.config, e.get("via")
+                )
             )
         return self.scales.apply(edge_group(self.G, u, v), self.held[key], self.floor)
 

@@ -27,7 +27,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from plotmosaic.align.memo import RunMemo
-from plotmosaic.align.pipeline import register_prepared
+from plotmosaic.align.pipeline import Start, register_prepared
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.errors import InputError, RegistrationFailed
@@ -59,21 +59,26 @@ class PairJob:
     )
     init: tuple | None = None  # 4x4 rows, source file -> target file: a prior for the coarse stage
     prepare_json: str | None = None  # settings the scans are prepared with, when not config_json's
-    stored: bool = False  # init comes from poses stored in the scan files (E57 use_pose): verified
-    # first, and the search is skipped when it holds
+    start: str = "prior"  # how `init` is used (align.register.Start): "stored" (poses stored in
+    # the scan files, E57 use_pose: verified first, the search skipped when it holds), "only"
+    # (two ALS placements: verified, refused when it does not hold)
     reading: ReadingConfig = field(default_factory=ReadingConfig, kw_only=True)  # `with_reading`
 
 
-def with_stored_poses(jobs: Sequence[PairJob], scans: set[str]) -> list[PairJob]:
-    """Jobs whose two scans' priors are stored poses (`Manifest.stored_poses`) marked `stored`, their
-    keys told apart (a result found without the stored pose is another pair result)."""
+def with_stored_poses(
+    jobs: Sequence[PairJob], scans: set[str], start: str = "stored"
+) -> list[PairJob]:
+    """Jobs whose two scans' priors are verified poses (`Manifest.stored_poses`, sure placements,
+    the graph's) verified first as `start` says, their keys told apart (a result found without the
+    pose is another pair result); a job marked already keeps its mark."""
     out = []
     for job in jobs:
-        if job.init is None or job.source not in scans or job.target not in scans:
+        if job.init is None or job.start != "prior" or not {job.source, job.target} <= scans:
             out.append(job)
             continue
         pose = hashlib.sha256(json.dumps(job.init).encode()).hexdigest()[:12]
-        out.append(dataclasses.replace(job, stored=True, key=f"{job.key}-stored-{pose}"))
+        tag = "stored" if start == "stored" else f"stored-{start}"
+        out.append(dataclasses.replace(job, start=start, key=f"{job.key}-{tag}-{pose}"))
     return out
 
 
@@ -158,7 +163,9 @@ def run_pair_job(job: PairJob) -> dict:
         tgt, t_tgt = get(pt)
         init = None if job.init is None else np.asarray(job.init, dtype=np.float64)
         memo = _MEMOS.pair(ps.key, pt.key)
-        result = register_prepared(src, tgt, config, init, job.seed, stored=job.stored, memo=memo)
+        result = register_prepared(
+            src, tgt, config, init, job.seed, start=Start(job.start), memo=memo
+        )
         result.timings = {"prepare_source": t_src, "prepare_target": t_tgt, **result.timings}
         record.update(result.to_dict(), status="ok")
     except RegistrationFailed as exc:  # a real outcome of this pair: cache it, with its figures
@@ -171,6 +178,8 @@ def run_pair_job(job: PairJob) -> dict:
                 overlap=res.overlap,
                 confidence=res.confidence,
             )
+            if np.isfinite(res.transform).all():  # never a pose: a start another check may verify
+                record["refused_transform"] = np.asarray(res.transform, dtype=float).tolist()
     except Exception as exc:  # bad file, out of memory, a bug: record it, retry on the next run
         record.update(status="failed", error=f"{type(exc).__name__}: {exc}", cacheable=False)
     record["seconds"] = time.perf_counter() - start

@@ -63,7 +63,11 @@ def add_edges(G: nx.Graph, edges: list[dict]) -> nx.Graph:
     for e in edges:
         if e.get("status", "ok") != "ok":
             G.graph.setdefault("failed", []).append(
-                {k: v for k, v in e.items() if k in ("source", "target", "error", "key")}
+                {
+                    k: v
+                    for k, v in e.items()
+                    if k in ("source", "target", "error", "key", "overlap", "confidence")
+                }
             )
             continue
         attrs = dict(e)

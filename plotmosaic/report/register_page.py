@@ -14,6 +14,7 @@ import numpy as np
 
 from plotmosaic.config.register import PoseGraphConfig
 from plotmosaic.config.report import ReportConfig
+from plotmosaic.graph.unplaced import unplaced_reasons
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.report.build import build_report
 from plotmosaic.report.collect import read_scan
@@ -134,7 +135,10 @@ def _head(run: RegisterRun) -> list[str]:
     ]
     if run.unplaced:
         lines += [
-            f"**Not placed** (no pair left linking them to the reference): {', '.join(run.unplaced)}",
+            "**Not placed** (nothing links them to the reference: no verified pair, map or ALS"
+            " placement):",
+            "",
+            *(f"- {u.line()}" for u in unplaced_reasons(run.graph, run.unplaced)),
             "",
         ]
     return lines

@@ -33,6 +33,7 @@ from plotmosaic.align.judge.verdict import (
     StoredVerdict,
     Verdict,
     judge,
+    second_look,
     verify_stored,
 )
 
@@ -51,6 +52,7 @@ __all__ = [
     "neighbours",
     "profile",
     "refine",
+    "second_look",
     "separation",
     "sharper_neighbours",
     "sharpness",

@@ -213,6 +213,22 @@ def judge(
     )
 
 
+def second_look(
+    T: np.ndarray, candidates: list[Candidate], centre: np.ndarray, config: JudgeConfig
+) -> list[np.ndarray]:
+    """A weak pose's second look: the distinct candidates (at most `second_look_rivals`, in the
+    order given), as starts of a full level stage and final ICP each. A low-overlap pair's truth is
+    often a start a few degrees off that the rivals' short ICP cannot bring in."""
+    kept: list[np.ndarray] = []
+    for cand in candidates:
+        A = np.asarray(cand.T, dtype=float)
+        if len(kept) >= config.second_look_rivals:
+            break
+        if np.isfinite(A).all() and all(distinct(A, k, centre, config) for k in [T, *kept]):
+            kept.append(A)
+    return kept
+
+
 @dataclass(frozen=True, kw_only=True, eq=False)
 class StoredVerdict:
     """Whether a stored pose holds, and the figures of the fine ICP from it."""

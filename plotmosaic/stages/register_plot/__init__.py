@@ -1,4 +1,5 @@
-"""register-plot: prepare -> place -> plan -> pairs -> grow -> solve -> write, one module a step.
+"""register-plot: prepare -> place -> plan -> pairs -> grow -> maps -> solve -> write, one module a
+step.
 
 A region manifest is done plot by plot: each plot gets its own frame (its reference scan's file
 coordinates); tie-to-als then places the plots in the ALS CRS.
@@ -19,6 +20,7 @@ from plotmosaic.stages.register_plot.grow import (
     grow_jobs,
     position_jobs,
 )
+from plotmosaic.stages.register_plot.maps import onto_maps
 from plotmosaic.stages.register_plot.pairs import (
     EDGE_FIELDS,
     _pair_job,
@@ -94,5 +96,6 @@ def register_plot(
     pairs = run_jobs(run, planned.jobs)  # a spanning tree of them, by the global search
     pairs = close_loops(run, priors, planned.deferred, pairs)  # the rest from the tree's poses
     pairs = grow(run, priors, planned.ranks, pairs)  # more pairs where the graph allows
+    pairs = onto_maps(run, priors, pairs)  # scans without a verified pair onto their neighbours
     solved = solve(run, priors, pairs)  # one pose graph, each plot solved in its own frame
     return write(run, priors, pairs, solved, start)

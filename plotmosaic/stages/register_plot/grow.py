@@ -17,7 +17,6 @@ from plotmosaic.graph.posegraph import build_graph
 from plotmosaic.graph.signature import grow_candidates
 from plotmosaic.manifest import Manifest, Plot
 from plotmosaic.stages.register_plot.pairs import (
-    EDGE_FIELDS,
     Pairs,
     Run,
     _pair_job,
@@ -62,16 +61,11 @@ def _job(
 
 
 def graph_poses(
-    manifest: Manifest,
-    config: RegisterConfig,
-    job_list: list[PairJob],
-    records: dict[str, dict],
-    anchors: dict[str, list[dict]],
+    manifest: Manifest, config: RegisterConfig, pairs: Pairs, anchors: dict[str, list[dict]]
 ) -> dict[str, np.ndarray]:
-    """scan id -> its pose in its plot's frame, from the pose graph of the pairs so far (and the ALS
-    anchors): what the verified pairs place, after the graph's own outlier checks."""
-    edges = [{k: records[j.key].get(k) for k in EDGE_FIELDS} for j in job_list if j.key in records]
-    G = build_graph({s.id: {} for s in manifest.scans}, edges)
+    """scan id -> its pose in its plot's frame, from the pose graph of the pairs and maps so far
+    (and the ALS anchors): what the verified edges place, after the graph's own outlier checks."""
+    G = build_graph({s.id: {} for s in manifest.scans}, pairs.edges())
     poses: dict[str, np.ndarray] = {}
     for plot in manifest.plots:
         poses.update(solve_plot(G, plot, anchors.get(plot.id, []), config)[1].poses)
@@ -169,11 +163,14 @@ def _signature_round(
     return with_stored_poses(jobs, priors.verify_first)
 
 
-def from_graph(jobs: list[PairJob], poses: dict[str, np.ndarray]) -> list[PairJob]:
-    """Jobs between scans the graph places, their prior the pose it implies, verified first."""
+def from_graph(
+    jobs: list[PairJob], poses: dict[str, np.ndarray], only: frozenset[str] = frozenset()
+) -> list[PairJob]:
+    """Jobs between scans the graph places, their prior the pose it implies, verified first (and
+    only verified between two scans the ALS placed: their maps will do what a search could)."""
     placed = [j for j in jobs if j.source in poses and j.target in poses]
     rebased = [dataclasses.replace(j, init=prior(poses, j.source, j.target)) for j in placed]
-    return with_stored_poses(rebased, set(poses))
+    return with_stored_poses(with_stored_poses(rebased, set(only), start="only"), set(poses))
 
 
 def joining(jobs: list[PairJob], poses: dict[str, np.ndarray], pairs: Pairs) -> list[PairJob]:
@@ -199,8 +196,9 @@ def close_loops(run: Run, priors: Priors, deferred: list[PairJob], pairs: Pairs)
     apart, one pair for each join runs as the tree's did, then the loop pairs it makes. Pairs inside
     a piece the graph never places are not run (they could place nothing)."""
     while deferred:
-        poses = graph_poses(run.manifest, run.config, pairs.jobs, pairs.records, priors.anchors)
-        ready = from_graph(deferred, poses) or with_stored_poses(
+        poses = graph_poses(run.manifest, run.config, pairs, priors.anchors)
+        only = frozenset(priors.from_als) if run.config.maps.enabled else frozenset()
+        ready = from_graph(deferred, poses, only) or with_stored_poses(
             joining(deferred, poses, pairs), priors.verify_first
         )
         if not ready:
@@ -219,7 +217,7 @@ def grow(run: Run, priors: Priors, ranks: dict[str, list[str]], pairs: Pairs) ->
     while True:
         more = []
         if positions:
-            poses = graph_poses(run.manifest, run.config, pairs.jobs, pairs.records, priors.anchors)
+            poses = graph_poses(run.manifest, run.config, pairs, priors.anchors)
             more = position_jobs(
                 run.manifest, run.config, run.seed, run.prepared, poses, pairs.jobs
             )

@@ -32,6 +32,7 @@ EDGE_FIELDS = (
     "confidence",
     "sigma",
     "seconds",
+    "via",
 )
 
 
@@ -59,11 +60,23 @@ class Run:
 
 @dataclass(frozen=True, kw_only=True)
 class Pairs:
-    """The pair jobs run so far, their records by key, and how many were computed (not cached)."""
+    """The pair jobs run so far, their records by key, and how many were computed (not cached);
+    `maps`: the edges of the latest map placements (stages/register_plot/maps.py)."""
 
     jobs: list[PairJob]
     records: dict[str, dict]
     computed: int
+    maps: tuple[dict, ...] = ()
+
+    def edges(self) -> list[dict]:
+        """Every pair that ran as an edge record (failed ones too: the graph keeps them apart),
+        then the map edges."""
+        pairs = [
+            {k: self.records[j.key].get(k) for k in EDGE_FIELDS}
+            for j in self.jobs
+            if j.key in self.records
+        ]
+        return pairs + list(self.maps)
 
 
 def start_run(
@@ -118,6 +131,7 @@ def run_jobs(run: Run, jobs: list[PairJob], so_far: Pairs | None = None) -> Pair
         jobs=[*so_far.jobs, *jobs],
         records={**so_far.records, **records},
         computed=so_far.computed + computed,
+        maps=so_far.maps,
     )
 
 

@@ -34,6 +34,9 @@ class Priors:
     anchors: dict[
         str, list[dict]
     ]  # plot id -> its scan -> ALS node edges (none unless als_anchors)
+    # scan id -> the pose its refused ALS placement ended at: never a pose, a start that its map
+    # verifies (or not)
+    refused: dict[str, np.ndarray]
 
 
 def placement_plan(
@@ -91,7 +94,7 @@ def als_anchor_edges(
     out = []
     for j, T in zip(use, Ts, strict=True):
         e = {k: records[j.key].get(k) for k in EDGE_FIELDS}
-        e.update(source=j.source, target=anchor_id(plot), transform=shift @ T)
+        e.update(source=j.source, target=anchor_id(plot), transform=shift @ T, via="als")
         out.append(e)
     return out
 
@@ -128,7 +131,14 @@ def place(run: Run) -> Priors:
         else []
         for plot in manifest.plots
     }
+    refused = {
+        j.source: np.asarray(r["refused_transform"], dtype=np.float64)
+        for j in placement
+        if j.source not in placed
+        and (r := placement_records.get(j.key, {})).get("refused_transform") is not None
+    }
     return Priors(
+        refused=refused,
         placed=placed,
         placement=placement,
         placement_records=placement_records,

@@ -139,17 +139,23 @@ def match_signatures(
 
 
 def tree_first(
-    manifest: Manifest, jobs: list[PairJob], placed: dict[str, np.ndarray], verify_first: set[str]
+    manifest: Manifest,
+    jobs: list[PairJob],
+    placed: dict[str, np.ndarray],
+    verify_first: set[str],
+    verify_only: frozenset[str] = frozenset(),
 ) -> tuple[list[PairJob], list[PairJob]]:
     """(first, deferred): a spanning forest of each plot's planned pairs, verified priors first, then
     the nearest scans (ALS placements or stored poses, else the manifest's positions), else in the
     plan's order (a small plot without positions: a star around its first scan); the other pairs,
-    plain and in that order, start from the poses the tree implies."""
+    plain and in that order, start from the poses the tree implies. A pair of two `verify_first`
+    scans is verified at its prior before any search; of two `verify_only` scans (placed on the ALS),
+    verified there and never searched (a search finds no more than its maps will)."""
     approx = {}
     for plot in manifest.plots:
         approx.update(manifest_positions(plot) or {})
     xyz = {i: T[:3, 3] for i, T in placed.items()}
-    marked = with_stored_poses(jobs, verify_first)
+    marked = with_stored_poses(with_stored_poses(jobs, verify_first), verify_only, start="only")
 
     def rank(k: int) -> tuple[bool, float]:
         a, b = jobs[k].source, jobs[k].target
@@ -158,7 +164,7 @@ def tree_first(
             if a in where and b in where:
                 d = np.linalg.norm(np.subtract(where[a], where[b]))
                 break
-        return not marked[k].stored, float(d)
+        return marked[k].start == "prior", float(d)
 
     order = sorted(range(len(jobs)), key=rank)
     tree = {order[k] for k in spanning_first([(jobs[i].source, jobs[i].target) for i in order])}
@@ -180,5 +186,6 @@ def plan(run: Run, priors: Priors) -> Plan:
         run.progress,
     )
     jobs = plan_jobs(run.manifest, run.config, run.seed, run.prepared, priors.placed, linked)
-    first, deferred = tree_first(run.manifest, jobs, priors.placed, priors.verify_first)
+    only = frozenset(priors.from_als) if run.config.maps.enabled else frozenset()
+    first, deferred = tree_first(run.manifest, jobs, priors.placed, priors.verify_first, only)
     return Plan(jobs=first, deferred=deferred, ranks=ranks)

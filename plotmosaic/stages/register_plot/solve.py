@@ -11,7 +11,7 @@ from plotmosaic.graph.posegraph import Solution, add_edges, build_graph, optimis
 from plotmosaic.io.las import read_header_info
 from plotmosaic.manifest import Plot
 from plotmosaic.poses import ScanPose
-from plotmosaic.stages.register_plot.pairs import EDGE_FIELDS, Pairs, Run, anchor_id
+from plotmosaic.stages.register_plot.pairs import Pairs, Run, anchor_id
 from plotmosaic.stages.register_plot.place import Priors
 
 
@@ -46,15 +46,17 @@ def solve_plot(
     The edge groups' variance factors go to G.graph["calibration"][plot id]."""
     ids = [s.id for s in plot.scans]
     sub = G.subgraph(ids)
-    ref = _choose_reference(sub, plot)
     if not anchors:
+        ref = _choose_reference(sub, plot)
         sol = optimise(sub, ref, config.graph)
         G.graph.setdefault("calibration", {})[plot.id] = sol.scales
         return ref, sol
     H = sub.copy()
     node = anchor_id(plot)
     H.add_node(node, kind="als", plot=plot.id)  # its edges are a noise group of their own
-    sol = optimise(add_edges(H, anchors), ref, config.graph)
+    add_edges(H, anchors)
+    ref = _choose_reference(H, plot)  # a scan held by its ALS placement alone is connected too
+    sol = optimise(H, ref, config.graph)
     for u, v in sub.edges():
         G.edges[u, v].update(H.edges[u, v])
     G.graph.setdefault("calibration", {})[plot.id] = sol.scales
@@ -66,11 +68,13 @@ def solve_plot(
 
 
 def _choose_reference(G: nx.Graph, plot: Plot) -> str:
-    """The manifest's reference, unless it has no successful pair: then the best-connected scan."""
+    """The manifest's reference, unless it has no successful pair: then the best-connected scan
+    (never the plot's ALS node)."""
     ref = plot.reference.id
     if G.degree(ref) > 0 or G.number_of_edges() == 0:
         return ref
-    biggest = max(nx.connected_components(G), key=len)
+    scans = {s.id for s in plot.scans}
+    biggest = max(nx.connected_components(G), key=lambda c: len(c & scans)) & scans
     return max(sorted(biggest), key=lambda n: G.degree(n, weight="weight"))
 
 
@@ -87,8 +91,7 @@ def solve(run: Run, priors: Priors, pairs: Pairs) -> Solved:
                 "path": str(path),
                 "points": read_header_info(path).point_count,
             }
-    edges = [{k: pairs.records[j.key].get(k) for k in EDGE_FIELDS} for j in pairs.jobs]
-    G = build_graph(nodes, edges)
+    G = build_graph(nodes, pairs.edges())
     results, scans = [], {}
     for plot in manifest.plots:
         ref, sol = solve_plot(G, plot, priors.anchors[plot.id], run.config)
