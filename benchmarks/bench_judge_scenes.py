@@ -1,4 +1,4 @@
-"""Calibration of the judge against scenes that are not a forest (issue 38 item 2): wrong cases only.
+"""Calibration of the judge against scenes that are not a forest (issue 38 item 2, issue 53).
 
 Industrial / indoor / urban scenes (the E57 samples, a synthetic room and street) and random clouds
 (uniform in a box, a gaussian blob), each aligned onto forest scans (simulated small / paper presets,
@@ -8,6 +8,12 @@ of bench_judge.py's cases are run through the same path (`--right`): every one m
 
     nice -n 10 .venv/bin/python benchmarks/bench_judge_scenes.py --work /tmp/scenes --json rows.json
     nice -n 10 .venv/bin/python benchmarks/bench_judge_scenes.py --right --quick   # right sim pairs
+    nice -n 10 .venv/bin/python benchmarks/bench_judge_scenes.py --forests --work /tmp/scenes
+
+`--forests` prints the scene figures of every forest cloud the check must pass and the figure it
+decides on: the real clouds, one or two scans and the ALS tile of every simulator preset (the
+issue-53 stands at 50, 150 and 400 stems/ha too), a forest drawn as points, and virtual scans cut
+from the real clouds.
 """
 
 from __future__ import annotations
@@ -23,9 +29,13 @@ from bench_judge import DATA, cases
 
 from plotmosaic.align import scene
 from plotmosaic.align.pipeline import prepare_pair, register_prepared
+from plotmosaic.align.prepare import prepare_cloud
 from plotmosaic.config.align import AlignConfig, default_levels
+from plotmosaic.config.simulate import PRESETS, DrawnConfig
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.io.las import PointCloud, read_cloud
+from plotmosaic.simulate.drawn import drawn_scan
+from plotmosaic.simulate.from_cloud import cut_views
 from plotmosaic.simulate.run import simulate
 
 
@@ -179,13 +189,102 @@ def run(name: str, xs, xt, ks: str, kt: str, cfg: AlignConfig, full: bool = True
 
 
 def describe(s: dict | None) -> str:
-    """Scene figures in a table cell: extent m, shares on lines, on planes, on crossing planes."""
+    """Scene figures in a table cell: extent m, stems, above-ground lines, ground, crossing planes."""
     if s is None:
         return "-"
     return (
-        f"{s['extent_m']:.1f} m, lines {s['linear_share']:.3f}, planes {s['flat_share']:.2f},"
+        f"{s['extent_m']:.1f} m, stems {s['stems']}, above-ground lines"
+        f" {s['above_linear_share']:.3f}, ground {s['ground_share']:.2f}, branches"
+        f" {s['branch_share']:.3f},"
         f" crossing {s['crossing_share']:.2f}"
     )
+
+
+# every simulator preset, one or two scans of it (the large presets' first plot and positions) and
+# its ALS tile; the issue-53 stands at the stem densities measured
+PRESET_CASES = [
+    ("small", {}, 1),
+    ("paper", {"points_per_scan": 400_000}, 1),
+    ("region", {"points_per_scan": 200_000, "plot_centres": [(0.0, 0.0)]}, 1),
+    ("region10", {"points_per_scan": 200_000, "plot_centres": [(0.0, 0.0)]}, 1),
+    ("large", {"points_per_scan": 200_000}, 2),
+    ("understorey", {"points_per_scan": 200_000}, 1),
+    ("grassland", {"points_per_scan": 200_000}, 2),
+    ("prepost", {"points_per_scan": 200_000}, 1),
+    ("scattered", {}, 2),
+    ("bare-stems", {"tree_density": 50.0}, 2),
+    ("bare-stems", {}, 2),
+    ("bare-stems", {"tree_density": 400.0}, 2),
+]
+
+
+def forest_clouds(work: Path):
+    """(name, kind, xyz) of every forest cloud the scene check must pass."""
+    for rel, kind in (
+        ("spanner/ALS_Clip.laz", "als"),
+        ("spanner/UAS_Clip.laz", "uls"),
+        ("spanner/MLS_Clip.laz", "mls"),
+        ("treels/pine_plot.laz", "tls"),
+    ):
+        if (DATA / rel).exists():
+            yield rel, kind, read_cloud(DATA / rel, attributes=False).xyz
+    for preset, overrides, n_scans in PRESET_CASES:
+        layout = PRESETS[preset].scan_layout
+        tag = preset + "".join(f" {k}={v}" for k, v in overrides.items() if k != "plot_centres")
+        out = work / ("forest_" + tag.replace(" ", "_").replace("=", "-"))
+        if not (out / "ground_truth.json").exists():
+            simulate(out, preset, seed=0, **overrides, scan_layout=layout[:n_scans])
+        for k in range(n_scans):
+            plot = "PRE" if preset == "prepost" else "P1"
+            path = out / plot / f"{plot}-S{k}.laz"
+            yield f"`{tag}` {plot}-S{k}", "tls", read_cloud(path, attributes=False).xyz
+        yield f"`{tag}` ALS", "als", read_cloud(out / "als" / "als.laz", attributes=False).xyz
+    shares = (0.40, 0.02, 0.48, 0.10)  # crowns of scattered points hold half of it
+    yield (
+        "forest drawn as points, 300k",
+        "tls",
+        drawn_scan(0, DrawnConfig(points_per_scan=300_000, shares=shares)),
+    )
+    yield "forest drawn as points, 1.5M (`simulate --drawn`)", "tls", drawn_scan(1)
+    for rel, kind, ranges in (
+        ("treels/pine_plot.laz", "tls", (6.0, 15.0)),
+        ("spanner/MLS_Clip.laz", "mls", (6.0, 15.0)),
+        ("spanner/UAS_Clip.laz", "tls", (6.0, 15.0)),
+    ):
+        if not (DATA / rel).exists():
+            continue
+        pts = read_cloud(DATA / rel, attributes=False).xyz
+        centre = pts[:, :2].mean(axis=0)
+        for j, off in enumerate(([0.0, 0.0], [-4.0, 3.0], [4.0, -3.0])):
+            for r in ranges:
+                view = cut_views(pts, [centre + off], seed=j, max_range=r)[0]
+                yield f"view of {rel} #{j}, {r:.0f} m range", kind, view.points
+
+
+def forest_table(work: Path) -> str:
+    """The figures of every forest cloud, the figure it passes on, and whether it passes."""
+    cfg = AlignConfig()
+    lines = [
+        "| forest cloud | kind | points | extent m | stems | above-ground lines | ground | branches"
+        " | crossing planes | decided by |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    refused = 0
+    for name, kind, xyz in forest_clouds(work):
+        cloud = prepare_cloud(PointCloud(xyz), kind, default_levels(kind), cfg, 0)
+        s = scene.figures(cloud, cfg.judge)
+        why = scene.problems(s, cfg.judge)
+        refused += bool(why)
+        decided = scene.decided_by(s, cfg.judge) if not why else "**REFUSED**: " + "; ".join(why)
+        lines.append(
+            f"| {name} | {kind} | {len(xyz):,} | {s.extent_m:.1f} | {s.stems} |"
+            f" {s.above_linear_share:.3f} | {s.ground_share:.2f} | {s.branch_share:.3f} |"
+            f" {s.crossing_share:.3f} |"
+            f" {decided} |"
+        )
+        print(lines[-1], file=sys.stderr, flush=True)
+    lines.append(f"\nforest clouds refused: {refused} / {len(lines) - 2}")
+    return "\n".join(lines)
 
 
 def table(rows: list, right: bool) -> str:
@@ -232,6 +331,9 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="with --right: simulated pairs only")
     ap.add_argument("--table", type=Path, help="instead: print the table of a --json file")
     ap.add_argument(
+        "--forests", action="store_true", help="instead: the figures of every forest cloud"
+    )
+    ap.add_argument(
         "--full", action="store_true", help="register pairs the scene check refuses all the same"
     )
     args = ap.parse_args()
@@ -239,6 +341,9 @@ def main() -> None:
         print(table(json.loads(args.table.read_text()), args.right))
         return
     args.work.mkdir(parents=True, exist_ok=True)
+    if args.forests:
+        print(forest_table(args.work))
+        return
     cfg = AlignConfig()
     rows = []
 

@@ -44,14 +44,14 @@ def test_pump_onto_a_forest_scan_exits_3_naming_the_scene(small_sim, e57_dir, tm
 
 
 def test_room_and_random_clouds_are_no_forest_scene(small_sim):
-    """A room (all planes, no stems) and random clouds (no lines) are refused by the scene check,
-    naming the figure; the simulated forest scans pass it."""
+    """A room (walls on a floor) and random clouds (no stems, nothing on lines above a ground) are
+    refused by the scene check, naming the figure; the simulated forest scans pass it."""
     cfg = AlignConfig()
     rng = np.random.default_rng(3)
     clouds = {
         "room": (_room(rng), "across its main planes"),
-        "uniform box": (rng.random((60_000, 3)) * [30.0, 30.0, 15.0], "on lines"),
-        "gaussian blob": (rng.normal(0, 1, (60_000, 3)) * [6.0, 6.0, 3.0], "on lines"),
+        "uniform box": (rng.random((60_000, 3)) * [30.0, 30.0, 15.0], "stems (< 3)"),
+        "gaussian blob": (rng.normal(0, 1, (60_000, 3)) * [6.0, 6.0, 3.0], "stems (< 3)"),
     }
     forest = prepare_cloud(
         read_cloud(small_sim.scan_paths["P1-S0"], attributes=False), "tls", 3, cfg, 1, "target"

@@ -9,15 +9,16 @@ from pyproj import CRS
 from typer.testing import CliRunner
 
 from plotmosaic.cli import app
-from plotmosaic.config.simulate import PRESETS
+from plotmosaic.config.simulate import PRESETS, ForestConfig
 from plotmosaic.io.frame import apply_transform
 from plotmosaic.io.las import read_cloud, read_header_info
 from plotmosaic.manifest import load_manifest
 from plotmosaic.poses import load_poses
-from plotmosaic.simulate.mesh import FOLIAGE, GROUND, UNDERSTORY, WOODY
+from plotmosaic.simulate.mesh import FOLIAGE, GROUND, UNDERSTORY, WOODY, concat
 from plotmosaic.simulate.run import expected_scans, make_config, simulate
 from plotmosaic.simulate.scene import Scene, build_world
 from plotmosaic.simulate.stats import density, overlap_fraction
+from plotmosaic.simulate.trees import Tree, broadleaf_meshes, conifer_meshes
 
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_manifests"
 
@@ -202,7 +203,24 @@ def test_presets_are_valid():
         "understorey",
         "grassland",
         "prepost",
+        "scattered",
+        "bare-stems",
     }
+    # the forests unlike ours (issue 53): six scans, 30 m range, a 40 m scene
+    for name, crowns in (("scattered", "scattered"), ("bare-stems", "none")):
+        cfg = PRESETS[name]
+        assert cfg.forest.crowns == crowns and len(cfg.scan_layout) == 6
+        assert cfg.tls.max_range_m == 30.0
+    assert (
+        PRESETS["bare-stems"].forest.shrubs_per_ha
+        == PRESETS["bare-stems"].forest.saplings_per_ha
+        == 0
+    )
+    assert all(
+        PRESETS[n].forest.crowns == "branches"
+        for n in PRESETS
+        if n not in ("scattered", "bare-stems")
+    )
     assert PRESETS["small"].tls.points_per_scan <= 60_000
     assert PRESETS["grassland"].forest.trees_per_ha == 0
     assert len(PRESETS["region"].plot_centres) >= 3 and PRESETS["prepost"].prepost
@@ -344,3 +362,81 @@ def test_cli_scan_grid_and_one_line_errors(tmp_path):
     )
     mixed = runner.invoke(app, ["simulate", str(tmp_path / "y"), "--views", "2"])
     assert mixed.exit_code == 2 and "--from-cloud" in mixed.output
+
+
+def _tree(conifer: bool) -> Tree:
+    return Tree(0.0, 0.0, 0.4, 20.0, conifer, np.array([0.0, 0.0, 1.0]), 8.0, 3.0, True)
+
+
+@pytest.mark.parametrize("conifer", [True, False])
+def test_crowns_scattered_and_none(conifer):
+    """`crowns`: scattered keeps the foliage of the branch crown but no branch, spread through the
+    crown volume; none leaves the stem alone. Every mode keeps the same stem."""
+    make = conifer_meshes if conifer else broadleaf_meshes
+    meshes = {}
+    for crowns in ("branches", "scattered", "none"):
+        cfg = ForestConfig(crowns=crowns)
+        meshes[crowns] = concat(make(_tree(conifer), 0.0, cfg, np.random.default_rng(5), 7))
+    woody = {k: int((m.labels == WOODY).sum()) for k, m in meshes.items()}
+    foliage = {k: int((m.labels == FOLIAGE).sum()) for k, m in meshes.items()}
+    stem = woody["none"]
+    assert foliage["none"] == 0 and stem > 0
+    assert woody["scattered"] == stem < woody["branches"]  # the stem, no branch
+    assert 0.5 < foliage["scattered"] / foliage["branches"] < 2.0  # about the same foliage
+    # scattered: every element inside the crown volume (a cone from the crown base to the top, or an
+    # ellipsoid around the crown's middle), as no branch carries it out
+    m = meshes["scattered"]
+    v = m.vertices[m.triangles[m.labels == FOLIAGE]].mean(axis=1)
+    if conifer:
+        depth = np.clip((20.0 - v[:, 2]) / 12.0, 0, None)  # 0 at the top, 1 at the crown base
+        inside = (v[:, 2] > 8.0) & (np.linalg.norm(v[:, :2], axis=1) <= 3.0 * depth + 0.1)
+    else:
+        inside = np.linalg.norm((v - [0.0, 0.0, 14.0]) / [3.0, 3.0, 6.0], axis=1) <= 1.02
+    assert inside.mean() > 0.99
+
+
+def test_cli_stands_unlike_ours_and_drawn_forests(tmp_path):
+    """`--preset bare-stems --tree-density N`, `--crowns`, and `--drawn` (the same seed, the same files)."""
+    runner = CliRunner()
+    small = ["--points-per-scan", "3000"]
+    res = runner.invoke(
+        app,
+        ["simulate", str(tmp_path / "b"), "--preset", "bare-stems", "--tree-density", "50", *small],
+    )
+    assert res.exit_code == 0, res.output
+    assert len(load_manifest(tmp_path / "b" / "manifest.toml").scans) == 6
+    labels = read_cloud(tmp_path / "b" / "P1" / "P1-S0.laz").attrs["label"]
+    assert (labels == FOLIAGE).sum() == 0 and (labels == WOODY).sum() > 0  # bare stems
+    res = runner.invoke(
+        app,
+        ["simulate", str(tmp_path / "c"), "--crowns", "scattered", "--tree-density", "60", *small],
+    )
+    assert res.exit_code == 0, res.output
+    bad = runner.invoke(app, ["simulate", str(tmp_path / "x"), "--crowns", "leafy"])
+    assert bad.exit_code == 2 and bad.output.startswith("error: simulation setting forest.crowns")
+    digests = []
+    for name, seed in (("d1", "4"), ("d2", "4"), ("d3", "5")):
+        res = runner.invoke(
+            app,
+            [
+                "simulate",
+                str(tmp_path / name),
+                "--drawn",
+                "--seed",
+                seed,
+                "--points-per-scan",
+                "5000",
+            ],
+        )
+        assert res.exit_code == 0, res.output
+        files = sorted((tmp_path / name).rglob("*.laz"))
+        files += [tmp_path / name / "ground_truth.json", tmp_path / name / "manifest.toml"]
+        assert len(files) == 8  # six scans, the truth, the manifest
+        digests.append([hashlib.sha256(f.read_bytes()).hexdigest() for f in files])
+    assert digests[0] == digests[1] and digests[0] != digests[2]
+    truth = load_poses(tmp_path / "d1" / "ground_truth.json")
+    cloud = read_cloud(tmp_path / "d1" / "P1" / "P1-S1.laz", attributes=False).xyz
+    world = apply_transform(truth.transform("P1-S1"), cloud) - truth.transform("P1-S1")[:3, 3]
+    assert np.linalg.norm(world, axis=1).max() <= 30.0 + 0.02  # within range of its scanner
+    clash = runner.invoke(app, ["simulate", str(tmp_path / "y"), "--drawn", "--preset", "small"])
+    assert clash.exit_code == 2 and "--drawn: --preset" in clash.output

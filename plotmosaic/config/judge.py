@@ -25,14 +25,91 @@ class SceneConfig(BaseModel):
         0.6,
         gt=0,
         le=1,
-        description="linearity from which a level point lies on a line (a stem, a branch)",
+        description="linearity from which a level point lies on a line (a stem, a branch, a twig)",
     )
-    # the sparsest forest clouds on lines are ALS tiles; random clouds have none at all
-    min_linear_share: float = Field(
-        0.02,
+    # heights are taken above the cloud's own rough ground, levelled by its own up: any pose, any slope
+    ground_cell: float = Field(
+        1.0, gt=0, le=20, description="cell (m) of the rough ground model heights are measured from"
+    )
+    above_ground_m: float = Field(
+        0.3,
+        ge=0,
+        le=10,
+        description="a level point this high above the ground stands on it (below: ground, litter, scan rings)",
+    )
+    stem_band_m: tuple[float, float] = Field(
+        (0.5, 3.5),
+        description="heights (m above the ground) trunks are looked for in: above litter, below most crowns",
+    )
+    stem_max_normal_cos: float = Field(
+        0.35,
+        gt=0,
+        lt=1,
+        description="|normal . up| below this: an upright surface or line (a trunk's side)",
+    )
+    stem_cell: float = Field(
+        0.3,
+        gt=0,
+        le=5,
+        description="squares (m) upright points are grouped in: stems apart, one stem whole",
+    )
+    # a random cloud's chance columns hold a few points; a trunk's side one a level cube up its length
+    stem_min_points: int = Field(
+        10,
+        ge=3,
+        le=10_000,
+        description="least level points of a stem (2 m of one side at 0.2 m cubes)",
+    )
+    stem_min_span_m: float = Field(
+        1.5,
+        gt=0,
+        le=10,
+        description="least length (m) a stem stands through the band: a trunk, not a stub",
+    )
+    # a random cloud's chance columns are as wide as the grouping lets them grow; trunks narrower
+    stem_max_width_m: float = Field(
+        0.8, gt=0, le=5, description="widest (m, 4 sigma across its axis) a stem group may be"
+    )
+    stem_max_lean_deg: float = Field(
+        35.0,
+        gt=0,
+        le=90,
+        description="most a stem's axis leans from the cloud's up (leaning trunks, up taken on a slope)",
+    )
+    # ground-based forest scans show several, open stands too; random clouds and built scenes none
+    min_stems: int = Field(
+        3,
+        ge=1,
+        le=1000,
+        description="stems that make a scene a forest by themselves: trunks standing on a ground",
+    )
+    # a random cloud's lowest points lie on no surface; an airborne cloud's or a grassland's ground
+    min_ground_share: float = Field(
+        0.1,
         ge=0,
         le=1,
-        description="least share of a forest scene on lines: stems and branches are in every forest cloud",
+        description="least share on a ground (low, on a plane facing up) for lines above it to count",
+    )
+    # a level point every 0.2 m cube: a branch's next points lie within 0.3 m
+    branch_radius_m: float = Field(
+        0.3, gt=0, le=5, description="line points this near each other are one branch or stem"
+    )
+    branch_neighbours: int = Field(
+        2, ge=1, le=100, description="line neighbours a line point needs to be part of a branch"
+    )
+    # a clip without its ground (an MLS clip) has branches; a random cloud's chance lines stand alone
+    min_branch_share: float = Field(
+        0.05,
+        ge=0,
+        le=1,
+        description="or least share of the above-ground points in branches for lines above it to count",
+    )
+    # airborne clouds, grassland and short views see few trunks (figures: benchmarks/results/judge.md)
+    min_above_linear_share: float = Field(
+        0.01,
+        ge=0,
+        le=1,
+        description="else, least share of what stands above the ground on lines: branches, twigs, blades",
     )
     crossing_max_cos: float = Field(
         0.3,
@@ -48,6 +125,13 @@ class SceneConfig(BaseModel):
         le=1,
         description="most share of a forest scene on planes across its main planes: built scenes are walls",
     )
+
+    @model_validator(mode="after")
+    def _band(self) -> SceneConfig:
+        lo, hi = self.stem_band_m
+        if not 0 <= lo < hi:
+            raise ValueError(f"stem_band_m must be 0 <= low < high, got {self.stem_band_m}")
+        return self
 
 
 class JudgeConfig(BaseModel):
@@ -140,15 +224,8 @@ class JudgeConfig(BaseModel):
         12,
         ge=0,
         le=64,
-        description="distinct candidates beyond the rivals refined when the pose would be refused"
-        " (0: none); the sharpest one is tried as the pose",
-    )
-    second_look_below: float = Field(
-        0.25,
-        ge=0,
-        le=1,
-        description="confidence below which a pose gets that second look (also: blunt, beaten, or"
-        " below min_score)",
+        description="distinct candidates a pose that would be refused is looked for again from"
+        " (0: none); the first that holds replaces it",
     )
     global_rivals: bool = Field(
         True, description="after --no-coarse / --init also search the whole pair for rivals"

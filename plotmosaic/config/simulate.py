@@ -6,6 +6,8 @@ the origin) and `origin` (EPSG:26912, NAD83 / UTM 12N) is added in float64 when 
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -42,6 +44,12 @@ class ForestConfig(_Model):
     conifer_height_m: tuple[float, float] = (15.0, 30.0)  # ponderosa
     broadleaf_height_m: tuple[float, float] = (10.0, 20.0)
     max_lean_deg: float = 8.0
+    crowns: Literal["branches", "scattered", "none"] = Field(
+        "branches",
+        description="branches: foliage along branch whorls and scaffolds; scattered: the same foliage"
+        " spread through the crown volume, no branches (forests shaped unlike ours, leafy crowns);"
+        " none: bare stems (burnt, pruned or dead stands)",
+    )
     stem_sides: int = Field(24, ge=8, description="facets around a stem: enough for smooth normals")
     foliage_per_m: float = Field(
         40.0, gt=0, description="foliage elements per metre of conifer branch"
@@ -258,6 +266,41 @@ PRESETS: dict[str, SimulationConfig] = {
             "tls.max_range_m": 40.0,
         },
     ),
+    # Another group's forest: leaning stems under crowns of scattered foliage (no branches),
+    # understorey, undulating ground; 45 trees on the 40 m plot.
+    "scattered": _preset(
+        "scattered",
+        scan_layout=grid_layout(3, 12.0, 6),
+        scene_margin_m=8.0,
+        **{
+            "forest.crowns": "scattered",
+            "forest.trees_per_ha": 280.0,
+            "forest.conifer_fraction": 0.5,
+            "forest.max_lean_deg": 15.0,
+            "tls.points_per_scan": 500_000,
+            "tls.max_range_m": 30.0,
+            "als.margin_m": 8.0,
+        },
+    ),
+    # An open stand of bare stems (burnt or pruned): no crowns, no shrubs or saplings, a little
+    # grass and dead wood; --tree-density sets the stems a hectare (50-400 measured).
+    "bare-stems": _preset(
+        "bare-stems",
+        scan_layout=grid_layout(3, 12.0, 6),
+        scene_margin_m=8.0,
+        **{
+            "forest.crowns": "none",
+            "forest.trees_per_ha": 150.0,
+            "forest.shrubs_per_ha": 0.0,
+            "forest.saplings_per_ha": 0.0,
+            "forest.grass_tufts_per_m2": 0.5,
+            "forest.logs_per_ha": 10.0,
+            "forest.debris_per_ha": 100.0,
+            "tls.points_per_scan": 500_000,
+            "tls.max_range_m": 30.0,
+            "als.margin_m": 8.0,
+        },
+    ),
 }
 
 # Short names for the knobs the CLI and `simulate(**overrides)` expose.
@@ -267,6 +310,7 @@ ALIASES = {
     "max_range": "tls.max_range_m",
     "als_density": "als.density_per_m2",
     "tree_density": "forest.trees_per_ha",
+    "crowns": "forest.crowns",
     "conifer_fraction": "forest.conifer_fraction",
     "shrub_density": "forest.shrubs_per_ha",
     "sapling_density": "forest.saplings_per_ha",
@@ -360,3 +404,31 @@ class CutConfig(BaseModel):
     min_points: int = Field(
         100, ge=1, description="a view with fewer points is an error (a position outside the cloud)"
     )
+
+
+class DrawnConfig(BaseModel):
+    """A forest drawn as points instead of ray cast (simulate/drawn.py): as a simulator that places
+    points on surfaces and in crown volumes would give it (metres)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    plot_m: float = Field(
+        40.0, gt=5, le=500, description="side of the square plot the trees stand on"
+    )
+    trees: int = Field(45, ge=0, le=5000, description="trees on the plot (the issue-53 plot: 45)")
+    tree_height_m: tuple[float, float] = (12.0, 25.0)
+    dbh_m: tuple[float, float] = (0.15, 0.6)
+    max_lean_deg: float = Field(15.0, ge=0, le=45, description="leaning stems, some strongly")
+    shrubs: int = Field(60, ge=0, le=100_000, description="shrubs of scattered points")
+    scan_layout: list[tuple[float, float]] = Field(
+        default_factory=lambda: grid_layout(3, 12.0, 6),
+        description="scanner positions (plot centre at the origin): six on a 3 x 2 grid 12 m apart",
+    )
+    points_per_scan: int = Field(1_500_000, ge=1000, description="points drawn for each scan")
+    max_range_m: float = Field(30.0, gt=1, description="nothing farther from a scanner is drawn")
+    height_m: float = Field(1.5, ge=0, description="scanner above the ground")
+    # shares of a scan's points: ground, stems (their scanner side), crowns, shrubs
+    shares: tuple[float, float, float, float] = Field(
+        (0.45, 0.03, 0.42, 0.10), description="points on ground, stems, crowns, shrubs"
+    )
+    range_noise_m: float = Field(0.003, ge=0, le=0.1, description="noise of every point (std)")

@@ -1,5 +1,6 @@
 """Trees: tapered, leaning stems with branches, and conifer or broadleaf crowns made of many small
-randomly oriented foliage elements; where they stand, and how detailed each is.
+randomly oriented foliage elements; where they stand, and how detailed each is. `crowns` scatters
+the same foliage through the crown volume without branches, or leaves bare stems.
 
 Foliage is deliberately a cloud of small elements: normals there are random, while ground and
 stems are smooth. That contrast is what the structural-complexity grouping lives on.
@@ -13,7 +14,15 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from plotmosaic.config.simulate import ForestConfig
-from plotmosaic.simulate.mesh import FOLIAGE, WOODY, Mesh, random_elements, tubes, unit
+from plotmosaic.simulate.mesh import (
+    FOLIAGE,
+    WOODY,
+    Mesh,
+    orthonormal_frame,
+    random_elements,
+    tubes,
+    unit,
+)
 from plotmosaic.simulate.terrain import Terrain
 
 
@@ -85,6 +94,8 @@ def conifer_meshes(
             centres[None], _stem_radius(h - 0.3, tree.dbh, tree.height)[None], sides, WOODY, [owner]
         )
     ]
+    if cfg.crowns == "none":
+        return meshes
     # Whorls of branches through the crown; their length shrinks toward the top (a cone).
     whorl_h = np.arange(tree.crown_base, tree.height * 0.96, rng.uniform(0.5, 0.8))
     per = rng.integers(3, 7, len(whorl_h))
@@ -92,6 +103,14 @@ def conifer_meshes(
     az = rng.uniform(0, 2 * np.pi, len(hb))
     frac = (tree.height - hb) / max(tree.height - tree.crown_base, 1e-3)
     length = tree.crown_radius * frac**0.9 * rng.uniform(0.75, 1.1, len(hb)) + 0.25
+    if cfg.crowns == "scattered":
+        # the foliage the whorls would carry, spread through the crown cone instead
+        factor = 1 if tree.detailed else cfg.coarse_factor
+        n = int(np.maximum(1, (cfg.foliage_per_m * length / factor).astype(int)).sum())
+        pts = _in_cone(base, tree, n, rng)
+        size = rng.uniform(*cfg.leaf_size_m, n) * np.sqrt(factor)
+        meshes.append(random_elements(pts, size, rng, FOLIAGE, owner))
+        return meshes
     pitch = np.radians(np.interp(frac, [0, 1], [25, -15]) + rng.normal(0, 6, len(hb)))
     # Dead stubs below the live crown: short woody branches without foliage.
     hs = rng.uniform(2.0, max(tree.crown_base, 2.1), int(rng.integers(3, 10)) if stubs else 0)
@@ -142,6 +161,21 @@ def conifer_meshes(
     return meshes
 
 
+def _in_cone(base: np.ndarray, tree: Tree, n: int, rng) -> np.ndarray:
+    """`n` points uniform in a conifer's crown cone (crown base to top, around the leaning stem)."""
+    depth = rng.random(n) ** (1 / 3)  # volume below the apex grows as depth cubed
+    h = tree.height - (tree.height - tree.crown_base) * depth
+    r = tree.crown_radius * depth * np.sqrt(rng.random(n))
+    a = rng.uniform(0, 2 * np.pi, n)
+    u, v = orthonormal_frame(tree.lean)
+    return (
+        base
+        + (h + 0.3)[:, None] * tree.lean
+        + (r * np.cos(a))[:, None] * u
+        + (r * np.sin(a))[:, None] * v
+    )
+
+
 def broadleaf_meshes(tree: Tree, z0: float, cfg: ForestConfig, rng, owner: int) -> list[Mesh]:
     sides = cfg.stem_sides if tree.detailed else 8
     base = np.array([tree.x, tree.y, z0 - 0.3])
@@ -153,9 +187,21 @@ def broadleaf_meshes(tree: Tree, z0: float, cfg: ForestConfig, rng, owner: int) 
             centres[None], _stem_radius(h - 0.3, tree.dbh, tree.height)[None], sides, WOODY, [owner]
         )
     ]
+    if cfg.crowns == "none":
+        return meshes
     crown_len = tree.height - tree.crown_base
     centre = base + (tree.crown_base + 0.3 + crown_len / 2) * tree.lean
     radii = np.array([tree.crown_radius, tree.crown_radius, crown_len / 2])
+    factor = 1 if tree.detailed else cfg.coarse_factor
+    scale = (tree.crown_radius / 4.0) ** 2 * (
+        crown_len / 10.0
+    )  # leaf count grows with crown volume
+    total = max(20, int(cfg.broadleaf_leaves * np.clip(scale, 0.2, 2.0) / factor))
+    if cfg.crowns == "scattered":  # the same leaves through the whole crown ellipsoid, no scaffold
+        pts = centre + unit(rng.normal(size=(total, 3))) * radii * rng.random((total, 1)) ** (1 / 3)
+        size = rng.uniform(*cfg.leaf_size_m, total) * np.sqrt(factor)
+        meshes.append(random_elements(pts, size, rng, FOLIAGE, owner, quads=True))
+        return meshes
     # Scaffold branches from the stem out and up into the crown, each with two or three forks.
     n = int(rng.integers(5, 9))
     hb = rng.uniform(tree.crown_base, tree.crown_base + 0.6 * crown_len, n)
@@ -194,11 +240,6 @@ def broadleaf_meshes(tree: Tree, z0: float, cfg: ForestConfig, rng, owner: int) 
         )
     )
     # Leaves in clumps filling the outer shell of the crown ellipsoid.
-    factor = 1 if tree.detailed else cfg.coarse_factor
-    scale = (tree.crown_radius / 4.0) ** 2 * (
-        crown_len / 10.0
-    )  # leaf count grows with crown volume
-    total = max(20, int(cfg.broadleaf_leaves * np.clip(scale, 0.2, 2.0) / factor))
     clumps = max(4, total // 40)
     dirs = unit(rng.normal(size=(clumps, 3)))
     cc = centre + dirs * radii * rng.uniform(0.45, 1.0, (clumps, 1))
