@@ -123,7 +123,7 @@ def information_matrix(
     return J.T @ J / sigma2, float(np.sqrt(sigma2))
 
 
-def _exp_se3(xi: np.ndarray) -> np.ndarray:
+def exp_se3(xi: np.ndarray) -> np.ndarray:
     """SE(3) exponential, xi = (w, v)."""
     w, v = xi[:3], xi[3:]
     th = np.linalg.norm(w)
@@ -292,4 +292,4 @@ def _gauss_newton_step(
     step[:3] /= scale
     Tc = np.eye(4)
     Tc[:3, 3] = c
-    return Tc @ _exp_se3(step) @ np.linalg.inv(Tc) @ T, step, int(keep.sum())
+    return Tc @ exp_se3(step) @ np.linalg.inv(Tc) @ T, step, int(keep.sum())

@@ -268,14 +268,18 @@ def recover(
 
 
 def weak(verdict: Verdict, config: AlignConfig) -> bool:
-    """Whether a verdict would be refused, or kept only as an unsure edge: beaten, blunt, below the
-    judge's floor, or less confident than `second_look_below`."""
+    """Whether a verdict would be refused (the floors of check_quality on the judge's figures):
+    beaten, below the judge's floor, blunt, or less confident than `min_confidence` (register-plot
+    keeps an unsure pair as an edge its loops decide on: only a refusal is weak there)."""
     jc = config.judge
+    blunt = verdict.sharpness < jc.blunt_min_sharpness or (
+        verdict.sharpness < jc.min_sharpness and verdict.confidence < jc.blunt_min_confidence
+    )
     return (
         verdict.margin <= 0
         or verdict.score < jc.min_score
-        or verdict.sharpness < jc.min_sharpness
-        or verdict.confidence < jc.second_look_below
+        or blunt
+        or verdict.confidence < config.min_confidence
     )
 
 
@@ -288,28 +292,25 @@ def look_again(
     say: Say,
     memo: PairMemo,
 ) -> Judged:
-    """A weak verdict's second look (judge.second_look): from each distinct candidate, the level
-    stage, the final ICP and the judge with its one retry, as the first pose had them (the retry's
-    basin starts carry a pose a few degrees off onto the truth beside it); the most confident of
-    those that are not weak replaces the first pose, else the first verdict stands. The rivals
-    are refined once for the pair (the memo): each look pays for its own ICPs and basin only."""
+    """A verdict that would be refused gets a second look (judge.second_look): from each distinct
+    candidate in turn, the level stage, the final ICP and the judge with its one retry, as the first
+    pose had them (the retry's basin starts carry a pose a few degrees off onto the truth beside
+    it); the first result that would not be refused replaces the first pose, else the first verdict
+    stands. The rivals are refined once for the pair (the memo): a look pays for its own ICPs."""
     if not config.coarse.enabled or not weak(judged.verdict, config):
         return judged
     c = judge_mod.centre(src, config.judge, memo.source)
     starts = judge_mod.second_look(judged.fine.T, candidates, c, config.judge)
     say(f"a second look from {len(starts)} other candidates")
     rivals = [*candidates, Candidate(T=judged.fine.T, source="first pose")]
-    best = judged
-    for A in starts:
+    for A in starts:  # the first that holds: the candidates come best-ranked first
         rng = np.random.default_rng(0)
         fine = final_icp(src, tgt, level_stage(src, tgt, config, A, False, rng).T, config, memo)
         verdict = judge_mod.judge(src, tgt, fine.T, rivals, config.judge, memo)
         found = recover(src, tgt, config, rivals, fine, verdict, say, memo)
-        if weak(found.verdict, config):
-            continue
-        if best is judged or found.verdict.confidence > best.verdict.confidence:
-            best = found
-    return best
+        if not weak(found.verdict, config):
+            return found
+    return judged
 
 
 def measure(

@@ -113,7 +113,7 @@ class MapConfig(BaseModel):
     # a map measured at placements that the next solve moves is measured again from there: the
     # rounds settle the survey as one (multi-view ICP through the pose graph)
     rounds: int = Field(
-        3, ge=0, le=10, description="rounds of map placements, each from the last solve's poses"
+        1, ge=0, le=10, description="rounds of map placements, each from the last solve's poses"
     )
     settled_m: float = Field(
         0.002, gt=0, le=1, description="no scan moved more (m) in a round: the maps are settled"
@@ -133,6 +133,23 @@ class MapConfig(BaseModel):
         gt=0,
         le=5,
         description="voxel (m) of a whole-plot map, for a scan with no start (its memory bounded)",
+    )
+    # rounds of maps remove a bend or a tilt across the plot only slowly: all poses are solved
+    # together on every scan-neighbour pair once the maps have verified where each scan stands
+    survey: bool = Field(
+        True, description="refine the survey as one (multi-view ICP) after the map placements"
+    )
+    survey_points: int = Field(
+        20_000, ge=100, le=1_000_000, description="sample points of each pair and direction"
+    )
+    survey_schedule: list[tuple[float, int]] = Field(
+        [(0.1, 5), (0.05, 10)],
+        description="(correspondence distance m, iterations) stages of the survey refinement",
+    )
+    # a pair's residuals err together over a patch of bark or a twig: its information counts
+    # patches, not points (docs/method.md#plot-settings)
+    survey_patch_m: float = Field(
+        2.0, gt=0, le=10, description="side (m) of the patches whose residuals err together"
     )
     edge_distance: float = Field(
         0.1, gt=0, le=2, description="correspondences (m) that give a map member its share"

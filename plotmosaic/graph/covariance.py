@@ -66,9 +66,12 @@ class Scales:
     redundancy: dict[tuple[str, str], float] = field(default_factory=dict)
 
     def factor(self, key: tuple[str, str], floor: dict[str, float]) -> float:
-        # a map's edges are measured at the poses the graph then keeps: their loops close by
-        # construction and cannot show them surer than their information
-        low = MAP_FLOOR if key[0].endswith(" map") else floor[key[1]]
+        group, block = key
+        low = floor[block]
+        if group.endswith(" map"):
+            # a survey's edges are measured at the poses the graph then keeps: their loops close
+            # by construction and cannot show them surer than their information
+            low = MAP_FLOOR
         return float(np.clip(self.observed.get(key, 1.0), low, MAX_FACTOR))
 
     def apply(self, group: str, info: np.ndarray, floor: dict[str, float]) -> np.ndarray:

@@ -23,19 +23,20 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from plotmosaic.align.fine import LENS_SEED
-from plotmosaic.align.icp import information_matrix, nearest, point_to_plane_icp
+from plotmosaic.align.icp import information_matrix, nearest
 from plotmosaic.align.memo import PairMemo
 from plotmosaic.align.pipeline import Start, register_prepared
 from plotmosaic.align.prepare import MIN_POINTS, PreparedCloud, prepare_cloud
 from plotmosaic.align.sampling import sample
 from plotmosaic.align.voxel import thin
-from plotmosaic.config.align import AlignConfig, IcpStage, default_levels
+from plotmosaic.config.align import AlignConfig, default_levels
 from plotmosaic.errors import RegistrationFailed
 from plotmosaic.graph.prepared import PrepareJob, get_prepared
 from plotmosaic.io.frame import inverse, to_global_transform, to_local_transform
 from plotmosaic.io.las import PointCloud
 
 MAP_ID = "map"  # the target's name in a record: a map is no scan
+MATCHED_POINTS = 40_000  # scan points whose matches split the map's information among members
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -120,34 +121,15 @@ class _Members:
         return out
 
 
-def refine_on_members(
-    src: PreparedCloud, target: PreparedCloud, T: np.ndarray, members: _Members, config: AlignConfig
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The verified pose (source local -> map local) refined on the members' own surfaces, from
-    samples of the scan where it meets them; (pose, source rows, member rows) of the last
-    correspondences. Smooth in the members' poses, so rounds of maps settle."""
-    d, _ = nearest(members.tree, src.points @ T[:3, :3].T + T[:3, 3], config.lens_distance)
-    near = src.points[np.isfinite(d)]
-    source = near[
-        sample(len(near), config.final_max_source_points, np.random.default_rng(LENS_SEED))
-    ]
-    stages = [
-        IcpStage(max_distance=config.final_schedule[-1].max_distance, iterations=20),
-        IcpStage(
-            max_distance=config.final_polish_distance, iterations=config.final_polish_iterations
-        ),
-    ]
-    res = point_to_plane_icp(
-        source,
-        members.points,
-        members.normals,
-        T,
-        stages,
-        tree=members.tree,
-        kernel_floor=config.final_polish_kernel,
-        tol=config.final_tol,
-    )
-    return res.T, source[res.source_index], res.target_index
+def matched(
+    src: PreparedCloud, T: np.ndarray, members: _Members, job: MapJob
+) -> tuple[np.ndarray, np.ndarray]:
+    """(scan points, member rows) matched at the map's pose T (source local -> map local): the
+    scan's points within `edge_distance` of a member's surface, seeded sample of them."""
+    d, idx = nearest(members.tree, src.points @ T[:3, :3].T + T[:3, 3], job.edge_distance)
+    near = np.flatnonzero(np.isfinite(d))
+    keep = near[sample(len(near), MATCHED_POINTS, np.random.default_rng(LENS_SEED))]
+    return src.points[keep], idx[keep]
 
 
 def member_edges(
@@ -211,14 +193,14 @@ def run_map_job(job: MapJob) -> dict:
         )
         poses = [np.asarray(m.pose, dtype=np.float64) for m in job.members]
         team = _Members(members, poses, target.frame)
-        local = to_local_transform(result.transform, src.frame, target.frame)
-        T, p, rows = refine_on_members(src, target, local, team, config)
+        T = to_local_transform(result.transform, src.frame, target.frame)
+        p, rows = matched(src, T, team, job)
         edges = member_edges(src, target, T, p, rows, team, job)
         if not edges:
             raise RegistrationFailed("placed on the map, but overlapping no member enough")
         record.update(
             status="ok",
-            transform=to_global_transform(T, src.frame, target.frame).tolist(),
+            transform=result.transform.tolist(),
             confidence=result.confidence,
             overlap=result.overlap,
             fitness=result.fitness,

@@ -15,7 +15,8 @@ from plotmosaic.graph.cache import PairCache
 from plotmosaic.graph.executor import run_pairs
 from plotmosaic.graph.maps import MapJob, Member, map_key, run_map_job
 from plotmosaic.graph.pairs import reach_distance
-from plotmosaic.graph.prepared import PrepareJob, prepared_key
+from plotmosaic.graph.prepared import PrepareJob, get_prepared, prepared_key
+from plotmosaic.graph.survey import SurveySettings, refine_survey
 from plotmosaic.io.frame import inverse, pose_error
 from plotmosaic.manifest import Plot
 from plotmosaic.stages.register_plot.grow import graph_poses
@@ -24,7 +25,7 @@ from plotmosaic.stages.register_plot.place import Priors
 
 
 def onto_maps(run: Run, priors: Priors, pairs: Pairs) -> Pairs:
-    """The pairs with the map edges of the last round; rounds until the placements settle."""
+    """The pairs with the edges of the survey refined on its maps (or of the last map round)."""
     maps = run.config.maps
     if not maps.enabled:
         return pairs
@@ -47,7 +48,60 @@ def onto_maps(run: Run, priors: Priors, pairs: Pairs) -> Pairs:
         if _settled(before, after, maps.settled_m, maps.settled_deg):
             break
         before = after
-    return pairs
+    if not maps.survey:
+        return pairs
+    surveyed = _surveyed(
+        run, prepared, pairs, graph_poses(run.manifest, run.config, pairs, priors.anchors)
+    )
+    return Pairs(jobs=pairs.jobs, records=pairs.records, computed=pairs.computed, maps=surveyed)
+
+
+def _surveyed(
+    run: Run, prepared: dict[str, PrepareJob], pairs: Pairs, poses: dict[str, np.ndarray]
+) -> tuple[dict, ...]:
+    """The map edges again from the survey refined as one (graph/survey.py): the verified map
+    placements' scan-member pairs, both ways, every plot with its reference among them."""
+    maps = run.config.maps
+    settings = SurveySettings(
+        lens_distance=run.config.align.lens_distance,
+        points=maps.survey_points,
+        schedule=tuple(maps.survey_schedule),
+        kernel=run.config.align.final_polish_kernel,
+        min_points=maps.min_edge_points,
+        patch=maps.survey_patch_m,
+    )
+    out: list[dict] = [e for e in pairs.maps if e.get("status") != "ok"]
+    for plot in run.manifest.plots:
+        ids = {s.id for s in plot.scans}
+        own = [e for e in pairs.maps if e.get("status") == "ok" and e["source"] in ids]
+        linked = sorted(
+            {(e["source"], e["target"]) for e in own} | {(e["target"], e["source"]) for e in own}
+        )
+        scans = {s for pair in linked for s in pair}
+        if plot.reference.id not in scans or not all(s in poses for s in scans):
+            out += own
+            continue
+        clouds = {s: get_prepared(prepared[s])[0] for s in sorted(scans)}
+        _, edges = refine_survey(
+            clouds, {s: poses[s] for s in scans}, linked, plot.reference.id, settings
+        )
+        by_source = {e["source"]: e for e in own}
+        for e in edges:
+            verified = by_source.get(e.source) or by_source.get(e.target)
+            out.append(
+                {
+                    "source": e.source,
+                    "target": e.target,
+                    "key": f"survey:{e.source}:{e.target}",
+                    "status": "ok",
+                    "transform": e.transform.tolist(),
+                    "information": e.information.tolist(),
+                    "confidence": verified.get("confidence"),
+                    "overlap": verified.get("overlap"),
+                    "via": "map",
+                }
+            )
+    return tuple(out)
 
 
 def _without_pairs(run: Run, pairs: Pairs) -> set[str]:
