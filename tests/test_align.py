@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from plotmosaic.align.complexity import level_purity, match_levels
-from plotmosaic.align.icp import _exp_se3, information_matrix, point_to_plane_jacobian
+from plotmosaic.align.icp import exp_se3, information_matrix, point_to_plane_jacobian
 from plotmosaic.align.memo import PairMemo, RunMemo
 from plotmosaic.align.pipeline import AlignRequest, PairResult, align_clouds, register_prepared
 from plotmosaic.align.prepare import prepare_cloud
@@ -89,7 +89,7 @@ def test_information_matrix_matches_finite_differences():
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     T = (
         translation(offset + [0.3, -0.2, 0.1])
-        @ _exp_se3(np.array([0.02, -0.01, 0.2, 0, 0, 0]))
+        @ exp_se3(np.array([0.02, -0.01, 0.2, 0, 0, 0]))
         @ translation(-offset)
     )
     q = apply_transform(T, p) + 0.01 * rng.normal(size=(200, 1)) * n
@@ -103,7 +103,7 @@ def test_information_matrix_matches_finite_differences():
         h = 1e-6 if k < 3 else 1e-4
         e = np.zeros(6)
         e[k] = h
-        J_num[:, k] = (residuals(T @ _exp_se3(e)) - residuals(T @ _exp_se3(-e))) / (2 * h)
+        J_num[:, k] = (residuals(T @ exp_se3(e)) - residuals(T @ exp_se3(-e))) / (2 * h)
     np.testing.assert_allclose(J, J_num, rtol=1e-4, atol=1e-4 * np.abs(J).max())
     info, sigma = information_matrix(p, q, n, T)
     r = residuals(T)
