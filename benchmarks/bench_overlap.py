@@ -31,6 +31,7 @@ import sys
 import time
 from pathlib import Path
 
+from plotmosaic.bench.methods import runnable
 from plotmosaic.bench.overlap_pairs import (
     DEFAULT_EDGES,
     PAIRS_PER_BIN,
@@ -108,10 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    skipped = {m: why for m in methods if (why := method_available(m))}
-    for m, why in skipped.items():
-        print(f"{m}: skipped, {why}", file=sys.stderr)
-    methods = [m for m in methods if m not in skipped]
+    methods, skipped = runnable(methods, method_available)
     if not methods:
         print("error: --methods: none of them can run here", file=sys.stderr)
         return 2

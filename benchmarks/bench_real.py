@@ -28,7 +28,7 @@ import sys
 import time
 from pathlib import Path
 
-from plotmosaic.bench.methods import METHODS, OURS, available
+from plotmosaic.bench.methods import METHODS, OURS, runnable
 from plotmosaic.bench.real_cases import ALL_CASES, CASES
 from plotmosaic.bench.real_suite import (
     CASES_FILE,
@@ -121,10 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    skipped = {m: why for m in methods if (why := available(m))}
-    for m, why in skipped.items():
-        print(f"{m}: skipped, {why}", file=sys.stderr)
-    methods = [m for m in methods if m not in skipped]
+    methods, skipped = runnable(methods)
     if not methods:
         print("error: --methods: none of them can run here", file=sys.stderr)
         return 2

@@ -13,7 +13,9 @@ Baselines work in a local frame around the target so UTM coordinates keep their 
 
 from __future__ import annotations
 
+import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -66,6 +68,16 @@ def available(name: str) -> str | None:
         except ImportError:
             return "probreg is not installed (pip install 'plotmosaic[bench]'; it builds with a C++ compiler)"
     return None
+
+
+def runnable(
+    methods: list[str], why_not: Callable[[str], str | None] = available
+) -> tuple[list[str], dict[str, str]]:
+    """The methods that can run here, and why each other one cannot (printed as it is skipped)."""
+    skipped = {m: why for m in methods if (why := why_not(m))}
+    for m, why in skipped.items():
+        print(f"{m}: skipped, {why}", file=sys.stderr)
+    return [m for m in methods if m not in skipped], skipped
 
 
 def run_method(name: str, pair: PairInput, config: MethodsConfig, seed: int) -> MethodOutput:

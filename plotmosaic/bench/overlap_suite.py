@@ -12,11 +12,8 @@ from __future__ import annotations
 
 import hashlib
 import json
-import multiprocessing
-import os
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -55,12 +52,12 @@ from plotmosaic.bench.real_suite import (
     outcome,
     read_trials,
 )
+from plotmosaic.bench.trial_pool import run_each
 from plotmosaic.config.bench import MethodsConfig
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.frame import apply_transform
 from plotmosaic.io.las import PointCloud
 from plotmosaic.io.pictures import savefig
-from plotmosaic.parallel import set_threads, threads
 
 PROTOCOL = "paper"
 # the baselines of bench/methods.py (forestalign-placement is for airborne targets) and the peers
@@ -206,12 +203,6 @@ def source_hash() -> str:
     return h.hexdigest()[:12]
 
 
-def _init_worker(n_threads: int) -> None:
-    os.environ["OMP_NUM_THREADS"] = str(n_threads)  # Open3D's OpenMP, imported after this
-    os.environ["RAYON_NUM_THREADS"] = str(n_threads)  # Sylva's Rust core
-    set_threads(n_threads)
-
-
 def run(
     catalogues: dict[str, dict[Bin, list[PairRef]]],
     n: int,
@@ -243,24 +234,7 @@ def run(
     def crashed(job: Job, exc: Exception) -> None:
         log(f"  {job.source} [{bin_label(job.bin)}] trial {job.trial}: CRASHED, not recorded ({type(exc).__name__}: {exc})")  # fmt: skip
 
-    if jobs <= 1 or len(todo) <= 1:
-        for job in todo:
-            try:
-                finish(run_trial(job), job)
-            except Exception as exc:  # noqa: BLE001 - one broken trial is logged and left for a re-run
-                crashed(job, exc)
-        return new
-    share = max(1, threads() // jobs)
-    ctx = multiprocessing.get_context("spawn")  # no fork of a parent holding OpenMP threads
-    with ProcessPoolExecutor(
-        jobs, mp_context=ctx, initializer=_init_worker, initargs=(share,)
-    ) as pool:
-        started = {pool.submit(run_trial, job): job for job in todo}
-        for fut in as_completed(started):
-            try:
-                finish(fut.result(), started[fut])
-            except Exception as exc:  # noqa: BLE001 - one broken trial is logged and left for a re-run
-                crashed(started[fut], exc)
+    run_each(todo, jobs, run_trial, finish, crashed)
     return new
 
 

@@ -14,12 +14,10 @@ from __future__ import annotations
 
 import hashlib
 import json
-import multiprocessing
 import os
 import subprocess
 import time
 from collections.abc import Callable, Iterable
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -43,12 +41,12 @@ from plotmosaic.bench.suite_tables import (
     summarise,
     write_outputs,
 )
+from plotmosaic.bench.trial_pool import run_each
 from plotmosaic.config.bench import SUITE_PROTOCOLS, MethodsConfig
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.frame import Frame, apply_transform, to_local_transform
 from plotmosaic.io.frame import pose_error as angle_distance
 from plotmosaic.io.las import PointCloud
-from plotmosaic.parallel import set_threads, threads
 
 __all__ = [  # the suite's API (benchmarks/bench_real.py), tables included
     "CASES_FILE",
@@ -288,12 +286,6 @@ def run_trial(job: Trial) -> tuple[dict, list[dict]]:
     return info, rows
 
 
-def _init_worker(threads: int) -> None:
-    os.environ["OMP_NUM_THREADS"] = str(threads)  # Open3D's OpenMP, imported after this
-
-    set_threads(threads)
-
-
 def run_suite(
     cases: list[str],
     protocols: dict[str, int],
@@ -346,23 +338,5 @@ def run_suite(
             f"  {job.case} [{job.protocol}] trial {job.trial}: CRASHED, not recorded ({type(exc).__name__}: {exc})"
         )
 
-    if jobs <= 1 or len(todo) <= 1:
-        for job in todo:
-            try:
-                finish(*run_trial(job), job)
-            except Exception as exc:  # noqa: BLE001 - one broken trial is logged and left for a re-run
-                crashed(job, exc)
-        return new
-
-    share = max(1, threads() // jobs)
-    ctx = multiprocessing.get_context("spawn")  # no fork of a parent holding OpenMP threads
-    with ProcessPoolExecutor(
-        jobs, mp_context=ctx, initializer=_init_worker, initargs=(share,)
-    ) as pool:
-        started = {pool.submit(run_trial, job): job for job in todo}
-        for fut in as_completed(started):
-            try:
-                finish(*fut.result(), started[fut])
-            except Exception as exc:  # noqa: BLE001 - one broken trial is logged and left for a re-run
-                crashed(started[fut], exc)
+    run_each(todo, jobs, run_trial, lambda result, job: finish(*result, job), crashed)
     return new
