@@ -15,6 +15,7 @@ Cases (issue 15's suite):
   mls-uas          the whole MLS clip onto the UAS clip (refined truth, MLS placement is approximate)
   sim-understorey  the simulator's `understorey` preset, scan 1 onto scan 0 7 m away (exact truth)
   sim-small        (on request) the simulator's `small` preset, scan 1 onto scan 0 (exact truth)
+  mls-views12m     (on request) two views of the MLS clip 12 m apart with 10 m range: a sparse survey's neighbours
 
 Refined truth: the clips' own co-registration refined by three independent fine methods (point-to-point ICP,
 point-to-plane ICP, generalised ICP, each the sparser cloud onto the denser: ALS onto UAS, i.e. the reverse
@@ -60,12 +61,14 @@ CASES = (
 )
 EXTRA_CASES = (
     "sim-small",
-)  # on request: the simulator's `small` preset, a TLS pair (the old coarse suite)
+    "mls-views12m",
+)  # on request: the simulator's `small` preset, a TLS pair (the old coarse suite); a sparse pair
 ALL_CASES = CASES + EXTRA_CASES
 STRIP_WIDTH = 5.0  # metres: a narrow drone strip (<= 6 m)
 TREELS_SPACING = 7.0
 MLS_SPACING = 8.0
 BOXED_RANGE = 6.0
+SPARSE_SPACING, SPARSE_RANGE = 12.0, 10.0  # a sparse survey's neighbours (issue 54)
 UNDERSTOREY_POINTS = 200_000  # points per simulated scan: enough for the pipeline, a quick build
 
 
@@ -230,11 +233,17 @@ def _refined(root: str, source: str, target: str) -> tuple[np.ndarray, dict]:
 
 
 def _views_case(
-    name: str, cloud: PointCloud, spacing: float, seed: int, note: str, boxed: float | None = None
+    name: str,
+    cloud: PointCloud,
+    spacing: float,
+    seed: int,
+    note: str,
+    boxed: float | None = None,
+    max_range: float | None = None,
 ) -> RealCase:
-
     positions = grid_positions(cloud.xyz, 2, spacing)
-    target, source = cut_views(cloud.xyz, positions, seed)
+    reach = {} if max_range is None else {"max_range": max_range}
+    target, source = cut_views(cloud.xyz, positions, seed, **reach)
     if boxed is not None:
         (source,) = cut_views(cloud.xyz, [tuple(source.position)], seed + 1, max_range=boxed)
     truth = inverse(target.truth) @ source.truth
@@ -283,6 +292,18 @@ def mls_boxed(root: Path, seed: int = 0) -> RealCase:
         seed,
         f"spanner MLS clip, two ground-based virtual scans, the source cut to {BOXED_RANGE:g} m range",
         boxed=BOXED_RANGE,
+    )
+
+
+def mls_views12(root: Path, seed: int = 0) -> RealCase:
+    return _views_case(
+        "mls-views12m",
+        _spanner(str(root), "MLS"),
+        SPARSE_SPACING,
+        seed,
+        f"spanner MLS clip, two ground-based virtual scans {SPARSE_SPACING:g} m apart with"
+        f" {SPARSE_RANGE:g} m range",
+        max_range=SPARSE_RANGE,
     )
 
 
@@ -376,6 +397,7 @@ BUILDERS = {
     "mls-uas": mls_uas,
     "sim-understorey": sim_understorey,
     "sim-small": sim_small,
+    "mls-views12m": mls_views12,
 }
 
 
