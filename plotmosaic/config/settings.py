@@ -95,17 +95,18 @@ class Settings(BaseModel):
         return self.align.model_copy(deep=True)
 
     def register_config(self) -> RegisterConfig:
-        return self.register_plot.model_copy(update={**self._shared(), "pairs": self.pairs})
+        pairs = self.pairs.model_copy(deep=True)
+        return self.register_plot.model_copy(update={**self._shared(), "pairs": pairs}, deep=True)
 
     def tie_config(self) -> TieConfig:
-        return self.tie_to_als.model_copy(update=self._shared())
+        return self.tie_to_als.model_copy(update=self._shared(), deep=True)
 
     def _shared(self) -> dict:
-        """The sections register-plot and tie-to-als share with the other stages."""
+        """Copies of the sections register-plot and tie-to-als share with the other stages."""
         return {
-            "align_settings": self.align,
-            "graph": self.posegraph,
-            "report": self.report,
+            "align_settings": self.align.model_copy(deep=True),
+            "graph": self.posegraph.model_copy(deep=True),
+            "report": self.report.model_copy(deep=True),
             "read": self.read,
         }
 
