@@ -53,7 +53,7 @@ def _inputs(reg: Path, geo: Path):
 
 def _timed(render, run, settings, reader) -> float:
     t0 = time.process_time()
-    render(run, settings.report, settings.posegraph.min_confidence, 0, reader)
+    render(run, settings.report, settings.posegraph.sure_edge_confidence, 0, reader)
     return time.process_time() - t0
 
 

@@ -36,7 +36,7 @@ Typical run on a plot scanned from five positions, with an ALS tile over the reg
   plotmosaic merge sim/manifest.toml --poses geo/poses.json --out merged.laz
   plotmosaic demo demo-output                        # all of the above on a built-in demo
   plotmosaic info sim/manifest.toml --full           # check a manifest and its files
-  plotmosaic config --defaults > my.toml             # every setting; give back with --config
+  plotmosaic config --defaults > my.toml             # the settings you turn; --all: every one
 """
 
 

@@ -107,11 +107,14 @@ def test_bad_settings_file_exits_2_naming_the_key(tmp_path, monkeypatch, command
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.toml"]
 
 
-def test_defaults_print_and_load_back_equal(tmp_path):
-    res = invoke("config", "--defaults")
+@pytest.mark.parametrize("tier", ["--defaults", "--all"])
+def test_defaults_print_and_load_back_equal(tmp_path, tier):
+    res = invoke("config", tier)
     assert res.exit_code == 0, res.output
     text = res.output
-    assert "# delta0: voxel (m) of the working clouds" in text  # each key with its description
+    # each key with its description
+    assert "# least judge confidence (margin over the best distinct rival)" in text
+    assert ("# delta0: voxel (m) of the working clouds" in text) == (tier == "--all")
     loaded = settings_from_dict(tomllib.loads(text))
     assert loaded == Settings()
     # the sections build exactly the stages' own defaults
@@ -204,6 +207,7 @@ def test_merge_config_used_repeats_the_merge_byte_for_byte(small_sim, tmp_path):
 def test_config_needs_exactly_one_of_defaults_or_check(tmp_path):
     assert_one_line_error(invoke("config"), "--defaults", "--check", code=2)
     assert_one_line_error(invoke("config", "--defaults", "--check", tmp_path / "x.toml"), code=2)
+    assert_one_line_error(invoke("config", "--all", "--check", tmp_path / "x.toml"), code=2)
 
 
 def test_pairs_onto_the_als_keep_fpfh_unless_turned_off():

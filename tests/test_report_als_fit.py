@@ -135,7 +135,7 @@ def test_georeferenced_page_leads_with_the_fit_to_the_als(small_sim, plot_data, 
     truth, raw, als = plot_data
     run = _tie_run(small_sim, truth, tmp_path, raw, als)
     cfg = ReportConfig(view3d_points=2000)
-    md = render_tie(run, cfg, PoseGraphConfig().min_confidence, 0, lambda p: raw[str(p)])
+    md = render_tie(run, cfg, PoseGraphConfig().sure_edge_confidence, 0, lambda p: raw[str(p)])
     page = _Page()
     page.feed((tmp_path / "report.html").read_text())
     text = " ".join(page.text)

@@ -133,8 +133,8 @@ def no_empty_output(folder) -> Iterator[None]:
 # ---- settings: --config FILE.toml, options over it, config-used.toml beside the outputs ----
 
 CONFIG_HELP = (
-    "Settings file (TOML; `plotmosaic config --defaults` prints every key). Options given on the "
-    "command line override it."
+    "Settings file (TOML; `plotmosaic config --defaults` prints the keys a user turns, `config "
+    "--all` every key). Options given on the command line override it."
 )
 CONFIG_USED = "config-used.toml"
 

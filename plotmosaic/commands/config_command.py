@@ -14,17 +14,25 @@ from plotmosaic.errors import InputError
 @handle_errors
 def config_command(
     defaults: bool = typer.Option(
-        False, "--defaults", help="Print every setting with its default and a comment (TOML)."
+        False,
+        "--defaults",
+        help="Print the settings a user turns, each with its default and a comment (TOML).",
+    ),
+    every: bool = typer.Option(
+        False,
+        "--all",
+        help="Print every setting: the method's calibration too (docs/method.md#calibration-settings).",
     ),
     check: Path | None = typer.Option(
         None, "--check", help="Check a settings file: exit 0 if usable, else 2 naming the key."
     ),
 ) -> None:
     """The settings of every stage: `--defaults > my.toml`, edit, then give it with --config."""
-    if defaults == (check is not None):
-        raise InputError("give one of --defaults or --check FILE.toml")
-    if defaults:
-        typer.echo(default_toml(), nl=False)
+    printing = defaults or every
+    if printing == (check is not None):
+        raise InputError("give one of --defaults (or --all) or --check FILE.toml")
+    if printing:
+        typer.echo(default_toml("all" if every else "user"), nl=False)
         return
     settings = run_settings(check)
     changed = _changed(settings)

@@ -21,7 +21,7 @@ from plotmosaic.commands.common import (
     run_settings,
     write_config_used,
 )
-from plotmosaic.config.register import PairSelection, RegisterOptions, TieOptions
+from plotmosaic.config.register import PairSelection, RegisterConfig, TieConfig
 from plotmosaic.errors import InputError, PlotmosaicError
 from plotmosaic.graph.unplaced import unplaced_reasons
 from plotmosaic.io.atomic import check_output_dir
@@ -37,9 +37,9 @@ from plotmosaic.report.plot_figures import PLOT_FIGURES
 from plotmosaic.stages.register_plot import register_plot
 from plotmosaic.stages.tie_to_als import tie_to_als
 
-_REGISTER = RegisterOptions.model_fields
+_REGISTER = RegisterConfig.model_fields
 _PAIRS = PairSelection.model_fields
-_TIE = TieOptions.model_fields
+_TIE = TieConfig.model_fields
 
 
 @contextlib.contextmanager

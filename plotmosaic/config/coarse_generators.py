@@ -256,9 +256,6 @@ class CoarseGenerators(BaseModel):
     stem_slab: tuple[float, float] = Field(
         (1.0, 2.0), description="breast-height slab (m above ground) stems are cut at"
     )
-    stem_linearity_z: float = Field(
-        0.8, gt=0, le=1, description="|main axis z| above this: a vertical linear (trunk) point"
-    )
     stem_cluster_m: float = Field(
         0.25, gt=0, le=2, description="xy link distance (m) of points of one stem"
     )

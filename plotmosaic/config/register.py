@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -71,8 +71,11 @@ class PoseGraphConfig(BaseModel):
     )
     # An edge whose coarse-stage confidence is below this is kept only when a consistent triangle
     # confirms it: a wrong coarse solution can still pass the pair's own fitness checks.
-    min_confidence: float = Field(
-        0.25, ge=0, le=1, description="below: an edge needs a consistent triangle to stay"
+    sure_edge_confidence: float = Field(
+        0.25,
+        ge=0,
+        le=1,
+        description="least confidence of an edge kept without a consistent triangle confirming it",
     )
     # After a solve, an edge is an outlier when its residual exceeds both a metric bound and a
     # chi-square bound (6 dof); the metric bound keeps over-confident good edges.
@@ -101,21 +104,26 @@ class PoseGraphConfig(BaseModel):
     )
 
 
-def graph_align_config() -> AlignConfig:
-    """Pairwise settings of register-plot: unsure pairs still become edges (the pose graph keeps
-    one only when a loop confirms it)."""
-    return AlignConfig(min_confidence=0.0)
+def _onto_als(align: AlignConfig, fpfh: bool, **search: int) -> AlignConfig:
+    """[align] for a TLS cloud onto an ALS tile, with its own FPFH switch (off there, or off in
+    [align.coarse], is off) and its own coarse-search settings."""
+    coarse = align.coarse.model_copy(update={"fpfh": fpfh and align.coarse.fpfh, **search})
+    return align.model_copy(update={"coarse": coarse})
 
 
-def placement_align_config() -> AlignConfig:
-    """A scan onto the ALS tile to place it: as any TLS -> ALS pair, but its search stops at the first
-    vertical pair once one generator's pose is clearly ahead; a placement is a prior and an edge
-    that the pairs it implies verify again (benchmarks/results/speed.md)."""
-    return AlignConfig(coarse=CoarseConfig(settled_generators=1))
+def _fpfh_switch(when: str) -> Any:
+    """The FPFH switch of a TLS -> ALS search."""
+    return Field(
+        CoarseConfig.model_fields["fpfh"].default,
+        description=f"FPFH starts when {when} (off here or in align.coarse is off): they run only "
+        "where the cheaper generators have not settled, and a real UAS strip onto its ALS found "
+        "its pose only by them",
+    )
 
 
-class RegisterOptions(BaseModel):
-    """register-plot's own settings (beside its pairwise and pose-graph settings)."""
+class RegisterConfig(BaseModel):
+    """register-plot: its [register_plot] section; the sections it shares with the other stages
+    ([align], [posegraph], [pairs], [report], [read]) are filled in by Settings.register_config()."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -143,6 +151,25 @@ class RegisterOptions(BaseModel):
     als_anchors: bool = Field(
         True, description="ALS placements of a plot's scans are edges of its pose graph"
     )
+    # unsure pairs still become edges: the pose graph keeps one only when a loop confirms it
+    pair_min_confidence: float = Field(
+        0.0,
+        ge=0,
+        le=1,
+        description="judge floor of register-plot's pairs (replaces align.min_confidence there): "
+        "unsure pairs still become edges, a loop must confirm them",
+    )
+    placement_fpfh: bool = _fpfh_switch("placing a scan on the ALS tile")
+    # a placement is a prior and an edge that the pairs it implies verify again
+    # (benchmarks/results/speed.md)
+    placement_settled_generators: int = Field(
+        1,
+        ge=1,
+        le=3,
+        description="generators that must agree before a placement's search stops at the first "
+        "vertical pair (replaces align.coarse.settled_generators there): a placement is a prior "
+        "the pairs verify again, and one clear pose ahead of its rivals is enough",
+    )
     signature: SignatureConfig = Field(
         default_factory=SignatureConfig,
         description="stem-map signatures: partners of the scans without a position",
@@ -155,31 +182,53 @@ class RegisterOptions(BaseModel):
         default_factory=MapConfig,
         description="scans without a verified pair placed onto their placed neighbours together",
     )
-
-
-class RegisterConfig(RegisterOptions):
-    """Settings of register-plot."""
-
-    align: AlignConfig = Field(
-        default_factory=graph_align_config, description="pairwise registration of two scans"
+    # the shared sections: not keys of [register_plot] (exclude: the file never holds them here)
+    align_settings: AlignConfig = Field(
+        default_factory=AlignConfig,
+        exclude=True,
+        description="[align]: pairs take it with pair_min_confidence, placements with placement_*",
     )
     graph: PoseGraphConfig = Field(
-        default_factory=PoseGraphConfig, description="the pose-graph solve of each plot"
+        default_factory=PoseGraphConfig,
+        exclude=True,
+        description="the pose-graph solve of each plot",
     )
     pairs: PairSelection = Field(
-        default_factory=PairSelection, description="which pairs are registered"
+        default_factory=PairSelection, exclude=True, description="which pairs are registered"
     )
-    placement: AlignConfig = Field(
-        default_factory=placement_align_config, description="scan -> ALS: verified poses only"
+    report: ReportConfig = Field(
+        default_factory=ReportConfig, exclude=True, description="the report's pictures"
     )
-    report: ReportConfig = Field(default_factory=ReportConfig, description="the report's pictures")
     read: ReadingConfig = Field(
-        default_factory=ReadingConfig, description="the memory budget of reading a scan"
+        default_factory=ReadingConfig,
+        exclude=True,
+        description="the memory budget of reading a scan",
     )
 
+    @property
+    def align(self) -> AlignConfig:
+        """Pairwise registration of two scans."""
+        return self.align_settings.model_copy(update={"min_confidence": self.pair_min_confidence})
 
-class TieOptions(BaseModel):
-    """tie-to-als's own settings (beside its pairwise and pose-graph settings)."""
+    @property
+    def placement(self) -> AlignConfig:
+        """Scan -> ALS: verified poses only; its search stops at the first vertical pair once
+        `placement_settled_generators` agree."""
+        return _onto_als(
+            self.align_settings,
+            self.placement_fpfh,
+            settled_generators=self.placement_settled_generators,
+        )
+
+
+def placement_align_config() -> AlignConfig:
+    """A scan onto the ALS tile to place it, as register-plot does by default."""
+    return RegisterConfig().placement
+
+
+class TieConfig(BaseModel):
+    """tie-to-als: its [tie_to_als] section; the sections it shares with the other stages
+    ([align], [posegraph], [report], [read]) are filled in by Settings.tie_config()."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -203,18 +252,26 @@ class TieOptions(BaseModel):
     anchor_max_distance: float = Field(
         0.3, gt=0, le=10, description="ALS points farther (m) from the TLS surfaces are not matched"
     )
-
-
-class TieConfig(TieOptions):
-    """Settings of tie-to-als."""
-
-    align: AlignConfig = Field(
-        default_factory=AlignConfig, description="registration of each plot to the ALS"
+    anchor_fpfh: bool = _fpfh_switch("registering a plot to the ALS")
+    # the shared sections: not keys of [tie_to_als]
+    align_settings: AlignConfig = Field(
+        default_factory=AlignConfig, exclude=True, description="[align]: taken with anchor_fpfh"
     )
     graph: PoseGraphConfig = Field(
-        default_factory=PoseGraphConfig, description="the region's pose graph, ALS fixed"
+        default_factory=PoseGraphConfig,
+        exclude=True,
+        description="the region's pose graph, ALS fixed",
     )
-    report: ReportConfig = Field(default_factory=ReportConfig, description="the report's pictures")
+    report: ReportConfig = Field(
+        default_factory=ReportConfig, exclude=True, description="the report's pictures"
+    )
     read: ReadingConfig = Field(
-        default_factory=ReadingConfig, description="the memory budget of reading a scan"
+        default_factory=ReadingConfig,
+        exclude=True,
+        description="the memory budget of reading a scan",
     )
+
+    @property
+    def align(self) -> AlignConfig:
+        """Registration of each plot to the ALS."""
+        return _onto_als(self.align_settings, self.anchor_fpfh)

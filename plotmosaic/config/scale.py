@@ -1,7 +1,5 @@
 """Settings of register-plot's scaling steps: stem-map signatures (graph/signature.py) and the use of
 ALS placements as verified-first priors (graph/placement.py). A leaf: imports nothing of the project.
-
-(To be folded into graph/config.py's RegisterConfig as `signature` and `placed_priors`.)
 """
 
 from __future__ import annotations
@@ -79,7 +77,7 @@ class PlacedPriors(BaseModel):
     )
     # placements this sure were all right to cm (docs/method.md#plot-settings); a prior that does not
     # verify still gets the full search
-    min_confidence: float = Field(
+    sure_placement_confidence: float = Field(
         0.8,
         ge=0,
         le=1,

@@ -3,9 +3,10 @@
 Sections: [align] (pairwise registration, with [align.coarse], [align.judge], [align.stray]: used by
 `align`, by register-plot for its pairs and its ALS placement, and by tie-to-als), [posegraph],
 [pairs], [register_plot], [tie_to_als], [merge], [report], [read] (how much of a scan registration
-holds while reading it). `plotmosaic config --defaults` prints them all; each run writes the settings
-it used as config-used.toml beside its outputs, and that file given back with `--config` repeats the
-run exactly (floats are written with repr, which reads back bit for bit).
+holds while reading it). `plotmosaic config --defaults` prints the few a user turns (USER_KEYS),
+`--all` every key, the method's calibration too; each run writes every setting it used as
+config-used.toml beside its outputs, and that file given back with `--config` repeats the run exactly
+(floats are written with repr, which reads back bit for bit).
 """
 
 from __future__ import annotations
@@ -13,64 +14,53 @@ from __future__ import annotations
 import json
 import math
 import re
+import sys
 import tomllib
 import typing
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.config.merge import MergeConfig
 from plotmosaic.config.reading import ReadingConfig
-from plotmosaic.config.register import (
-    PairSelection,
-    PoseGraphConfig,
-    RegisterConfig,
-    RegisterOptions,
-    TieConfig,
-    TieOptions,
-    graph_align_config,
-    placement_align_config,
-)
+from plotmosaic.config.register import PairSelection, PoseGraphConfig, RegisterConfig, TieConfig
 from plotmosaic.config.report import ReportConfig
 
-
-class RegisterSection(RegisterOptions):
-    """register-plot's own settings; its pairwise and pose-graph settings are [align], [posegraph]."""
-
-    pair_min_confidence: float = Field(
-        graph_align_config().min_confidence,
-        ge=0,
-        le=1,
-        description="judge floor of register-plot's pairs (replaces align.min_confidence there): "
-        "unsure pairs still become edges, a loop must confirm them",
-    )
-    placement_fpfh: bool = Field(
-        placement_align_config().coarse.fpfh,
-        description="FPFH starts when placing a scan on the ALS tile (off here or in align.coarse "
-        "is off): they run only where the cheaper generators have not settled, and a real UAS "
-        "strip onto its ALS found its pose only by them",
-    )
-    placement_settled_generators: int = Field(
-        placement_align_config().coarse.settled_generators,
-        ge=1,
-        le=3,
-        description="generators that must agree before a placement's search stops at the first "
-        "vertical pair (replaces align.coarse.settled_generators there): a placement is a prior "
-        "the pairs verify again, and one clear pose ahead of its rivals is enough",
-    )
-
-
-class TieSection(TieOptions):
-    """tie-to-als's own settings; its pairwise and pose-graph settings are [align], [posegraph]."""
-
-    anchor_fpfh: bool = Field(
-        AlignConfig().coarse.fpfh,
-        description="FPFH starts when registering a plot to the ALS (off here or in align.coarse "
-        "is off): they run only where the cheaper generators have not settled, and a real UAS "
-        "strip onto its ALS found its pose only by them",
-    )
+# The settings a user turns: `config --defaults` prints these; every other key is the method's
+# calibration, printed by `config --all` (docs/method.md#calibration-settings). One place decides.
+USER_KEYS = frozenset(
+    {
+        "align.complexity",
+        "align.min_confidence",
+        "align.coarse.enabled",
+        "pairs.all_pairs_up_to",
+        "pairs.neighbours",
+        "pairs.max_per_scan",
+        "register_plot.max_distance",
+        "register_plot.place_on_als",
+        "register_plot.als_anchors",
+        "tie_to_als.buffer",
+        "tie_to_als.plot_voxel",
+        "merge.voxel",
+        "merge.include_als",
+        "merge.bbox",
+        "merge.force",
+        "merge.skip_missing",
+        "merge.tile_memory_mb",
+        "merge.tiles",
+        "merge.tile_size",
+        "report.picture_points",
+        "report.view3d_points",
+        "report.view3d_total",
+        "report.view3d_max_mb",
+        "read.max_points_in_memory",
+    }
+)
+CALIBRATION = "calibration: the method's constants (docs/method.md#calibration-settings)"
+Tier = Literal["user", "all"]
 
 
 class Settings(BaseModel):
@@ -88,10 +78,10 @@ class Settings(BaseModel):
     pairs: PairSelection = Field(
         default_factory=PairSelection, description="which pairs register-plot registers"
     )
-    register_plot: RegisterSection = Field(
-        default_factory=RegisterSection, description="register-plot"
+    register_plot: RegisterConfig = Field(
+        default_factory=RegisterConfig, description="register-plot"
     )
-    tie_to_als: TieSection = Field(default_factory=TieSection, description="tie-to-als")
+    tie_to_als: TieConfig = Field(default_factory=TieConfig, description="tie-to-als")
     merge: MergeConfig = Field(default_factory=MergeConfig, description="merge")
     report: ReportConfig = Field(
         default_factory=ReportConfig, description="report of register-plot and tie-to-als"
@@ -105,41 +95,20 @@ class Settings(BaseModel):
         return self.align.model_copy(deep=True)
 
     def register_config(self) -> RegisterConfig:
-        own = self.register_plot.model_dump(
-            exclude={"pair_min_confidence", "placement_fpfh", "placement_settled_generators"}
-        )
-        pairwise = self.align.model_copy(
-            deep=True, update={"min_confidence": self.register_plot.pair_min_confidence}
-        )
-        return RegisterConfig(
-            **own,
-            align=pairwise,
-            graph=self.posegraph.model_copy(deep=True),
-            pairs=self.pairs.model_copy(deep=True),
-            placement=self._onto_als(
-                self.register_plot.placement_fpfh,
-                settled_generators=self.register_plot.placement_settled_generators,
-            ),
-            report=self.report.model_copy(deep=True),
-            read=self.read,
-        )
-
-    def _onto_als(self, fpfh: bool, **search: int) -> AlignConfig:
-        """[align] for a TLS cloud onto an ALS tile, with its own FPFH switch (off there, or off in
-        [align.coarse], is off) and a placement's own coarse-search settings."""
-        config = self.align.model_copy(deep=True)
-        fpfh = fpfh and config.coarse.fpfh
-        config.coarse = config.coarse.model_copy(update={"fpfh": fpfh, **search})
-        return config
+        pairs = self.pairs.model_copy(deep=True)
+        return self.register_plot.model_copy(update={**self._shared(), "pairs": pairs}, deep=True)
 
     def tie_config(self) -> TieConfig:
-        return TieConfig(
-            **self.tie_to_als.model_dump(exclude={"anchor_fpfh"}),
-            align=self._onto_als(self.tie_to_als.anchor_fpfh),
-            graph=self.posegraph.model_copy(deep=True),
-            report=self.report.model_copy(deep=True),
-            read=self.read,
-        )
+        return self.tie_to_als.model_copy(update=self._shared(), deep=True)
+
+    def _shared(self) -> dict:
+        """Copies of the sections register-plot and tie-to-als share with the other stages."""
+        return {
+            "align_settings": self.align.model_copy(deep=True),
+            "graph": self.posegraph.model_copy(deep=True),
+            "report": self.report.model_copy(deep=True),
+            "read": self.read,
+        }
 
     def merge_config(self) -> MergeConfig:
         return self.merge
@@ -175,7 +144,7 @@ def _unknown_keys(model: type[BaseModel], data: Any, loc: str) -> str | None:
     for key, value in data.items():
         where = f"{loc}.{key}" if loc else key
         field = model.model_fields.get(key)
-        if field is None:
+        if field is None or field.exclude:
             return where
         sub = _model_of(field.annotation)
         if sub is not None:
@@ -211,8 +180,60 @@ def _first_error(exc: ValidationError) -> str:
     return f"{loc}: {msg}{tail}" if loc else f"{msg}{tail}"
 
 
-def settings_from_dict(data: dict, source: str = "settings") -> Settings:
-    """Validated settings; SettingsError naming `source` and the first bad key."""
+# old key -> its new name (None: read by nothing, dropped): settings files written before still
+# load, with a note
+RENAMED = {
+    "posegraph.min_confidence": "posegraph.sure_edge_confidence",
+    "register_plot.placed_priors.min_confidence": (
+        "register_plot.placed_priors.sure_placement_confidence"
+    ),
+    "align.coarse.stem_linearity_z": None,
+}
+
+
+def _table_key(dotted: str) -> str:
+    table, _, key = dotted.rpartition(".")
+    return f"[{table}] {key}"
+
+
+def _renamed(data: dict, source: str, note: Callable[[str], None]) -> dict:
+    """`data` with every old key under its new name (or left out), one note for each."""
+    for old, new in RENAMED.items():
+        *path, key = old.split(".")
+        table = data
+        for part in path:
+            table = table.get(part) if isinstance(table, dict) else None
+        if not isinstance(table, dict) or key not in table:
+            continue
+        new_key = None if new is None else new.rpartition(".")[2]
+        if new_key in table:
+            raise SettingsError(f"{source}: {old}: give only its new name {new}")
+        moved = {(new_key if k == key else k): v for k, v in table.items() if new or k != key}
+        data = _replaced(data, path, moved)
+        if new is None:
+            note(f"note: {_table_key(old)} is no longer read: left out")
+        else:
+            note(f"note: {_table_key(old)} is now {_table_key(new)}")
+    return data
+
+
+def _replaced(data: dict, path: list[str], table: dict) -> dict:
+    """A copy of `data` whose table at `path` is `table` (`data` itself untouched)."""
+    if not path:
+        return table
+    return {**data, path[0]: _replaced(data[path[0]], path[1:], table)}
+
+
+def _stderr(line: str) -> None:
+    print(line, file=sys.stderr)
+
+
+def settings_from_dict(
+    data: dict, source: str = "settings", note: Callable[[str], None] = _stderr
+) -> Settings:
+    """Validated settings; SettingsError naming `source` and the first bad key. A key renamed since
+    the file was written is read under its new name, with one `note` line."""
+    data = _renamed(data, source, note)
     unknown = _unknown_keys(Settings, data, "")
     if unknown:
         raise SettingsError(f"{source}: {unknown}: unknown setting")
@@ -310,19 +331,27 @@ def _comment(text: str | None) -> list[str]:
     return [f"# {line}" for line in (text or "").splitlines() if line.strip()]
 
 
-def _table(model: BaseModel, name: str, doc: str | None, out: list[str]) -> None:
-    fields = type(model).model_fields
-    subs = []
-    if name:
+def _table(model: BaseModel, name: str, doc: str | None, out: list[str], tier: Tier) -> None:
+    """`model`'s keys of `tier` as TOML: a table's user keys first, then its calibration."""
+    rows, subs = [], []
+    for key, field in type(model).model_fields.items():
+        value = getattr(model, key)
+        if field.exclude:
+            continue
+        if isinstance(value, BaseModel):
+            subs.append((key, value, field.description))
+        else:
+            rows.append((key, value, field.description))
+    user = [row for row in rows if _dotted(name, row[0]) in USER_KEYS]
+    calibration = [r for r in rows if tier == "all" and _dotted(name, r[0]) not in USER_KEYS]
+    if name and (user or calibration):
         out.append("")
         out.extend(_comment(doc))
         out.append(f"[{name}]")
-    for key, field in fields.items():
-        value = getattr(model, key)
-        if isinstance(value, BaseModel):
-            subs.append((key, value, field.description))
-            continue
-        out.extend(_comment(field.description))
+    for i, (key, value, description) in enumerate(user + calibration):
+        if i == len(user):
+            out.append(f"# --- {CALIBRATION}")
+        out.extend(_comment(description))
         if value is None:
             out.append(f"# {_key(key)} is unset")
         elif isinstance(value, list) and value and isinstance(value[0], (list, BaseModel)):
@@ -332,19 +361,31 @@ def _table(model: BaseModel, name: str, doc: str | None, out: list[str]) -> None
         else:
             out.append(f"{_key(key)} = {_value(value)}")
     for key, value, description in subs:
-        _table(value, f"{name}.{_key(key)}" if name else _key(key), description, out)
+        _table(value, f"{name}.{_key(key)}" if name else _key(key), description, out, tier)
 
 
-def dump_settings(settings: Settings, header: str = "") -> str:
-    """TOML of every setting, each preceded by its description as a comment."""
+def _dotted(table: str, key: str) -> str:
+    return f"{table}.{key}" if table else key
+
+
+def dump_settings(settings: Settings, header: str = "", tier: Tier = "all") -> str:
+    """TOML of the settings of `tier` ("all": every key), each preceded by its description."""
     out = _comment(header)
-    _table(settings, "", None, out)
+    _table(settings, "", None, out, tier)
     return "\n".join(out).lstrip("\n") + "\n"
 
 
-def default_toml() -> str:
+def default_toml(tier: Tier = "user") -> str:
+    more = {
+        "user": "the settings a user turns. `plotmosaic config --all` adds the method's "
+        "calibration.",
+        "all": "every setting: each table's user keys, then its calibration.",
+    }[tier]
     return dump_settings(
         Settings(),
-        "plotmosaic settings (the defaults). Give a file like this to align, register-plot,\n"
-        "tie-to-als or merge with --config; keys left out keep their defaults.",
+        f"plotmosaic settings at their defaults: {more}\n"
+        "Give a file like this to align, register-plot, tie-to-als or merge with --config; keys\n"
+        "left out keep their defaults. Jobs, seeds, sensor kinds and levels are command-line\n"
+        "options and manifest fields.",
+        tier,
     )

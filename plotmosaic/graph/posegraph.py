@@ -234,7 +234,7 @@ def _unsure(G: nx.Graph, config: PoseGraphConfig) -> set[tuple[str, str]]:
     return {
         _edge_id(u, v)
         for u, v, e in kept(G).edges(data=True)
-        if e.get("confidence") is not None and e["confidence"] < config.min_confidence
+        if e.get("confidence") is not None and e["confidence"] < config.sure_edge_confidence
     }
 
 

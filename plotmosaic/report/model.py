@@ -76,6 +76,6 @@ class ReportInput:
     # plot id -> (link to the report that measured its cloud-to-cloud distances, why): plots a
     # later solve moved as one piece, whose distances are that report's
     judged_in: dict[str, tuple[str, str]] = field(default_factory=dict)
-    min_confidence: float = field(default_factory=lambda: PoseGraphConfig().min_confidence)
+    min_confidence: float = field(default_factory=lambda: PoseGraphConfig().sure_edge_confidence)
     bundle: dict | None = None  # residual summary of the kept edges
     overview: bool = False  # a top and side view of each plot's placed scans

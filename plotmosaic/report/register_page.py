@@ -258,4 +258,4 @@ def write_register_report(
     cfg = getattr(config, "report", None) or ReportConfig()
     graph_cfg = getattr(config, "graph", None) or PoseGraphConfig()
     run = run_of(result, manifest)
-    return render_register(run, cfg, graph_cfg.min_confidence, seed, reader or read_scan)
+    return render_register(run, cfg, graph_cfg.sure_edge_confidence, seed, reader or read_scan)

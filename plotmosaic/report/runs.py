@@ -157,7 +157,7 @@ def rerender(directory: str | Path, manifest: str | Path | None = None, seed: in
         if sid in poses.scans and not Path(paths[sid]).is_file():
             raise InputError(f"{directory}: scan {sid!r}: file not found: {paths[sid]}")
     settings = _settings(directory)
-    min_conf = settings.posegraph.min_confidence
+    min_conf = settings.posegraph.sure_edge_confidence
     if poses.frame == "crs":
         run = _tie_run(directory, G, poses, paths, plots, source, settings.report.als_margin)
         return render_tie(

@@ -268,4 +268,4 @@ def write_tie_report(
         stages=tuple(recorded(result)),
         judged_in=rigid_plots(result, earlier, earlier_report, cfg),
     )
-    return render_tie(run, cfg, graph_cfg.min_confidence, seed, reader or read_scan)
+    return render_tie(run, cfg, graph_cfg.sure_edge_confidence, seed, reader or read_scan)

@@ -123,7 +123,9 @@ def place(run: Run) -> Priors:
             verify_first |= {s.id for s in plot.scans if s.id in stored}
     sure = config.placed_priors
     if sure.verify_first:  # two sure ALS placements: their relative pose is as good as a stored one
-        verify_first |= sure_placements(placement, placement_records, sure.min_confidence)
+        verify_first |= sure_placements(
+            placement, placement_records, sure.sure_placement_confidence
+        )
     from_als = set(placed) - set(stored)
     anchors = {
         plot.id: als_anchor_edges(plot, placement, placement_records, from_als)
