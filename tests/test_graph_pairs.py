@@ -7,7 +7,7 @@ from typer.testing import CliRunner
 from plotmosaic.cli import app
 from plotmosaic.config.register import RegisterConfig
 from plotmosaic.graph.cache import PairCache, file_hash, pair_key
-from plotmosaic.graph.executor import PairJob, run_pairs
+from plotmosaic.graph.executor import PairJob, Workers, run_pairs
 from plotmosaic.graph.pairs import candidate_pairs, spanning_first
 from plotmosaic.manifest import Manifest, Plot, Scan
 from plotmosaic.stages.register_plot import plan_jobs, tree_first
@@ -77,7 +77,7 @@ def test_unreadable_pair_becomes_failed_record_not_crash(tmp_path):
     bad = tmp_path / "bad.laz"
     bad.write_bytes(b"not a laz file")
     job = PairJob("k", "s1", "s0", str(bad), str(bad), "tls", "tls", 3, 3, "{}", 0)
-    (record,) = run_pairs([job], n_jobs=1, progress=False)
+    (record,) = run_pairs([job], Workers(jobs=1, progress=False))
     assert (
         record["status"] == "failed"
         and "bad.laz" in record["error"]

@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from plotmosaic.config.register import RegisterConfig
 from plotmosaic.graph import prepared as store
-from plotmosaic.graph.executor import prepare_jobs_for
+from plotmosaic.graph.executor import Workers, prepare_jobs_for
 from plotmosaic.graph.posegraph import _edge_id, build_graph, optimise, pose_error, triangles
 from plotmosaic.graph.synthetic import grid_graph
 from plotmosaic.manifest import load_manifest
@@ -87,10 +87,10 @@ def test_each_scan_prepared_once_and_cached_on_disk(small_sim, tmp_path):
     jobs = _pair_jobs(small_sim, tmp_path / "prepared")
     assert len(jobs) == 3
     before = store.reads
-    assert prepare_scans(jobs, n_jobs=1, progress=False) == {}
+    assert prepare_scans(jobs, Workers(jobs=1, progress=False)) == {}
     assert store.reads - before == 3  # three scans in three pairs: each read and prepared once
     assert len(list((tmp_path / "prepared").glob("*.npz"))) == 3
-    prepare_scans(jobs, n_jobs=1, progress=False)
+    prepare_scans(jobs, Workers(jobs=1, progress=False))
     assert store.reads - before == 3  # a re-run reads nothing
     # both roles of a scan use the same entry
     keys = {pj.key for job in jobs for pj in prepare_jobs_for(job)}

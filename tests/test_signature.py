@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from plotmosaic.config.register import RegisterConfig
+from plotmosaic.graph.executor import Workers
 from plotmosaic.graph.signature import (
     Signature,
     SignatureConfig,
@@ -100,7 +101,9 @@ def test_nine_scan_grid_without_positions_or_als(grid9, tmp_path):
     manifest = load_manifest(grid9 / "noals.toml")
     assert not manifest.als
     config = RegisterConfig()
-    linked, ranks = match_signatures(manifest, config, 0, tmp_path, {}, "local", 1, None, False)
+    linked, ranks = match_signatures(
+        manifest, config, 0, tmp_path, {}, Workers(jobs=1, progress=False)
+    )
     truth = json.loads((grid9 / "ground_truth.json").read_text())["scans"]
     pos = {k: np.asarray(v["transform"])[:2, 3] for k, v in truth.items()}
     ids = sorted(pos)

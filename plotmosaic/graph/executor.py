@@ -8,17 +8,13 @@ a crash of the whole run. The scheduling itself is concurrent.futures' or Dask's
 from __future__ import annotations
 
 import atexit
-import contextlib
 import dataclasses
 import hashlib
 import json
-import multiprocessing.context
 import os
-import signal
-import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from functools import partial
@@ -35,7 +31,7 @@ from plotmosaic.graph import prepared as store
 from plotmosaic.graph.prepared import PrepareJob, get_prepared, prepared_key
 from plotmosaic.io.bounded import over_budget
 from plotmosaic.io.progress import progress_bar
-from plotmosaic.lifetime import bind_to_parent
+from plotmosaic.lifetime import DeafSpawnContext, bind_to_parent
 from plotmosaic.parallel import limited, set_threads
 
 
@@ -232,19 +228,27 @@ def _failed(job, exc: BaseException) -> dict:
     }
 
 
+@dataclass(frozen=True)
+class Workers:
+    """Where a run's jobs run: `executor` "local" (a process pool) or "dask" (at `scheduler`, else a
+    local cluster), with `jobs` threads in all (None: the cores), a progress bar or not."""
+
+    executor: str = "local"
+    jobs: int | None = None
+    scheduler: str | None = None
+    progress: bool = True
+
+
 def run_pairs(
     jobs: Sequence[PairJob],
+    workers: Workers = Workers(),
     on_result: Callable[[dict], None] | None = None,
-    executor: str = "local",
-    n_jobs: int | None = None,
-    scheduler: str | None = None,
-    progress: bool = True,
     worker: Callable[[PairJob], dict] = run_pair_job,
     label: str = "registering pairs",
 ) -> list[dict]:
     """Run `worker` on every job; `on_result(record)` is called in this process as each one finishes."""
-    if executor not in ("local", "dask"):
-        raise InputError(f"--executor must be 'local' or 'dask', not {executor!r}")
+    if workers.executor not in ("local", "dask"):
+        raise InputError(f"--executor must be 'local' or 'dask', not {workers.executor!r}")
     if not jobs:
         return []
     records: list[dict] = []
@@ -254,17 +258,17 @@ def run_pairs(
         if on_result is not None:
             on_result(record)
 
-    with progress_bar(progress) as bar:
+    with progress_bar(workers.progress) as bar:
         task = bar.add_task(label, total=len(jobs))
 
         def tick(record: dict) -> None:
             done(record)
             bar.advance(task)
 
-        if executor == "dask":
-            _run_dask(jobs, tick, n_jobs, scheduler, worker)
+        if workers.executor == "dask":
+            _run_dask(jobs, tick, workers.jobs, workers.scheduler, worker)
         else:
-            _run_local(jobs, tick, n_jobs, worker)
+            _run_local(jobs, tick, workers.jobs, worker)
     return records
 
 
@@ -283,7 +287,7 @@ def _pool(workers: int, per_worker: int, most: int) -> ProcessPoolExecutor:
     # spawn: Open3D and BLAS thread pools do not survive fork reliably
     _POOL[shape] = pool = ProcessPoolExecutor(
         workers,
-        mp_context=_DeafSpawnContext(),
+        mp_context=DeafSpawnContext(),
         initializer=_limit_threads,
         initargs=(per_worker, most),
     )
@@ -299,39 +303,6 @@ def close_pool(kill: bool = False) -> None:
                 proc.kill()
         pool.shutdown(wait=True, cancel_futures=kill)
     _POOL.clear()
-
-
-_STOPS = (signal.SIGINT, signal.SIGTERM)
-
-
-@contextlib.contextmanager
-def _stops_ignored() -> Iterator[None]:
-    """Ctrl-C and SIGTERM ignored in the block (only the main thread may change handlers)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = {s: signal.signal(s, signal.SIG_IGN) for s in _STOPS}
-    try:
-        yield
-    finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
-
-
-class _DeafProcess(multiprocessing.context.SpawnProcess):
-    """A spawned worker that ignores Ctrl-C and SIGTERM from its first instant: the terminal signals
-    the whole process group, and a worker still importing would print a traceback. An ignored
-    signal stays ignored across exec (a caught or blocked one does not), so the parent ignores them
-    while it forks (milliseconds); the parent alone stops its workers."""
-
-    @staticmethod
-    def _Popen(process_obj):
-        with _stops_ignored():
-            return multiprocessing.context.SpawnProcess._Popen(process_obj)
-
-
-class _DeafSpawnContext(multiprocessing.context.SpawnContext):
-    Process = _DeafProcess
 
 
 atexit.register(close_pool)

@@ -12,6 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from plotmosaic.config.register import RegisterConfig
+from plotmosaic.graph.executor import Workers
 from plotmosaic.manifest import Manifest
 from plotmosaic.stages.register_plot.grow import (
     close_loops,
@@ -63,32 +64,21 @@ __all__ = [
 def register_plot(
     manifest: str | Path | Manifest,
     out: str | Path,
-    jobs: int | None = None,
-    executor: str = "local",
-    scheduler: str | None = None,
     config: RegisterConfig | None = None,
+    *,
+    workers: Workers = Workers(),
     seed: int = 0,
     force: bool = False,
-    progress: bool = True,
     on_result: Callable[[dict], None] | None = None,
 ) -> RegisterResult:
     """Register every plot of `manifest` into `out`: poses.json, graph.json and the report.
 
     Pair results are cached under OUT/pairs (a run resumes where it stopped; `force` recomputes);
-    `on_result` sees each pair record as it is computed. Raises InputError for a bad manifest, an
+    `on_result` sees each pair record as it is computed; `workers`: where the jobs run. Raises InputError for a bad manifest, an
     output that is a file, or a scan that cannot be read (before any pair runs)."""
     start = time.perf_counter()
     run = start_run(
-        manifest,
-        out,
-        config,
-        seed=seed,
-        executor=executor,
-        n_jobs=jobs,
-        scheduler=scheduler,
-        force=force,
-        progress=progress,
-        on_result=on_result,
+        manifest, out, config, seed=seed, workers=workers, force=force, on_result=on_result
     )
     prepare(run)  # every scan read once, and a bad one named, before any pair
     priors = place(run)  # big plots' scans on the ALS tile; poses stored in the scans

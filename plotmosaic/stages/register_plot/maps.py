@@ -221,16 +221,7 @@ def _run(run: Run, cache: PairCache, jobs: list[MapJob]) -> dict[str, dict]:
             run.on_result(record)
 
     todo = [j for j in jobs if j.key not in records]
-    run_pairs(
-        todo,
-        keep,
-        run.executor,
-        run.n_jobs,
-        run.scheduler,
-        run.progress,
-        worker=run_map_job,
-        label="scans onto maps",
-    )
+    run_pairs(todo, run.workers, keep, worker=run_map_job, label="scans onto maps")
     return records
 
 

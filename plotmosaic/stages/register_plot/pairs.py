@@ -12,7 +12,7 @@ from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.config.register import RegisterConfig
 from plotmosaic.errors import InputError
 from plotmosaic.graph.cache import PairCache, pair_key
-from plotmosaic.graph.executor import PairJob, prepare_jobs_for, run_pairs, with_reading
+from plotmosaic.graph.executor import PairJob, Workers, prepare_jobs_for, run_pairs, with_reading
 from plotmosaic.graph.placement import prior
 from plotmosaic.graph.prepared import PrepareJob, entry, prepared_key, run_prepare_job
 from plotmosaic.manifest import Manifest, Plot, Scan, load_manifest
@@ -45,11 +45,8 @@ class Run:
     out: Path
     cache: PairCache
     seed: int
-    executor: str
-    n_jobs: int | None
-    scheduler: str | None
+    workers: Workers
     force: bool
-    progress: bool
     on_result: Callable[[dict], None] | None
 
     @property
@@ -85,11 +82,8 @@ def start_run(
     config: RegisterConfig | None,
     *,
     seed: int,
-    executor: str,
-    n_jobs: int | None,
-    scheduler: str | None,
+    workers: Workers,
     force: bool,
-    progress: bool,
     on_result: Callable[[dict], None] | None,
 ) -> Run:
     """The run's manifest and settings loaded, its output folder checked (a file there is refused)."""
@@ -104,27 +98,15 @@ def start_run(
         out=out,
         cache=PairCache(out / "pairs"),
         seed=seed,
-        executor=executor,
-        n_jobs=n_jobs,
-        scheduler=scheduler,
+        workers=workers,
         force=force,
-        progress=progress,
         on_result=on_result,
     )
 
 
 def run_jobs(run: Run, jobs: list[PairJob], so_far: Pairs | None = None) -> Pairs:
     """`so_far` and these jobs, run through the run's pair cache."""
-    records, computed = compute_pairs(
-        jobs,
-        run.cache,
-        run.executor,
-        run.n_jobs,
-        run.scheduler,
-        run.force,
-        run.progress,
-        run.on_result,
-    )
+    records, computed = compute_pairs(jobs, run.cache, run.workers, run.force, run.on_result)
     if so_far is None:
         return Pairs(jobs=list(jobs), records=records, computed=computed)
     return Pairs(
@@ -173,13 +155,7 @@ def anchor_id(plot: Plot) -> str:
     return f"ALS@{plot.id}"
 
 
-def prepare_scans(
-    jobs: list[PairJob],
-    executor: str = "local",
-    n_jobs: int | None = None,
-    scheduler: str | None = None,
-    progress: bool = True,
-) -> dict[str, dict]:
+def prepare_scans(jobs: list[PairJob], workers: Workers = Workers()) -> dict[str, dict]:
     """Read and prepare every scan these pairs need, once each, into their prepared-cloud cache.
 
     Returns the failed preparations by prepared key (their pairs are not run)."""
@@ -188,25 +164,14 @@ def prepare_scans(
         if job.prepared:
             for pj in prepare_jobs_for(job):
                 unique.setdefault(pj.key, pj)
-    return _prepare(list(unique.values()), executor, n_jobs, scheduler, progress)
+    return _prepare(list(unique.values()), workers)
 
 
-def _prepare(
-    jobs: list[PrepareJob], executor: str, n_jobs: int | None, scheduler: str | None, progress: bool
-) -> dict[str, dict]:
+def _prepare(jobs: list[PrepareJob], workers: Workers) -> dict[str, dict]:
     """Run the prepare jobs whose cache entry is missing; the failed records by prepared key."""
     todo = [pj for pj in jobs if not entry(pj.folder, pj.key).is_file()]
     # entries already on disk are checked when loaded (a damaged one is prepared again there)
-    records = run_pairs(
-        todo,
-        None,
-        executor,
-        n_jobs,
-        scheduler,
-        progress,
-        worker=run_prepare_job,
-        label="preparing scans",
-    )
+    records = run_pairs(todo, workers, worker=run_prepare_job, label="preparing scans")
     return {r["key"]: r for r in records if r.get("status") != "ok"}
 
 
@@ -215,10 +180,7 @@ def prepare_every_scan(
     config: RegisterConfig,
     seed: int,
     folder: Path,
-    executor: str = "local",
-    n_jobs: int | None = None,
-    scheduler: str | None = None,
-    progress: bool = True,
+    workers: Workers = Workers(),
 ) -> None:
     """Read and prepare every scan of the manifest before any pair runs (into the cache the pairs
     load from): a scan that cannot be read stops the run here, named, instead of leaving it unplaced."""
@@ -232,7 +194,7 @@ def prepare_every_scan(
             jobs[key] = PrepareJob(
                 key, scan.id, path, kind, scan.k, settings, seed, str(folder), reading=config.read
             )
-    for key, record in _prepare(list(jobs.values()), executor, n_jobs, scheduler, progress).items():
+    for key, record in _prepare(list(jobs.values()), workers).items():
         pj = jobs[key]
         cause = str(record.get("error", "")).removeprefix("InputError: ")
         cause = cause.removeprefix(f"{pj.path}: ")
@@ -241,26 +203,14 @@ def prepare_every_scan(
 
 def prepare(run: Run) -> None:
     """Every scan of the run prepared before any pair (a scan that cannot be read stops it, named)."""
-    prepare_every_scan(
-        run.manifest,
-        run.config,
-        run.seed,
-        run.prepared,
-        run.executor,
-        run.n_jobs,
-        run.scheduler,
-        run.progress,
-    )
+    prepare_every_scan(run.manifest, run.config, run.seed, run.prepared, run.workers)
 
 
 def compute_pairs(
     jobs: list[PairJob],
     cache: PairCache,
-    executor: str = "local",
-    n_jobs: int | None = None,
-    scheduler: str | None = None,
+    workers: Workers = Workers(),
     force: bool = False,
-    progress: bool = True,
     on_result: Callable[[dict], None] | None = None,
 ) -> tuple[dict[str, dict], int]:
     """Records for every job, from the cache where present; returns (records by key, number computed).
@@ -279,7 +229,7 @@ def compute_pairs(
         if on_result is not None:
             on_result(record)
 
-    failed = prepare_scans(todo, executor, n_jobs, scheduler, progress)
+    failed = prepare_scans(todo, workers)
     runnable = []
     for job in todo:
         bad = (
@@ -302,5 +252,5 @@ def compute_pairs(
             )
         else:
             runnable.append(job)
-    run_pairs(runnable, keep, executor, n_jobs, scheduler, progress)
+    run_pairs(runnable, workers, keep)
     return records, computed

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from plotmosaic.config.register import RegisterConfig
-from plotmosaic.graph.executor import PairJob, run_pairs, with_stored_poses
+from plotmosaic.graph.executor import PairJob, Workers, run_pairs, with_stored_poses
 from plotmosaic.graph.pairs import candidate_pairs, manifest_positions, spanning_first
 from plotmosaic.graph.prepared import prepared_key
 from plotmosaic.graph.signature import (
@@ -90,10 +90,7 @@ def match_signatures(
     seed: int,
     out: Path,
     placed: dict[str, np.ndarray],
-    executor: str = "local",
-    n_jobs: int | None = None,
-    scheduler: str | None = None,
-    progress: bool = True,
+    workers: Workers = Workers(),
 ) -> tuple[dict[str, list[tuple[str, str]]], dict[str, list[str]]]:
     """Big plots where some scan has no position: every scan's stem-map signature (graph/signature.py).
 
@@ -113,14 +110,7 @@ def match_signatures(
         return {}, {}
     jobs = _signature_jobs(manifest, config, seed, out, plots)
     records = run_pairs(
-        list(jobs.values()),
-        None,
-        executor,
-        n_jobs,
-        scheduler,
-        progress,
-        worker=run_signature_job,
-        label="scan signatures",
+        list(jobs.values()), workers, worker=run_signature_job, label="scan signatures"
     )
     by_key = {r["key"]: r for r in records}
     linked, ranks = {}, {}
@@ -175,15 +165,7 @@ def plan(run: Run, priors: Priors) -> Plan:
     """The pair jobs: candidate pairs by position, signature links where there is none; a spanning
     tree of them first."""
     linked, ranks = match_signatures(
-        run.manifest,
-        run.config,
-        run.seed,
-        run.out,
-        priors.placed,
-        run.executor,
-        run.n_jobs,
-        run.scheduler,
-        run.progress,
+        run.manifest, run.config, run.seed, run.out, priors.placed, run.workers
     )
     jobs = plan_jobs(run.manifest, run.config, run.seed, run.prepared, priors.placed, linked)
     only = frozenset(priors.from_als) if run.config.maps.enabled else frozenset()

@@ -22,7 +22,7 @@ import numpy as np
 from plotmosaic.config.register import TieConfig
 from plotmosaic.errors import InputError
 from plotmosaic.graph.cache import PairCache, pair_key
-from plotmosaic.graph.executor import PairJob, prepare_jobs_for, with_reading
+from plotmosaic.graph.executor import PairJob, Workers, prepare_jobs_for, with_reading
 from plotmosaic.graph.posegraph import Solution, graph_from_json, graph_to_json
 from plotmosaic.graph.prepared import points_reader, prepare_held
 from plotmosaic.io.atomic import write_text_atomic
@@ -175,9 +175,7 @@ def _plot_job(run: TieRun, plot: Plot, cache: PairCache) -> tuple[PairJob, str]:
     return job, how
 
 
-def _tie_plots(
-    run: TieRun, jobs: int | None, executor: str, scheduler: str | None, progress: bool
-) -> Tied:
+def _tie_plots(run: TieRun, workers: Workers) -> Tied:
     """Each plot with a placed scan registered to the ALS; its pair runs (and is cached) like any."""
     jobs_list, anchors, refs = [], {}, {}
     cache = PairCache(run.out / "pairs")
@@ -191,7 +189,7 @@ def _tie_plots(
         job, how = _plot_job(run, plot, cache)
         jobs_list.append(job)
         anchors[plot.id] = Anchor(plot.id, ref, "pending", crop=how)
-    records, computed = compute_pairs(jobs_list, cache, executor, jobs, scheduler, False, progress)
+    records, computed = compute_pairs(jobs_list, cache, workers)
     fits = fit_anchors(jobs_list, records, run.config)
     return Tied(
         jobs=jobs_list, records=records, computed=computed, anchors=anchors, refs=refs, fits=fits
@@ -246,17 +244,14 @@ def tie_to_als(
     out: str | Path,
     config: TieConfig | None = None,
     seed: int = 0,
-    jobs: int | None = None,
-    executor: str = "local",
-    scheduler: str | None = None,
-    progress: bool = True,
+    workers: Workers = Workers(),
 ) -> TieResult:
     """Tie register-plot's plots (`poses_path`) to the manifest's ALS tile into `out`: poses.json in
     the ALS CRS, graph.json, the plot clouds and the report. Raises InputError for bad inputs and
     RegistrationFailed when no plot can be registered to the ALS."""
     start = time.perf_counter()
     run = _start(manifest, poses_path, out, config, seed)
-    tied = _tie_plots(run, jobs, executor, scheduler, progress)  # plot cloud -> ALS crop, each
+    tied = _tie_plots(run, workers)  # plot cloud -> ALS crop, each
     G = region_graph(run.manifest, run.poses, run.G_plot, run.als_frame, tied)
     sol = solve_region(G, run.config)  # the region, with the ALS node fixed
     return _write(run, G, sol, tied, start)
