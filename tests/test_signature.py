@@ -96,7 +96,7 @@ def grid9(tmp_path_factory):
 @pytest.mark.slow
 def test_nine_scan_grid_without_positions_or_als(grid9, tmp_path):
     from plotmosaic.manifest import load_manifest
-    from plotmosaic.stages.register_plot import match_signatures, plan_jobs
+    from plotmosaic.stages.register_plot import match_signatures, pair_settings, plan_jobs
 
     manifest = load_manifest(grid9 / "noals.toml")
     assert not manifest.als
@@ -113,7 +113,7 @@ def test_nine_scan_grid_without_positions_or_als(grid9, tmp_path):
         near = {o for o in ids if o != s and np.linalg.norm(pos[o] - pos[s]) < GRID + 1}
         assert ranks[s][0] in near
         assert len(near & set(ranks[s][:4])) >= len(near) - 1
-    jobs = plan_jobs(manifest, config, 0, tmp_path / "prepared", {}, linked)
+    jobs = plan_jobs(manifest, config, pair_settings(config, 0, tmp_path / "prepared"), {}, linked)
     assert len(jobs) < 9 * 8 / 2  # not all pairs
     planned = {frozenset((j.source, j.target)) for j in jobs}
     grid = {

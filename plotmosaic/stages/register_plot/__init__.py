@@ -19,17 +19,14 @@ from plotmosaic.stages.register_plot.grow import (
     graph_poses,
     grow,
     grow_jobs,
+    plot_pair,
     position_jobs,
 )
 from plotmosaic.stages.register_plot.maps import onto_maps
 from plotmosaic.stages.register_plot.pairs import (
-    EDGE_FIELDS,
-    _pair_job,
     anchor_id,
-    compute_pairs,
+    pair_settings,
     prepare,
-    prepare_every_scan,
-    prepare_scans,
     run_jobs,
     start_run,
 )
@@ -39,22 +36,19 @@ from plotmosaic.stages.register_plot.solve import PlotResult, solve, solve_plot
 from plotmosaic.stages.register_plot.write import RegisterResult, write
 
 __all__ = [
-    "EDGE_FIELDS",
     "PlotResult",
     "RegisterResult",
-    "_pair_job",
     "als_anchor_edges",
     "anchor_id",
     "close_loops",
-    "compute_pairs",
     "graph_poses",
     "grow_jobs",
     "match_signatures",
+    "pair_settings",
     "place_scans",
+    "plot_pair",
     "plan_jobs",
     "position_jobs",
-    "prepare_every_scan",
-    "prepare_scans",
     "register_plot",
     "solve_plot",
     "tree_first",

@@ -9,17 +9,14 @@ import numpy as np
 
 from plotmosaic.config.register import RegisterConfig
 from plotmosaic.graph.cache import PairCache
-from plotmosaic.graph.executor import PairJob, Workers, with_reading
+from plotmosaic.graph.compute import EDGE_FIELDS, compute_pairs
+from plotmosaic.graph.executor import Workers
+from plotmosaic.graph.jobs import JobSettings, PairJob
 from plotmosaic.graph.pairs import manifest_positions
 from plotmosaic.graph.placement import placed_poses, placement_jobs, sure_placements
 from plotmosaic.io.frame import translation
 from plotmosaic.manifest import Manifest, Plot
-from plotmosaic.stages.register_plot.pairs import (
-    EDGE_FIELDS,
-    Run,
-    anchor_id,
-    compute_pairs,
-)
+from plotmosaic.stages.register_plot.pairs import Run, anchor_id
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -43,18 +40,12 @@ def placement_plan(
     manifest: Manifest, config: RegisterConfig, seed: int, prepared: Path
 ) -> list[PairJob]:
     """The scan -> ALS tile jobs of every big plot without positions (prepared clouds in `prepared`)."""
+    # the scans prepared with the pairs' settings: one prepared cloud serves both
+    settings = JobSettings(config.placement, seed, str(prepared), config.read, config.align)
     jobs = []
     for plot in manifest.plots:
         if len(plot.scans) > config.pairs.all_pairs_up_to and manifest_positions(plot) is None:
-            plot_jobs = placement_jobs(
-                manifest,
-                plot,
-                config.placement.model_dump_json(),
-                seed,
-                str(prepared),
-                config.align.model_dump_json(),
-            )
-            jobs += with_reading(plot_jobs, config.read)
+            jobs += placement_jobs(manifest, plot, settings)
     return jobs
 
 
