@@ -22,7 +22,8 @@ import argparse
 import time
 from collections import Counter
 
-from plotmosaic.graph.posegraph import _edge_id, build_graph, optimise, pose_error
+from plotmosaic.graph.cycles import _edge_id
+from plotmosaic.graph.posegraph import build_graph, optimise, pose_error
 from plotmosaic.graph.synthetic import grid_graph
 
 

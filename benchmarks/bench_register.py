@@ -21,6 +21,7 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
+from plotmosaic.graph.executor import Workers
 from plotmosaic.graph.posegraph import graph_from_json, inverse, optimise, pose_error
 from plotmosaic.poses import load_poses
 from plotmosaic.simulate.run import simulate
@@ -120,7 +121,7 @@ def main() -> None:
     truth = load_poses(gt_path)
 
     t = time.perf_counter()
-    reg = register_plot(sim_manifest, root / "reg", jobs=args.jobs, seed=args.seed)
+    reg = register_plot(sim_manifest, root / "reg", workers=Workers(jobs=args.jobs), seed=args.seed)
     timings["register-plot"] = time.perf_counter() - t
     print(
         f"\nregister-plot: {reg.pairs} pairs ({reg.computed} registered now), {len(reg.failed)} failed, "
@@ -163,7 +164,11 @@ def main() -> None:
     if not args.no_tie:
         t = time.perf_counter()
         tie = tie_to_als(
-            sim_manifest, root / "reg" / "poses.json", root / "geo", seed=args.seed, jobs=args.jobs
+            sim_manifest,
+            root / "reg" / "poses.json",
+            root / "geo",
+            seed=args.seed,
+            workers=Workers(jobs=args.jobs),
         )
         timings["tie-to-als"] = time.perf_counter() - t
         for a in tie.anchors:

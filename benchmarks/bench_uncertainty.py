@@ -26,8 +26,9 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
+from plotmosaic.config.align import AlignConfig
 from plotmosaic.config.register import RegisterConfig, TieConfig
-from plotmosaic.graph.executor import PairJob
+from plotmosaic.graph.jobs import PairJob
 from plotmosaic.graph.placement import placed_poses
 from plotmosaic.graph.posegraph import graph_from_json, inverse
 from plotmosaic.io.frame import Frame
@@ -36,8 +37,8 @@ from plotmosaic.poses import Poses, ScanPose, load_poses
 from plotmosaic.stages.register_plot import als_anchor_edges, solve_plot
 from plotmosaic.stages.tie_to_als.anchor_fit import fit_anchors
 from plotmosaic.stages.tie_to_als.solve import (
-    Anchor,
     Tied,
+    anchor_of,
     georeferenced_sigmas,
     region_graph,
     solve_region,
@@ -83,7 +84,7 @@ def _placement_anchors(reg: Path, manifest) -> dict[str, list[dict]]:
 
 
 def _job(key: str, source: str, target: str, src: str = "", tgt: str = "") -> PairJob:
-    return PairJob(key, source, target, src, tgt, "tls", "als", None, None, "", 0)
+    return PairJob(key, source, target, src, tgt, "tls", "als", None, None, AlignConfig(), 0)
 
 
 def resolve_register(sim: Path, reg: Path) -> Poses:
@@ -116,15 +117,11 @@ def resolve_tie(sim: Path, geo: Path, plot_poses: Poses) -> Poses:
         jobs.append(_job(rec["key"], plot, "ALS", str(src), str(tgt)))
         records[rec["key"]] = rec
         refs[plot] = plot_poses.extra["plots"][plot]["reference"]
-        anchors[plot] = Anchor(plot, refs[plot], "pending")
-    tied = Tied(
-        jobs=jobs,
-        records=records,
-        computed=0,
-        anchors=anchors,
-        refs=refs,
-        fits=fit_anchors(jobs, records, config),
-    )
+    fits = fit_anchors(jobs, records, config)
+    for job in jobs:
+        plot = job.source
+        anchors[plot] = anchor_of(plot, refs[plot], "whole tile", records[job.key], fits.get(plot))
+    tied = Tied(jobs=jobs, records=records, computed=0, anchors=anchors, refs=refs, fits=fits)
     frame = Frame(np.asarray(earlier.extra["offset"], dtype=float))
     G = region_graph(manifest, plot_poses, None, frame, tied)
     sol = solve_region(G, config)

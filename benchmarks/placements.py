@@ -26,7 +26,6 @@ from pathlib import Path
 
 import numpy as np
 
-from plotmosaic.config.align import AlignConfig
 from plotmosaic.config.register import RegisterConfig
 from plotmosaic.graph.executor import run_pair_job
 from plotmosaic.manifest import load_manifest
@@ -41,11 +40,9 @@ def jobs(manifest_path: str, prepared: str, seed: int = 0):
 
 def changed(job, coarse_json: str):
     """The job with its coarse settings updated (its key kept: records compare with the default's)."""
-    config = AlignConfig.model_validate_json(job.config_json)
+    config = job.config
     coarse = config.coarse.model_copy(update=json.loads(coarse_json))
-    return dataclasses.replace(
-        job, config_json=config.model_copy(update={"coarse": coarse}).model_dump_json()
-    )
+    return dataclasses.replace(job, config=config.model_copy(update={"coarse": coarse}))
 
 
 def _difference(record: dict, other: dict) -> str:

@@ -22,7 +22,8 @@ from typer._click.utils import make_default_short_help
 from typer.core import TyperGroup
 
 from plotmosaic import __version__
-from plotmosaic.errors import INTERRUPTED, InputError, exit_interrupted, interrupts
+from plotmosaic.errors import InputError
+from plotmosaic.lifetime import INTERRUPTED, exit_interrupted, interrupts
 
 HELP = """Targetless, GNSS-free registration of forest LiDAR scans into one georeferenced cloud.
 

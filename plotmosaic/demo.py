@@ -10,6 +10,7 @@ import numpy as np
 
 from plotmosaic.config.merge import MergeConfig
 from plotmosaic.errors import InputError
+from plotmosaic.graph.executor import Workers
 from plotmosaic.graph.posegraph import inverse, pose_error
 from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed
 from plotmosaic.manifest import load_manifest
@@ -101,13 +102,17 @@ def _run(outdir: Path, seed: int, points_per_scan: int, jobs: int | None, echo) 
 
     echo("2/4 register-plot: pairwise ForestAlign (from any start pose) + pose graph ...")
     t = time.perf_counter()
-    reg = register_plot(manifest, outdir / "register", jobs=jobs, seed=seed)
+    reg = register_plot(manifest, outdir / "register", workers=Workers(jobs=jobs), seed=seed)
     stage("register-plot", t)
 
     echo("3/4 tie-to-als: plot -> ALS anchors, joint optimisation in the ALS CRS ...")
     t = time.perf_counter()
     tie = tie_to_als(
-        manifest, outdir / "register" / "poses.json", outdir / "georeferenced", seed=seed, jobs=jobs
+        manifest,
+        outdir / "register" / "poses.json",
+        outdir / "georeferenced",
+        seed=seed,
+        workers=Workers(jobs=jobs),
     )
     stage("tie-to-als", t)
 

@@ -7,14 +7,13 @@ scheduler's SIGTERM in that window would otherwise kill the process with 143 ins
 from __future__ import annotations
 
 import importlib
-import signal
 import sys
 
-from plotmosaic.errors import exit_interrupted, interrupts
+from plotmosaic.lifetime import exit_interrupted, ignore_stops, interrupt_on_term
 
 
 def main() -> None:
-    signal.signal(signal.SIGTERM, interrupts.handler)
+    interrupt_on_term()
     for stream in (sys.stdout, sys.stderr):  # file names need not be UTF-8: print them escaped
         stream.reconfigure(errors="backslashreplace")
     try:
@@ -25,7 +24,4 @@ def main() -> None:
     try:
         cli.main()
     finally:
-        # the work is done and reported: a signal now would only end the process by the default
-        # action (status 143) while it exits, so the exit code stands
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        ignore_stops()

@@ -6,8 +6,9 @@ from __future__ import annotations
 import networkx as nx
 import numpy as np
 
+from plotmosaic.config.align import AlignConfig
 from plotmosaic.config.register import RegisterConfig
-from plotmosaic.graph.executor import PairJob
+from plotmosaic.graph.jobs import PairJob
 from plotmosaic.graph.posegraph import build_graph
 from plotmosaic.io.frame import inverse, translation
 from plotmosaic.manifest import Plot, Scan
@@ -33,7 +34,9 @@ def _case(rng: np.random.Generator):
     jobs, records = [], {}
     for n in names:
         key = f"place-{n}"
-        jobs.append(PairJob(key, n, "ALS", f"{n}.laz", "als.laz", "tls", "als", 3, 2, "{}", 0))
+        jobs.append(
+            PairJob(key, n, "ALS", f"{n}.laz", "als.laz", "tls", "als", 3, 2, AlignConfig(), 0)
+        )
         T = translation(UTM + rng.normal(0, 0.003, 3)) @ truth[n]  # unbiased, 3 mm noise
         records[key] = {"status": "ok", "transform": T.tolist(), "information": INFO.tolist(),
                         "fitness": 0.3, "overlap": 0.2, "confidence": 0.8}  # fmt: skip

@@ -5,12 +5,14 @@ import pytest
 from typer.testing import CliRunner
 
 from plotmosaic.cli import app
+from plotmosaic.config.align import AlignConfig
 from plotmosaic.config.register import RegisterConfig
-from plotmosaic.graph.cache import PairCache, file_hash, pair_key
-from plotmosaic.graph.executor import PairJob, run_pairs
+from plotmosaic.graph.cache import PairCache, file_hash
+from plotmosaic.graph.executor import Workers, run_pairs
+from plotmosaic.graph.jobs import JobSettings, PairJob, ScanFile, pair_job
 from plotmosaic.graph.pairs import candidate_pairs, spanning_first
 from plotmosaic.manifest import Manifest, Plot, Scan
-from plotmosaic.stages.register_plot import plan_jobs, tree_first
+from plotmosaic.stages.register_plot import pair_settings, plan_jobs, tree_first
 from plotmosaic.stages.register_plot.grow import from_graph, joining
 from plotmosaic.stages.register_plot.pairs import Pairs
 
@@ -40,17 +42,24 @@ def test_cache_key_follows_content_and_settings(tmp_path):
     a, b = tmp_path / "a.laz", tmp_path / "b.laz"
     a.write_bytes(b"x" * 3_000_000)
     b.write_bytes(b"y" * 10)
-    key = pair_key(a, b, "tls", "tls", 3, 3, '{"voxel": 0.05}', 0)
-    assert key == pair_key(a, b, "tls", "tls", 3, 3, '{"voxel": 0.05}', 0)
-    assert key != pair_key(b, a, "tls", "tls", 3, 3, '{"voxel": 0.05}', 0)
-    assert key != pair_key(a, b, "tls", "tls", 3, 3, '{"voxel": 0.1}', 0)
-    assert key != pair_key(a, b, "tls", "tls", 3, 3, '{"voxel": 0.05}', 1)
-    assert key != pair_key(a, b, "tls", "als", 3, 2, '{"voxel": 0.05}', 0)
+    coarse = AlignConfig().model_copy(update={"voxel": 0.1})
+
+    def key_of(a, b, kinds=("tls", "tls"), levels=(3, 3), config=AlignConfig(), seed=0):
+        sides = (
+            ScanFile("a", str(a), kinds[0], levels[0]),
+            ScanFile("b", str(b), kinds[1], levels[1]),
+        )
+        return pair_job(JobSettings(config, seed), *sides).key
+
+    key = key_of(a, b)
+    assert key == key_of(a, b)
+    assert key != key_of(b, a)
+    assert key != key_of(a, b, config=coarse)
+    assert key != key_of(a, b, seed=1)
+    assert key != key_of(a, b, ("tls", "als"), (3, 2))
     before = file_hash(b)
     b.write_bytes(b"z" * 11)  # new content (and size): new hash, new key
-    assert (
-        file_hash(b) != before and pair_key(a, b, "tls", "tls", 3, 3, '{"voxel": 0.05}', 0) != key
-    )
+    assert file_hash(b) != before and key_of(a, b) != key
     cache = PairCache(tmp_path / "pairs")
     assert cache.get(key) is None
     cache.put(
@@ -76,8 +85,8 @@ def test_cache_key_follows_content_and_settings(tmp_path):
 def test_unreadable_pair_becomes_failed_record_not_crash(tmp_path):
     bad = tmp_path / "bad.laz"
     bad.write_bytes(b"not a laz file")
-    job = PairJob("k", "s1", "s0", str(bad), str(bad), "tls", "tls", 3, 3, "{}", 0)
-    (record,) = run_pairs([job], n_jobs=1, progress=False)
+    job = PairJob("k", "s1", "s0", str(bad), str(bad), "tls", "tls", 3, 3, AlignConfig(), 0)
+    (record,) = run_pairs([job], Workers(jobs=1, progress=False))
     assert (
         record["status"] == "failed"
         and "bad.laz" in record["error"]
@@ -268,7 +277,7 @@ def test_graph_placed_scans_get_their_neighbours_verified_first(tmp_path):
 
     from plotmosaic.config.register import RegisterConfig
     from plotmosaic.manifest import Manifest
-    from plotmosaic.stages.register_plot import _pair_job, position_jobs
+    from plotmosaic.stages.register_plot import pair_settings, plot_pair, position_jobs
 
     for k in range(16):
         (tmp_path / f"s{k}.laz").write_bytes(bytes([k]) * 10)
@@ -277,14 +286,10 @@ def test_graph_placed_scans_get_their_neighbours_verified_first(tmp_path):
     config = RegisterConfig()
     poses = _exact_grid(4)
     poses.pop("s15")  # the graph has not placed it
-    by_id = {s.id: s for s in plot.scans}
-    cj = config.align.model_dump_json()
-    done = [_pair_job(manifest, by_id["s1"], by_id["s0"], cj, 0, str(tmp_path), {})]
-    done += [
-        _pair_job(manifest, by_id[f"s{k}"], by_id["s5"], cj, 0, str(tmp_path), {})
-        for k in range(6, 13)
-    ]
-    jobs = position_jobs(manifest, config, 0, tmp_path, poses, done)
+    settings = pair_settings(config, 0, tmp_path)
+    done = [plot_pair(settings, manifest, plot, ("s1", "s0"), {})]
+    done += [plot_pair(settings, manifest, plot, (f"s{k}", "s5"), {}) for k in range(6, 13)]
+    jobs = position_jobs(manifest, config, settings, poses, done)
     got = {frozenset((j.source, j.target)) for j in jobs}
     assert frozenset(("s1", "s0")) not in got  # tried already
     assert all(j.start == "stored" and j.init is not None for j in jobs)  # a prior, verified first
@@ -313,7 +318,8 @@ def _jobs_of(tmp_path, n, placed=None):
         (tmp_path / f"s{k}.laz").write_bytes(bytes([k]) * 10)
     plot = Plot(id="P", scans=[Scan(id=f"s{k}", path=f"s{k}.laz") for k in range(n)])
     manifest = Manifest(plots=[plot], source=tmp_path / "m.toml")
-    return manifest, plan_jobs(manifest, RegisterConfig(), 0, tmp_path, placed)
+    config = RegisterConfig()
+    return manifest, plan_jobs(manifest, config, pair_settings(config, 0, tmp_path), placed)
 
 
 def test_a_small_plot_runs_a_spanning_tree_first_and_its_verified_priors_lead(tmp_path):

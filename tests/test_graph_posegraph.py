@@ -8,10 +8,10 @@ from builders import random_pose, synthetic_pose_graph
 
 from plotmosaic.config.register import PoseGraphConfig
 from plotmosaic.graph.covariance import REPORT_FLOOR
+from plotmosaic.graph.cycles import cycle_outliers
 from plotmosaic.graph.posegraph import (
     build_graph,
     condition_information,
-    cycle_outliers,
     graph_from_json,
     graph_to_json,
     inverse,

@@ -2,8 +2,8 @@
 
 from plotmosaic.config.register import RegisterConfig
 from plotmosaic.manifest import Manifest, Plot, Scan
-from plotmosaic.stages.register_plot.grow import grow_jobs
-from plotmosaic.stages.register_plot.pairs import _pair_job
+from plotmosaic.stages.register_plot.grow import grow_jobs, plot_pair
+from plotmosaic.stages.register_plot.pairs import Pairs, pair_settings
 
 
 def _plot_of(root, n: int) -> tuple[Manifest, Plot]:
@@ -19,21 +19,19 @@ def _plot_of(root, n: int) -> tuple[Manifest, Plot]:
 def test_a_plot_in_pieces_grows_its_ranked_partners_with_the_later_scan_as_source(tmp_path):
     manifest, plot = _plot_of(tmp_path, 4)
     config = RegisterConfig()
-    by_id = {s.id: s for s in plot.scans}
-    cj = config.align.model_dump_json()
-    done = [
-        _pair_job(manifest, by_id[s], by_id[t], cj, 0, str(tmp_path), {}, config.read)
-        for s, t in [("s2", "s1"), ("s3", "s2")]
-    ]
+    settings = pair_settings(config, 0, tmp_path)
+    done = [plot_pair(settings, manifest, plot, pair, {}) for pair in [("s2", "s1"), ("s3", "s2")]]
     records = {j.key: {"status": "ok"} for j in done}
     # s0 is a piece of its own; its ranked partner s2 comes later in the plot
-    jobs = grow_jobs(manifest, config, 0, tmp_path, {}, {"s0": ["s2", "s1"]}, done, records)
+    pairs = Pairs(jobs=done, records=records, computed=0)
+    jobs = grow_jobs(manifest, config, settings, {}, {"s0": ["s2", "s1"]}, pairs)
     expected = [
-        _pair_job(manifest, by_id[s], by_id["s0"], cj, 0, str(tmp_path), {}, config.read)
+        plot_pair(settings, manifest, plot, (s, "s0"), {})
         for s in ["s2", "s1"][: config.signature.grow_per_scan]
     ]
-    assert jobs == expected
-    joined = _pair_job(manifest, by_id["s1"], by_id["s0"], cj, 0, str(tmp_path), {}, config.read)
+    assert jobs == expected and all(j.source != "s0" for j in jobs)
+    joined = plot_pair(settings, manifest, plot, ("s1", "s0"), {})
     records[joined.key] = {"status": "ok"}
     ranks = {"s0": ["s2", "s1"]}
-    assert grow_jobs(manifest, config, 0, tmp_path, {}, ranks, [*done, joined], records) == []
+    pairs = Pairs(jobs=[*done, joined], records=records, computed=0)
+    assert grow_jobs(manifest, config, settings, {}, ranks, pairs) == []

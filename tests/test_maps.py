@@ -30,9 +30,8 @@ def _prepare_job(sim, scan_id: str, folder) -> PrepareJob:
     m = load_manifest(sim.outdir / "manifest.toml")
     scan = next(s for s in m.scans if s.id == scan_id)
     path = str(m.resolve(scan.path))
-    settings = AlignConfig().model_dump_json()
-    key = prepared_key(path, "tls", scan.k, settings, 0)
-    return PrepareJob(key, scan.id, path, "tls", scan.k, settings, 0, str(folder))
+    key = prepared_key(path, "tls", scan.k, AlignConfig(), 0)
+    return PrepareJob(key, scan.id, path, "tls", scan.k, AlignConfig(), 0, str(folder))
 
 
 def _job(sim, scan: str, members: list[str], start: np.ndarray | None, folder) -> MapJob:
@@ -54,7 +53,7 @@ def _job(sim, scan: str, members: list[str], start: np.ndarray | None, folder) -
         init=init,
         margin=config.margin_m,
         thin=None if start is not None else config.thin_voxel,
-        config_json=AlignConfig().model_dump_json(),
+        config=AlignConfig(),
         seed=0,
         edge_distance=config.edge_distance,
         min_edge_points=config.min_edge_points,

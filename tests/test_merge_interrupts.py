@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from builders import merge_big_site
 
-from plotmosaic.errors import interrupts
 from plotmosaic.io.las import make_header, make_record
+from plotmosaic.lifetime import interrupts
 
 
 class _RingingFile(io.BytesIO):

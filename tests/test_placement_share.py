@@ -7,9 +7,8 @@ import pytest
 
 from plotmosaic.align.memo import PairMemo, RunMemo
 from plotmosaic.align.register import register_prepared
-from plotmosaic.config.align import AlignConfig
 from plotmosaic.config.register import RegisterConfig
-from plotmosaic.graph.executor import PairJob, prepare_jobs_for, with_reading
+from plotmosaic.graph.jobs import JobSettings, PairJob, prepare_jobs_for
 from plotmosaic.graph.placement import ALS_ID, placement_jobs
 from plotmosaic.graph.prepared import get_prepared
 from plotmosaic.manifest import load_manifest
@@ -20,22 +19,15 @@ def placements(small_sim, tmp_path_factory) -> list[PairJob]:
     """Two scans of the small plot -> its ALS tile, as register-plot builds the jobs."""
     manifest = load_manifest(small_sim.manifest_path)
     config = RegisterConfig()
-    jobs = placement_jobs(
-        manifest,
-        manifest.plots[0],
-        config.placement.model_dump_json(),
-        0,
-        str(tmp_path_factory.mktemp("prepared")),
-        config.align.model_dump_json(),
-    )
-    return with_reading(jobs, config.read)[:2]
+    folder = str(tmp_path_factory.mktemp("prepared"))
+    settings = JobSettings(config.placement, 0, folder, config.read, config.align)
+    return placement_jobs(manifest, manifest.plots[0], settings)[:2]
 
 
 def _register(job: PairJob, memo: PairMemo):
     ps, pt = prepare_jobs_for(job)
     src, tgt = get_prepared(ps)[0], get_prepared(pt)[0]
-    config = AlignConfig.model_validate_json(job.config_json)
-    return register_prepared(src, tgt, config, None, job.seed, memo=memo)
+    return register_prepared(src, tgt, job.config, None, job.seed, memo=memo)
 
 
 def test_placements_sharing_the_tile_are_bit_identical(placements):

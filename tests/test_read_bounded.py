@@ -1,6 +1,5 @@
 """Reading a scan for registration within `[read] max_points_in_memory` (io/bounded.py)."""
 
-import json
 import tracemalloc
 
 import numpy as np
@@ -85,7 +84,7 @@ def test_a_scan_within_the_budget_is_read_whole_and_silently(big_scan, capsys):
 
 
 def test_the_budget_is_in_the_cache_key_only_of_a_scan_it_thins(big_scan):
-    config = json.dumps({"voxel": 0.05})
+    config = AlignConfig()
 
     def key(budget):
         return prepared_key(
@@ -124,7 +123,7 @@ def test_thinned_scans_still_align(small_sim):
 
 def test_a_prepare_job_reads_its_scan_within_its_budget(small_sim, tmp_path, capsys):
     path = str(small_sim.scan_paths["P1-S0"])
-    config = AlignConfig().model_dump_json()
+    config = AlignConfig()
     reading = ReadingConfig(max_points_in_memory=20_000)
     key = prepared_key(path, "tls", 3, config, 0, reading)
     job = PrepareJob(key, "P1-S0", path, "tls", 3, config, 0, str(tmp_path), reading=reading)

@@ -10,11 +10,12 @@ from plotmosaic.cli import app
 from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.config.register import RegisterConfig, TieConfig
 from plotmosaic.config.settings import load_settings
-from plotmosaic.graph.executor import prepare_jobs_for, with_reading
+from plotmosaic.graph.jobs import prepare_jobs_for
 from plotmosaic.graph.prepared import load_prepared, prepared_key
 from plotmosaic.io.las import read_header_info
 from plotmosaic.manifest import dump_manifest, load_manifest
 from plotmosaic.poses import load_poses
+from plotmosaic.stages.register_plot.pairs import pair_settings
 from plotmosaic.stages.register_plot.plan import _signature_jobs, plan_jobs
 from plotmosaic.stages.tie_to_als.clouds import plot_cloud
 
@@ -56,18 +57,18 @@ def test_the_read_section_reaches_register_plot_and_tie(user_settings):
 def test_register_plot_jobs_carry_the_budget_and_key_what_it_thins(small_sim, tmp_path):
     manifest = load_manifest(small_sim.manifest_path)
     small = RegisterConfig(read=ReadingConfig(max_points_in_memory=BUDGET))
-    default = plan_jobs(manifest, RegisterConfig(), 0, tmp_path)
-    thinned = plan_jobs(manifest, small, 0, tmp_path)
-    settings = small.align.model_dump_json()
+    default = plan_jobs(manifest, RegisterConfig(), pair_settings(RegisterConfig(), 0, tmp_path))
+    thinned = plan_jobs(manifest, small, pair_settings(small, 0, tmp_path))
     assert [j.source for j in default] == [j.source for j in thinned]
     for before, job in zip(default, thinned):
         assert job.reading == small.read and before.reading == ReadingConfig()
         assert job.key != before.key  # another budget thinning a scan: another pair result
         for pj in prepare_jobs_for(job):
             assert pj.reading == small.read
-            assert pj.key == prepared_key(pj.path, pj.kind, pj.levels, settings, 0, small.read)
+            assert pj.key == prepared_key(pj.path, pj.kind, pj.levels, small.align, 0, small.read)
     # a budget the scans fit in keys the pairs and scans as the default does
-    roomy = with_reading(default, ReadingConfig(max_points_in_memory=1_000_000))
+    roomy = RegisterConfig(read=ReadingConfig(max_points_in_memory=1_000_000))
+    roomy = plan_jobs(manifest, roomy, pair_settings(roomy, 0, tmp_path))
     assert [j.key for j in roomy] == [j.key for j in default]
     signature = _signature_jobs(manifest, small, 0, tmp_path, manifest.plots)
     assert {j.prepare.reading for j in signature.values()} == {small.read}
@@ -103,9 +104,8 @@ def test_register_plot_and_tie_to_als_honour_the_users_budget(small_sim, tmp_pat
         assert any(f"note: {scan.path}: " in line for line in notes(run.stderr)), run.stderr
     recorded = json.loads((out / "poses.json").read_text())["prepared"]
     register = load_settings(user_settings).register_config()
-    settings = register.align.model_dump_json()
     for scan in scans:
-        key = prepared_key(scan.path, "tls", scan.k, settings, 0, register.read)
+        key = prepared_key(scan.path, "tls", scan.k, register.align, 0, register.read)
         assert recorded[scan.id] == f"{key}.npz"
         assert load_prepared(out / "prepared" / recorded[scan.id]).input_points <= BUDGET
         assert read_header_info(scan.path).point_count > BUDGET

@@ -15,6 +15,7 @@ from pyproj import CRS
 
 from plotmosaic.config.register import RegisterConfig
 from plotmosaic.graph.cache import PairCache
+from plotmosaic.graph.executor import Workers
 from plotmosaic.graph.posegraph import inverse, pose_error
 from plotmosaic.manifest import dump_manifest, load_manifest
 from plotmosaic.poses import load_poses
@@ -59,11 +60,13 @@ def runs(small_sim, tmp_path_factory):
     manifest = subset_manifest(small_sim, SUBSET, root)
     out = root / "out"
     with pytest.raises(KeyboardInterrupt):
-        register_plot(manifest, out, jobs=1, progress=False, on_result=Interrupt(1))
+        register_plot(
+            manifest, out, workers=Workers(jobs=1, progress=False), on_result=Interrupt(1)
+        )
     after_crash = PairCache(out / "pairs").keys()
-    resumed = register_plot(manifest, out, jobs=1, progress=False)
+    resumed = register_plot(manifest, out, workers=Workers(jobs=1, progress=False))
     mtimes = {p.name: p.stat().st_mtime_ns for p in (out / "pairs").glob("*.json")}
-    again = register_plot(manifest, out, jobs=1, progress=False)
+    again = register_plot(manifest, out, workers=Workers(jobs=1, progress=False))
     return {
         "manifest": manifest,
         "out": out,
@@ -158,9 +161,7 @@ def test_dask_executor_gives_the_same_edge(runs, tmp_path):
         result = register_plot(
             runs["manifest"],
             tmp_path / "out",
-            executor="dask",
-            scheduler=cluster.scheduler_address,
-            progress=False,
+            workers=Workers("dask", scheduler=cluster.scheduler_address, progress=False),
         )
     assert result.computed == 1
     remote = PairCache(tmp_path / "out" / "pairs").get(local["key"])
@@ -185,7 +186,10 @@ def test_tie_to_als_georeferences_every_scan(runs, tmp_path, monkeypatch):
 
     monkeypatch.setattr(las, "read_cloud", counted)
     result = tie_to_als(  # one job: every read happens in this process, where it is counted
-        runs["manifest"], runs["out"] / "poses.json", tmp_path / "geo", jobs=1, progress=False
+        runs["manifest"],
+        runs["out"] / "poses.json",
+        tmp_path / "geo",
+        workers=Workers(jobs=1, progress=False),
     )
     # the plot cloud and the ALS crop are written once and registered from memory, not read back
     assert (tmp_path / "geo" / "plots" / "P1.laz").is_file()
@@ -226,7 +230,12 @@ def test_tie_to_als_keeps_the_plot_as_register_plot_placed_it(runs, tmp_path):
         T[:3, 3] += [0.03, -0.02, 0.0]
         e["transform"] = T.tolist()
     (src / "graph.json").write_text(json.dumps(graph))
-    tie_to_als(runs["manifest"], src / "poses.json", tmp_path / "geo", jobs=1, progress=False)
+    tie_to_als(
+        runs["manifest"],
+        src / "poses.json",
+        tmp_path / "geo",
+        workers=Workers(jobs=1, progress=False),
+    )
     before, after = load_poses(src / "poses.json"), load_poses(tmp_path / "geo" / "poses.json")
     ref = SUBSET[0]
     for sid in SUBSET:
@@ -269,7 +278,10 @@ def test_register_plot_reads_the_report_settings(runs, tmp_path):
     (out / "view3d.html").unlink()
     report = ReportConfig(picture_points=5000, view3d_points=0)
     result = register_plot(
-        runs["manifest"], out, jobs=1, progress=False, config=RegisterConfig(report=report)
+        runs["manifest"],
+        out,
+        RegisterConfig(report=report),
+        workers=Workers(jobs=1, progress=False),
     )
     assert result.computed == 0  # the pairs came from the cache: only the solve and the report
     assert (out / "report.html").is_file() and not (out / "view3d.html").exists()

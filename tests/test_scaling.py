@@ -11,11 +11,14 @@ from scipy.spatial.transform import Rotation
 
 from plotmosaic.config.register import RegisterConfig
 from plotmosaic.graph import prepared as store
-from plotmosaic.graph.executor import prepare_jobs_for
-from plotmosaic.graph.posegraph import _edge_id, build_graph, optimise, pose_error, triangles
+from plotmosaic.graph.compute import prepare_scans
+from plotmosaic.graph.cycles import _edge_id, triangles
+from plotmosaic.graph.executor import Workers
+from plotmosaic.graph.jobs import prepare_jobs_for
+from plotmosaic.graph.posegraph import build_graph, optimise, pose_error
 from plotmosaic.graph.synthetic import grid_graph
 from plotmosaic.manifest import load_manifest
-from plotmosaic.stages.register_plot import plan_jobs, prepare_scans
+from plotmosaic.stages.register_plot import pair_settings, plan_jobs
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
@@ -79,7 +82,7 @@ def _pair_jobs(sim, folder, ids=("P1-S0", "P1-S2", "P1-S3")):
         }
     )
     sub = sub.model_copy(update={"source": m.source})
-    return plan_jobs(sub, RegisterConfig(), 0, folder)
+    return plan_jobs(sub, RegisterConfig(), pair_settings(RegisterConfig(), 0, folder))
 
 
 def test_each_scan_prepared_once_and_cached_on_disk(small_sim, tmp_path):
@@ -87,10 +90,10 @@ def test_each_scan_prepared_once_and_cached_on_disk(small_sim, tmp_path):
     jobs = _pair_jobs(small_sim, tmp_path / "prepared")
     assert len(jobs) == 3
     before = store.reads
-    assert prepare_scans(jobs, n_jobs=1, progress=False) == {}
+    assert prepare_scans(jobs, Workers(jobs=1, progress=False)) == {}
     assert store.reads - before == 3  # three scans in three pairs: each read and prepared once
     assert len(list((tmp_path / "prepared").glob("*.npz"))) == 3
-    prepare_scans(jobs, n_jobs=1, progress=False)
+    prepare_scans(jobs, Workers(jobs=1, progress=False))
     assert store.reads - before == 3  # a re-run reads nothing
     # both roles of a scan use the same entry
     keys = {pj.key for job in jobs for pj in prepare_jobs_for(job)}

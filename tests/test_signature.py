@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from plotmosaic.config.register import RegisterConfig
+from plotmosaic.graph.executor import Workers
 from plotmosaic.graph.signature import (
     Signature,
     SignatureConfig,
@@ -95,12 +96,14 @@ def grid9(tmp_path_factory):
 @pytest.mark.slow
 def test_nine_scan_grid_without_positions_or_als(grid9, tmp_path):
     from plotmosaic.manifest import load_manifest
-    from plotmosaic.stages.register_plot import match_signatures, plan_jobs
+    from plotmosaic.stages.register_plot import match_signatures, pair_settings, plan_jobs
 
     manifest = load_manifest(grid9 / "noals.toml")
     assert not manifest.als
     config = RegisterConfig()
-    linked, ranks = match_signatures(manifest, config, 0, tmp_path, {}, "local", 1, None, False)
+    linked, ranks = match_signatures(
+        manifest, config, 0, tmp_path, {}, Workers(jobs=1, progress=False)
+    )
     truth = json.loads((grid9 / "ground_truth.json").read_text())["scans"]
     pos = {k: np.asarray(v["transform"])[:2, 3] for k, v in truth.items()}
     ids = sorted(pos)
@@ -110,7 +113,7 @@ def test_nine_scan_grid_without_positions_or_als(grid9, tmp_path):
         near = {o for o in ids if o != s and np.linalg.norm(pos[o] - pos[s]) < GRID + 1}
         assert ranks[s][0] in near
         assert len(near & set(ranks[s][:4])) >= len(near) - 1
-    jobs = plan_jobs(manifest, config, 0, tmp_path / "prepared", {}, linked)
+    jobs = plan_jobs(manifest, config, pair_settings(config, 0, tmp_path / "prepared"), {}, linked)
     assert len(jobs) < 9 * 8 / 2  # not all pairs
     planned = {frozenset((j.source, j.target)) for j in jobs}
     grid = {

@@ -11,7 +11,7 @@ import pytest
 from plotmosaic.align import prepare
 from plotmosaic.align.pipeline import AlignRequest, align_clouds
 from plotmosaic.config.report import ReportConfig, SliceConfig
-from plotmosaic.graph.executor import _POOL, close_pool, run_pairs
+from plotmosaic.graph.executor import _POOL, Workers, close_pool, run_pairs
 from plotmosaic.io.frame import column_bounds, translation
 from plotmosaic.io.las import PointCloud, read_cloud, write_cloud
 from plotmosaic.parallel import threads
@@ -99,8 +99,8 @@ def worker_pid(job) -> dict:
 
 def test_one_pool_serves_the_stages_of_a_run():
     try:
-        first = run_pairs(list("abcd"), progress=False, n_jobs=2, worker=worker_pid)
-        second = run_pairs(list("efgh"), progress=False, n_jobs=2, worker=worker_pid)
+        first = run_pairs(list("abcd"), Workers(jobs=2, progress=False), worker=worker_pid)
+        second = run_pairs(list("efgh"), Workers(jobs=2, progress=False), worker=worker_pid)
         assert len(_POOL) == 1
         pids = {r["pid"] for r in first} | {r["pid"] for r in second}
         assert len(pids) <= 2 and os.getpid() not in pids  # the same two workers both times
@@ -170,7 +170,7 @@ def test_a_stages_last_jobs_get_the_whole_thread_budget(cores, monkeypatch):
     -j leaves the other cores alone."""
     monkeypatch.setattr("plotmosaic.graph.executor.os.cpu_count", lambda: cores)
     try:
-        records = run_pairs(list("abcde"), progress=False, n_jobs=2, worker=worker_threads)
+        records = run_pairs(list("abcde"), Workers(jobs=2, progress=False), worker=worker_threads)
     finally:
         close_pool()
     tail = 2 if cores == 2 else 1

@@ -26,9 +26,10 @@ from plotmosaic.config.settings import (
     load_settings,
     with_overrides,
 )
-from plotmosaic.errors import INTERRUPTED, InputError, PlotmosaicError, interrupts
+from plotmosaic.errors import InputError, PlotmosaicError
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.las import read_header_info
+from plotmosaic.lifetime import INTERRUPTED, interrupts
 from plotmosaic.manifest import load_manifest
 from plotmosaic.poses import load_poses
 

@@ -23,6 +23,7 @@ from plotmosaic.commands.common import (
 )
 from plotmosaic.config.register import PairSelection, RegisterConfig, TieConfig
 from plotmosaic.errors import InputError, PlotmosaicError
+from plotmosaic.graph.executor import Workers
 from plotmosaic.graph.unplaced import unplaced_reasons
 from plotmosaic.io.atomic import check_output_dir
 from plotmosaic.io.outputs import (
@@ -165,8 +166,9 @@ def register_plot_command(
     plan = check_outputs(register_plan(manifest, config, out, force))
     check_output_dir(out)
     with _recorded(out, settings, "register-plot"), claimed(plan):
+        workers = Workers(executor, jobs, scheduler)
         result = register_plot(
-            manifest, out, jobs, executor, scheduler, settings.register_config(), seed, force
+            manifest, out, settings.register_config(), workers=workers, seed=seed, force=force
         )
     _summary(
         result.graph,
@@ -221,7 +223,7 @@ def tie_to_als_command(
     plan = check_outputs(tie_plan(manifest, poses, config, out, force))
     check_output_dir(out)
     with no_empty_output(out), _recorded(out, settings, "tie-to-als"), claimed(plan):
-        result = tie_to_als(manifest, poses, out, settings.tie_config(), seed, jobs)
+        result = tie_to_als(manifest, poses, out, settings.tie_config(), seed, Workers(jobs=jobs))
 
     table = Table(title="anchors (plot -> ALS)", title_justify="left")
     columns = ("plot", "status", "fitness", "inlier RMSE (cm)", "fine margin", "ALS - TLS (cm)")

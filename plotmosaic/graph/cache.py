@@ -1,7 +1,7 @@
 """The pair cache: one JSON file per pair result under DIR/pairs/, keyed by what determines it.
 
-The key hashes both files' contents, their kinds and levels, the align settings, the seed and the
-plotmosaic version, so a re-run (or a run resumed after Ctrl-C or a crash) redoes only what is
+The key (graph/jobs.py, `job_key`) hashes both files' contents, their kinds and levels, the align
+settings, the seed and the plotmosaic version, so a re-run (or a run resumed after Ctrl-C or a crash) redoes only what is
 missing. Entries are written atomically: an interrupted run leaves only complete entries. An entry
 that does not validate (damaged, edited, truncated) is discarded with one warning line and the
 pair is registered again. An entry holds the pair's own result only: whether the pose graph kept
@@ -17,8 +17,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from pydantic import BaseModel
 
-from plotmosaic import __version__
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.e57 import split_scan_ref
 from plotmosaic.poses import rigid_problem
@@ -47,26 +47,10 @@ def file_hash(path: str | Path) -> str:
     return _hashes[memo] if scan is None else f"{_hashes[memo]}#{scan}"
 
 
-def pair_key(
-    source_path,
-    target_path,
-    source_kind: str,
-    target_kind: str,
-    levels_source: int | None,
-    levels_target: int | None,
-    config_json: str,
-    seed: int,
-) -> str:
-    parts = {
-        "source": file_hash(source_path),
-        "target": file_hash(target_path),
-        "kinds": [source_kind, target_kind],
-        "levels": [levels_source, levels_target],
-        "config": json.loads(config_json),
-        "seed": seed,
-        "version": __version__,
-    }
-    return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:32]
+def settings_json(settings: BaseModel) -> str:
+    """Settings as the cache keys hold them: the one place a config becomes JSON (jobs carry their
+    settings typed, to any worker process or Dask machine)."""
+    return settings.model_dump_json()
 
 
 class PairCache:

@@ -56,7 +56,7 @@ def edge_group(G: nx.Graph, u: str, v: str) -> str:
     return f"{kinds} map" if G.edges[u, v].get("via") == "map" else kinds
 
 
-@dataclass
+@dataclass(frozen=True)
 class Scales:
     """The loops' variance factor of each (group, block), as observed; the information of its edges
     is divided by it, floored for the solve (`SOLVE_FLOOR`) or for the reported sigmas
@@ -127,7 +127,7 @@ def condition_information(
     return Sinv @ (V * w) @ V.T @ Sinv
 
 
-@dataclass
+@dataclass(frozen=True)
 class EdgeInformation:
     """The information of a graph's edges as solved, owned by one optimisation: an ICP information
     conditioned once per edge (however often it is solved and tested), then scaled by its group's

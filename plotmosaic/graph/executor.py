@@ -8,19 +8,12 @@ a crash of the whole run. The scheduling itself is concurrent.futures' or Dask's
 from __future__ import annotations
 
 import atexit
-import contextlib
-import dataclasses
-import hashlib
-import json
-import multiprocessing.context
 import os
-import signal
-import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
@@ -28,101 +21,13 @@ from threadpoolctl import threadpool_limits
 
 from plotmosaic.align.memo import RunMemo
 from plotmosaic.align.pipeline import Start, register_prepared
-from plotmosaic.config.align import AlignConfig
-from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.graph import prepared as store
-from plotmosaic.graph.prepared import PrepareJob, get_prepared, prepared_key
-from plotmosaic.io.bounded import over_budget
+from plotmosaic.graph.jobs import PairJob, prepare_jobs_for
+from plotmosaic.graph.prepared import PrepareJob, get_prepared
 from plotmosaic.io.progress import progress_bar
-from plotmosaic.lifetime import bind_to_parent
+from plotmosaic.lifetime import DeafSpawnContext, bind_to_parent
 from plotmosaic.parallel import limited, set_threads
-
-
-@dataclass(frozen=True)
-class PairJob:
-    """Everything a worker needs to register one pair (plain data: pickles to any process or machine)."""
-
-    key: str
-    source: str  # scan ids
-    target: str
-    source_path: str
-    target_path: str
-    source_kind: str
-    target_kind: str
-    levels_source: int | None
-    levels_target: int | None
-    config_json: str
-    seed: int
-    prepared: str | None = (
-        None  # DIR/prepared: the prepared-cloud cache shared by every pair and run
-    )
-    init: tuple | None = None  # 4x4 rows, source file -> target file: a prior for the coarse stage
-    prepare_json: str | None = None  # settings the scans are prepared with, when not config_json's
-    start: str = "prior"  # how `init` is used (align.register.Start): "stored" (poses stored in
-    # the scan files, E57 use_pose: verified first, the search skipped when it holds), "only"
-    # (two ALS placements: verified, refused when it does not hold)
-    reading: ReadingConfig = field(default_factory=ReadingConfig, kw_only=True)  # `with_reading`
-
-
-def with_stored_poses(
-    jobs: Sequence[PairJob], scans: set[str], start: str = "stored"
-) -> list[PairJob]:
-    """Jobs whose two scans' priors are verified poses (`Manifest.stored_poses`, sure placements,
-    the graph's) verified first as `start` says, their keys told apart (a result found without the
-    pose is another pair result); a job marked already keeps its mark."""
-    out = []
-    for job in jobs:
-        if job.init is None or job.start != "prior" or not {job.source, job.target} <= scans:
-            out.append(job)
-            continue
-        pose = hashlib.sha256(json.dumps(job.init).encode()).hexdigest()[:12]
-        tag = "stored" if start == "stored" else f"stored-{start}"
-        out.append(dataclasses.replace(job, start=start, key=f"{job.key}-{tag}-{pose}"))
-    return out
-
-
-def with_reading(jobs: Sequence[PairJob], reading: ReadingConfig) -> list[PairJob]:
-    """The jobs reading their scans within the budget `reading`; a job one of whose scans it thins
-    is keyed apart (its result is another pair result), the others keep their keys."""
-    thins: dict[str, bool] = {}  # scan file -> over the budget (one header read each)
-    out = []
-    for job in jobs:
-        job = dataclasses.replace(job, reading=reading)
-        for path in (job.source_path, job.target_path):
-            if path not in thins:
-                thins[path] = _thins(path, reading)
-        if thins[job.source_path] or thins[job.target_path]:
-            budget = hashlib.sha256(reading.model_dump_json().encode()).hexdigest()[:12]
-            job = dataclasses.replace(job, key=f"{job.key}-read-{budget}")
-        out.append(job)
-    return out
-
-
-def _thins(path: str, reading: ReadingConfig) -> bool:
-    try:
-        return over_budget(path, reading)
-    except InputError:  # unreadable: its prepare job fails and names it, the pair is not run
-        return False
-
-
-def prepare_jobs_for(job: PairJob, folder: str | None = None) -> tuple[PrepareJob, PrepareJob]:
-    """The two scans' prepare jobs; each scan is prepared once with the run's seed, whatever its role."""
-    folder = folder or job.prepared
-    out = []
-    for scan, path, kind, levels in (
-        (job.source, job.source_path, job.source_kind, job.levels_source),
-        (job.target, job.target_path, job.target_kind, job.levels_target),
-    ):
-        settings = job.prepare_json or job.config_json
-        key = prepared_key(path, kind, levels, settings, job.seed, job.reading)
-        out.append(
-            PrepareJob(
-                key, scan, path, kind, levels, settings, job.seed, folder, reading=job.reading
-            )
-        )
-    return out[0], out[1]
-
 
 # Prepared clouds of this worker process when no cache folder is given (small: memory stays bounded).
 _PREPARED: OrderedDict[tuple, object] = OrderedDict()
@@ -156,7 +61,6 @@ def run_pair_job(job: PairJob) -> dict:
     start = time.perf_counter()
     record = {"source": job.source, "target": job.target, "key": job.key}
     try:
-        config = AlignConfig.model_validate_json(job.config_json)
         get = get_prepared if job.prepared else _prepared_in_memory
         ps, pt = prepare_jobs_for(job, job.prepared or "")
         src, t_src = get(ps)
@@ -164,10 +68,10 @@ def run_pair_job(job: PairJob) -> dict:
         init = None if job.init is None else np.asarray(job.init, dtype=np.float64)
         memo = _MEMOS.pair(ps.key, pt.key)
         result = register_prepared(
-            src, tgt, config, init, job.seed, start=Start(job.start), memo=memo
+            src, tgt, job.config, init, job.seed, start=Start(job.start), memo=memo
         )
-        result.timings = {"prepare_source": t_src, "prepare_target": t_tgt, **result.timings}
         record.update(result.to_dict(), status="ok")
+        record["timings"] = {"prepare_source": t_src, "prepare_target": t_tgt, **result.timings}
     except RegistrationFailed as exc:  # a real outcome of this pair: cache it, with its figures
         record.update(status="failed", error=str(exc), cacheable=True)
         res = getattr(exc, "result", None)
@@ -232,19 +136,27 @@ def _failed(job, exc: BaseException) -> dict:
     }
 
 
+@dataclass(frozen=True)
+class Workers:
+    """Where a run's jobs run: `executor` "local" (a process pool) or "dask" (at `scheduler`, else a
+    local cluster), with `jobs` threads in all (None: the cores), a progress bar or not."""
+
+    executor: str = "local"
+    jobs: int | None = None
+    scheduler: str | None = None
+    progress: bool = True
+
+
 def run_pairs(
     jobs: Sequence[PairJob],
+    workers: Workers = Workers(),
     on_result: Callable[[dict], None] | None = None,
-    executor: str = "local",
-    n_jobs: int | None = None,
-    scheduler: str | None = None,
-    progress: bool = True,
     worker: Callable[[PairJob], dict] = run_pair_job,
     label: str = "registering pairs",
 ) -> list[dict]:
     """Run `worker` on every job; `on_result(record)` is called in this process as each one finishes."""
-    if executor not in ("local", "dask"):
-        raise InputError(f"--executor must be 'local' or 'dask', not {executor!r}")
+    if workers.executor not in ("local", "dask"):
+        raise InputError(f"--executor must be 'local' or 'dask', not {workers.executor!r}")
     if not jobs:
         return []
     records: list[dict] = []
@@ -254,17 +166,17 @@ def run_pairs(
         if on_result is not None:
             on_result(record)
 
-    with progress_bar(progress) as bar:
+    with progress_bar(workers.progress) as bar:
         task = bar.add_task(label, total=len(jobs))
 
         def tick(record: dict) -> None:
             done(record)
             bar.advance(task)
 
-        if executor == "dask":
-            _run_dask(jobs, tick, n_jobs, scheduler, worker)
+        if workers.executor == "dask":
+            _run_dask(jobs, tick, workers.jobs, workers.scheduler, worker)
         else:
-            _run_local(jobs, tick, n_jobs, worker)
+            _run_local(jobs, tick, workers.jobs, worker)
     return records
 
 
@@ -283,7 +195,7 @@ def _pool(workers: int, per_worker: int, most: int) -> ProcessPoolExecutor:
     # spawn: Open3D and BLAS thread pools do not survive fork reliably
     _POOL[shape] = pool = ProcessPoolExecutor(
         workers,
-        mp_context=_DeafSpawnContext(),
+        mp_context=DeafSpawnContext(),
         initializer=_limit_threads,
         initargs=(per_worker, most),
     )
@@ -299,39 +211,6 @@ def close_pool(kill: bool = False) -> None:
                 proc.kill()
         pool.shutdown(wait=True, cancel_futures=kill)
     _POOL.clear()
-
-
-_STOPS = (signal.SIGINT, signal.SIGTERM)
-
-
-@contextlib.contextmanager
-def _stops_ignored() -> Iterator[None]:
-    """Ctrl-C and SIGTERM ignored in the block (only the main thread may change handlers)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = {s: signal.signal(s, signal.SIG_IGN) for s in _STOPS}
-    try:
-        yield
-    finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
-
-
-class _DeafProcess(multiprocessing.context.SpawnProcess):
-    """A spawned worker that ignores Ctrl-C and SIGTERM from its first instant: the terminal signals
-    the whole process group, and a worker still importing would print a traceback. An ignored
-    signal stays ignored across exec (a caught or blocked one does not), so the parent ignores them
-    while it forks (milliseconds); the parent alone stops its workers."""
-
-    @staticmethod
-    def _Popen(process_obj):
-        with _stops_ignored():
-            return multiprocessing.context.SpawnProcess._Popen(process_obj)
-
-
-class _DeafSpawnContext(multiprocessing.context.SpawnContext):
-    Process = _DeafProcess
 
 
 atexit.register(close_pool)

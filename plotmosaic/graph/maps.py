@@ -59,7 +59,7 @@ class MapJob:
     init: tuple | None  # scan file -> plot frame: its start (verified there first), None: anywhere
     margin: float  # with a start, the map is cropped this far (m) beyond where the scan reaches
     thin: float | None  # voxel (m) each member is thinned to (a whole-plot map), None: as prepared
-    config_json: str
+    config: AlignConfig
     seed: int
     edge_distance: float  # correspondences (m) that give a member its share of the information
     min_edge_points: int  # fewer: the member gets no edge (it barely overlaps the scan)
@@ -171,7 +171,7 @@ def run_map_job(job: MapJob) -> dict:
     start = time.perf_counter()
     record = {"source": job.source, "target": MAP_ID, "key": job.key, "via": "map"}
     try:
-        config = AlignConfig.model_validate_json(job.config_json)
+        config = job.config
         src, _ = get_prepared(job.prepared)
         members = [get_prepared(m.prepared)[0] for m in job.members]
         kind = job.members[0].prepared.kind

@@ -11,53 +11,23 @@ from __future__ import annotations
 
 import numpy as np
 
-from plotmosaic.graph.cache import pair_key
-from plotmosaic.graph.executor import PairJob
+from plotmosaic.graph.jobs import JobSettings, PairJob, ScanFile, pair_job
 from plotmosaic.io.frame import inverse
 from plotmosaic.manifest import Manifest, Plot
 
 ALS_ID = "ALS"
 
 
-def placement_jobs(
-    manifest: Manifest,
-    plot: Plot,
-    config_json: str,
-    seed: int,
-    prepared: str | None,
-    prepare_json: str | None = None,
-) -> list[PairJob]:
+def placement_jobs(manifest: Manifest, plot: Plot, settings: JobSettings) -> list[PairJob]:
     """One scan -> ALS job per scan of the plot (the first ALS tile; none when the manifest has no ALS).
 
-    `prepare_json`: the settings the scans are prepared with (register-plot's), so the same prepared
-    clouds serve the placement and the pairs."""
+    `settings.prepare`: the settings the scans are prepared with (register-plot's), so the same
+    prepared clouds serve the placement and the pairs."""
     if not manifest.als:
         return []
     tile = manifest.als[0]
-    tp = manifest.resolve(tile.path)
-    jobs = []
-    for scan in plot.scans:
-        sp = manifest.resolve(scan.path)
-        key = pair_key(sp, tp, scan.kind.value, "als", scan.k, tile.k, config_json, seed)
-        jobs.append(
-            PairJob(
-                key,
-                scan.id,
-                ALS_ID,
-                str(sp),
-                str(tp),
-                scan.kind.value,
-                "als",
-                scan.k,
-                tile.k,
-                config_json,
-                seed,
-                prepared,
-                None,
-                prepare_json,
-            )
-        )
-    return jobs
+    als = ScanFile(ALS_ID, str(manifest.resolve(tile.path)), "als", tile.k)
+    return [pair_job(settings, ScanFile.of(manifest, scan), als) for scan in plot.scans]
 
 
 def placed_poses(
@@ -86,7 +56,7 @@ def sure_placements(
     jobs: list[PairJob], records: dict[str, dict], min_confidence: float
 ) -> set[str]:
     """Scans placed on the ALS at least this surely: a pair of two of them starts from its prior
-    and is verified first (executor.with_stored_poses), the global search only when that fails."""
+    and is verified first (jobs.with_stored_poses), the global search only when that fails."""
     return {
         j.source
         for j in jobs

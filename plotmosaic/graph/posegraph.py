@@ -7,8 +7,8 @@ the graph frame, so an edge says X_source = X_target · T.
 
 Outliers are found in three ways, because each alone misses cases: a cycle-consistency vote on
 triangles (before any solve, so a wrong edge cannot drag the initialisation), low-confidence edges
-that no consistent triangle confirms, then a residual test after a robust solve (drop the worst
-offender, re-solve, repeat).
+that no consistent triangle confirms (graph/cycles.py), then a residual test after a robust solve
+(drop the worst offender, re-solve, repeat).
 
 The scans' covariances come last: the kept edges' information scaled by their own residuals
 where loops observe them (graph/covariance.py), then one set of marginals.
@@ -16,6 +16,7 @@ where loops observe them (graph/covariance.py), then one set of marginals.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import gtsam
@@ -34,6 +35,7 @@ from plotmosaic.graph.covariance import (  # noqa: F401  (condition_information,
     update_scales,
     variance_components,
 )
+from plotmosaic.graph.cycles import kept, spanning_tree_poses, vote
 from plotmosaic.io.frame import inverse, pose_error, rotation_deg  # noqa: F401  (re-exported)
 
 
@@ -120,155 +122,10 @@ def graph_from_json(data: dict) -> nx.Graph:
     return G
 
 
-def edge_transform(G: nx.Graph, a: str, b: str) -> np.ndarray:
-    """The measured X_a^-1 X_b (maps b's coordinates into a's) from the edge between a and b."""
-    e = G.edges[a, b]
-    T = e["transform"]
-    return T if (e["source"], e["target"]) == (b, a) else inverse(T)
-
-
-def kept(G: nx.Graph) -> nx.Graph:
-    """View of the edges still in use."""
-    return nx.subgraph_view(G, filter_edge=lambda u, v: not G.edges[u, v].get("dropped", False))
-
-
-# --- initialisation and cycle consistency ----------------------------------------------------------
-
-
-def spanning_tree_poses(G: nx.Graph, reference: str) -> dict[str, np.ndarray]:
-    """Poses of every scan connected to `reference` by chaining the strongest edges (max spanning tree)."""
-    H = kept(G)
-    component = nx.node_connected_component(H, reference)
-    tree = nx.maximum_spanning_tree(H.subgraph(component), weight="weight")
-    poses = {reference: np.eye(4)}
-    for u, v in nx.bfs_edges(tree, reference):
-        poses[v] = poses[u] @ edge_transform(G, u, v)
-    return poses
-
-
-def triangles(H: nx.Graph) -> list[tuple[str, str, str]]:
-    """Every triangle of `H` once, by neighbour-set intersection: O(edges x degree), not all cliques."""
-    order = {n: k for k, n in enumerate(sorted(H.nodes))}
-    higher = {n: {m for m in H.adj[n] if order[m] > order[n]} for n in H.nodes}
-    out = []
-    for a in sorted(H.nodes):
-        for b in sorted(higher[a], key=order.get):
-            for c in sorted(higher[a] & higher[b], key=order.get):
-                out.append((a, b, c))
-    return out
-
-
-def cycle_errors(G: nx.Graph) -> list[dict]:
-    """Every triangle of kept edges with how far composing its three edges is from identity."""
-    out = []
-    for a, b, c in triangles(kept(G)):
-        loop = edge_transform(G, a, b) @ edge_transform(G, b, c) @ edge_transform(G, c, a)
-        out.append(
-            {
-                "nodes": (a, b, c),
-                "rotation_deg": rotation_deg(loop),
-                "translation": float(np.linalg.norm(loop[:3, 3])),
-            }
-        )
-    return out
-
-
-def _edge_id(u: str, v: str) -> tuple[str, str]:
-    return (u, v) if u <= v else (v, u)
-
-
-def _tri_edges(tri: dict) -> tuple[tuple[str, str], ...]:
-    a, b, c = tri["nodes"]
-    return _edge_id(a, b), _edge_id(b, c), _edge_id(a, c)
-
-
-def _inconsistent(tri: dict, config: PoseGraphConfig) -> bool:
-    return (
-        tri["rotation_deg"] > config.cycle_rotation_deg
-        or tri["translation"] > config.cycle_translation
-    )
-
-
-def _count(tris: list[dict], config: PoseGraphConfig) -> dict[tuple[str, str], tuple[int, int]]:
-    votes: dict[tuple[str, str], list[int]] = {}
-    for tri in tris:
-        wrong = _inconsistent(tri, config)
-        for e in _tri_edges(tri):
-            n = votes.setdefault(e, [0, 0])
-            n[0] += int(wrong)
-            n[1] += 1
-    return {e: (bad, total) for e, (bad, total) in votes.items()}
-
-
-def triangle_votes(G: nx.Graph, config: PoseGraphConfig) -> dict[tuple[str, str], tuple[int, int]]:
-    """Per kept edge (sorted ids): (inconsistent triangles, triangles) it is part of."""
-    return _count(cycle_errors(G), config)
-
-
-def _outliers(votes: dict[tuple[str, str], tuple[int, int]]) -> list[tuple[str, str]]:
-    return sorted(e for e, (bad, total) in votes.items() if bad >= 2 and bad > total / 2)
-
-
-def _explain(tris: list[dict], config: PoseGraphConfig) -> list[tuple[str, str]]:
-    """Outliers of the vote, the most certain first: a bad triangle blamed on one edge no longer counts
-    against its two other edges (else a good edge next to two wrong ones is dropped with them)."""
-    out: list[tuple[str, str]] = []
-    active = tris
-    while True:
-        votes = _count(active, config)
-        candidates = _outliers(votes)
-        if not candidates:
-            return sorted(out)
-        top = max(votes[e][0] / votes[e][1] for e in candidates)
-        worst = {e for e in candidates if votes[e][0] / votes[e][1] == top}
-        out += sorted(worst)
-        active = [t for t in active if not worst.intersection(_tri_edges(t))]
-
-
-def cycle_outliers(G: nx.Graph, config: PoseGraphConfig) -> list[tuple[str, str]]:
-    """Edges inconsistent in most of the triangles they close (needs >= 2 bad triangles to decide)."""
-    return _explain(cycle_errors(G), config)
-
-
-def _unsure(G: nx.Graph, config: PoseGraphConfig) -> set[tuple[str, str]]:
-    return {
-        _edge_id(u, v)
-        for u, v, e in kept(G).edges(data=True)
-        if e.get("confidence") is not None and e["confidence"] < config.sure_edge_confidence
-    }
-
-
-def _unconfirmed(unsure: set, votes: dict) -> list[tuple[str, str]]:
-    return sorted(e for e in unsure if (lambda bt: bt[1] - bt[0])(votes.get(e, (0, 0))) == 0)
-
-
-def unverified(G: nx.Graph, config: PoseGraphConfig) -> list[tuple[str, str]]:
-    """Low-confidence edges (coarse stage unsure) that no consistent triangle confirms."""
-    return _unconfirmed(_unsure(G, config), triangle_votes(G, config))
-
-
-def vote(
-    G: nx.Graph, config: PoseGraphConfig
-) -> tuple[list[tuple[str, str]], list[tuple[str, str]]]:
-    """(cycle outliers, unverified unsure edges) from one pass over the triangles of the kept edges.
-
-    Low-confidence edges stay out of the outlier vote: otherwise a plot with several wrong (and
-    unsure) pairs outvotes its correct edges. An unsure edge is confirmed by a consistent triangle
-    whose other edges are not cycle outliers.
-    """
-    tris = cycle_errors(G)
-    unsure = _unsure(G, config)
-    trusted = [t for t in tris if not unsure.intersection(_tri_edges(t))]
-    gone = set(_explain(trusted, config))
-    outliers = sorted(gone)
-    rest = _count([t for t in tris if not gone.intersection(_tri_edges(t))], config)
-    return outliers, _unconfirmed(unsure, rest)
-
-
 # --- the solve ---------------------------------------------------------------------------------------
 
 
-@dataclass
+@dataclass(frozen=True)
 class Solution:
     poses: dict[str, np.ndarray]  # placed scans only
     # sqrt(diag(marginal covariance)): rx, ry, rz (rad), tx, ty, tz (m), in the scan's own frame
@@ -283,8 +140,24 @@ class Solution:
     about_plot: dict[str, np.ndarray] = field(default_factory=dict)  # sigmas about the mean frame
 
 
-def _solve(G: nx.Graph, reference: str, config: PoseGraphConfig, information: EdgeInformation):
-    """One robust LM solve: (Solution without sigmas, factor graph, result values, keys)."""
+@dataclass(frozen=True)
+class _Solve:
+    """One LM solve: the placed scans' poses, the scans it leaves out, its figures and factors."""
+
+    poses: dict[str, np.ndarray]
+    unplaced: list[str]
+    iterations: int
+    error_before: float
+    error_after: float
+    graph: gtsam.NonlinearFactorGraph
+    result: gtsam.Values
+    keys: dict[str, int]
+
+
+def _solve(
+    G: nx.Graph, reference: str, config: PoseGraphConfig, information: EdgeInformation
+) -> _Solve:
+    """One robust LM solve."""
     init = spanning_tree_poses(G, reference)
     placed = sorted(init)
     keys = {name: gtsam.symbol("x", n) for n, name in enumerate(placed)}
@@ -301,10 +174,10 @@ def _solve(G: nx.Graph, reference: str, config: PoseGraphConfig, information: Ed
     result = optimizer.optimize()
     poses = {name: result.atPose3(keys[name]).matrix() for name in placed}
     unplaced = sorted(n for n in G.nodes if n not in keys)
-    sol = Solution(
-        poses, {}, unplaced, optimizer.iterations(), float(before), float(graph.error(result))
+    after = float(graph.error(result))
+    return _Solve(
+        poses, unplaced, optimizer.iterations(), float(before), after, graph, result, keys
     )
-    return sol, graph, result, keys
 
 
 def _factor_graph(
@@ -331,29 +204,24 @@ def _factor_graph(
     return graph
 
 
-def _calibrated(G: nx.Graph, reference: str, config: PoseGraphConfig, information, solved):
+def _calibrated(
+    G: nx.Graph, reference: str, config: PoseGraphConfig, information, solved: _Solve
+) -> tuple[_Solve, EdgeInformation]:
     """The last solve again with each edge group's information scaled by its residuals (rounds of
-    variance components), then every placed scan's marginal covariance, once, at those poses with
-    the factors floored for reporting (covariance.REPORT_FLOOR)."""
-    sol, graph, result, keys = solved
-    if config.calibration_rounds and redundancy_dof(kept(G), set(keys)) > 0:
+    variance components), and the information so scaled."""
+    if config.calibration_rounds and redundancy_dof(kept(G), set(solved.keys)) > 0:
         # plain least squares while calibrating: a robust kernel discounts the very residuals
         # that show an edge group's noise too small (kept edges passed the outlier tests)
         plain = config.model_copy(update={"robust": "none"})
         for _ in range(config.calibration_rounds):
-            sol, graph, result, keys = _solve(G, reference, plain, information)
-            edges = [(u, v) for u, v in kept(G).edges() if u in keys and v in keys]
-            quad, red = variance_components(
-                G, edges, sol.poses, keys, JointCovariance(graph, result, keys), information
-            )
-            information.scales = update_scales(information.scales, quad, red)
-        sol, graph, result, keys = _solve(G, reference, config, information)
-    reported = _factor_graph(G, reference, keys, config, information.reporting())
-    sol.covariances, sol.sigmas, sol.about_plot = scan_covariances(
-        G, reported, result, keys, sol.poses
-    )
-    sol.scales = information.scales.as_dict()
-    return sol
+            s = _solve(G, reference, plain, information)
+            edges = [(u, v) for u, v in kept(G).edges() if u in s.keys and v in s.keys]
+            joint = JointCovariance(s.graph, s.result, s.keys)
+            quad, red = variance_components(G, edges, s.poses, s.keys, joint, information)
+            scales = update_scales(information.scales, quad, red)
+            information = dataclasses.replace(information, scales=scales)
+        solved = _solve(G, reference, config, information)
+    return solved, information
 
 
 def _drop(G: nx.Graph, u: str, v: str, reason: str, dropped: list[dict]) -> None:
@@ -385,7 +253,7 @@ def optimise(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None)
         )
     residual_drops = 0
     while True:
-        sol, graph, result, keys = _solve(G, reference, config, information)
+        sol = _solve(G, reference, config, information)
         worst, worst_chi2 = None, 0.0
         for u, v in kept(G).edges():
             if u not in sol.poses or v not in sol.poses:
@@ -401,10 +269,25 @@ def optimise(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None)
             break
         _drop(G, *worst, "residual", dropped)
         residual_drops += 1
-    sol = _calibrated(G, reference, config, information, (sol, graph, result, keys))
+    sol, information = _calibrated(G, reference, config, information, sol)
+    # every placed scan's marginal covariance, once, at the calibrated poses with the factors
+    # floored for reporting (covariance.REPORT_FLOOR)
+    reported = _factor_graph(G, reference, sol.keys, config, information.reporting())
+    covariances, sigmas, about_plot = scan_covariances(G, reported, sol.result, sol.keys, sol.poses)
+    scales = information.scales.as_dict()
     for u, v, e in G.edges(data=True):
         e["residual_after"] = (
             residual(G, u, v, sol.poses, information) if u in sol.poses and v in sol.poses else None
         )
-    sol.dropped = dropped
-    return sol
+    return Solution(
+        sol.poses,
+        sigmas,
+        sol.unplaced,
+        sol.iterations,
+        sol.error_before,
+        sol.error_after,
+        dropped,
+        covariances,
+        scales,
+        about_plot,
+    )

@@ -26,7 +26,7 @@ from plotmosaic.align.normals import LazyNormals
 from plotmosaic.align.prepare import PreparedCloud, prepare_cloud
 from plotmosaic.config.align import AlignConfig, StemNormalConfig, default_levels
 from plotmosaic.config.reading import ReadingConfig
-from plotmosaic.graph.cache import file_hash
+from plotmosaic.graph.cache import file_hash, settings_json
 from plotmosaic.io.atomic import atomic_output
 from plotmosaic.io.bounded import over_budget, read_scan_points
 from plotmosaic.io.frame import Frame
@@ -40,7 +40,7 @@ def prepared_key(
     path,
     kind: str,
     levels: int | None,
-    config_json: str,
+    config: AlignConfig,
     seed: int,
     reading: ReadingConfig | None = None,
 ) -> str:
@@ -50,7 +50,7 @@ def prepared_key(
         "file": file_hash(path),
         "kind": kind,
         "levels": levels,
-        "config": json.loads(config_json),
+        "config": json.loads(settings_json(config)),
         "seed": seed,
         "version": __version__,
         "format": FORMAT,
@@ -155,7 +155,7 @@ class PrepareJob:
     path: str
     kind: str
     levels: int | None
-    config_json: str
+    config: AlignConfig
     seed: int
     folder: str  # DIR/prepared
     # keyword-only: jobs extending this one add positional fields after `folder`
@@ -177,7 +177,7 @@ reads = 0  # scans read and prepared by this process (tests and benchmarks count
 def _compute(job: PrepareJob, cloud=None) -> PreparedCloud:
     """Prepare the job's scan: `cloud` when the caller holds its points already, else read from job.path."""
     global reads
-    config = AlignConfig.model_validate_json(job.config_json)
+    config = job.config
     if cloud is None:
         cloud = read_scan_points(job.path, job.reading, config)
         reads += 1

@@ -13,7 +13,7 @@ many stems does not win everything.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -29,7 +29,7 @@ from plotmosaic.config.scale import SignatureConfig
 from plotmosaic.graph.prepared import PrepareJob, entry, load_points, run_prepare_job
 
 
-@dataclass
+@dataclass(frozen=True)
 class Signature:
     stems: np.ndarray  # (S, 2) stem centres in the levelled scan frame
     diameters: np.ndarray  # (S,)
@@ -291,21 +291,19 @@ class SignatureJob(PrepareJob):
     """One scan's signature, from its prepared cloud (prepared here when not cached yet): a prepare
     job with the signature settings, so every executor handles it as one."""
 
-    signature_json: str = "{}"
+    signature: SignatureConfig = field(default_factory=SignatureConfig)
+
+    @classmethod
+    def of(cls, prepare: PrepareJob, signature: SignatureConfig) -> SignatureJob:
+        return cls(**_fields(prepare), signature=signature)
 
     @property
     def prepare(self) -> PrepareJob:
-        return PrepareJob(
-            self.key,
-            self.scan,
-            self.path,
-            self.kind,
-            self.levels,
-            self.config_json,
-            self.seed,
-            self.folder,
-            reading=self.reading,
-        )
+        return PrepareJob(**_fields(self))
+
+
+def _fields(job: PrepareJob) -> dict:
+    return {f.name: getattr(job, f.name) for f in fields(PrepareJob)}
 
 
 def run_signature_job(job: SignatureJob) -> dict:
@@ -315,7 +313,7 @@ def run_signature_job(job: SignatureJob) -> dict:
     if record["status"] != "ok":
         return record
     try:
-        config = SignatureConfig.model_validate_json(job.signature_json)
+        config = job.signature
         points = load_points(entry(job.prepare.folder, job.prepare.key))
         sig = scan_signature(points - points.mean(axis=0), config, job.prepare.seed)
         record.update(

@@ -16,7 +16,8 @@ import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
-from plotmosaic.errors import InputError, signals_held
+from plotmosaic.errors import InputError
+from plotmosaic.lifetime import signals_held
 
 TEMP_NAME = re.compile(r"^\..+\.tmp-(\d+)$")  # our own temporaries: `.NAME.tmp-PID`
 NAME_MAX = (

@@ -28,8 +28,9 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from plotmosaic.config.merge import SCALE, MergeConfig
-from plotmosaic.errors import InputError, interrupts
+from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import atomic_folder, atomic_output, temp_folder
+from plotmosaic.lifetime import interrupts
 from plotmosaic.manifest import Manifest
 from plotmosaic.parallel import in_two_threads, threads
 from plotmosaic.poses import Poses

@@ -12,23 +12,21 @@ from collections.abc import Callable
 from pathlib import Path
 
 from plotmosaic.config.register import RegisterConfig
+from plotmosaic.graph.executor import Workers
 from plotmosaic.manifest import Manifest
 from plotmosaic.stages.register_plot.grow import (
     close_loops,
     graph_poses,
     grow,
     grow_jobs,
+    plot_pair,
     position_jobs,
 )
 from plotmosaic.stages.register_plot.maps import onto_maps
 from plotmosaic.stages.register_plot.pairs import (
-    EDGE_FIELDS,
-    _pair_job,
     anchor_id,
-    compute_pairs,
+    pair_settings,
     prepare,
-    prepare_every_scan,
-    prepare_scans,
     run_jobs,
     start_run,
 )
@@ -38,22 +36,19 @@ from plotmosaic.stages.register_plot.solve import PlotResult, solve, solve_plot
 from plotmosaic.stages.register_plot.write import RegisterResult, write
 
 __all__ = [
-    "EDGE_FIELDS",
     "PlotResult",
     "RegisterResult",
-    "_pair_job",
     "als_anchor_edges",
     "anchor_id",
     "close_loops",
-    "compute_pairs",
     "graph_poses",
     "grow_jobs",
     "match_signatures",
+    "pair_settings",
     "place_scans",
+    "plot_pair",
     "plan_jobs",
     "position_jobs",
-    "prepare_every_scan",
-    "prepare_scans",
     "register_plot",
     "solve_plot",
     "tree_first",
@@ -63,32 +58,21 @@ __all__ = [
 def register_plot(
     manifest: str | Path | Manifest,
     out: str | Path,
-    jobs: int | None = None,
-    executor: str = "local",
-    scheduler: str | None = None,
     config: RegisterConfig | None = None,
+    *,
+    workers: Workers = Workers(),
     seed: int = 0,
     force: bool = False,
-    progress: bool = True,
     on_result: Callable[[dict], None] | None = None,
 ) -> RegisterResult:
     """Register every plot of `manifest` into `out`: poses.json, graph.json and the report.
 
     Pair results are cached under OUT/pairs (a run resumes where it stopped; `force` recomputes);
-    `on_result` sees each pair record as it is computed. Raises InputError for a bad manifest, an
+    `on_result` sees each pair record as it is computed; `workers`: where the jobs run. Raises InputError for a bad manifest, an
     output that is a file, or a scan that cannot be read (before any pair runs)."""
     start = time.perf_counter()
     run = start_run(
-        manifest,
-        out,
-        config,
-        seed=seed,
-        executor=executor,
-        n_jobs=jobs,
-        scheduler=scheduler,
-        force=force,
-        progress=progress,
-        on_result=on_result,
+        manifest, out, config, seed=seed, workers=workers, force=force, on_result=on_result
     )
     prepare(run)  # every scan read once, and a bad one named, before any pair
     priors = place(run)  # big plots' scans on the ALS tile; poses stored in the scans

@@ -3,26 +3,17 @@ bounded rounds, where the verified pairs so far place scans or leave a plot in p
 
 from __future__ import annotations
 
-import dataclasses
-from pathlib import Path
-
 import networkx as nx
 import numpy as np
 
 from plotmosaic.config.register import RegisterConfig
-from plotmosaic.graph.executor import PairJob, with_stored_poses
+from plotmosaic.graph.jobs import JobSettings, PairJob, ScanFile, pair_job, with_stored_poses
 from plotmosaic.graph.pairs import neighbour_pairs, reach_distance, spanning_first
 from plotmosaic.graph.placement import prior
 from plotmosaic.graph.posegraph import build_graph
 from plotmosaic.graph.signature import grow_candidates
 from plotmosaic.manifest import Manifest, Plot
-from plotmosaic.stages.register_plot.pairs import (
-    Pairs,
-    Run,
-    _pair_job,
-    anchor_id,
-    run_jobs,
-)
+from plotmosaic.stages.register_plot.pairs import Pairs, Run, anchor_id, run_jobs
 from plotmosaic.stages.register_plot.place import Priors
 from plotmosaic.stages.register_plot.solve import solve_plot
 
@@ -35,29 +26,20 @@ def _degrees(job_list: list[PairJob]) -> dict[str, int]:
     return degree
 
 
-def _job(
+def plot_pair(
+    settings: JobSettings,
     manifest: Manifest,
-    config: RegisterConfig,
-    seed: int,
-    prepared: str | Path,
-    placed: dict[str, np.ndarray],
     plot: Plot,
     pair: tuple[str, str],
+    placed: dict[str, np.ndarray],
 ) -> PairJob:
-    """The job of two scans of `plot`, the later of them in the plot as the source."""
+    """The job of two scans of `plot`, the later of them in the plot as the source, its prior from
+    the `placed` poses."""
     by_id = {s.id: s for s in plot.scans}
     order = {s.id: k for k, s in enumerate(plot.scans)}
     target, source = sorted(pair, key=order.get)
-    return _pair_job(
-        manifest,
-        by_id[source],
-        by_id[target],
-        config.align.model_dump_json(),
-        seed,
-        str(prepared),
-        placed,
-        config.read,
-    )
+    sides = ScanFile.of(manifest, by_id[source]), ScanFile.of(manifest, by_id[target])
+    return pair_job(settings, *sides, prior(placed, source, target))
 
 
 def graph_poses(
@@ -75,8 +57,7 @@ def graph_poses(
 def position_jobs(
     manifest: Manifest,
     config: RegisterConfig,
-    seed: int,
-    prepared: str | Path,
+    settings: JobSettings,
     poses: dict[str, np.ndarray],
     job_list: list[PairJob],
 ) -> list[PairJob]:
@@ -100,7 +81,7 @@ def position_jobs(
             a, b = ids[i], ids[j]
             if frozenset((a, b)) in tried or max(degree.get(a, 0), degree.get(b, 0)) >= cap:
                 continue
-            out.append(_job(manifest, config, seed, prepared, poses, plot, (a, b)))
+            out.append(plot_pair(settings, manifest, plot, (a, b), poses))
             tried.add(frozenset((a, b)))
             degree[a] = degree.get(a, 0) + 1
             degree[b] = degree.get(b, 0) + 1
@@ -110,23 +91,21 @@ def position_jobs(
 def grow_jobs(
     manifest: Manifest,
     config: RegisterConfig,
-    seed: int,
-    prepared: str | Path,
+    settings: JobSettings,
     placed: dict[str, np.ndarray],
     ranks: dict[str, list[str]],
-    job_list: list[PairJob],
-    records: dict[str, dict],
+    pairs: Pairs,
     anchored: set[str] | None = None,
 ) -> list[PairJob]:
-    """Pairs to add where a plot's verified pairs leave it in pieces: the next signature-ranked partners.
-
-    `anchored`: scans held by an ALS anchor (one piece with each other through the plot's ALS node)."""
+    """Pairs to add where a plot's verified `pairs` leave it in pieces: the next signature-ranked
+    partners. `anchored`: scans held by an ALS anchor (one piece with each other through the plot's
+    ALS node)."""
     sig = config.signature
-    tried = {frozenset((j.source, j.target)) for j in job_list}
-    degree = _degrees(job_list)
+    tried = {frozenset((j.source, j.target)) for j in pairs.jobs}
+    degree = _degrees(pairs.jobs)
     G = nx.Graph()
-    for j in job_list:
-        if records.get(j.key, {}).get("status") == "ok":
+    for j in pairs.jobs:
+        if pairs.records.get(j.key, {}).get("status") == "ok":
             G.add_edge(j.source, j.target)
     out = []
     for plot in manifest.plots:
@@ -140,7 +119,7 @@ def grow_jobs(
         for pair in grow_candidates(
             ranks, tried, comps, degree, sig.grow_per_scan, config.pairs.max_per_scan
         ):
-            out.append(_job(manifest, config, seed, prepared, placed, plot, pair))
+            out.append(plot_pair(settings, manifest, plot, pair, placed))
     return out
 
 
@@ -149,17 +128,7 @@ def _signature_round(
 ) -> list[PairJob]:
     """The next signature-ranked partners where a plot is still in pieces."""
     anchored = priors.from_als if run.config.als_anchors else set()
-    jobs = grow_jobs(
-        run.manifest,
-        run.config,
-        run.seed,
-        run.prepared,
-        priors.placed,
-        ranks,
-        pairs.jobs,
-        pairs.records,
-        anchored,
-    )
+    jobs = grow_jobs(run.manifest, run.config, run.settings, priors.placed, ranks, pairs, anchored)
     return with_stored_poses(jobs, priors.verify_first)
 
 
@@ -169,7 +138,7 @@ def from_graph(
     """Jobs between scans the graph places, their prior the pose it implies, verified first (and
     only verified between two scans the ALS placed: their maps will do what a search could)."""
     placed = [j for j in jobs if j.source in poses and j.target in poses]
-    rebased = [dataclasses.replace(j, init=prior(poses, j.source, j.target)) for j in placed]
+    rebased = [pair_job(j.settings, *j.sides, prior(poses, j.source, j.target)) for j in placed]
     return with_stored_poses(with_stored_poses(rebased, set(only), start="only"), set(poses))
 
 
@@ -218,9 +187,7 @@ def grow(run: Run, priors: Priors, ranks: dict[str, list[str]], pairs: Pairs) ->
         more = []
         if positions:
             poses = graph_poses(run.manifest, run.config, pairs, priors.anchors)
-            more = position_jobs(
-                run.manifest, run.config, run.seed, run.prepared, poses, pairs.jobs
-            )
+            more = position_jobs(run.manifest, run.config, run.settings, poses, pairs.jobs)
             positions -= bool(more)
         if not more and grows:
             grows -= 1

@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from plotmosaic.graph.cache import PairCache
+from plotmosaic.graph.cache import PairCache, settings_json
 from plotmosaic.graph.executor import run_pairs
+from plotmosaic.graph.jobs import ScanFile, prepare_job
 from plotmosaic.graph.maps import MapJob, Member, map_key, run_map_job
 from plotmosaic.graph.pairs import reach_distance
-from plotmosaic.graph.prepared import PrepareJob, get_prepared, prepared_key
+from plotmosaic.graph.prepared import PrepareJob, get_prepared
 from plotmosaic.graph.survey import SurveySettings, refine_survey
 from plotmosaic.io.frame import inverse, pose_error
 from plotmosaic.manifest import Plot
@@ -116,26 +117,10 @@ def _without_pairs(run: Run, pairs: Pairs) -> set[str]:
 
 
 def _prepare_jobs(run: Run) -> dict[str, PrepareJob]:
-    """scan id -> its prepare job (the entries prepare_every_scan made)."""
-    settings = run.config.align.model_dump_json()
-    out = {}
-    for plot in run.manifest.plots:
-        for scan in plot.scans:
-            path = str(run.manifest.resolve(scan.path))
-            kind = scan.kind.value
-            key = prepared_key(path, kind, scan.k, settings, run.seed, run.config.read)
-            out[scan.id] = PrepareJob(
-                key,
-                scan.id,
-                path,
-                kind,
-                scan.k,
-                settings,
-                run.seed,
-                str(run.prepared),
-                reading=run.config.read,
-            )
-    return out
+    """scan id -> its prepare job (the entries `prepare` made)."""
+    return {
+        s.id: prepare_job(run.settings, ScanFile.of(run.manifest, s)) for s in run.manifest.scans
+    }
 
 
 def _start(scan: str, poses: dict[str, np.ndarray], priors: Priors) -> np.ndarray | None:
@@ -183,7 +168,7 @@ def _plot_jobs(
             "source": prepared[scan].key,
             "members": [(m.prepared.key, m.pose) for m in members],
             "init": None if start is None else _rows(start),
-            "settings": run.config.align.model_dump_json(),
+            "settings": settings_json(run.config.align),
             "maps": maps.model_dump(),
             "seed": run.seed,
         }
@@ -196,7 +181,7 @@ def _plot_jobs(
                 init=None if start is None else _rows(start),
                 margin=maps.margin_m,
                 thin=thin,
-                config_json=fields["settings"],
+                config=run.config.align,
                 seed=run.seed,
                 edge_distance=maps.edge_distance,
                 min_edge_points=maps.min_edge_points,
@@ -221,16 +206,7 @@ def _run(run: Run, cache: PairCache, jobs: list[MapJob]) -> dict[str, dict]:
             run.on_result(record)
 
     todo = [j for j in jobs if j.key not in records]
-    run_pairs(
-        todo,
-        keep,
-        run.executor,
-        run.n_jobs,
-        run.scheduler,
-        run.progress,
-        worker=run_map_job,
-        label="scans onto maps",
-    )
+    run_pairs(todo, run.workers, keep, worker=run_map_job, label="scans onto maps")
     return records
 
 

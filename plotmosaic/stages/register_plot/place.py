@@ -9,17 +9,14 @@ import numpy as np
 
 from plotmosaic.config.register import RegisterConfig
 from plotmosaic.graph.cache import PairCache
-from plotmosaic.graph.executor import PairJob, with_reading
+from plotmosaic.graph.compute import EDGE_FIELDS, compute_pairs
+from plotmosaic.graph.executor import Workers
+from plotmosaic.graph.jobs import JobSettings, PairJob
 from plotmosaic.graph.pairs import manifest_positions
 from plotmosaic.graph.placement import placed_poses, placement_jobs, sure_placements
 from plotmosaic.io.frame import translation
 from plotmosaic.manifest import Manifest, Plot
-from plotmosaic.stages.register_plot.pairs import (
-    EDGE_FIELDS,
-    Run,
-    anchor_id,
-    compute_pairs,
-)
+from plotmosaic.stages.register_plot.pairs import Run, anchor_id
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -43,18 +40,12 @@ def placement_plan(
     manifest: Manifest, config: RegisterConfig, seed: int, prepared: Path
 ) -> list[PairJob]:
     """The scan -> ALS tile jobs of every big plot without positions (prepared clouds in `prepared`)."""
+    # the scans prepared with the pairs' settings: one prepared cloud serves both
+    settings = JobSettings(config.placement, seed, str(prepared), config.read, config.align)
     jobs = []
     for plot in manifest.plots:
         if len(plot.scans) > config.pairs.all_pairs_up_to and manifest_positions(plot) is None:
-            plot_jobs = placement_jobs(
-                manifest,
-                plot,
-                config.placement.model_dump_json(),
-                seed,
-                str(prepared),
-                config.align.model_dump_json(),
-            )
-            jobs += with_reading(plot_jobs, config.read)
+            jobs += placement_jobs(manifest, plot, settings)
     return jobs
 
 
@@ -63,19 +54,14 @@ def place_scans(
     config: RegisterConfig,
     seed: int,
     out: Path,
-    executor: str = "local",
-    n_jobs: int | None = None,
-    scheduler: str | None = None,
+    workers: Workers = Workers(),
     force: bool = False,
-    progress: bool = True,
 ) -> tuple[dict[str, np.ndarray], list[PairJob], dict[str, dict]]:
     """Scans of big plots without positions registered to the ALS tile (N pairs instead of N(N-1)/2)."""
     jobs = placement_plan(manifest, config, seed, out / "prepared") if config.place_on_als else []
     if not jobs:
         return {}, [], {}
-    records, _ = compute_pairs(
-        jobs, PairCache(out / "placement"), executor, n_jobs, scheduler, force, progress
-    )
+    records, _ = compute_pairs(jobs, PairCache(out / "placement"), workers, force)
     return placed_poses(jobs, records, config.placement_min_confidence), jobs, records
 
 
@@ -103,15 +89,7 @@ def place(run: Run) -> Priors:
     """The run's priors: big plots placed on the ALS tile, else the poses stored in the scan files."""
     manifest, config = run.manifest, run.config
     placed, placement, placement_records = place_scans(
-        manifest,
-        config,
-        run.seed,
-        run.out,
-        run.executor,
-        run.n_jobs,
-        run.scheduler,
-        run.force,
-        run.progress,
+        manifest, config, run.seed, run.out, run.workers, run.force
     )
     # poses stored in the scan files (E57 `use_pose = true`) are priors like the ALS step's, one
     # plot at a time so that frames never mix within a plot; the pairwise judge verifies them

@@ -9,9 +9,17 @@ from pathlib import Path
 import numpy as np
 
 from plotmosaic.config.register import RegisterConfig
-from plotmosaic.graph.executor import PairJob, run_pairs, with_stored_poses
+from plotmosaic.graph.executor import Workers, run_pairs
+from plotmosaic.graph.jobs import (
+    JobSettings,
+    PairJob,
+    ScanFile,
+    pair_job,
+    prepare_job,
+    with_stored_poses,
+)
 from plotmosaic.graph.pairs import candidate_pairs, manifest_positions, spanning_first
-from plotmosaic.graph.prepared import prepared_key
+from plotmosaic.graph.placement import prior
 from plotmosaic.graph.signature import (
     SignatureJob,
     from_record,
@@ -21,7 +29,7 @@ from plotmosaic.graph.signature import (
     similarity,
 )
 from plotmosaic.manifest import Manifest
-from plotmosaic.stages.register_plot.pairs import Run, _pair_job
+from plotmosaic.stages.register_plot.pairs import Run, pair_settings
 from plotmosaic.stages.register_plot.place import Priors
 
 
@@ -38,16 +46,13 @@ class Plan:
 def plan_jobs(
     manifest: Manifest,
     config: RegisterConfig,
-    seed: int,
-    prepared: str | Path | None = None,
+    settings: JobSettings,
     placed: dict[str, np.ndarray] | None = None,
     linked: dict[str, list[tuple[str, str]]] | None = None,
 ) -> list[PairJob]:
-    """The pair jobs of every plot; `prepared`: the prepared-cloud cache folder (DIR/prepared);
+    """The pair jobs of every plot (`settings`: what they share, pairs.pair_settings);
     `placed`: scan poses from the ALS step (positions for the pair selection, priors for the coarse stage);
     `linked`: plot id -> pairs of scans whose signatures match (pairs for scans without a position)."""
-    config_json = config.align.model_dump_json()
-    prepared = None if prepared is None else str(prepared)
     placed = placed or {}
     linked = linked or {}
     reach = config.placed_priors.reach
@@ -57,11 +62,8 @@ def plan_jobs(
         for source, target in candidate_pairs(
             plot, config.max_distance, positions, config.pairs, linked.get(plot.id), reach
         ):
-            jobs.append(
-                _pair_job(
-                    manifest, source, target, config_json, seed, prepared, placed, config.read
-                )
-            )
+            sides = ScanFile.of(manifest, source), ScanFile.of(manifest, target)
+            jobs.append(pair_job(settings, *sides, prior(placed, source.id, target.id)))
     return jobs
 
 
@@ -69,18 +71,12 @@ def _signature_jobs(
     manifest: Manifest, config: RegisterConfig, seed: int, out: Path, plots: list
 ) -> dict[str, SignatureJob]:
     """scan id -> its signature job, for every scan of these plots."""
-    settings = config.align.model_dump_json()
-    sig = config.signature.model_dump_json()
-    folder = str(out / "prepared")
+    settings = pair_settings(config, seed, out / "prepared")
     jobs = {}
     for plot in plots:
         for scan in plot.scans:
-            path = str(manifest.resolve(scan.path))
-            kind = scan.kind.value
-            key = prepared_key(path, kind, scan.k, settings, seed, config.read)
-            jobs[scan.id] = SignatureJob(
-                key, scan.id, path, kind, scan.k, settings, seed, folder, sig, reading=config.read
-            )
+            pj = prepare_job(settings, ScanFile.of(manifest, scan))
+            jobs[scan.id] = SignatureJob.of(pj, config.signature)
     return jobs
 
 
@@ -90,10 +86,7 @@ def match_signatures(
     seed: int,
     out: Path,
     placed: dict[str, np.ndarray],
-    executor: str = "local",
-    n_jobs: int | None = None,
-    scheduler: str | None = None,
-    progress: bool = True,
+    workers: Workers = Workers(),
 ) -> tuple[dict[str, list[tuple[str, str]]], dict[str, list[str]]]:
     """Big plots where some scan has no position: every scan's stem-map signature (graph/signature.py).
 
@@ -113,14 +106,7 @@ def match_signatures(
         return {}, {}
     jobs = _signature_jobs(manifest, config, seed, out, plots)
     records = run_pairs(
-        list(jobs.values()),
-        None,
-        executor,
-        n_jobs,
-        scheduler,
-        progress,
-        worker=run_signature_job,
-        label="scan signatures",
+        list(jobs.values()), workers, worker=run_signature_job, label="scan signatures"
     )
     by_key = {r["key"]: r for r in records}
     linked, ranks = {}, {}
@@ -175,17 +161,9 @@ def plan(run: Run, priors: Priors) -> Plan:
     """The pair jobs: candidate pairs by position, signature links where there is none; a spanning
     tree of them first."""
     linked, ranks = match_signatures(
-        run.manifest,
-        run.config,
-        run.seed,
-        run.out,
-        priors.placed,
-        run.executor,
-        run.n_jobs,
-        run.scheduler,
-        run.progress,
+        run.manifest, run.config, run.seed, run.out, priors.placed, run.workers
     )
-    jobs = plan_jobs(run.manifest, run.config, run.seed, run.prepared, priors.placed, linked)
+    jobs = plan_jobs(run.manifest, run.config, run.settings, priors.placed, linked)
     only = frozenset(priors.from_als) if run.config.maps.enabled else frozenset()
     first, deferred = tree_first(run.manifest, jobs, priors.placed, priors.verify_first, only)
     return Plan(jobs=first, deferred=deferred, ranks=ranks)

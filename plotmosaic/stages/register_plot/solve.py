@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import networkx as nx
@@ -15,7 +16,7 @@ from plotmosaic.stages.register_plot.pairs import Pairs, Run, anchor_id
 from plotmosaic.stages.register_plot.place import Priors
 
 
-@dataclass
+@dataclass(frozen=True)
 class PlotResult:
     plot: str
     reference: str
@@ -60,11 +61,17 @@ def solve_plot(
     for u, v in sub.edges():
         G.edges[u, v].update(H.edges[u, v])
     G.graph.setdefault("calibration", {})[plot.id] = sol.scales
-    sol.poses.pop(node, None)
-    sol.sigmas.pop(node, None)
-    sol.covariances.pop(node, None)
-    sol.unplaced = [n for n in sol.unplaced if n != node]
-    return ref, sol
+    return ref, dataclasses.replace(
+        sol,
+        poses=_without(sol.poses, node),
+        sigmas=_without(sol.sigmas, node),
+        covariances=_without(sol.covariances, node),
+        unplaced=[n for n in sol.unplaced if n != node],
+    )
+
+
+def _without(values: dict, node: str) -> dict:
+    return {k: v for k, v in values.items() if k != node}
 
 
 def _choose_reference(G: nx.Graph, plot: Plot) -> str:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from dataclasses import dataclass, field
@@ -9,7 +10,7 @@ from pathlib import Path
 
 import networkx as nx
 
-from plotmosaic.graph.executor import prepare_jobs_for
+from plotmosaic.graph.jobs import prepare_jobs_for
 from plotmosaic.graph.posegraph import graph_to_json
 from plotmosaic.graph.prepared import entry, points_reader
 from plotmosaic.io.atomic import write_text_atomic
@@ -20,7 +21,7 @@ from plotmosaic.stages.register_plot.place import Priors
 from plotmosaic.stages.register_plot.solve import PlotResult, Solved
 
 
-@dataclass
+@dataclass(frozen=True)
 class RegisterResult:
     out: Path
     poses: Poses
@@ -72,12 +73,18 @@ def write(run: Run, priors: Priors, pairs: Pairs, solved: Solved, start: float) 
     poses = Poses(solved.scans, frame="plot", crs=None, extra=extra)
     G = solved.graph
     failed = G.graph["failed"]
-    result = RegisterResult(
-        run.out, poses, G, solved.plots, len(pairs.jobs), pairs.computed, failed, 0.0
-    )
     write_text_atomic(run.out / "graph.json", json.dumps(graph_to_json(G)))
     poses.save(run.out / "poses.json")
-    result.seconds = time.perf_counter() - start
+    result = RegisterResult(
+        run.out,
+        poses,
+        G,
+        solved.plots,
+        len(pairs.jobs),
+        pairs.computed,
+        failed,
+        time.perf_counter() - start,  # the report shows the work before it
+    )
     # the pictures use the prepared (voxel-thinned) points: no scan is read a second time
     by_path = {str(run.manifest.resolve(s.path)): s.id for s in run.manifest.scans}
     entries = {
@@ -87,5 +94,4 @@ def write(run: Run, priors: Priors, pairs: Pairs, solved: Solved, start: float) 
     }
     reader = points_reader(entries, run.config.read, run.config.align)
     write_register_report(result, run.manifest, run.config, run.seed, reader=reader)
-    result.seconds = time.perf_counter() - start
-    return result
+    return dataclasses.replace(result, seconds=time.perf_counter() - start)

@@ -11,6 +11,7 @@ written in the ALS CRS.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from dataclasses import dataclass, field
@@ -21,8 +22,10 @@ import numpy as np
 
 from plotmosaic.config.register import TieConfig
 from plotmosaic.errors import InputError
-from plotmosaic.graph.cache import PairCache, pair_key
-from plotmosaic.graph.executor import PairJob, prepare_jobs_for, with_reading
+from plotmosaic.graph.cache import PairCache
+from plotmosaic.graph.compute import compute_pairs
+from plotmosaic.graph.executor import Workers
+from plotmosaic.graph.jobs import JobSettings, PairJob, ScanFile, pair_job, prepare_jobs_for
 from plotmosaic.graph.posegraph import Solution, graph_from_json, graph_to_json
 from plotmosaic.graph.prepared import points_reader, prepare_held
 from plotmosaic.io.atomic import write_text_atomic
@@ -31,7 +34,6 @@ from plotmosaic.io.las import PointCloud, write_cloud
 from plotmosaic.manifest import Manifest, Plot, load_manifest
 from plotmosaic.poses import Poses, ScanPose, load_poses
 from plotmosaic.report.runs import write_tie_report
-from plotmosaic.stages.register_plot.pairs import compute_pairs
 from plotmosaic.stages.tie_to_als.anchor_fit import fit_anchors
 from plotmosaic.stages.tie_to_als.clouds import (
     LAS_SCALE,
@@ -46,6 +48,7 @@ from plotmosaic.stages.tie_to_als.solve import (
     Tied,
     _anchor_dict,
     _plot_reference,
+    anchor_of,
     georeferenced_sigmas,
     region_graph,
     solve_region,
@@ -64,7 +67,7 @@ __all__ = [
 ]
 
 
-@dataclass
+@dataclass(frozen=True)
 class TieResult:
     out: Path
     poses: Poses
@@ -152,47 +155,38 @@ def _plot_job(run: TieRun, plot: Plot, cache: PairCache) -> tuple[PairJob, str]:
     # a merged plot may pass for one scan about the reference scanner (align/viewpoint.py); its only
     # partner is the ALS, which has no scanner, so the final ICP's side test never runs on it
     kind, k, als_k = plot.reference.kind.value, plot.reference.k, run.manifest.als[0].k
-    config_json = run.config.align.model_dump_json()
-    key = pair_key(src, tgt, kind, "als", k, als_k, config_json, run.seed)
-    pair = PairJob(
-        key,
-        plot.id,
-        ALS_NODE,
-        str(src),
-        str(tgt),
-        kind,
-        "als",
-        k,
-        als_k,
-        config_json,
-        run.seed,
-        str(run.out / "prepared"),
+    settings = JobSettings(run.config.align, run.seed, str(run.out / "prepared"), run.config.read)
+    job = pair_job(
+        settings, ScanFile(plot.id, str(src), kind, k), ScanFile(ALS_NODE, str(tgt), "als", als_k)
     )
-    (job,) = with_reading([pair], run.config.read)
     if not cache.path(job.key).is_file():  # a cached result needs neither cloud prepared
         for pj, points in zip(prepare_jobs_for(job), (as_stored(cloud), as_stored(crop))):
             prepare_held(pj, points)
     return job, how
 
 
-def _tie_plots(
-    run: TieRun, jobs: int | None, executor: str, scheduler: str | None, progress: bool
-) -> Tied:
+def _tie_plots(run: TieRun, workers: Workers) -> Tied:
     """Each plot with a placed scan registered to the ALS; its pair runs (and is cached) like any."""
-    jobs_list, anchors, refs = [], {}, {}
+    jobs: dict[str, tuple[PairJob, str]] = {}  # plot id -> (its job, how the ALS was cropped)
+    refs = {}
     cache = PairCache(run.out / "pairs")
     for plot in run.manifest.plots:
-        if not any(s.id in run.poses.scans for s in plot.scans):
-            anchors[plot.id] = Anchor(
-                plot.id, "", "failed", error="no scan of this plot was placed by register-plot"
-            )
-            continue
-        ref = refs[plot.id] = _plot_reference(plot, run.poses, run.G_plot)
-        job, how = _plot_job(run, plot, cache)
-        jobs_list.append(job)
-        anchors[plot.id] = Anchor(plot.id, ref, "pending", crop=how)
-    records, computed = compute_pairs(jobs_list, cache, executor, jobs, scheduler, False, progress)
+        if any(s.id in run.poses.scans for s in plot.scans):
+            refs[plot.id] = _plot_reference(plot, run.poses, run.G_plot)
+            jobs[plot.id] = _plot_job(run, plot, cache)
+    jobs_list = [job for job, _ in jobs.values()]
+    records, computed = compute_pairs(jobs_list, cache, workers)
     fits = fit_anchors(jobs_list, records, run.config)
+    anchors = {}
+    for plot in run.manifest.plots:
+        if plot.id not in jobs:
+            why = "no scan of this plot was placed by register-plot"
+            anchors[plot.id] = Anchor(plot.id, "", "failed", error=why)
+            continue
+        job, how = jobs[plot.id]
+        anchors[plot.id] = anchor_of(
+            plot.id, refs[plot.id], how, records[job.key], fits.get(plot.id)
+        )
     return Tied(
         jobs=jobs_list, records=records, computed=computed, anchors=anchors, refs=refs, fits=fits
     )
@@ -214,10 +208,6 @@ def _write(run: TieRun, G: nx.Graph, sol: Solution, tied: Tied, start: float) ->
         "anchors": {a.plot: _anchor_dict(a) for a in tied.anchors.values()},
     }
     result_poses = Poses(scans, frame="crs", crs=run.crs.to_wkt(), extra=extra)
-    anchors = list(tied.anchors.values())
-    result = TieResult(
-        run.out, result_poses, G, anchors, sol, run.als_frame.offset, unplaced, tied.computed
-    )
     write_text_atomic(run.out / "graph.json", json.dumps(graph_to_json(G)))
     result_poses.save(run.out / "poses.json")
     entries = {
@@ -225,7 +215,12 @@ def _write(run: TieRun, G: nx.Graph, sol: Solution, tied: Tied, start: float) ->
         for s in run.manifest.scans
         if s.id in run.prepared_scans
     }
-    result.seconds = time.perf_counter() - start  # the report shows the work before it
+    anchors = list(tied.anchors.values())
+    offset = run.als_frame.offset
+    seconds = time.perf_counter() - start  # the report shows the work before it
+    result = TieResult(
+        run.out, result_poses, G, anchors, sol, offset, unplaced, tied.computed, seconds
+    )
     write_tie_report(
         result,
         run.manifest,
@@ -236,8 +231,7 @@ def _write(run: TieRun, G: nx.Graph, sol: Solution, tied: Tied, start: float) ->
         earlier=run.poses,
         earlier_report=run.poses_path.parent / "report.html",
     )
-    result.seconds = time.perf_counter() - start
-    return result
+    return dataclasses.replace(result, seconds=time.perf_counter() - start)
 
 
 def tie_to_als(
@@ -246,17 +240,14 @@ def tie_to_als(
     out: str | Path,
     config: TieConfig | None = None,
     seed: int = 0,
-    jobs: int | None = None,
-    executor: str = "local",
-    scheduler: str | None = None,
-    progress: bool = True,
+    workers: Workers = Workers(),
 ) -> TieResult:
     """Tie register-plot's plots (`poses_path`) to the manifest's ALS tile into `out`: poses.json in
     the ALS CRS, graph.json, the plot clouds and the report. Raises InputError for bad inputs and
     RegistrationFailed when no plot can be registered to the ALS."""
     start = time.perf_counter()
     run = _start(manifest, poses_path, out, config, seed)
-    tied = _tie_plots(run, jobs, executor, scheduler, progress)  # plot cloud -> ALS crop, each
+    tied = _tie_plots(run, workers)  # plot cloud -> ALS crop, each
     G = region_graph(run.manifest, run.poses, run.G_plot, run.als_frame, tied)
     sol = solve_region(G, run.config)  # the region, with the ALS node fixed
     return _write(run, G, sol, tied, start)

@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 
 from plotmosaic.align.icp import point_to_plane_jacobian
 from plotmosaic.config.register import TieConfig
-from plotmosaic.graph.executor import PairJob
+from plotmosaic.graph.jobs import PairJob
 from plotmosaic.io.bounded import read_scan_points
 
 NEIGHBOURS = 12  # TLS points a plane is fitted to (at the plot voxel, a few decimetres across)

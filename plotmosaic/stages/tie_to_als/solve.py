@@ -10,12 +10,12 @@ import numpy as np
 
 from plotmosaic.config.register import TieConfig
 from plotmosaic.errors import RegistrationFailed
-from plotmosaic.graph.executor import PairJob
+from plotmosaic.graph.compute import EDGE_FIELDS
+from plotmosaic.graph.jobs import PairJob
 from plotmosaic.graph.posegraph import Solution, build_graph, inverse, optimise
 from plotmosaic.io.frame import Frame, translation
 from plotmosaic.manifest import Manifest, Plot
 from plotmosaic.poses import Poses
-from plotmosaic.stages.register_plot.pairs import EDGE_FIELDS
 from plotmosaic.stages.tie_to_als.anchor_fit import AnchorFit
 
 ALS_NODE = "ALS"
@@ -24,7 +24,7 @@ ALS_NODE = "ALS"
 COVARIANCE_FLOOR = np.array([1e-6] * 3 + [1e-5] * 3)
 
 
-@dataclass
+@dataclass(frozen=True)
 class Anchor:
     plot: str
     reference: str
@@ -49,7 +49,7 @@ class Tied:
     jobs: list[PairJob]
     records: dict[str, dict]
     computed: int
-    anchors: dict[str, Anchor]  # plot id -> its anchor (updated by region_graph and solve_region)
+    anchors: dict[str, Anchor]  # plot id -> its anchor
     refs: dict[str, str]  # plot id -> its reference scan (plots with a placed scan)
     fits: dict[str, AnchorFit]  # plot id -> the ALS against its registered plot (where measured)
 
@@ -103,6 +103,26 @@ def _plot_edges(plot: Plot, poses: Poses, G: nx.Graph | None, ref: str) -> tuple
     return nodes, edges
 
 
+def anchor_of(plot: str, reference: str, crop: str, rec: dict, fit: AnchorFit | None) -> Anchor:
+    """A plot's anchor from its pair to the ALS: ok with the pair's figures (and the ALS against
+    the registered plot, where measured), else failed with the pair's error."""
+    if rec.get("status") != "ok":
+        return Anchor(plot, reference, "failed", error=rec.get("error"), crop=crop)
+    return Anchor(
+        plot,
+        reference,
+        "ok",
+        np.asarray(rec["transform"], float),  # plot frame -> ALS CRS
+        rec.get("fitness"),
+        rec.get("inlier_rmse"),
+        rec.get("overlap"),
+        rec.get("confidence"),
+        crop=crop,
+        fit=None if fit is None else fit.as_dict(),
+        fine_margin=(rec.get("judge") or {}).get("fine_margin"),
+    )
+
+
 def _anchor_dict(a: Anchor) -> dict:
     return {
         "reference": a.reference,
@@ -141,15 +161,6 @@ def _anchor_edge(
         information=Ad.T @ info @ Ad,
         posterior=fit is not None,
     )
-    anchor.status, anchor.transform = "ok", T
-    anchor.fitness, anchor.inlier_rmse, anchor.overlap, anchor.confidence = (
-        rec.get("fitness"),
-        rec.get("inlier_rmse"),
-        rec.get("overlap"),
-        rec.get("confidence"),
-    )
-    anchor.fine_margin = (rec.get("judge") or {}).get("fine_margin")
-    anchor.fit = None if fit is None else fit.as_dict()
     return edge
 
 
@@ -162,7 +173,7 @@ def region_graph(
 ) -> nx.Graph:
     """One graph: every plot's pairwise edges + an anchor edge per plot to the fixed ALS node.
 
-    Marks each anchor ok or failed; raises RegistrationFailed when no plot is tied to the ALS."""
+    Raises RegistrationFailed when no plot is tied to the ALS."""
     nodes, edges = {ALS_NODE: {"kind": "als", "plot": None}}, []
     for plot in manifest.plots:
         if plot.id in tied.refs:
@@ -171,8 +182,7 @@ def region_graph(
             edges += e
     for job in tied.jobs:
         rec, anchor = tied.records[job.key], tied.anchors[job.source]
-        if rec.get("status") != "ok":
-            anchor.status, anchor.error = "failed", rec.get("error")
+        if anchor.status != "ok":
             continue
         edges.append(_anchor_edge(rec, anchor, tied.fits.get(job.source), poses, als_frame))
     if not any(a.status == "ok" for a in tied.anchors.values()):
