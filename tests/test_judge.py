@@ -14,9 +14,9 @@ from plotmosaic.align.fine import FineResult
 from plotmosaic.align.judge import rivals
 from plotmosaic.align.judge.profile import Profile
 from plotmosaic.align.memo import PairMemo
+from plotmosaic.align.pair import recover
 from plotmosaic.align.pipeline import PairResult, blunt_fit, prepare_pair, register_prepared
 from plotmosaic.align.prepare import prepare_cloud
-from plotmosaic.align.register import recover
 from plotmosaic.align.spacing import scale_factor
 from plotmosaic.cli import app
 from plotmosaic.config.align import AlignConfig

@@ -1,6 +1,6 @@
 """ForestAlign pairwise registration (paper Algorithm 1) from two clouds or two files.
 
-prepare (voxel, normals, levels) -> register (align/register.py: search, level stage, final ICP,
+prepare (voxel, normals, levels) -> register (align/pair.py: search, level stage, final ICP,
 judge, quality, floors). The names other modules and tests import from here stay importable.
 """
 
@@ -18,6 +18,7 @@ from plotmosaic.align.fine import FineResult, final_icp
 from plotmosaic.align.floors import blunt_fit, check_quality
 from plotmosaic.align.kinds import KindDetection, detect_kind
 from plotmosaic.align.level_icp import incremental_steps
+from plotmosaic.align.pair import Start, global_search, register_prepared
 from plotmosaic.align.prepare import (
     MIN_POINTS,
     PreparedCloud,
@@ -25,7 +26,6 @@ from plotmosaic.align.prepare import (
     prepare_cloud,
     robust_points,
 )
-from plotmosaic.align.register import Start, global_search, register_prepared
 from plotmosaic.align.result import METHOD, PairResult
 from plotmosaic.config.align import KINDS, AlignConfig, default_levels
 from plotmosaic.config.reading import ReadingConfig
