@@ -27,14 +27,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from plotmosaic.align import judge
-from plotmosaic.align.pipeline import (
-    Start,
-    blunt_fit,
-    final_icp,
-    global_search,
-    prepare_pair,
-    register_prepared,
-)
+from plotmosaic.align.fine import final_icp
+from plotmosaic.align.floors import blunt_fit
+from plotmosaic.align.pair import Start, global_search, register_prepared
+from plotmosaic.align.pipeline import prepare_pair
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import RegistrationFailed
 from plotmosaic.io.frame import to_local_transform

@@ -28,7 +28,8 @@ import numpy as np
 from bench_judge import DATA, cases
 
 from plotmosaic.align import scene
-from plotmosaic.align.pipeline import prepare_pair, register_prepared
+from plotmosaic.align.pair import register_prepared
+from plotmosaic.align.pipeline import prepare_pair
 from plotmosaic.align.prepare import prepare_cloud
 from plotmosaic.config.align import AlignConfig, default_levels
 from plotmosaic.config.simulate import PRESETS, DrawnConfig

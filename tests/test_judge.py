@@ -11,12 +11,14 @@ from typer.testing import CliRunner
 
 from plotmosaic.align import judge
 from plotmosaic.align.fine import FineResult
+from plotmosaic.align.floors import blunt_fit
 from plotmosaic.align.judge import rivals
 from plotmosaic.align.judge.profile import Profile
 from plotmosaic.align.memo import PairMemo
-from plotmosaic.align.pair import recover
-from plotmosaic.align.pipeline import PairResult, blunt_fit, prepare_pair, register_prepared
+from plotmosaic.align.pair import recover, register_prepared
+from plotmosaic.align.pipeline import prepare_pair
 from plotmosaic.align.prepare import prepare_cloud
+from plotmosaic.align.result import PairResult
 from plotmosaic.align.spacing import scale_factor
 from plotmosaic.cli import app
 from plotmosaic.config.align import AlignConfig

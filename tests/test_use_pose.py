@@ -5,7 +5,8 @@ import pytest
 from helpers import SIM_PAIR_MAX_DEG, SIM_PAIR_MAX_M, invoke, write_e57
 from scipy.spatial.transform import Rotation
 
-from plotmosaic.align.pipeline import Start, prepare_pair, register_prepared
+from plotmosaic.align.pair import Start, register_prepared
+from plotmosaic.align.pipeline import prepare_pair
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import RegistrationFailed
 from plotmosaic.io.frame import inverse, pose_error

@@ -1,7 +1,7 @@
 """ForestAlign pairwise registration (paper Algorithm 1) from two clouds or two files.
 
 prepare (voxel, normals, levels) -> register (align/pair.py: search, level stage, final ICP,
-judge, quality, floors). The names other modules and tests import from here stay importable.
+judge, quality, floors).
 """
 
 from __future__ import annotations
@@ -14,11 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from plotmosaic.align.figures import save_levels as write_levels
-from plotmosaic.align.fine import FineResult, final_icp
-from plotmosaic.align.floors import blunt_fit, check_quality
 from plotmosaic.align.kinds import KindDetection, detect_kind
-from plotmosaic.align.level_icp import incremental_steps
-from plotmosaic.align.pair import Start, global_search, register_prepared
+from plotmosaic.align.pair import register_prepared
 from plotmosaic.align.prepare import (
     MIN_POINTS,
     PreparedCloud,
@@ -26,7 +23,7 @@ from plotmosaic.align.prepare import (
     prepare_cloud,
     robust_points,
 )
-from plotmosaic.align.result import METHOD, PairResult
+from plotmosaic.align.result import PairResult
 from plotmosaic.config.align import KINDS, AlignConfig, default_levels
 from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.errors import InputError
@@ -34,22 +31,7 @@ from plotmosaic.io.bounded import read_scan_points
 from plotmosaic.io.las import PointCloud
 from plotmosaic.parallel import both
 
-__all__ = [
-    "METHOD",
-    "AlignRequest",
-    "FineResult",
-    "PairResult",
-    "Start",
-    "align_clouds",
-    "align_files",
-    "blunt_fit",
-    "check_quality",
-    "final_icp",
-    "global_search",
-    "incremental_steps",
-    "prepare_pair",
-    "register_prepared",
-]
+__all__ = ["AlignRequest", "align_clouds", "align_files", "pair_kinds", "prepare_pair"]
 
 
 # entries register_prepared records in its timings that are not seconds: they go to `steps`

@@ -27,7 +27,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from plotmosaic.align.memo import RunMemo
-from plotmosaic.align.pipeline import Start, register_prepared
+from plotmosaic.align.pair import Start, register_prepared
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.errors import InputError, RegistrationFailed
