@@ -9,11 +9,11 @@ import numpy as np
 from builders import synthetic_pose_graph
 from scipy.spatial.transform import Rotation
 
+from plotmosaic.bench.synthetic import grid_graph
 from plotmosaic.config.register import RegisterConfig
 from plotmosaic.graph import prepared as store
 from plotmosaic.graph.executor import prepare_jobs_for
 from plotmosaic.graph.posegraph import _edge_id, build_graph, optimise, pose_error, triangles
-from plotmosaic.graph.synthetic import grid_graph
 from plotmosaic.manifest import load_manifest
 from plotmosaic.stages.register_plot import plan_jobs, prepare_scans
 
