@@ -224,10 +224,8 @@ def prepared(name, xs, xt, ks, kt, T_true, related, cfg: AlignConfig):
     ps, pt = prepare_pair(
         PointCloud(xs),
         PointCloud(xt),
-        ks,
-        kt,
-        3 if ks in ("tls", "mls") else 2,
-        3 if kt in ("tls", "mls") else 2,
+        (ks, kt),
+        (3 if ks in ("tls", "mls") else 2, 3 if kt in ("tls", "mls") else 2),
         cfg,
         0,
     )
@@ -643,7 +641,7 @@ def bench_fine(work: Path, n: int) -> str:
         ("target (sparse ALS), before", 1e9),
     ):
         cfg = AlignConfig() if ratio is None else AlignConfig(final_reverse_ratio=ratio)
-        ps, pt = prepare_pair(PointCloud(uas), PointCloud(als), "uls", "als", 2, 2, cfg, 0)
+        ps, pt = prepare_pair(PointCloud(uas), PointCloud(als), ("uls", "als"), (2, 2), cfg, 0)
         local = cfg.model_copy(deep=True)
         local.coarse.enabled = False
         rng = np.random.default_rng(4)

@@ -154,7 +154,12 @@ def run(name: str, xs, xt, ks: str, kt: str, cfg: AlignConfig, full: bool = True
     t0 = time.perf_counter()
     try:
         ps, pt = prepare_pair(
-            PointCloud(xs), PointCloud(xt), ks, kt, default_levels(ks), default_levels(kt), cfg, 0
+            PointCloud(xs),
+            PointCloud(xt),
+            (ks, kt),
+            (default_levels(ks), default_levels(kt)),
+            cfg,
+            0,
         )
     except InputError as exc:  # exit 2: the cloud cannot even be prepared (a few cm across)
         print(f"  {name}: refused (exit 2) {exc}", file=sys.stderr)

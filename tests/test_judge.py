@@ -59,7 +59,7 @@ def pair(small_sim):
     s = read_cloud(small_sim.scan_paths["P1-S1"], attributes=False)
     t = read_cloud(small_sim.scan_paths["P1-S0"], attributes=False)
     cfg = AlignConfig()
-    ps, pt = prepare_pair(s, t, "tls", "tls", 3, 3, cfg, 0)
+    ps, pt = prepare_pair(s, t, ("tls", "tls"), (3, 3), cfg, 0)
     return ps, pt, T_true, s.xyz.mean(axis=0), cfg
 
 
@@ -288,7 +288,7 @@ def boxed(spanner_dir):
     case = build_case("mls-boxed6m", spanner_dir.parent)
     cfg = AlignConfig()
     ps, pt = prepare_pair(
-        case.source, case.target, "tls", "tls", default_levels("tls"), default_levels("tls"), cfg
+        case.source, case.target, ("tls", "tls"), (default_levels("tls"),) * 2, cfg
     )
     return ps, pt, case, cfg
 

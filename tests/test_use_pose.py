@@ -46,7 +46,7 @@ def pair(scans):
     clouds, poses = scans
     cfg = AlignConfig()
     src, tgt = prepare_pair(
-        PointCloud(clouds["P1-S2"]), PointCloud(clouds["P1-S0"]), "tls", "tls", 3, 3, cfg
+        PointCloud(clouds["P1-S2"]), PointCloud(clouds["P1-S0"]), ("tls", "tls"), (3, 3), cfg
     )
     return src, tgt, inverse(poses["P1-S0"]) @ poses["P1-S2"], cfg
 

@@ -82,20 +82,19 @@ def _robust(cloud: PointCloud, config: AlignConfig, name: str) -> RobustPoints |
 def prepare_pair(
     source: PointCloud,
     target: PointCloud,
-    source_kind: str,
-    target_kind: str,
-    levels_source: int,
-    levels_target: int,
+    kinds: tuple[str, str],
+    levels: tuple[int, int],
     config: AlignConfig,
     seed: int = 0,
     robust: tuple[RobustPoints | None, RobustPoints | None] = (None, None),
 ) -> tuple[PreparedCloud, PreparedCloud]:
-    """Both clouds prepared at once (source with `seed`, target with `seed + 1`); `robust`: their
-    points without stray ones where the caller made them already."""
+    """Both clouds prepared at once (source with `seed`, target with `seed + 1`); `kinds`, `levels`
+    and `robust` are (source's, target's), `robust` their points without stray ones where the
+    caller made them already."""
     return both(
         lambda job: prepare_cloud(*job[:-1], robust=job[-1]),
-        (source, source_kind, levels_source, config, seed, "source", robust[0]),
-        (target, target_kind, levels_target, config, seed + 1, "target", robust[1]),
+        (source, kinds[0], levels[0], config, seed, "source", robust[0]),
+        (target, kinds[1], levels[1], config, seed + 1, "target", robust[1]),
     )
 
 
@@ -145,17 +144,11 @@ def align_clouds(
     )
     t_kinds = time.perf_counter() - t0
     say("preparing source and target")
-    src, tgt = prepare_pair(
-        source,
-        target,
-        sk,
-        tk,
+    levels = (
         request.levels_source or default_levels(sk),
         request.levels_target or default_levels(tk),
-        config,
-        seed,
-        robust,
     )
+    src, tgt = prepare_pair(source, target, (sk, tk), levels, config, seed, robust)
     if request.save_levels is not None:
         say("saving levels")
         write_levels(request.save_levels, src, tgt, source.crs, target.crs)
