@@ -383,7 +383,7 @@ def run_case(
                 "score": j.get("score"),
                 "rival": j.get("rival_score"),
                 "judge_s": r.timings.get("judge"),
-                "skipped": "coarse_skipped" in r.timings,
+                "skipped": "coarse_skipped" in r.steps,
             }
         )
     print(

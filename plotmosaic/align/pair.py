@@ -17,13 +17,12 @@ from plotmosaic.align.coarse import CoarseResult, coarse_align
 from plotmosaic.align.coarse.hypothesis import Hypothesis
 from plotmosaic.align.fine import FineResult, final_icp
 from plotmosaic.align.floors import check_quality
-from plotmosaic.align.icp import evaluate, information_matrix
 from plotmosaic.align.judge import Candidate, Verdict
 from plotmosaic.align.level_icp import LevelResult, level_stage, levels_record, no_level_stage
 from plotmosaic.align.memo import PairMemo
 from plotmosaic.align.prepare import PreparedCloud
+from plotmosaic.align.quality import Quality, measure
 from plotmosaic.align.result import PairResult
-from plotmosaic.align.sampling import sample
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import RegistrationFailed
 from plotmosaic.io.frame import rotation_deg, to_global_transform, to_local_transform
@@ -103,7 +102,7 @@ def register_prepared(
     judged = judge_pose(pair, fine, handed, search)
     clock.mark("judge")
     pair.say("quality")
-    quality = measure(pair, judged.fine, rng)
+    quality = measure(src, tgt, config, judged.fine, rng)
     clock.mark("quality")
     result = pair_result(pair, search, levels, judged, quality, clock)
     check_quality(result, config, local=not config.coarse.enabled or init is not None)
@@ -135,18 +134,6 @@ class Judged:
 
     fine: FineResult
     verdict: Verdict | None  # None: the judge is off
-
-
-@dataclass(frozen=True, kw_only=True, eq=False)
-class Quality:
-    """The pose's figures in file coordinates."""
-
-    transform: np.ndarray  # source file -> target file
-    fitness: float
-    rmse: float
-    overlap: float
-    information: np.ndarray  # 6x6, from the final point-to-plane problem
-    sigma: float  # point-to-plane residual std behind `information`
 
 
 def verify_stored_pose(pair: PairContext, T: np.ndarray) -> StoredCheck:
@@ -293,34 +280,6 @@ def look_again(pair: PairContext, candidates: list[Candidate], judged: Judged) -
     return judged
 
 
-def measure(pair: PairContext, fine: FineResult, rng: np.random.Generator) -> Quality:
-    """Fitness, RMSE and overlap at `quality_distance`, and the information of the pose."""
-    src, tgt, config = pair.src, pair.tgt, pair.config
-    T = fine.T
-    # fitness / RMSE / overlap on seeded subsamples of the query side: same figures to ~0.1 %, a
-    # fraction of the nearest-neighbour queries on 8M-point scans
-    s_q = src.points[sample(len(src.points), config.quality_max_points, rng)]
-    t_q = tgt.points[sample(len(tgt.points), config.quality_max_points, rng)]
-    fitness, rmse, n_s = evaluate(s_q, tgt.tree, T, config.quality_distance)
-    _, _, n_t = evaluate(t_q, src.tree, np.linalg.inv(T), config.quality_distance)
-    overlap = float((n_s + n_t) / max(1, len(s_q) + len(t_q)))
-    # information from the final point-to-plane problem (its last correspondences), in file coordinates
-    T_file = to_global_transform(T, src.frame, tgt.frame)
-    if len(fine.p):
-        p, q = src.frame.to_global(fine.p), tgt.frame.to_global(fine.q)
-        info, sigma = information_matrix(p, q, fine.n, T_file)
-    else:
-        info, sigma = np.zeros((6, 6)), float("nan")
-    return Quality(
-        transform=T_file,
-        fitness=fitness,
-        rmse=rmse,
-        overlap=overlap,
-        information=info,
-        sigma=sigma,
-    )
-
-
 def pair_result(
     pair: PairContext,
     search: Search,
@@ -349,15 +308,11 @@ def pair_result(
         coarse=search.coarse,
         confidence=None if verdict is None else verdict.confidence,
         judge=None if verdict is None else _judge_record(verdict, src, tgt),
-        timings={
+        timings=dict(spans),
+        steps={
             **({"coarse_skipped": "stored pose verified"} if search.skipped else {}),
-            "coarse": spans["coarse"],
-            "levels_icp": spans["levels_icp"],
-            "final_icp": spans["final_icp"],
             "final_iterations": fine.iterations,
             "final_planes": "source" if fine.reverse else "target",
-            "judge": spans["judge"],
-            "quality": spans["quality"],
             "correction_deg": rotation_deg(moved),
             "correction_m": float(np.linalg.norm(moved[:3, 3])),
         },

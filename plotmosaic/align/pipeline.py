@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -32,16 +32,6 @@ from plotmosaic.io.las import PointCloud
 from plotmosaic.parallel import both
 
 __all__ = ["AlignRequest", "align_clouds", "align_files", "pair_kinds", "prepare_pair"]
-
-
-# entries register_prepared records in its timings that are not seconds: they go to `steps`
-STEP_ENTRIES = (
-    "coarse_skipped",
-    "final_iterations",
-    "final_planes",
-    "correction_deg",
-    "correction_m",
-)
 
 
 def _kind(kind: str, which: str) -> str:
@@ -125,10 +115,50 @@ def align_clouds(
 ) -> PairResult:
     """Register `source` onto `target` as `request` asks; the result maps source file coordinates
     to target file coordinates."""
+    return _align(source, target, request or AlignRequest(), progress, None)
+
+
+def align_files(
+    source_path,
+    target_path,
+    request: AlignRequest | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> PairResult:
+    """`align_clouds` on two point-cloud files (coordinates only, within the reading budget)."""
     request = request or AlignRequest()
+    t0 = time.perf_counter()
+    (progress or _silent)("reading source and target")
+    source, target = both(
+        lambda path: read_scan_points(path, request.reading, request.config),
+        source_path,
+        target_path,
+    )
+    paths = (str(Path(source_path).resolve()), str(Path(target_path).resolve()))
+    files = _Files(start=t0, read=time.perf_counter() - t0, paths=paths)
+    return _align(source, target, request, progress, files)
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class _Files:
+    """What align_files did before the clouds: when it started, the reading's seconds, the files."""
+
+    start: float  # time.perf_counter()
+    read: float
+    paths: tuple[str, str]  # source, target, resolved
+
+
+def _align(
+    source: PointCloud,
+    target: PointCloud,
+    request: AlignRequest,
+    progress: Callable[[str], None] | None,
+    files: _Files | None,
+) -> PairResult:
+    """The registration of two clouds, its result built whole: the pair function's steps after
+    the reading (`files`, when from files), the kinds and the preparation."""
     config, seed = request.config, request.seed
     t0 = time.perf_counter()
-    say = progress or (lambda msg: None)
+    say = progress or _silent
     # the points as registration sees them (stray points dropped): the source's bounding box, the
     # kinds and the preparation
     robust = _robust(source, config, "source"), _robust(target, config, "target")
@@ -154,44 +184,24 @@ def align_clouds(
         write_levels(request.save_levels, src, tgt, source.crs, target.crs)
     t1 = time.perf_counter()
     result = register_prepared(src, tgt, config, request.init, seed, progress)
-    steps = {k: v for k, v in result.timings.items() if k in STEP_ENTRIES}
-    result.timings = {
-        "kinds": t_kinds,  # the source's bounds, and the kinds not given
-        "prepare": t1 - t0 - t_kinds,
-        "prepare_source": src.seconds,
-        "prepare_target": tgt.seconds,
-        **{k: v for k, v in result.timings.items() if k not in STEP_ENTRIES},
-    }
-    result.steps = {**result.steps, **steps}
-    if robust[0] is not None:
-        result.source_centre = [float(v) for v in robust[0].bounds.mean(axis=1)]
-    result.detected_kinds = {role: d.to_dict() for role, d in detected.items()}
-    result.seconds = time.perf_counter() - t0
-    return result
+    centre = None if robust[0] is None else [float(v) for v in robust[0].bounds.mean(axis=1)]
+    return replace(
+        result,
+        timings={
+            **({} if files is None else {"read": files.read}),
+            "kinds": t_kinds,  # the source's bounds, and the kinds not given
+            "prepare": t1 - t0 - t_kinds,
+            "prepare_source": src.seconds,
+            "prepare_target": tgt.seconds,
+            **result.timings,
+        },
+        source_centre=centre,
+        detected_kinds={role: d.to_dict() for role, d in detected.items()},
+        seconds=time.perf_counter() - (t0 if files is None else files.start),
+        source_path=None if files is None else files.paths[0],
+        target_path=None if files is None else files.paths[1],
+    )
 
 
-def align_files(
-    source_path,
-    target_path,
-    request: AlignRequest | None = None,
-    progress: Callable[[str], None] | None = None,
-) -> PairResult:
-    """`align_clouds` on two point-cloud files (coordinates only, within the reading budget)."""
-    request = request or AlignRequest()
-    t0 = time.perf_counter()
-    say = progress or (lambda msg: None)
-    say("reading source and target")
-    source, target = both(
-        lambda path: read_scan_points(path, request.reading, request.config),
-        source_path,
-        target_path,
-    )
-    t_read = time.perf_counter() - t0
-    result = align_clouds(source, target, request, progress)
-    result.timings = {"read": t_read, **result.timings}
-    result.seconds = time.perf_counter() - t0
-    result.source_path, result.target_path = (
-        str(Path(source_path).resolve()),
-        str(Path(target_path).resolve()),
-    )
-    return result
+def _silent(msg: str) -> None:
+    pass

@@ -166,7 +166,9 @@ def run_pair_job(job: PairJob) -> dict:
         result = register_prepared(
             src, tgt, config, init, job.seed, start=Start(job.start), memo=memo
         )
-        result.timings = {"prepare_source": t_src, "prepare_target": t_tgt, **result.timings}
+        result = dataclasses.replace(
+            result, timings={"prepare_source": t_src, "prepare_target": t_tgt, **result.timings}
+        )
         record.update(result.to_dict(), status="ok")
     except RegistrationFailed as exc:  # a real outcome of this pair: cache it, with its figures
         record.update(status="failed", error=str(exc), cacheable=True)
