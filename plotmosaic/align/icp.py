@@ -145,7 +145,7 @@ def facing(n: np.ndarray, x: np.ndarray, view_a: np.ndarray, view_b: np.ndarray)
     return np.einsum("ij,ij->i", n, view_a - x) * np.einsum("ij,ij->i", n, view_b - x) > 0
 
 
-@dataclass
+@dataclass(frozen=True)
 class Mirror:
     """The reverse correspondences of a symmetric ICP: `points` (a target sample) matched to the
     source cloud (`tree` over `source`, normals by row from `normals_of`)."""
@@ -174,7 +174,7 @@ class Mirror:
         return np.vstack([a, a2]), np.vstack([b, self.points[ok]]), np.vstack([n, n2])
 
 
-@dataclass
+@dataclass(frozen=True)
 class IcpResult:
     T: np.ndarray
     fitness: float  # share of source points with a correspondence in the last iteration

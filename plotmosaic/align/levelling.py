@@ -188,7 +188,7 @@ def trunk_axes_up(
     return up, info
 
 
-@dataclass
+@dataclass(frozen=True)
 class Vertical:
     up: np.ndarray  # unit vector in the cloud's local frame
     name: str  # "normals" | "trunks" | "ground" | "ground-fit" | "z-up"
