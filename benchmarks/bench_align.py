@@ -22,7 +22,8 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from plotmosaic.align.complexity import level_purity
-from plotmosaic.align.pipeline import AlignRequest, align_files, register_prepared
+from plotmosaic.align.pair import register_prepared
+from plotmosaic.align.pipeline import AlignRequest, align_files
 from plotmosaic.align.prepare import prepare_cloud
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import RegistrationFailed

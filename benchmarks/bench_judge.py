@@ -27,14 +27,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from plotmosaic.align import judge
-from plotmosaic.align.pipeline import (
-    Start,
-    blunt_fit,
-    final_icp,
-    global_search,
-    prepare_pair,
-    register_prepared,
-)
+from plotmosaic.align.fine import final_icp
+from plotmosaic.align.floors import blunt_fit
+from plotmosaic.align.pair import Start, global_search, register_prepared
+from plotmosaic.align.pipeline import prepare_pair
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import RegistrationFailed
 from plotmosaic.io.frame import to_local_transform
@@ -228,10 +224,8 @@ def prepared(name, xs, xt, ks, kt, T_true, related, cfg: AlignConfig):
     ps, pt = prepare_pair(
         PointCloud(xs),
         PointCloud(xt),
-        ks,
-        kt,
-        3 if ks in ("tls", "mls") else 2,
-        3 if kt in ("tls", "mls") else 2,
+        (ks, kt),
+        (3 if ks in ("tls", "mls") else 2, 3 if kt in ("tls", "mls") else 2),
         cfg,
         0,
     )
@@ -389,7 +383,7 @@ def run_case(
                 "score": j.get("score"),
                 "rival": j.get("rival_score"),
                 "judge_s": r.timings.get("judge"),
-                "skipped": "coarse_skipped" in r.timings,
+                "skipped": "coarse_skipped" in r.steps,
             }
         )
     print(
@@ -647,7 +641,7 @@ def bench_fine(work: Path, n: int) -> str:
         ("target (sparse ALS), before", 1e9),
     ):
         cfg = AlignConfig() if ratio is None else AlignConfig(final_reverse_ratio=ratio)
-        ps, pt = prepare_pair(PointCloud(uas), PointCloud(als), "uls", "als", 2, 2, cfg, 0)
+        ps, pt = prepare_pair(PointCloud(uas), PointCloud(als), ("uls", "als"), (2, 2), cfg, 0)
         local = cfg.model_copy(deep=True)
         local.coarse.enabled = False
         rng = np.random.default_rng(4)

@@ -28,7 +28,8 @@ import numpy as np
 from bench_judge import DATA, cases
 
 from plotmosaic.align import scene
-from plotmosaic.align.pipeline import prepare_pair, register_prepared
+from plotmosaic.align.pair import register_prepared
+from plotmosaic.align.pipeline import prepare_pair
 from plotmosaic.align.prepare import prepare_cloud
 from plotmosaic.config.align import AlignConfig, default_levels
 from plotmosaic.config.simulate import PRESETS, DrawnConfig
@@ -153,7 +154,12 @@ def run(name: str, xs, xt, ks: str, kt: str, cfg: AlignConfig, full: bool = True
     t0 = time.perf_counter()
     try:
         ps, pt = prepare_pair(
-            PointCloud(xs), PointCloud(xt), ks, kt, default_levels(ks), default_levels(kt), cfg, 0
+            PointCloud(xs),
+            PointCloud(xt),
+            (ks, kt),
+            (default_levels(ks), default_levels(kt)),
+            cfg,
+            0,
         )
     except InputError as exc:  # exit 2: the cloud cannot even be prepared (a few cm across)
         print(f"  {name}: refused (exit 2) {exc}", file=sys.stderr)

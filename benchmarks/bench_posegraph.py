@@ -10,7 +10,7 @@ The second form prints how many pairs register-plot's selection runs for plots o
 to 1 cm as from the ALS step or the verified graph, paired within `PlacedPriors.reach` x the
 spacing), against all pairs; the
 third for plots without any position, paired by stem-map signatures (synthetic stem maps:
-graph/synthetic.stem_map_grid, 300 stems / ha seen to 20 m, 20 % occluded, 5 cm noise).
+bench/synthetic.stem_map_grid, 300 stems / ha seen to 20 m, 20 % occluded, 5 cm noise).
 
 Prints the number of edges, wrong edges, how many of them were dropped (and why), good edges
 dropped, the optimise time and the worst pose error against the synthetic truth.
@@ -22,9 +22,9 @@ import argparse
 import time
 from collections import Counter
 
+from plotmosaic.bench.synthetic import grid_graph
 from plotmosaic.graph.cycles import _edge_id
 from plotmosaic.graph.posegraph import build_graph, optimise, pose_error
-from plotmosaic.graph.synthetic import grid_graph
 
 
 def pair_counts(sizes: list[int], placed: bool = False) -> None:
@@ -78,9 +78,9 @@ def signature_counts(sizes: list[int]) -> None:
     import networkx as nx
     import numpy as np
 
+    from plotmosaic.bench.synthetic import stem_map_grid
     from plotmosaic.config.scale import SignatureConfig
     from plotmosaic.graph.signature import Signature, signature_pairs, similarity, stem_triangles
-    from plotmosaic.graph.synthetic import stem_map_grid
 
     config = SignatureConfig()
     print(

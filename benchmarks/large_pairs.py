@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from plotmosaic.align.pipeline import final_icp
+from plotmosaic.align.fine import final_icp
 from plotmosaic.align.prepare import prepare_cloud
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.io.frame import to_global_transform, to_local_transform

@@ -17,7 +17,7 @@ import argparse
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from plotmosaic.align.pipeline import final_icp
+from plotmosaic.align.fine import final_icp
 from plotmosaic.align.prepare import prepare_cloud
 from plotmosaic.bench.real_cases import build_case
 from plotmosaic.config.align import AlignConfig

@@ -13,8 +13,10 @@ from scipy.spatial.transform import Rotation
 from plotmosaic.align.complexity import level_purity, match_levels
 from plotmosaic.align.icp import exp_se3, information_matrix, point_to_plane_jacobian
 from plotmosaic.align.memo import PairMemo, RunMemo
-from plotmosaic.align.pipeline import AlignRequest, PairResult, align_clouds, register_prepared
+from plotmosaic.align.pair import register_prepared
+from plotmosaic.align.pipeline import AlignRequest, align_clouds
 from plotmosaic.align.prepare import prepare_cloud
+from plotmosaic.align.result import PairResult
 from plotmosaic.align.vmf import fit_vmf_mixture, sample_vmf
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import RegistrationFailed

@@ -11,7 +11,8 @@ from helpers import SIM_PAIR_MAX_DEG
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
-from plotmosaic.align.pipeline import AlignRequest, PairResult, align_files
+from plotmosaic.align.pipeline import AlignRequest, align_files
+from plotmosaic.align.result import PairResult
 from plotmosaic.cli import app
 from plotmosaic.commands.align import kind_lines, summary_lines
 from plotmosaic.io.las import PointCloud, read_cloud, write_cloud

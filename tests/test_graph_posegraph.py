@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from builders import random_pose, synthetic_pose_graph
 
+from plotmosaic.bench.synthetic import grid_graph
 from plotmosaic.config.register import PoseGraphConfig
 from plotmosaic.graph.covariance import REPORT_FLOOR
 from plotmosaic.graph.cycles import cycle_outliers
@@ -18,7 +19,6 @@ from plotmosaic.graph.posegraph import (
     optimise,
     pose_error,
 )
-from plotmosaic.graph.synthetic import grid_graph
 
 
 def test_recovers_poses_with_small_noise():

@@ -7,7 +7,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from plotmosaic.align.icp import MovingNearest, point_to_plane_icp
+from plotmosaic.align.icp import IcpOptions, MovingNearest, point_to_plane_icp
 from plotmosaic.config.align import IcpStage
 
 SCHEDULE = [(0.6, 8), (0.25, 8), (0.1, 6), (0.04, 8)]
@@ -33,12 +33,13 @@ def _scene(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _refine(source, target, normals, tree, T, carried: bool) -> np.ndarray:
-    search = MovingNearest(tree) if carried else None
+    kept = MovingNearest(tree) if carried else None
     for d, n in SCHEDULE:
-        stage = [IcpStage(max_distance=d, iterations=n)]
-        T = point_to_plane_icp(
-            source, target, normals, T, stage, tree=tree, kernel_floor=d, tol=1e-4, search=search
-        ).T
+        options = IcpOptions(
+            stages=(IcpStage(max_distance=d, iterations=n),), kernel_floor=d, tol=1e-4
+        )
+        search = kept or MovingNearest(tree)  # carried across stages, or fresh for each
+        T = point_to_plane_icp(source, target, normals, T, options, search).T
     return T
 
 

@@ -83,9 +83,7 @@ def _where(module: str, lines: list[int]) -> str:
 def test_scan_finds_the_imports_it_must():
     """The scanner itself: module-level, function-level and relative imports are all seen."""
     G = _graph()
-    assert G.has_edge(
-        "plotmosaic.align.register", "plotmosaic.align.scene"
-    )  # `from pkg import module`
+    assert G.has_edge("plotmosaic.align.pair", "plotmosaic.align.scene")  # `from pkg import module`
     assert G.has_edge("plotmosaic.commands.align", "plotmosaic.align.pipeline")
     assert G.has_edge("plotmosaic.stages.register_plot", "plotmosaic.config.register")
     assert not G.has_edge("plotmosaic.config.register", "plotmosaic.stages.register_plot")

@@ -11,12 +11,14 @@ from typer.testing import CliRunner
 
 from plotmosaic.align import judge
 from plotmosaic.align.fine import FineResult
+from plotmosaic.align.floors import blunt_fit
 from plotmosaic.align.judge import rivals
 from plotmosaic.align.judge.profile import Profile
 from plotmosaic.align.memo import PairMemo
-from plotmosaic.align.pipeline import PairResult, blunt_fit, prepare_pair, register_prepared
+from plotmosaic.align.pair import PairContext, recover, register_prepared
+from plotmosaic.align.pipeline import prepare_pair
 from plotmosaic.align.prepare import prepare_cloud
-from plotmosaic.align.register import recover
+from plotmosaic.align.result import PairResult
 from plotmosaic.align.spacing import scale_factor
 from plotmosaic.cli import app
 from plotmosaic.config.align import AlignConfig
@@ -57,7 +59,7 @@ def pair(small_sim):
     s = read_cloud(small_sim.scan_paths["P1-S1"], attributes=False)
     t = read_cloud(small_sim.scan_paths["P1-S0"], attributes=False)
     cfg = AlignConfig()
-    ps, pt = prepare_pair(s, t, "tls", "tls", 3, 3, cfg, 0)
+    ps, pt = prepare_pair(s, t, ("tls", "tls"), (3, 3), cfg, 0)
     return ps, pt, T_true, s.xyz.mean(axis=0), cfg
 
 
@@ -286,7 +288,7 @@ def boxed(spanner_dir):
     case = build_case("mls-boxed6m", spanner_dir.parent)
     cfg = AlignConfig()
     ps, pt = prepare_pair(
-        case.source, case.target, "tls", "tls", default_levels("tls"), default_levels("tls"), cfg
+        case.source, case.target, ("tls", "tls"), (default_levels("tls"),) * 2, cfg
     )
     return ps, pt, case, cfg
 
@@ -331,7 +333,7 @@ def test_boxed_view_refused_when_a_copy_fits_as_well(boxed):
 
 
 def test_retry_takes_the_sharper_basin_pose_and_never_a_wrong_one(pair):
-    """register.recover: a near miss (2.5 deg / 0.3 m off, truth withheld) is refused by its basin;
+    """pair.recover: a near miss (2.5 deg / 0.3 m off, truth withheld) is refused by its basin;
     the one retry from the basin's sharper pose lands on the truth with a higher confidence and is
     kept. A wrong pose offered as the better one (40 deg / 3 m off) is finished and judged too, loses
     to the first pose, and the first pose and its verdict stand."""
@@ -341,12 +343,13 @@ def test_retry_takes_the_sharper_basin_pose_and_never_a_wrong_one(pair):
     jc, c = cfg.judge, judge.centre(ps, cfg.judge)
     T = to_local_transform(T_true, ps.frame, pt.frame)
     near = _turned(T, c, 2.5, [0.2, -0.2, 0.0])
-    memo = PairMemo()  # the verdict and its retry share the refined rivals, as in register
+    memo = PairMemo()  # the verdict and its retry share the refined rivals, as in the pair
     v = judge.judge(ps, pt, near, [], jc, memo)
     assert v.basin_transform is not None and v.confidence < cfg.min_confidence
     none = np.zeros((0, 3))
     empty = {"p": none, "q": none, "n": none, "iterations": 0, "reverse": False}
-    judged = recover(ps, pt, cfg, [], FineResult(T=near, **empty), v, lambda msg: None, memo)
+    first = PairContext(src=ps, tgt=pt, config=cfg, seed=0, say=lambda msg: None, memo=memo)
+    judged = recover(first, [], FineResult(T=near, **empty), v)
     T2, v2 = judged.fine.T, judged.verdict
     deg, m = judge.separation(T2, T, c)
     assert deg < SIM_PAIR_MAX_DEG and m < SIM_PAIR_MAX_M, (deg, m)  # recovered: the truth
@@ -354,7 +357,8 @@ def test_retry_takes_the_sharper_basin_pose_and_never_a_wrong_one(pair):
     right = judge.judge(ps, pt, T, [], jc)
     wrong = _turned(T, c, 40.0, [3.0, 0.0, 0.0])
     offered = dataclasses.replace(right, basin_transform=wrong)
-    judged = recover(ps, pt, cfg, [], FineResult(T=T, **empty), offered, lambda msg: None)
+    fresh = dataclasses.replace(first, memo=PairMemo())
+    judged = recover(fresh, [], FineResult(T=T, **empty), offered)
     T3, v3 = judged.fine.T, judged.verdict
     assert np.array_equal(T3, T) and v3 is offered  # the wrong pose is not taken
 

@@ -22,10 +22,8 @@ def _pair(sim, source: str, target: str):
     src, tgt = prepare_pair(
         read_cloud(sim.scan_paths[source], attributes=False),
         read_cloud(sim.scan_paths[target], attributes=False),
-        "tls",
-        "tls",
-        3,
-        3,
+        ("tls", "tls"),
+        (3, 3),
         cfg,
     )
     return src, tgt, inverse(T[target]) @ T[source], cfg

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from plotmosaic.align.memo import PairMemo, RunMemo
-from plotmosaic.align.register import register_prepared
+from plotmosaic.align.pair import register_prepared
 from plotmosaic.config.register import RegisterConfig
 from plotmosaic.graph.jobs import JobSettings, PairJob, prepare_jobs_for
 from plotmosaic.graph.placement import ALS_ID, placement_jobs

@@ -97,10 +97,10 @@ def test_the_loop_pair_starts_from_the_spanning_tree(runs):
     from the pose those two imply and is verified from there, no search."""
     records = [json.loads(p.read_text()) for p in (runs["out"] / "pairs").glob("*.json")]
     searched = {
-        (r["source"], r["target"]) for r in records if "coarse_skipped" not in r.get("timings", {})
+        (r["source"], r["target"]) for r in records if "coarse_skipped" not in r.get("steps", {})
     }
     assert searched == {("P1-S2", "P1-S0"), ("P1-S3", "P1-S0")}
-    (loop,) = [r for r in records if r.get("timings", {}).get("coarse_skipped")]
+    (loop,) = [r for r in records if r.get("steps", {}).get("coarse_skipped")]
     assert (loop["source"], loop["target"]) == ("P1-S3", "P1-S2") and loop["status"] == "ok"
     assert loop["coarse"]["stored_pose"]["verified"]
 
@@ -150,7 +150,7 @@ def test_dask_executor_gives_the_same_edge(runs, tmp_path):
     from dask.distributed import LocalCluster
 
     records = [json.loads(p.read_text()) for p in (runs["out"] / "pairs").glob("*.json")]
-    (local,) = [r for r in records if r.get("timings", {}).get("coarse_skipped")]
+    (local,) = [r for r in records if r.get("steps", {}).get("coarse_skipped")]
     (tmp_path / "out" / "pairs").mkdir(parents=True)
     for p in (runs["out"] / "pairs").glob("*.json"):
         if p.stem != local["key"]:

@@ -9,6 +9,7 @@ import numpy as np
 from builders import synthetic_pose_graph
 from scipy.spatial.transform import Rotation
 
+from plotmosaic.bench.synthetic import grid_graph
 from plotmosaic.config.register import RegisterConfig
 from plotmosaic.graph import prepared as store
 from plotmosaic.graph.compute import prepare_scans
@@ -16,7 +17,6 @@ from plotmosaic.graph.cycles import _edge_id, triangles
 from plotmosaic.graph.executor import Workers
 from plotmosaic.graph.jobs import prepare_jobs_for
 from plotmosaic.graph.posegraph import build_graph, optimise, pose_error
-from plotmosaic.graph.synthetic import grid_graph
 from plotmosaic.manifest import load_manifest
 from plotmosaic.stages.register_plot import pair_settings, plan_jobs
 

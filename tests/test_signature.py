@@ -8,6 +8,7 @@ import networkx as nx
 import numpy as np
 import pytest
 
+from plotmosaic.bench.synthetic import stem_map_grid
 from plotmosaic.config.register import RegisterConfig
 from plotmosaic.graph.executor import Workers
 from plotmosaic.graph.signature import (
@@ -18,13 +19,12 @@ from plotmosaic.graph.signature import (
     similarity,
     stem_triangles,
 )
-from plotmosaic.graph.synthetic import stem_map_grid
 
 GRID = 15.0  # m between scan positions of the simulated 3 x 3 grid
 
 
 def _synthetic_plot(side: int, seed: int):
-    """Stem maps of a `side` x `side` grid 18 m apart in one random forest (graph/synthetic.py)."""
+    """Stem maps of a `side` x `side` grid 18 m apart in one random forest (bench/synthetic.py)."""
     positions, maps = stem_map_grid(side, seed)
     config = SignatureConfig()
     sigs = []

@@ -5,7 +5,8 @@ import pytest
 from helpers import SIM_PAIR_MAX_DEG, SIM_PAIR_MAX_M, invoke, write_e57
 from scipy.spatial.transform import Rotation
 
-from plotmosaic.align.pipeline import Start, prepare_pair, register_prepared
+from plotmosaic.align.pair import Start, register_prepared
+from plotmosaic.align.pipeline import prepare_pair
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import RegistrationFailed
 from plotmosaic.io.frame import inverse, pose_error
@@ -45,7 +46,7 @@ def pair(scans):
     clouds, poses = scans
     cfg = AlignConfig()
     src, tgt = prepare_pair(
-        PointCloud(clouds["P1-S2"]), PointCloud(clouds["P1-S0"]), "tls", "tls", 3, 3, cfg
+        PointCloud(clouds["P1-S2"]), PointCloud(clouds["P1-S0"]), ("tls", "tls"), (3, 3), cfg
     )
     return src, tgt, inverse(poses["P1-S0"]) @ poses["P1-S2"], cfg
 
@@ -53,14 +54,14 @@ def pair(scans):
 def test_right_stored_pose_skips_the_search(pair):
     src, tgt, T, cfg = pair
     res = register_prepared(src, tgt, cfg, T, start=Start.STORED)
-    assert res.timings.get("coarse_skipped") == "stored pose verified"
+    assert res.steps.get("coarse_skipped") == "stored pose verified"
     assert res.coarse["skipped"] == "stored pose verified" and res.coarse["stored_pose"]["verified"]
     assert "hypotheses" not in res.coarse  # no search ran
     rot, trans = pose_error(res.transform, T)
     assert trans < SIM_PAIR_MAX_M and rot < SIM_PAIR_MAX_DEG, (trans, rot)
     # the same pose as a plain prior (not stored): the search runs
     plain = register_prepared(src, tgt, cfg, T)
-    assert "coarse_skipped" not in plain.timings and "hypotheses" in plain.coarse
+    assert "coarse_skipped" not in plain.steps and "hypotheses" in plain.coarse
 
 
 @pytest.mark.parametrize("deg, metres", [(30.0, 5.0), (0.0, 0.0)])
@@ -71,9 +72,9 @@ def test_wrong_stored_pose_runs_the_search(pair, deg, metres):
     try:
         res = register_prepared(src, tgt, cfg, stored, start=Start.STORED)
     except RegistrationFailed as exc:  # refused is allowed, a wrong pose with exit 0 is not
-        assert exc.result is None or "coarse_skipped" not in exc.result.timings
+        assert exc.result is None or "coarse_skipped" not in exc.result.steps
         return
-    assert "coarse_skipped" not in res.timings
+    assert "coarse_skipped" not in res.steps
     assert res.coarse["stored_pose"]["verified"] is False and res.coarse["stored_pose"]["failed"]
     rot, trans = pose_error(res.transform, T)
     assert trans < SIM_PAIR_MAX_M and rot < SIM_PAIR_MAX_DEG, (trans, rot)
@@ -107,11 +108,11 @@ def test_register_plot_use_pose(scans, tmp_path):
     records = [json.loads(p.read_text()) for p in (tmp_path / "out" / "pairs").glob("*.json")]
     by_pair = {frozenset((r["source"], r["target"])): r for r in records}
     right = by_pair[frozenset(("P1-S0", "P1-S2"))]
-    assert right["status"] == "ok" and right["timings"].get("coarse_skipped")
+    assert right["status"] == "ok" and right["steps"].get("coarse_skipped")
     # S3's first pair checks its wrong stored pose and searches; its other pair then starts from
     # the pose the graph implies (no longer the stored one), and may skip the search
     s3 = [by_pair[frozenset((other, "P1-S3"))] for other in ("P1-S0", "P1-S2")]
-    searched = [r for r in s3 if r["status"] != "ok" or "coarse_skipped" not in r["timings"]]
+    searched = [r for r in s3 if r["status"] != "ok" or "coarse_skipped" not in r["steps"]]
     assert searched  # the wrong stored pose never skips the search
     for r in searched:
         assert r["status"] != "ok" or r["coarse"]["stored_pose"]["verified"] is False

@@ -31,7 +31,7 @@ NORMAL_NN = (
 )
 
 
-@dataclass
+@dataclass(frozen=True)
 class Features:
     points: np.ndarray  # (N, 3) local frame
     descriptors: np.ndarray  # (N, 33)

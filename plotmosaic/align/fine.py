@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from plotmosaic.align.icp import Mirror, nearest, point_to_plane_icp
+from plotmosaic.align.icp import IcpOptions, Mirror, MovingNearest, nearest, point_to_plane_icp
 from plotmosaic.align.memo import PairMemo
 from plotmosaic.align.prepare import PreparedCloud
 from plotmosaic.align.sampling import sample
@@ -66,6 +66,7 @@ def final_icp(
     s_sp = spacing(src, config.judge, memo.source)
     t_sp = spacing(tgt, config.judge, memo.target)
     schedule, kernel = fine_schedule(src, tgt, config, memo)
+    options = IcpOptions(stages=tuple(schedule), kernel_floor=kernel, tol=config.final_tol)
     # both scanners known (align/viewpoint.py): matches between the two faces of a stem are left out
     views = (
         None if src.viewpoint is None or tgt.viewpoint is None else (src.viewpoint, tgt.viewpoint)
@@ -77,10 +78,8 @@ def final_icp(
             src.points,
             src.target_normals,
             inverse(T),
-            schedule,
-            tree=src.tree,
-            kernel_floor=kernel,
-            tol=config.final_tol,
+            options,
+            MovingNearest(src.tree),
             viewpoints=None if views is None else views[::-1],
         )
         T = inverse(res.T)
@@ -99,10 +98,8 @@ def final_icp(
             tgt.points,
             tgt.target_normals,
             T0,
-            schedule,
-            tree=tgt.tree,
-            kernel_floor=kernel,
-            tol=config.final_tol,
+            options,
+            MovingNearest(tgt.tree),
             mirror=Mirror(backward, src.points, src.tree, src.target_normals)
             if symmetric
             else None,

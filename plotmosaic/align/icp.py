@@ -145,7 +145,7 @@ def facing(n: np.ndarray, x: np.ndarray, view_a: np.ndarray, view_b: np.ndarray)
     return np.einsum("ij,ij->i", n, view_a - x) * np.einsum("ij,ij->i", n, view_b - x) > 0
 
 
-@dataclass
+@dataclass(frozen=True)
 class Mirror:
     """The reverse correspondences of a symmetric ICP: `points` (a target sample) matched to the
     source cloud (`tree` over `source`, normals by row from `normals_of`)."""
@@ -174,7 +174,7 @@ class Mirror:
         return np.vstack([a, a2]), np.vstack([b, self.points[ok]]), np.vstack([n, n2])
 
 
-@dataclass
+@dataclass(frozen=True)
 class IcpResult:
     T: np.ndarray
     fitness: float  # share of source points with a correspondence in the last iteration
@@ -185,20 +185,26 @@ class IcpResult:
     iterations: int
 
 
+@dataclass(frozen=True, kw_only=True, eq=False)
+class IcpOptions:
+    """How one point_to_plane_icp run steps: its stages and the solver's constants."""
+
+    stages: tuple[IcpStage, ...]  # coarse to fine, each run to its iterations or to `tol`
+    min_eig_ratio: float = 0.0  # directions weaker than this x the strongest wait (0: all six move)
+    kernel_floor: float = 0.05  # Tukey's width never below this (m)
+    kernel_ratio: float = 0.5  # Tukey's width, x the stage's correspondence distance
+    tol: float = 1e-5  # a stage ends when a step moves points by less (m)
+
+
 def point_to_plane_icp(
     source: np.ndarray,
     target: np.ndarray,
     target_normals,
     init: np.ndarray,
-    stages: list[IcpStage],
-    tree: cKDTree | None = None,
-    min_eig_ratio: float = 0.0,
-    kernel_floor: float = 0.05,
-    kernel_ratio: float = 0.5,
-    tol: float = 1e-5,
+    options: IcpOptions,
+    search: MovingNearest | None = None,
     mirror: Mirror | None = None,
     viewpoints: tuple[np.ndarray, np.ndarray] | None = None,
-    search: MovingNearest | None = None,
 ) -> IcpResult:
     """Point-to-plane ICP (Tukey-weighted Gauss-Newton) that moves only along well-constrained directions.
 
@@ -209,7 +215,12 @@ def point_to_plane_icp(
     solved in the eigenbasis of the (scaled) normal matrix and directions whose eigenvalue is below
     `min_eig_ratio` x the largest are left for the next, richer level (degeneracy-aware ICP,
     Zhang et al. 2016); 0 moves along all six. Tukey's width is `kernel_ratio` x the stage's
-    correspondence distance, never below `kernel_floor`. A stage ends when a step moves points by less than `tol` m.
+    correspondence distance, never below `kernel_floor` (`options`).
+
+    `search`: the target's nearest points, a MovingNearest over its KD-tree (None: a tree built
+    here); one kept from an earlier run on the same source rows (one start refined stage by stage)
+    holds its neighbours whatever the distance, so the run's first iteration queries only the
+    points that moved too far.
 
     `mirror`: the other direction too (symmetric ICP): a sample of the target matched to the
     source's planes, its residuals stacked with the forward ones in one solve. One direction leaves
@@ -218,13 +229,8 @@ def point_to_plane_icp(
 
     `viewpoints`: (source scanner in source coordinates, target scanner in target coordinates);
     a match whose plane has the two scanners on opposite sides is left out (see `facing`).
-
-    `search`: a MovingNearest over `tree` kept from an earlier run on the same source rows (one
-    start refined stage by stage): its neighbours hold whatever the distance, so the run's first
-    iteration queries only the points that moved too far.
     """
-    tree = tree if tree is not None else cKDTree(target)
-    forward = search if search is not None else MovingNearest(tree)
+    forward = search if search is not None else MovingNearest(cKDTree(target))
     backward = MovingNearest(mirror.tree) if mirror is not None else None
     normals_of = target_normals if callable(target_normals) else (lambda j: target_normals[j])
     T = np.asarray(init, dtype=np.float64).copy()
@@ -234,8 +240,8 @@ def point_to_plane_icp(
     scale = max(np.sqrt((p0**2).sum(axis=1).mean()), 1e-3)
     result = IcpResult(T, 0.0, float("nan"), 0, np.zeros(0, np.int64), np.zeros(0, np.int64), 0)
     iterations = 0
-    for st in stages:
-        k = max(st.max_distance * kernel_ratio, kernel_floor)
+    for st in options.stages:
+        k = max(st.max_distance * options.kernel_ratio, options.kernel_floor)
         for _ in range(st.iterations):
             iterations += 1
             moved = source @ T[:3, :3].T + T[:3, 3]
@@ -252,7 +258,7 @@ def point_to_plane_icp(
                 ok, a, b, n = ok[seen], a[seen], b[seen], n[seen]
             if mirror is not None:
                 a, b, n = mirror.stacked(T, st.max_distance, a, b, n, views, backward)
-            T, step, rank = _gauss_newton_step(T, a, b, n, centre, scale, k, min_eig_ratio)
+            T, step, rank = _gauss_newton_step(T, a, b, n, centre, scale, k, options.min_eig_ratio)
             result = IcpResult(
                 T,
                 float(len(ok) / len(source)),
@@ -262,7 +268,7 @@ def point_to_plane_icp(
                 j[ok],
                 iterations,
             )
-            if np.linalg.norm(step[:3]) * scale + np.linalg.norm(step[3:]) < tol:
+            if np.linalg.norm(step[:3]) * scale + np.linalg.norm(step[3:]) < options.tol:
                 break
     return result
 

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from plotmosaic.align.complexity import match_levels
-from plotmosaic.align.icp import evaluate, point_to_plane_icp
+from plotmosaic.align.icp import IcpOptions, evaluate, point_to_plane_icp
 from plotmosaic.align.prepare import PreparedCloud
 from plotmosaic.align.sampling import sample
 from plotmosaic.config.align import AlignConfig
@@ -81,9 +81,10 @@ def level_stage(
             schedule = [
                 st for st in schedule if st.max_distance <= config.level_max_distance_after_coarse
             ] or schedule[-1:]
-        res = point_to_plane_icp(
-            sp, tp, tn, T, schedule, min_eig_ratio=config.min_eig_ratio, tol=config.level_tol
+        options = IcpOptions(
+            stages=tuple(schedule), min_eig_ratio=config.min_eig_ratio, tol=config.level_tol
         )
+        res = point_to_plane_icp(sp, tp, tn, T, options)
         T = res.T
         steps.append(
             {

@@ -188,7 +188,7 @@ def trunk_axes_up(
     return up, info
 
 
-@dataclass
+@dataclass(frozen=True)
 class Vertical:
     up: np.ndarray  # unit vector in the cloud's local frame
     name: str  # "normals" | "trunks" | "ground" | "ground-fit" | "z-up"
@@ -255,9 +255,3 @@ def vertical_hypotheses(
         ],
     }
     return out, info
-
-
-def levelling_rotation(normals: np.ndarray, **kwargs) -> tuple[np.ndarray, dict]:
-    """Rotation R with R @ up = +z, plus the estimate's figures."""
-    up, info = estimate_up(normals, **kwargs)
-    return rotation_between(up, Z), info

@@ -1,23 +1,21 @@
 """ForestAlign pairwise registration (paper Algorithm 1) from two clouds or two files.
 
-prepare (voxel, normals, levels) -> register (align/register.py: search, level stage, final ICP,
-judge, quality, floors). The names other modules and tests import from here stay importable.
+prepare (voxel, normals, levels) -> register (align/pair.py: search, level stage, final ICP,
+judge, quality, floors).
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from plotmosaic.align.figures import save_levels as write_levels
-from plotmosaic.align.fine import FineResult, final_icp
-from plotmosaic.align.floors import blunt_fit, check_quality
 from plotmosaic.align.kinds import KindDetection, detect_kind
-from plotmosaic.align.level_icp import incremental_steps
+from plotmosaic.align.pair import register_prepared
 from plotmosaic.align.prepare import (
     MIN_POINTS,
     PreparedCloud,
@@ -25,8 +23,7 @@ from plotmosaic.align.prepare import (
     prepare_cloud,
     robust_points,
 )
-from plotmosaic.align.register import Start, global_search, register_prepared
-from plotmosaic.align.result import METHOD, PairResult
+from plotmosaic.align.result import PairResult
 from plotmosaic.config.align import KINDS, AlignConfig, default_levels
 from plotmosaic.config.reading import ReadingConfig
 from plotmosaic.errors import InputError
@@ -34,32 +31,7 @@ from plotmosaic.io.bounded import read_scan_points
 from plotmosaic.io.las import PointCloud
 from plotmosaic.parallel import both
 
-__all__ = [
-    "METHOD",
-    "AlignRequest",
-    "FineResult",
-    "PairResult",
-    "Start",
-    "align_clouds",
-    "align_files",
-    "blunt_fit",
-    "check_quality",
-    "final_icp",
-    "global_search",
-    "incremental_steps",
-    "prepare_pair",
-    "register_prepared",
-]
-
-
-# entries register_prepared records in its timings that are not seconds: they go to `steps`
-STEP_ENTRIES = (
-    "coarse_skipped",
-    "final_iterations",
-    "final_planes",
-    "correction_deg",
-    "correction_m",
-)
+__all__ = ["AlignRequest", "align_clouds", "align_files", "pair_kinds", "prepare_pair"]
 
 
 def _kind(kind: str, which: str) -> str:
@@ -100,20 +72,19 @@ def _robust(cloud: PointCloud, config: AlignConfig, name: str) -> RobustPoints |
 def prepare_pair(
     source: PointCloud,
     target: PointCloud,
-    source_kind: str,
-    target_kind: str,
-    levels_source: int,
-    levels_target: int,
+    kinds: tuple[str, str],
+    levels: tuple[int, int],
     config: AlignConfig,
     seed: int = 0,
     robust: tuple[RobustPoints | None, RobustPoints | None] = (None, None),
 ) -> tuple[PreparedCloud, PreparedCloud]:
-    """Both clouds prepared at once (source with `seed`, target with `seed + 1`); `robust`: their
-    points without stray ones where the caller made them already."""
+    """Both clouds prepared at once (source with `seed`, target with `seed + 1`); `kinds`, `levels`
+    and `robust` are (source's, target's), `robust` their points without stray ones where the
+    caller made them already."""
     return both(
         lambda job: prepare_cloud(*job[:-1], robust=job[-1]),
-        (source, source_kind, levels_source, config, seed, "source", robust[0]),
-        (target, target_kind, levels_target, config, seed + 1, "target", robust[1]),
+        (source, kinds[0], levels[0], config, seed, "source", robust[0]),
+        (target, kinds[1], levels[1], config, seed + 1, "target", robust[1]),
     )
 
 
@@ -144,10 +115,50 @@ def align_clouds(
 ) -> PairResult:
     """Register `source` onto `target` as `request` asks; the result maps source file coordinates
     to target file coordinates."""
+    return _align(source, target, request or AlignRequest(), progress, None)
+
+
+def align_files(
+    source_path,
+    target_path,
+    request: AlignRequest | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> PairResult:
+    """`align_clouds` on two point-cloud files (coordinates only, within the reading budget)."""
     request = request or AlignRequest()
+    t0 = time.perf_counter()
+    (progress or _silent)("reading source and target")
+    source, target = both(
+        lambda path: read_scan_points(path, request.reading, request.config),
+        source_path,
+        target_path,
+    )
+    paths = (str(Path(source_path).resolve()), str(Path(target_path).resolve()))
+    files = _Files(start=t0, read=time.perf_counter() - t0, paths=paths)
+    return _align(source, target, request, progress, files)
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class _Files:
+    """What align_files did before the clouds: when it started, the reading's seconds, the files."""
+
+    start: float  # time.perf_counter()
+    read: float
+    paths: tuple[str, str]  # source, target, resolved
+
+
+def _align(
+    source: PointCloud,
+    target: PointCloud,
+    request: AlignRequest,
+    progress: Callable[[str], None] | None,
+    files: _Files | None,
+) -> PairResult:
+    """The registration of two clouds, its result built whole: the pair function's steps after
+    the reading (`files`, when from files), the kinds and the preparation."""
     config, seed = request.config, request.seed
     t0 = time.perf_counter()
-    say = progress or (lambda msg: None)
+    say = progress or _silent
     # the points as registration sees them (stray points dropped): the source's bounding box, the
     # kinds and the preparation
     robust = _robust(source, config, "source"), _robust(target, config, "target")
@@ -163,60 +174,34 @@ def align_clouds(
     )
     t_kinds = time.perf_counter() - t0
     say("preparing source and target")
-    src, tgt = prepare_pair(
-        source,
-        target,
-        sk,
-        tk,
+    levels = (
         request.levels_source or default_levels(sk),
         request.levels_target or default_levels(tk),
-        config,
-        seed,
-        robust,
     )
+    src, tgt = prepare_pair(source, target, (sk, tk), levels, config, seed, robust)
     if request.save_levels is not None:
         say("saving levels")
         write_levels(request.save_levels, src, tgt, source.crs, target.crs)
     t1 = time.perf_counter()
     result = register_prepared(src, tgt, config, request.init, seed, progress)
-    steps = {k: v for k, v in result.timings.items() if k in STEP_ENTRIES}
-    result.timings = {
-        "kinds": t_kinds,  # the source's bounds, and the kinds not given
-        "prepare": t1 - t0 - t_kinds,
-        "prepare_source": src.seconds,
-        "prepare_target": tgt.seconds,
-        **{k: v for k, v in result.timings.items() if k not in STEP_ENTRIES},
-    }
-    result.steps = {**result.steps, **steps}
-    if robust[0] is not None:
-        result.source_centre = [float(v) for v in robust[0].bounds.mean(axis=1)]
-    result.detected_kinds = {role: d.to_dict() for role, d in detected.items()}
-    result.seconds = time.perf_counter() - t0
-    return result
+    centre = None if robust[0] is None else [float(v) for v in robust[0].bounds.mean(axis=1)]
+    return replace(
+        result,
+        timings={
+            **({} if files is None else {"read": files.read}),
+            "kinds": t_kinds,  # the source's bounds, and the kinds not given
+            "prepare": t1 - t0 - t_kinds,
+            "prepare_source": src.seconds,
+            "prepare_target": tgt.seconds,
+            **result.timings,
+        },
+        source_centre=centre,
+        detected_kinds={role: d.to_dict() for role, d in detected.items()},
+        seconds=time.perf_counter() - (t0 if files is None else files.start),
+        source_path=None if files is None else files.paths[0],
+        target_path=None if files is None else files.paths[1],
+    )
 
 
-def align_files(
-    source_path,
-    target_path,
-    request: AlignRequest | None = None,
-    progress: Callable[[str], None] | None = None,
-) -> PairResult:
-    """`align_clouds` on two point-cloud files (coordinates only, within the reading budget)."""
-    request = request or AlignRequest()
-    t0 = time.perf_counter()
-    say = progress or (lambda msg: None)
-    say("reading source and target")
-    source, target = both(
-        lambda path: read_scan_points(path, request.reading, request.config),
-        source_path,
-        target_path,
-    )
-    t_read = time.perf_counter() - t0
-    result = align_clouds(source, target, request, progress)
-    result.timings = {"read": t_read, **result.timings}
-    result.seconds = time.perf_counter() - t0
-    result.source_path, result.target_path = (
-        str(Path(source_path).resolve()),
-        str(Path(target_path).resolve()),
-    )
-    return result
+def _silent(msg: str) -> None:
+    pass

@@ -25,7 +25,7 @@ CHANNELS = ("stems", "canopy", "terrain")
 SPARSE_BLOCK_VALUES = 1 << 22
 
 
-@dataclass
+@dataclass(frozen=True)
 class PointFeatures:
     """Per-point quantities that do not change under a rotation about z."""
 
@@ -170,7 +170,7 @@ def column_bins(feats: PointFeatures, size: float) -> PointFeatures:
     )
 
 
-@dataclass
+@dataclass(frozen=True)
 class Raster:
     origin: np.ndarray  # world xy of cell (0, 0)'s corner
     cell: float

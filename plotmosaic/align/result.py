@@ -23,7 +23,7 @@ def motion_at(T: np.ndarray, point) -> list[float]:
     return [float(v) for v in T[:3, :3] @ p + T[:3, 3] - p]
 
 
-@dataclass
+@dataclass(frozen=True)
 class PairResult:
     transform: np.ndarray  # 4x4, source file coordinates -> target file coordinates
     fitness: float

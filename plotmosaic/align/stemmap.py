@@ -20,7 +20,7 @@ from plotmosaic.align.voxel import occupied_groups
 from plotmosaic.config.coarse import CoarseConfig
 
 
-@dataclass
+@dataclass(frozen=True)
 class StemMap:
     xy: np.ndarray  # (S, 2) stem centres, levelled frame
     diameter: np.ndarray  # (S,)

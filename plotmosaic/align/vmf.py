@@ -60,7 +60,7 @@ def kappa_from_r(r: np.ndarray, kappa_max: float) -> np.ndarray:
     return np.clip(r * (3.0 - r * r) / (1.0 - r * r), 1e-3, kappa_max)
 
 
-@dataclass
+@dataclass(frozen=True)
 class VmfMixture:
     mu: np.ndarray  # (K, 3) unit mean axes
     kappa: np.ndarray  # (K,)

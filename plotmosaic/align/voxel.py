@@ -93,7 +93,7 @@ def groups(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return order, starts
 
 
-@dataclass
+@dataclass(frozen=True)
 class VoxelGrid:
     """The occupied cubes of a cloud: `order` lists the points cube by cube, cube j from `starts[j]`."""
 

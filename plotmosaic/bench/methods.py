@@ -21,7 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
-from plotmosaic.align.pipeline import AlignRequest, align_clouds, register_prepared
+from plotmosaic.align.pair import register_prepared
+from plotmosaic.align.pipeline import AlignRequest, align_clouds
 from plotmosaic.align.prepare import prepare_cloud
 from plotmosaic.config.align import AlignConfig, default_levels
 from plotmosaic.config.bench import CpdConfig, IcpConfig, MethodsConfig

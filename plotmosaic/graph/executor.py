@@ -20,7 +20,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from plotmosaic.align.memo import RunMemo
-from plotmosaic.align.pipeline import Start, register_prepared
+from plotmosaic.align.pair import Start, register_prepared
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.graph import prepared as store
 from plotmosaic.graph.jobs import PairJob, prepare_jobs_for

@@ -25,7 +25,7 @@ from scipy.spatial import cKDTree
 from plotmosaic.align.fine import LENS_SEED
 from plotmosaic.align.icp import information_matrix, nearest
 from plotmosaic.align.memo import PairMemo
-from plotmosaic.align.pipeline import Start, register_prepared
+from plotmosaic.align.pair import Start, register_prepared
 from plotmosaic.align.prepare import MIN_POINTS, PreparedCloud, prepare_cloud
 from plotmosaic.align.sampling import sample
 from plotmosaic.align.voxel import thin

@@ -11,7 +11,7 @@ import numpy as np
 
 from plotmosaic.align.coarse.clouds import CoarseCloud, Levels
 from plotmosaic.align.coarse.hypothesis import Hypothesis, Start
-from plotmosaic.align.icp import evaluate, point_to_plane_icp
+from plotmosaic.align.icp import IcpOptions, MovingNearest, evaluate, point_to_plane_icp
 from plotmosaic.align.sampling import sample
 from plotmosaic.align.voxel import thin
 from plotmosaic.config.align import IcpStage
@@ -27,18 +27,9 @@ def _refine(
 ) -> np.ndarray:
     """Quick robust point-to-plane ICP over shrinking correspondence distances (Tukey width = distance)."""
     points, normals, tree = tgt
-    stages = [IcpStage(max_distance=d, iterations=iterations) for d in distances]
-    return point_to_plane_icp(
-        src_pts,
-        points,
-        normals,
-        T0,
-        stages,
-        tree=tree,
-        kernel_floor=0.0,
-        kernel_ratio=1.0,
-        tol=1e-4,
-    ).T
+    stages = tuple(IcpStage(max_distance=d, iterations=iterations) for d in distances)
+    options = IcpOptions(stages=stages, kernel_floor=0.0, kernel_ratio=1.0, tol=1e-4)
+    return point_to_plane_icp(src_pts, points, normals, T0, options, MovingNearest(tree)).T
 
 
 def _score(structure: np.ndarray, tgt: tuple, T: np.ndarray, distance: float) -> float:

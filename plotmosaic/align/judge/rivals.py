@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from plotmosaic.align.icp import MovingNearest, point_to_plane_icp
+from plotmosaic.align.icp import IcpOptions, MovingNearest, point_to_plane_icp
 from plotmosaic.align.judge.profile import (
     Profile,
     centre,
@@ -43,16 +43,18 @@ def refine(
     A = np.asarray(T, dtype=float)
     search = MovingNearest(tgt.tree)  # the correspondences carry over from stage to stage
     for k, (d, n) in enumerate(config.rival_schedule):
+        options = IcpOptions(
+            stages=(IcpStage(max_distance=d * f, iterations=n),),
+            kernel_floor=min(config.rival_kernel, d) * f,  # a tight stage needs a tight kernel
+            tol=1e-4,
+        )
         res = point_to_plane_icp(
             samples(src, config, memo.source).fine,
             tgt.points,
             tgt.target_normals,
             A,
-            [IcpStage(max_distance=d * f, iterations=n)],
-            tree=tgt.tree,
-            kernel_floor=min(config.rival_kernel, d) * f,  # a tight stage needs a tight kernel
-            tol=1e-4,
-            search=search,
+            options,
+            search,
         )
         A = res.T
         if into is not None and k < len(config.rival_schedule) - 1:

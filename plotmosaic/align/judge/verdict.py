@@ -108,50 +108,25 @@ def _shortlist(
     return kept
 
 
-@dataclass
-class _Tally:
-    """What the judge gathers while it weighs the rivals and the basin."""
+@dataclass(frozen=True, kw_only=True, eq=False)
+class _Rival:
+    """A pose the judge weighs T against: a distinct rival (with its profile), or a start of T's
+    basin that ended sharper than T (a rival of the fine margin only)."""
 
-    table: list[dict] = field(default_factory=list)  # Verdict.rivals
-    profs: list[Profile] = field(default_factory=list)  # the distinct rivals' profiles
-    best: float = 0.0  # the best score of a rival sharp enough to be accepted itself
-    best_T: np.ndarray | None = None
-    best_name: str | None = None
-    best_prof: Profile | None = None
-    fine_best: float = 0.0  # the highest fine share of any rival, the basin's included
-    fine_name: str | None = None
-    basin_T: np.ndarray | None = None  # the sharpest basin start that is a rival
-    basin_best: float = 0.0
+    name: str
+    T: np.ndarray
+    fine: float  # its fine share
+    prof: Profile | None = None  # None: a basin start
+    sharp: float = 0.0
 
-    def rival(self, name: str, A: np.ndarray, prof: Profile, deg: float, m: float, config) -> None:
-        fine, sharp = fine_share(prof, config), sharpness(prof)
-        self.profs.append(prof)
-        self.table.append(
-            {
-                "from": name,
-                "distinct": True,
-                "deg": deg,
-                "m": m,
-                "score": prof.score,
-                "fine": fine,
-                "sharpness": sharp,
-            }
-        )
-        # a rival too blunt to be accepted itself fits only by chance: it may not outscore the pose
-        # (docs/method.md#judge-settings), but it stays a rival of the fine margin
-        if prof.score > self.best and sharp >= config.blunt_min_sharpness:
-            self.best, self.best_T, self.best_name, self.best_prof = prof.score, A, name, prof
-        if fine > self.fine_best:
-            self.fine_best, self.fine_name = fine, name
 
-    def basin_start(self, k: int, A: np.ndarray, fine: float, rival: bool, deg: float, m: float):
-        self.table.append(
-            {"from": f"basin {k}", "distinct": rival, "deg": deg, "m": m, "fine": fine}
-        )
-        if rival and fine > self.basin_best:
-            self.basin_T, self.basin_best = A, fine
-        if rival and fine > self.fine_best:
-            self.fine_best, self.fine_name = fine, f"the pose's own basin (start {k})"
+def _first_best(rivals: list[_Rival], key) -> _Rival | None:
+    """The first rival whose `key` is the highest, when that is above 0 (None otherwise)."""
+    best, top = None, 0.0
+    for r in rivals:
+        if key(r) > top:
+            best, top = r, key(r)
+    return best
 
 
 def judge(
@@ -172,44 +147,58 @@ def judge(
     t0 = time.perf_counter()
     c = centre(src, config, memo.source)
     mine = profile(src, tgt, T, config, memo)
-    tally = _Tally()
     shortlist = _shortlist(T, candidates, c, config)
     done = refined(src, tgt, [cand.T for cand in shortlist], T, config, memo)
+    table: list[dict] = []  # Verdict.rivals
+    rivals: list[_Rival] = []
     for name, (A, prof) in zip((cand.source for cand in shortlist), done):
         deg, m = separation(A, T, c)
         if m <= config.distinct_m and deg <= config.distinct_deg:
-            tally.table.append({"from": name, "distinct": False, "deg": deg, "m": m})
-        else:
-            tally.rival(name, A, prof, deg, m, config)
+            table.append({"from": name, "distinct": False, "deg": deg, "m": m})
+            continue
+        r = _Rival(name=name, T=A, fine=fine_share(prof, config), prof=prof, sharp=sharpness(prof))
+        rivals.append(r)
+        row = {"score": prof.score, "fine": r.fine, "sharpness": r.sharp}
+        table.append({"from": name, "distinct": True, "deg": deg, "m": m, **row})
     near = basin(src, tgt, T, config, memo) if config.basin_neighbours else []
     sharper = sharper_neighbours(mine, [q for _, q in near], config)
+    basins: list[_Rival] = []
     for k, (A, prof) in enumerate(near):
         deg, m = separation(A, T, c)
         rival = any(prof is q for q in sharper)
-        tally.basin_start(k, A, fine_share(prof, config), rival, deg, m)
-    fine_rivals = tally.profs + sharper
-    score = mine.score
-    margin = 1.0 - tally.best / score if score > 0 else -1.0
+        fine = fine_share(prof, config)
+        table.append({"from": f"basin {k}", "distinct": rival, "deg": deg, "m": m, "fine": fine})
+        if rival:
+            basins.append(_Rival(name=f"the pose's own basin (start {k})", T=A, fine=fine))
+    # a rival too blunt to be accepted itself fits only by chance: it may not outscore the pose
+    # (docs/method.md#judge-settings), but it stays a rival of the fine margin
+    sharp = [r for r in rivals if r.sharp >= config.blunt_min_sharpness]
+    best = _first_best(sharp, lambda r: r.prof.score)
+    finest = _first_best(rivals + basins, lambda r: r.fine)
+    basin_best = _first_best(basins, lambda r: r.fine)  # the sharpest basin start that is a rival
+    fine_rivals = [r.prof for r in rivals] + sharper
+    score, rival_score = mine.score, 0.0 if best is None else best.prof.score
+    margin = 1.0 - rival_score / score if score > 0 else -1.0
     return Verdict(
         score=score,
-        rival_score=tally.best,
+        rival_score=rival_score,
         margin=float(margin),
         confidence=confidence(mine, fine_rivals, config),
         fine_share=fine_share(mine, config),
-        fine_rival_share=tally.fine_best,
+        fine_rival_share=0.0 if finest is None else finest.fine,
         fine_margin=fine_margin(mine, fine_rivals, config),
-        fine_rival_source=tally.fine_name,
+        fine_rival_source=None if finest is None else finest.name,
         sharpness=sharpness(mine),
         profile=mine,
-        rival_profile=tally.best_prof,
-        rival_transform=tally.best_T,
-        rival_source=tally.best_name,
+        rival_profile=None if best is None else best.prof,
+        rival_transform=None if best is None else best.T,
+        rival_source=None if best is None else best.name,
         candidates=len(shortlist),
-        distinct_rivals=len(tally.profs),
+        distinct_rivals=len(rivals),
         seconds=time.perf_counter() - t0,
-        rivals=tally.table,
+        rivals=table,
         basin_share=max((fine_share(q, config) for _, q in near), default=0.0),
-        basin_transform=tally.basin_T,
+        basin_transform=None if basin_best is None else basin_best.T,
     )
 
 

@@ -17,13 +17,12 @@ from plotmosaic.align.coarse import CoarseResult, coarse_align
 from plotmosaic.align.coarse.hypothesis import Hypothesis
 from plotmosaic.align.fine import FineResult, final_icp
 from plotmosaic.align.floors import check_quality
-from plotmosaic.align.icp import evaluate, information_matrix
 from plotmosaic.align.judge import Candidate, Verdict
 from plotmosaic.align.level_icp import LevelResult, level_stage, levels_record, no_level_stage
 from plotmosaic.align.memo import PairMemo
 from plotmosaic.align.prepare import PreparedCloud
+from plotmosaic.align.quality import Quality, measure
 from plotmosaic.align.result import PairResult
-from plotmosaic.align.sampling import sample
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import RegistrationFailed
 from plotmosaic.io.frame import rotation_deg, to_global_transform, to_local_transform
@@ -38,6 +37,19 @@ class Start(str, Enum):
     STORED = "stored"  # verified first (a pose stored in the scans); searched when it does not hold
     ONLY = "only"  # verified, refused when it does not hold (a placement's prior: thin pairs are
     # left to the scan's map, where a search could find no more)
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class PairContext:
+    """What every step of one pair's registration works on: the two clouds, the settings, the
+    seed, where progress goes, and what the pair computes once (its memo, owned by the pair)."""
+
+    src: PreparedCloud
+    tgt: PreparedCloud
+    config: AlignConfig
+    seed: int
+    say: Say
+    memo: PairMemo
 
 
 def register_prepared(
@@ -55,25 +67,26 @@ def register_prepared(
     to verify first (judge.verify_stored: the search is skipped when it holds; when it does not,
     a stored pose is a prior like any other and a placement's is refused). `memo`: what this pair
     computes once, kept by its owner across calls (a run registering a scan in several pairs)."""
-    say = progress or _silent
-    memo = memo or PairMemo()
+    pair = PairContext(
+        src=src, tgt=tgt, config=config, seed=seed, say=progress or _silent, memo=memo or PairMemo()
+    )
     clock = _Clock()
     if config.judge.enabled:  # the judge refuses a scene that is not a forest: before the search
-        scene.check(src, tgt, config.judge, memo)
+        scene.check(src, tgt, config.judge, pair.memo)
     T = to_local_transform(
         np.eye(4) if init is None else np.asarray(init, dtype=float), src.frame, tgt.frame
     )
     handed = T.copy()
     check = None
     if start is not Start.PRIOR and init is not None and config.judge.enabled:
-        check = verify_stored_pose(src, tgt, T, config, say, memo)
+        check = verify_stored_pose(pair, T)
         if start is Start.ONLY and not check.verified:
             raise RegistrationFailed(
                 "pair cannot be registered: not verified at its prior (failed "
                 + ", ".join(check.record["failed"])
                 + "): too thin a pair, left to the scans' maps"
             )
-    search = search_pose(src, tgt, config, T, init is not None, seed, check, say, memo)
+    search = search_pose(pair, T, init is not None, check)
     clock.mark("coarse")
     rng = np.random.default_rng(seed)
     if search.skipped:  # the stored pose's fine ICP stands: no level stage, no second fine stage
@@ -83,15 +96,15 @@ def register_prepared(
     else:
         levels = level_stage(src, tgt, config, search.T, search.coarse is not None, rng)
         clock.mark("levels_icp")
-        say("final ICP")
-        fine = final_icp(src, tgt, levels.T, config, memo)
+        pair.say("final ICP")
+        fine = final_icp(src, tgt, levels.T, config, pair.memo)
     clock.mark("final_icp")
-    judged = judge_pose(src, tgt, config, fine, handed, search, say, memo)
+    judged = judge_pose(pair, fine, handed, search)
     clock.mark("judge")
-    say("quality")
+    pair.say("quality")
     quality = measure(src, tgt, config, judged.fine, rng)
     clock.mark("quality")
-    result = pair_result(src, tgt, config, search, levels, judged, quality, clock)
+    result = pair_result(pair, search, levels, judged, quality, clock)
     check_quality(result, config, local=not config.coarse.enabled or init is not None)
     return result
 
@@ -123,28 +136,10 @@ class Judged:
     verdict: Verdict | None  # None: the judge is off
 
 
-@dataclass(frozen=True, kw_only=True, eq=False)
-class Quality:
-    """The pose's figures in file coordinates."""
-
-    transform: np.ndarray  # source file -> target file
-    fitness: float
-    rmse: float
-    overlap: float
-    information: np.ndarray  # 6x6, from the final point-to-plane problem
-    sigma: float  # point-to-plane residual std behind `information`
-
-
-def verify_stored_pose(
-    src: PreparedCloud,
-    tgt: PreparedCloud,
-    T: np.ndarray,
-    config: AlignConfig,
-    say: Say,
-    memo: PairMemo,
-) -> StoredCheck:
+def verify_stored_pose(pair: PairContext, T: np.ndarray) -> StoredCheck:
     """The fine stage from the stored pose is the check: a right one barely moves and fits sharply."""
-    say("verifying the stored pose")
+    src, tgt, config, memo = pair.src, pair.tgt, pair.config, pair.memo
+    pair.say("verifying the stored pose")
     t = time.perf_counter()
     fine = final_icp(src, tgt, T, config, memo)
     check = judge_mod.verify_stored(src, tgt, T, fine.T, config.judge, memo)
@@ -154,18 +149,11 @@ def verify_stored_pose(
 
 
 def search_pose(
-    src: PreparedCloud,
-    tgt: PreparedCloud,
-    config: AlignConfig,
-    T: np.ndarray,
-    has_init: bool,
-    seed: int,
-    check: StoredCheck | None,
-    say: Say,
-    memo: PairMemo,
+    pair: PairContext, T: np.ndarray, has_init: bool, check: StoredCheck | None
 ) -> Search:
     """The coarse stage, around `T` when a start was given, else from anywhere; nothing after a
     verified stored pose. A local result (--init, --no-coarse) takes its rivals from the global search."""
+    src, tgt, config, seed, memo = pair.src, pair.tgt, pair.config, pair.seed, pair.memo
     skipped = check is not None and check.verified
     coarse, hypotheses = None, ()
     if skipped:
@@ -174,7 +162,7 @@ def search_pose(
     elif config.coarse.enabled:
         # with an initial guess the coarse stage searches around it and keeps it if it verifies best:
         # ICP alone from a guess 10 deg / 2 m off can settle in a wrong minimum that still looks fit
-        say("coarse alignment")
+        pair.say("coarse alignment")
         if has_init:
             cres = coarse_align(src, tgt, config.coarse, seed, prior=T, memo=memo)
         else:
@@ -186,7 +174,7 @@ def search_pose(
             coarse["stored_pose"] = check.record
     rivals = config.judge.enabled and config.judge.global_rivals
     if rivals and not skipped and (has_init or not config.coarse.enabled):
-        say("searching for rival poses")
+        pair.say("searching for rival poses")
         hypotheses += global_search(src, tgt, config, seed, memo).hypotheses
     return Search(T=T, coarse=coarse, hypotheses=hypotheses, skipped=skipped)
 
@@ -207,38 +195,22 @@ def global_search(
     )
 
 
-def judge_pose(
-    src: PreparedCloud,
-    tgt: PreparedCloud,
-    config: AlignConfig,
-    fine: FineResult,
-    start: np.ndarray,
-    search: Search,
-    say: Say,
-    memo: PairMemo,
-) -> Judged:
+def judge_pose(pair: PairContext, fine: FineResult, start: np.ndarray, search: Search) -> Judged:
     """The judge's verdict on the pose against every hypothesis and the start; after a search, one
     retry from a better pose the judge found (`recover`)."""
-    if not config.judge.enabled:
+    if not pair.config.judge.enabled:
         return Judged(fine=fine, verdict=None)
-    say("judging the pose against its rivals")
+    pair.say("judging the pose against its rivals")
     candidates = _candidates(search.hypotheses, start)
-    verdict = judge_mod.judge(src, tgt, fine.T, candidates, config.judge, memo)
+    verdict = judge_mod.judge(pair.src, pair.tgt, fine.T, candidates, pair.config.judge, pair.memo)
     if search.skipped:
         return Judged(fine=fine, verdict=verdict)
-    judged = recover(src, tgt, config, candidates, fine, verdict, say, memo)
-    return look_again(src, tgt, config, candidates, judged, say, memo)
+    judged = recover(pair, candidates, fine, verdict)
+    return look_again(pair, candidates, judged)
 
 
 def recover(
-    src: PreparedCloud,
-    tgt: PreparedCloud,
-    config: AlignConfig,
-    candidates: list[Candidate],
-    fine: FineResult,
-    verdict: Verdict,
-    say: Say,
-    memo: PairMemo | None = None,
+    pair: PairContext, candidates: list[Candidate], fine: FineResult, verdict: Verdict
 ) -> Judged:
     """At most one retry when the judge found a better pose than the final ICP's: a distinct rival
     that scores better (only with the coarse stage on: after --no-coarse a distinct pose is not the
@@ -246,12 +218,14 @@ def recover(
     route: it lies within the basin radius, a local correction). The final ICP runs from it and the
     judge again, the first pose among the candidates; the second pose is kept only if its verdict is
     better (score when a rival won, confidence otherwise), else the first and its verdict stand."""
+    src, tgt, config, memo = pair.src, pair.tgt, pair.config, pair.memo
     rival = verdict.rival_better and config.coarse.enabled
     better = verdict.rival_transform if rival else verdict.basin_transform
     if better is None:
         return Judged(fine=fine, verdict=verdict)
-    say("final ICP from a better rival" if rival else "final ICP from the pose's sharper basin")
-    memo = memo or PairMemo()
+    pair.say(
+        "final ICP from a better rival" if rival else "final ICP from the pose's sharper basin"
+    )
     second_fine = final_icp(src, tgt, better, config, memo)
     second = judge_mod.judge(
         src,
@@ -283,73 +257,31 @@ def weak(verdict: Verdict, config: AlignConfig) -> bool:
     )
 
 
-def look_again(
-    src: PreparedCloud,
-    tgt: PreparedCloud,
-    config: AlignConfig,
-    candidates: list[Candidate],
-    judged: Judged,
-    say: Say,
-    memo: PairMemo,
-) -> Judged:
+def look_again(pair: PairContext, candidates: list[Candidate], judged: Judged) -> Judged:
     """A verdict that would be refused gets a second look (judge.second_look): from each distinct
     candidate in turn, the level stage, the final ICP and the judge with its one retry, as the first
     pose had them (the retry's basin starts carry a pose a few degrees off onto the truth beside
     it); the first result that would not be refused replaces the first pose, else the first verdict
     stands. The rivals are refined once for the pair (the memo): a look pays for its own ICPs."""
+    src, tgt, config, memo = pair.src, pair.tgt, pair.config, pair.memo
     if not config.coarse.enabled or not weak(judged.verdict, config):
         return judged
     c = judge_mod.centre(src, config.judge, memo.source)
     starts = judge_mod.second_look(judged.fine.T, candidates, c, config.judge)
-    say(f"a second look from {len(starts)} other candidates")
+    pair.say(f"a second look from {len(starts)} other candidates")
     rivals = [*candidates, Candidate(T=judged.fine.T, source="first pose")]
     for A in starts:  # the first that holds: the candidates come best-ranked first
         rng = np.random.default_rng(0)
         fine = final_icp(src, tgt, level_stage(src, tgt, config, A, False, rng).T, config, memo)
         verdict = judge_mod.judge(src, tgt, fine.T, rivals, config.judge, memo)
-        found = recover(src, tgt, config, rivals, fine, verdict, say, memo)
+        found = recover(pair, rivals, fine, verdict)
         if not weak(found.verdict, config):
             return found
     return judged
 
 
-def measure(
-    src: PreparedCloud,
-    tgt: PreparedCloud,
-    config: AlignConfig,
-    fine: FineResult,
-    rng: np.random.Generator,
-) -> Quality:
-    """Fitness, RMSE and overlap at `quality_distance`, and the information of the pose."""
-    T = fine.T
-    # fitness / RMSE / overlap on seeded subsamples of the query side: same figures to ~0.1 %, a
-    # fraction of the nearest-neighbour queries on 8M-point scans
-    s_q = src.points[sample(len(src.points), config.quality_max_points, rng)]
-    t_q = tgt.points[sample(len(tgt.points), config.quality_max_points, rng)]
-    fitness, rmse, n_s = evaluate(s_q, tgt.tree, T, config.quality_distance)
-    _, _, n_t = evaluate(t_q, src.tree, np.linalg.inv(T), config.quality_distance)
-    overlap = float((n_s + n_t) / max(1, len(s_q) + len(t_q)))
-    # information from the final point-to-plane problem (its last correspondences), in file coordinates
-    T_file = to_global_transform(T, src.frame, tgt.frame)
-    if len(fine.p):
-        p, q = src.frame.to_global(fine.p), tgt.frame.to_global(fine.q)
-        info, sigma = information_matrix(p, q, fine.n, T_file)
-    else:
-        info, sigma = np.zeros((6, 6)), float("nan")
-    return Quality(
-        transform=T_file,
-        fitness=fitness,
-        rmse=rmse,
-        overlap=overlap,
-        information=info,
-        sigma=sigma,
-    )
-
-
 def pair_result(
-    src: PreparedCloud,
-    tgt: PreparedCloud,
-    config: AlignConfig,
+    pair: PairContext,
     search: Search,
     levels: LevelResult,
     judged: Judged,
@@ -357,6 +289,7 @@ def pair_result(
     clock: _Clock,
 ) -> PairResult:
     """Every step's figures gathered in a PairResult."""
+    src, tgt = pair.src, pair.tgt
     fine, verdict, spans = judged.fine, judged.verdict, clock.spans
     moved = fine.T @ np.linalg.inv(search.T)
     return PairResult(
@@ -375,19 +308,15 @@ def pair_result(
         coarse=search.coarse,
         confidence=None if verdict is None else verdict.confidence,
         judge=None if verdict is None else _judge_record(verdict, src, tgt),
-        timings={
+        timings=dict(spans),
+        steps={
             **({"coarse_skipped": "stored pose verified"} if search.skipped else {}),
-            "coarse": spans["coarse"],
-            "levels_icp": spans["levels_icp"],
-            "final_icp": spans["final_icp"],
             "final_iterations": fine.iterations,
             "final_planes": "source" if fine.reverse else "target",
-            "judge": spans["judge"],
-            "quality": spans["quality"],
             "correction_deg": rotation_deg(moved),
             "correction_m": float(np.linalg.norm(moved[:3, 3])),
         },
-        config=config.model_dump(),
+        config=pair.config.model_dump(),
     )
 
 
