@@ -32,7 +32,8 @@ from plotmosaic.align.pair import register_prepared
 from plotmosaic.align.pipeline import prepare_pair
 from plotmosaic.align.prepare import prepare_cloud
 from plotmosaic.config.align import AlignConfig, default_levels
-from plotmosaic.config.simulate import PRESETS, DrawnConfig
+from plotmosaic.config.cuts import DrawnConfig
+from plotmosaic.config.simulate import PRESETS
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.io.las import PointCloud, read_cloud
 from plotmosaic.simulate.drawn import drawn_scan

@@ -44,13 +44,11 @@ from plotmosaic.bench.overlap_pairs import (
 from plotmosaic.bench.overlap_suite import (
     ALL_METHODS,
     TRIALS_FILE,
-    markdown,
     method_available,
     read_trials,
     run,
-    summarise,
-    write_outputs,
 )
+from plotmosaic.bench.overlap_tables import markdown, summarise, write_outputs
 from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import write_text_atomic
 

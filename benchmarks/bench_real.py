@@ -34,6 +34,7 @@ from plotmosaic.bench.real_suite import (
     CASES_FILE,
     SUITE_PROTOCOLS,
     TRIALS_FILE,
+    Suite,
     markdown,
     read_trials,
     run_suite,
@@ -142,11 +143,7 @@ def main(argv: list[str] | None = None) -> int:
     _save_info(args.out, info)
     try:
         run_suite(
-            cases,
-            counts,
-            methods,
-            args.seed,
-            args.data,
+            Suite(tuple(cases), counts, tuple(methods), args.seed, args.data),
             args.out,
             args.jobs,
             log=lambda m: print(m, file=sys.stderr, flush=True),

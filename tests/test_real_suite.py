@@ -19,7 +19,7 @@ from plotmosaic.bench.protocol import (
     pose_error,
     rotation_angle,
 )
-from plotmosaic.bench.real_cases import build_case, random_frame, refine_truth
+from plotmosaic.bench.real_cases import build_case, random_frame
 from plotmosaic.bench.real_suite import (
     SUITE_PROTOCOLS,
     accuracy,
@@ -34,6 +34,7 @@ from plotmosaic.bench.real_suite import (
     summarise,
     write_outputs,
 )
+from plotmosaic.bench.refined_truth import refine_truth
 from plotmosaic.io.frame import apply_transform
 
 

@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 from plotmosaic.align import scene
 from plotmosaic.align.prepare import prepare_cloud
 from plotmosaic.config.align import AlignConfig, default_levels
-from plotmosaic.config.simulate import DrawnConfig
+from plotmosaic.config.cuts import DrawnConfig
 from plotmosaic.io.las import PointCloud, read_cloud
 from plotmosaic.simulate.drawn import drawn_scan
 from plotmosaic.simulate.run import simulate

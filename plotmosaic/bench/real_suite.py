@@ -64,6 +64,7 @@ __all__ = [  # the suite's API (benchmarks/bench_real.py), tables included
     "plot_reliability",
     "read_trials",
     "reliability",
+    "Suite",
     "run_suite",
     "summarise",
     "write_outputs",
@@ -286,18 +287,25 @@ def run_trial(job: Trial) -> tuple[dict, list[dict]]:
     return info, rows
 
 
+@dataclass(frozen=True)
+class Suite:
+    """What a run draws: its cases, each protocol's trial count, the methods, the seed, the data."""
+
+    cases: tuple[str, ...]
+    protocols: dict[str, int]
+    methods: tuple[str, ...]
+    seed: int = 0
+    data: str | Path | None = None
+
+
 def run_suite(
-    cases: list[str],
-    protocols: dict[str, int],
-    methods: list[str],
-    seed: int = 0,
-    data: str | Path | None = None,
+    suite: Suite,
     out: str | Path | None = None,
     jobs: int = 1,
     log: Callable[[str], None] = print,
     on_trial: Callable[[dict, list[dict]], None] | None = None,
 ) -> list[dict]:
-    """Every method on the same draws of every (case, protocol); `protocols` maps a name to its trial count.
+    """Every method on the same draws of every (case, protocol) of `suite`.
 
     Trials already in OUT/trials.jsonl are not run again; each finished trial is appended there (and passed to
     `on_trial(case info, rows)`). `jobs` worker processes share the thread budget of plotmosaic.parallel.
@@ -309,7 +317,7 @@ def run_suite(
         Path(out).mkdir(parents=True, exist_ok=True)
         path = Path(out) / TRIALS_FILE
         done = {key(r) for r in read_trials(path)}
-    todo = plan(cases, protocols, methods, done, seed, data, out)
+    todo = plan(suite.cases, suite.protocols, suite.methods, done, suite.seed, suite.data, out)
     head = commit()
     log(
         f"{len(todo)} trials to run ({len(done)} rows already in {path}); commit {head}, {jobs} job(s)"

@@ -120,7 +120,7 @@ def run_bench(
                         bar.update(task, description=label)
                         out = run_method(method, job, config.methods_config, seed=config.seed + i)
                         err = pose_error(out.transform, truth, centre)
-                        row = _row(pair.name, wanted, achieved, method, i, p, err, out, config)
+                        row = _row(pair.name, (wanted, achieved), method, i, p, err, out, config)
                         rows.append(row)
                         if (
                             failures is not None
@@ -143,8 +143,7 @@ def run_bench(
 
 def _row(
     pair: str,
-    wanted: float | None,
-    achieved: float,
+    overlap: tuple[float | None, float],
     method: str,
     trial: int,
     start: np.ndarray,
@@ -152,7 +151,9 @@ def _row(
     out: MethodOutput,
     config: BenchConfig,
 ) -> dict:
-    """One trial of one method: its start, its error (six parameters), success and what it said."""
+    """One trial of one method: its start, its error (six parameters), success and what it said;
+    `overlap` is the one asked for and the one the cut achieved."""
+    wanted, achieved = overlap
     ok = bool(is_success(err, config.success_rotation_deg, config.success_translation_m)[0])
     return {
         "pair": pair,

@@ -10,7 +10,8 @@ from pydantic import ValidationError
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from plotmosaic.commands.common import handle_errors
-from plotmosaic.config.simulate import DrawnConfig, SimulationConfig, grid_layout
+from plotmosaic.config.cuts import DrawnConfig
+from plotmosaic.config.simulate import SimulationConfig, grid_layout
 from plotmosaic.errors import InputError
 from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed, inputs_of
 from plotmosaic.simulate.drawn import drawn_plot

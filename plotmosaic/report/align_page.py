@@ -118,7 +118,8 @@ def _stages(data: dict) -> tuple[Stage, ...]:
     return tuple(stages)
 
 
-def _pictures(data, T, src_xyz, tgt_xyz, names, out, points, seed, levels) -> list[Figure]:
+def _pictures(data, T, clouds, names, out, points, seed, levels) -> list[Figure]:
+    src_xyz, tgt_xyz = clouds
     rng = np.random.default_rng(seed)
     s_small, t_small = subsample(src_xyz, points, rng), subsample(tgt_xyz, points, rng)
     before = {names[0]: s_small, names[1]: t_small}
@@ -179,7 +180,7 @@ def report_pair(
     src_xyz, tgt_xyz = read_scan(src), read_scan(tgt)
     names = (f"source {src.stem}", f"target {tgt.stem}")
     motion = motion_of(T, source_centre(data, src_xyz))
-    figs = _pictures(data, T, src_xyz, tgt_xyz, names, out, points, seed, levels)
+    figs = _pictures(data, T, (src_xyz, tgt_xyz), names, out, points, seed, levels)
     G = nx.Graph()
     G.add_node(names[0], kind=data.get("source_kind", "tls"))
     G.add_node(names[1], kind=data.get("target_kind", "tls"))

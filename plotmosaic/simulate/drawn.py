@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from plotmosaic.config.simulate import CRS_EPSG, PRESETS, DrawnConfig
+from plotmosaic.config.cuts import DrawnConfig
+from plotmosaic.config.simulate import CRS_EPSG, PRESETS
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.las import PointCloud, write_cloud
 from plotmosaic.manifest import Manifest, Plot, Scan, dump_manifest

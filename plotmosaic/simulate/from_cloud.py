@@ -33,7 +33,8 @@ import numpy as np
 from pydantic import ValidationError
 from scipy.spatial import cKDTree
 
-from plotmosaic.config.simulate import CutConfig, TlsConfig
+from plotmosaic.config.cuts import CutConfig
+from plotmosaic.config.simulate import TlsConfig
 from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.frame import translation

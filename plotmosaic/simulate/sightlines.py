@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from plotmosaic.config.simulate import CutConfig
+from plotmosaic.config.cuts import CutConfig
 
 
 def surface_normals(tree: cKDTree, local: np.ndarray, query: np.ndarray, k: int) -> np.ndarray:
