@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     for seed in _seeds(a.seeds):
         r = one_seed(a.cloud, a.spacing, a.max_range, seed, a.work)
         rows.append(r)
-        err = f"{r['deg']:.3f} / {100 * r['m']:.1f}" if r["deg"] is not None else r.get("why", "")
+        err = f"{r['deg']:.3f} / {100 * r['m']:.2f}" if r["deg"] is not None else r.get("why", "")
         print(f"| {seed} | {r['outcome']} | {err} | {r['cpu_s']:.1f} |", flush=True)
     count = {k: sum(r["outcome"] == k for r in rows) for k in ("found", "refused", "WRONG")}
     print(f"\n{count['found']} / {len(rows)} found, {count['refused']} refused, {count['WRONG']} wrong with exit 0")  # fmt: skip
