@@ -49,6 +49,7 @@ from plotmosaic.bench.overlap_suite import (
     run,
 )
 from plotmosaic.bench.overlap_tables import markdown, summarise, write_outputs
+from plotmosaic.bench.real_suite import print_wrong
 from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import write_text_atomic
 
@@ -163,14 +164,7 @@ def redraw(out: Path, command: str, figure: Path | None) -> int:
     commands = _commands(out) or [command]
     paths = write_outputs(rows, out, "\n    ".join(commands), figure)
     print(markdown(summarise(rows)))
-    wrong = [r for r in rows if r["method"] == "forestalign" and r["outcome"] == "wrong"]
-    print(f"forestalign wrong poses with exit 0: {len(wrong)} of {sum(r['method'] == 'forestalign' for r in rows)} trials")  # fmt: skip
-    for r in wrong:
-        print(
-            f"  {r['case']} {r['pair']} trial {r['trial']}: {r['rotation_deg']:.2f} deg / "
-            f"{r['translation_m']:.2f} m, judge {r.get('judge_score')}, rival {r.get('rival_score')}, "
-            f"{r.get('result_json', '-')}"
-        )
+    print_wrong(rows, lambda r: f"{r['case']} {r['pair']} trial {r['trial']}")
     print("wrote " + ", ".join(str(p) for p in paths.values()))
     return 0
 

@@ -28,7 +28,7 @@ import sys
 import time
 from pathlib import Path
 
-from plotmosaic.bench.methods import METHODS, OURS, runnable
+from plotmosaic.bench.methods import METHODS, runnable
 from plotmosaic.bench.real_cases import ALL_CASES, CASES
 from plotmosaic.bench.real_suite import (
     CASES_FILE,
@@ -36,6 +36,7 @@ from plotmosaic.bench.real_suite import (
     TRIALS_FILE,
     Suite,
     markdown,
+    print_wrong,
     read_trials,
     run_suite,
     summarise,
@@ -186,15 +187,7 @@ def redraw(folders: list[Path], out: Path, command: str, figure: Path | None) ->
     commands = [c for f in folders for c in _info_commands(f)]
     paths = write_outputs(rows, info, out, "\n".join(commands) or command, figure)
     print(markdown(summarise(rows)))
-    fa = [r for r in rows if r["method"] in OURS]
-    wrong = [r for r in fa if r["outcome"] == "wrong"]
-    print(f"plotmosaic wrong poses with exit 0: {len(wrong)} of {len(fa)} trials")
-    for r in wrong:
-        print(
-            f"  {r['case']} {r['protocol']} {r['method']} seed {r['seed']} trial {r['trial']}: {r['rotation_deg']:.2f} deg / "
-            f"{r['translation_m']:.2f} m, confidence {r.get('confidence')}, judge {r.get('judge_score')}, "
-            f"rival {r.get('rival_score')}, {r.get('result_json', '-')}"
-        )
+    print_wrong(rows, lambda r: f"{r['case']} {r['protocol']} {r['method']} seed {r['seed']} trial {r['trial']}")  # fmt: skip
     print("wrote " + ", ".join(str(p) for p in paths.values()))
     return 0
 

@@ -48,6 +48,20 @@ from plotmosaic.io.frame import Frame, apply_transform, to_local_transform
 from plotmosaic.io.frame import pose_error as angle_distance
 from plotmosaic.io.las import PointCloud
 
+
+def print_wrong(rows: list[dict], where: Callable[[dict], str]) -> None:
+    """plotmosaic's wrong poses with exit 0 among `rows`: their count, then one line each."""
+    ours = [r for r in rows if r["method"] in OURS]
+    wrong = [r for r in ours if r["outcome"] == "wrong"]
+    print(f"plotmosaic wrong poses with exit 0: {len(wrong)} of {len(ours)} trials")
+    for r in wrong:
+        print(
+            f"  {where(r)}: {r['rotation_deg']:.2f} deg / {r['translation_m']:.2f} m, confidence"
+            f" {r.get('confidence')}, judge {r.get('judge_score')}, rival {r.get('rival_score')},"
+            f" {r.get('result_json', '-')}"
+        )
+
+
 __all__ = [  # the suite's API (benchmarks/bench_real.py), tables included
     "CASES_FILE",
     "SUITE_PROTOCOLS",
@@ -65,6 +79,7 @@ __all__ = [  # the suite's API (benchmarks/bench_real.py), tables included
     "read_trials",
     "reliability",
     "Suite",
+    "print_wrong",
     "run_suite",
     "summarise",
     "write_outputs",
