@@ -17,12 +17,33 @@ from plotmosaic.align.pair import register_prepared
 from plotmosaic.align.pipeline import AlignRequest, align_clouds
 from plotmosaic.align.prepare import prepare_cloud
 from plotmosaic.align.result import PairResult
-from plotmosaic.align.vmf import fit_vmf_mixture, sample_vmf
+from plotmosaic.align.vmf import fit_vmf_mixture
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.errors import RegistrationFailed
 from plotmosaic.io.frame import apply_transform, translation
 from plotmosaic.io.las import PointCloud, read_cloud
 from plotmosaic.poses import load_poses
+
+
+def sample_vmf(mu: np.ndarray, kappa: float, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Wood (1994) sampler for vMF in 3-D (used by tests and benchmarks)."""
+    mu = np.asarray(mu, dtype=np.float64) / np.linalg.norm(mu)
+    u = rng.random(n)
+    # exact inverse CDF of w = mu.x in 3-D
+    w = 1.0 + np.log(u + (1.0 - u) * np.exp(-2.0 * kappa)) / kappa
+    phi = rng.random(n) * 2 * np.pi
+    s = np.sqrt(np.clip(1 - w * w, 0, None))
+    v = np.column_stack([s * np.cos(phi), s * np.sin(phi), w])
+    # rotate e_z onto mu
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(z, mu)
+    sa, ca = np.linalg.norm(axis), float(z @ mu)
+    if sa < 1e-12:
+        return v if ca > 0 else -v
+    axis /= sa
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    R = np.eye(3) + sa * K + (1 - ca) * K @ K
+    return v @ R.T
 
 
 def config(**kw) -> AlignConfig:

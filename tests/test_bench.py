@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import re
 
@@ -23,7 +24,7 @@ from plotmosaic.bench.protocol import (
     pose_error,
     sample_params,
 )
-from plotmosaic.bench.run import BenchPair, read_trials_csv, run_bench
+from plotmosaic.bench.run import BenchPair, run_bench
 from plotmosaic.cli import app
 from plotmosaic.config.bench import BenchConfig, CpdConfig, FpfhConfig, MethodsConfig
 from plotmosaic.errors import InputError
@@ -31,6 +32,28 @@ from plotmosaic.io.las import PointCloud, write_cloud
 from plotmosaic.poses import Poses, ScanPose
 
 # ---------------------------------------------------------------- protocol
+
+
+def read_trials_csv(path) -> list[dict]:
+    """Rows back from trials.csv, typed like `run_bench` made them."""
+    rows = []
+    with open(path, newline="") as fh:
+        for r in csv.DictReader(fh):
+            row = dict(r)
+            for k in ("overlap_wanted", "overlap"):
+                row[k] = float(r[k]) if r[k] != "" else None
+            row["trial"] = int(r["trial"])
+            for p in PARAMS:
+                row[p] = float(r[p])
+                row[f"init_{p}"] = float(r[f"init_{p}"])
+            row["success"] = r["success"] == "True"
+            row["failed"] = r["failed"] == "True"
+            row["seconds"] = float(r["seconds"])
+            row["confidence"] = (
+                float(r["confidence"]) if r.get("confidence") not in (None, "") else None
+            )
+            rows.append(row)
+    return rows
 
 
 @pytest.mark.parametrize("name", ["paper", "beyond"])

@@ -222,28 +222,6 @@ def write_trials_csv(rows: list[dict], path: str | Path) -> Path:
     return Path(path)
 
 
-def read_trials_csv(path: str | Path) -> list[dict]:
-    """Rows back from trials.csv, typed like `run_bench` made them."""
-    rows = []
-    with open(path, newline="") as fh:
-        for r in csv.DictReader(fh):
-            row = dict(r)
-            for k in ("overlap_wanted", "overlap"):
-                row[k] = float(r[k]) if r[k] != "" else None
-            row["trial"] = int(r["trial"])
-            for p in PARAMS:
-                row[p] = float(r[p])
-                row[f"init_{p}"] = float(r[f"init_{p}"])
-            row["success"] = r["success"] == "True"
-            row["failed"] = r["failed"] == "True"
-            row["seconds"] = float(r["seconds"])
-            row["confidence"] = (
-                float(r["confidence"]) if r.get("confidence") not in (None, "") else None
-            )
-            rows.append(row)
-    return rows
-
-
 def write_outputs(
     result: BenchResult, out: str | Path, title: str = "", command: str | None = None
 ) -> dict[str, Path]:
