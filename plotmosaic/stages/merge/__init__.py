@@ -19,6 +19,7 @@ This module writes (stream, or tiles thinned one at a time); `job` and `plan` de
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -44,6 +45,7 @@ from plotmosaic.stages.merge.plan import (
     plan_sources,
     read_source_table,
     sidecar_path,
+    source_counts,
 )
 from plotmosaic.stages.merge.progress import points_bar
 from plotmosaic.stages.merge.records import (
@@ -157,13 +159,12 @@ def _merge_scans(
                 summary = _write_thinned(job, bar)
     except OSError as exc:  # disk full, folder vanished...: a user problem, not a bug
         raise InputError(f"{out}: cannot write ({exc.strerror or exc})") from None
-    summary.seconds = time.perf_counter() - job.start
-    return summary
+    return dataclasses.replace(summary, seconds=time.perf_counter() - job.start)
 
 
-def _finish_file(job: MergeJob, writer: laspy.LasWriter) -> MergeSummary:
+def _finish_file(job: MergeJob, writer: laspy.LasWriter, counts: list[SourceCount]) -> MergeSummary:
     """The summary of a written single file, and its sidecar written atomically."""
-    summary = summary_of(job, writer.header.mins, writer.header.maxs)
+    summary = summary_of(job, counts, writer.header.mins, writer.header.maxs)
     with atomic_output(job.sidecar, force=True) as tmp_json:
         tmp_json.write_text(sidecar_text(job, summary))
     return summary
@@ -175,10 +176,10 @@ def _write_stream(job: MergeJob, bar) -> MergeSummary:
     with atomic_output(out, force=True) as tmp:
         laz = out.suffix.lower() == ".laz"
         with laspy.open(tmp, mode="w", header=header, do_compress=laz) as writer:
-            _stream(writer, job.sources, job.counts, header, job.config, bar)
+            counts = _stream(writer, job.sources, header, job.config, bar)
         if writer.header.point_count == 0:
             raise InputError("no point left to write (check --bbox)")
-        return _finish_file(job, writer)
+        return _finish_file(job, writer, counts)
 
 
 def _write_thinned(job: MergeJob, bar) -> MergeSummary:
@@ -195,58 +196,86 @@ def _write_thinned(job: MergeJob, bar) -> MergeSummary:
         else:
             edge = auto_tile_edge(job.mins, job.maxs, job.total, max_points, step or 1)
         spill = TileSpill(folder, step or 1, edge)
-        bucket_sources(spill, job.sources, job.counts, header, config, step, bar)
+        points_in = bucket_sources(spill, job.sources, header, config, step, bar)
         if not spill.buckets:
             raise InputError("no point left to write (check --bbox)")
         if config.tiles:
             with atomic_folder(job.out, config.force) as tmp_dir:
-                tiles = _write_tiles(tmp_dir, spill, header, job.counts, step, max_points, parallel)
+                tiles, out_by_id = _write_tiles(
+                    tmp_dir, spill, header, _ids(job), step, max_points, parallel
+                )
                 lo = np.min([t["min"] for t in tiles], axis=0)
                 hi = np.max([t["max"] for t in tiles], axis=0)
-                summary = summary_of(job, lo, hi, tiles)
+                counts = _thinned_counts(job, points_in, out_by_id)
+                summary = summary_of(job, counts, lo, hi, tiles)
                 (tmp_dir / TILE_INDEX).write_text(sidecar_text(job, summary))
             return summary
-        return _write_thinned_file(job, spill, dtype, step, max_points)
+        return _write_thinned_file(job, spill, points_in, dtype, step, max_points)
 
 
-def _write_thinned_file(job: MergeJob, spill: TileSpill, dtype, step, max_points) -> MergeSummary:
+def _ids(job: MergeJob) -> int:
+    """How many point_source_id values the output can hold (sources go by increasing id)."""
+    return job.sources[-1].source_id + 1
+
+
+def _thinned_counts(
+    job: MergeJob, points_in: list[int], out_by_id: np.ndarray
+) -> list[SourceCount]:
+    return source_counts(job.sources, points_in, [out_by_id[s.source_id] for s in job.sources])
+
+
+def _write_thinned_file(
+    job: MergeJob, spill: TileSpill, points_in: list[int], dtype, step, max_points
+) -> MergeSummary:
     out, header = job.out, job.header
+    out_by_id = np.zeros(_ids(job), dtype=np.int64)
     with atomic_output(out, force=True) as tmp:
         laz = out.suffix.lower() == ".laz"
         with laspy.open(tmp, mode="w", header=header, do_compress=laz) as writer:
             for _, bucket in spill.tiles():
                 for block in thinned_blocks(bucket, dtype, step, max_points):
-                    count_out(job.counts, block)
+                    out_by_id += count_out(block, len(out_by_id))
                     record = laspy.ScaleAwarePointRecord(
                         block, header.point_format, header.scales, header.offsets
                     )
                     write_chunk(writer, record)
-        return _finish_file(job, writer)
+        return _finish_file(job, writer, _thinned_counts(job, points_in, out_by_id))
 
 
 def _stream(
     writer: laspy.LasWriter,
     sources: list[Source],
-    counts: list[SourceCount],
     header,
     config: MergeConfig,
     bar,
-) -> None:
+) -> list[SourceCount]:
     """Plain merge: every chunk posed and written straight away, in stream order."""
-    for source, count in zip(sources, counts):
+    points_in, points_out = [], []
+    for source in sources:
+        n_in = n_out = 0
         for chunk in read_records(source.path, config.chunk_size):
             record = posed_record(source, chunk, header, config.bbox)
             write_chunk(writer, record)
-            count.points_in += len(chunk)
-            count.points_out += len(record)
+            n_in += len(chunk)
+            n_out += len(record)
             if bar is not None:
                 bar.advance(len(chunk), source.id)
+        points_in.append(n_in)
+        points_out.append(n_out)
+    return source_counts(sources, points_in, points_out)
 
 
 def _write_tiles(
-    folder: Path, spill: TileSpill, header, counts, step: int | None, max_points: int, parallel: int
-) -> list[dict]:
-    """One LAZ per tile, `parallel` tiles at a time (each with a single-threaded codec then)."""
+    folder: Path,
+    spill: TileSpill,
+    header,
+    ids: int,
+    step: int | None,
+    max_points: int,
+    parallel: int,
+) -> tuple[list[dict], np.ndarray]:
+    """One LAZ per tile, `parallel` tiles at a time (each with a single-threaded codec then); the
+    tiles, and the points written per point_source_id."""
     edge_m = spill.edge * spill.step * SCALE
     backend = laspy.LazBackend.Lazrs if parallel > 1 else laspy.LazBackend.LazrsParallel
     dtype = header.point_format.dtype()
@@ -254,13 +283,13 @@ def _write_tiles(
     def write(item) -> dict:
         (i, j), bucket = item
         origin = header.offsets[:2] + np.array([i, j]) * edge_m
-        tile_counts = [SourceCount(c.source_id, c.id, c.kind, c.path) for c in counts]
+        tile_out = np.zeros(ids, dtype=np.int64)
         path = folder / tile_name(origin)
         with laspy.open(
             path, mode="w", header=header, do_compress=True, laz_backend=backend
         ) as writer:
             for block in thinned_blocks(bucket, dtype, step, max_points):
-                count_out(tile_counts, block)
+                tile_out += count_out(block, ids)
                 write_chunk(
                     writer,
                     laspy.ScaleAwarePointRecord(
@@ -275,7 +304,7 @@ def _write_tiles(
             "points": int(h.point_count),
             "min": [round(float(v), 3) for v in h.mins],
             "max": [round(float(v), 3) for v in h.maxs],
-            "_counts": [c.points_out for c in tile_counts],
+            "_counts": tile_out,
         }
 
     items, tiles = spill.tiles(), []
@@ -285,10 +314,10 @@ def _write_tiles(
         tiles += (
             in_two_threads(write, items[k : k + parallel]) if parallel > 1 else [write(items[k])]
         )
+    out_by_id = np.zeros(ids, dtype=np.int64)
     for tile in tiles:
-        for count, n in zip(counts, tile.pop("_counts")):
-            count.points_out += n
-    return tiles
+        out_by_id += tile.pop("_counts")
+    return tiles, out_by_id
 
 
 def write_chunk(writer: laspy.LasWriter, record: laspy.ScaleAwarePointRecord) -> None:

@@ -42,7 +42,6 @@ class MergeJob:
     mins: np.ndarray
     maxs: np.ndarray
     header: laspy.LasHeader
-    counts: list[SourceCount]  # filled in as points are written
     total: int
     frame: str
     poses_path: str | None
@@ -87,7 +86,6 @@ def plan_merge(
         mins=mins,
         maxs=maxs,
         header=build_header(sources, crs, mins),
-        counts=[SourceCount(s.source_id, s.id, s.kind, str(s.path)) for s in sources],
         total=sum(s.info.point_count for s in sources),
         frame=poses.frame,
         poses_path=str(poses_path) if poses_path else None,
@@ -95,13 +93,14 @@ def plan_merge(
     )
 
 
-def summary_of(job: MergeJob, lo, hi, tiles=None) -> MergeSummary:
-    """The merge's summary once written: output bounds `lo`..`hi`, and the tiles if any."""
+def summary_of(job: MergeJob, counts: list[SourceCount], lo, hi, tiles=None) -> MergeSummary:
+    """The merge's summary once written: points per source, output bounds `lo`..`hi`, and the
+    tiles if any."""
     crs = job.crs
     return MergeSummary(
         job.out,
         job.sidecar,
-        job.counts,
+        counts,
         np.asarray(lo),
         np.asarray(hi),
         crs.to_wkt() if crs else None,

@@ -56,7 +56,7 @@ def _first_error(exc: Exception) -> str:
     return str(exc)
 
 
-@dataclass
+@dataclass(frozen=True)
 class Source:
     """One input file with its pose into the output frame."""
 
@@ -68,17 +68,25 @@ class Source:
     info: HeaderInfo
 
 
-@dataclass
+@dataclass(frozen=True)
 class SourceCount:
     source_id: int
     id: str
     kind: str
     path: str
-    points_in: int = 0
-    points_out: int = 0
+    points_in: int
+    points_out: int
 
 
-@dataclass
+def source_counts(sources: list[Source], points_in, points_out) -> list[SourceCount]:
+    """Each source's points read and written (`points_in`, `points_out`: one number per source)."""
+    return [
+        SourceCount(s.source_id, s.id, s.kind, str(s.path), int(n_in), int(n_out))
+        for s, n_in, n_out in zip(sources, points_in, points_out, strict=True)
+    ]
+
+
+@dataclass(frozen=True)
 class MergeSummary:
     out: Path
     sidecar: Path

@@ -16,7 +16,7 @@ from plotmosaic.io.las import (
     corrupt_data,
     open_las,
 )
-from plotmosaic.stages.merge.plan import Source, SourceCount
+from plotmosaic.stages.merge.plan import Source
 
 
 def voxel_ijk(raw: np.ndarray, step: int) -> np.ndarray:
@@ -142,7 +142,6 @@ def posed_record(
     return record
 
 
-def count_out(counts: list[SourceCount], block: np.ndarray) -> None:
-    per_id = np.bincount(block["point_source_id"], minlength=counts[-1].source_id + 1)
-    for count in counts:
-        count.points_out += int(per_id[count.source_id])
+def count_out(block: np.ndarray, ids: int) -> np.ndarray:
+    """The points of `block` per point_source_id, 0 .. `ids` - 1."""
+    return np.bincount(block["point_source_id"], minlength=ids)

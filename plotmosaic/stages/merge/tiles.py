@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from plotmosaic.config.merge import MergeConfig
-from plotmosaic.stages.merge.plan import Source, SourceCount
+from plotmosaic.stages.merge.plan import Source
 from plotmosaic.stages.merge.records import (
     column_bounds,
     posed_record,
@@ -33,14 +32,15 @@ PRETHIN_WORTH = (
 _BYTES_OVERHEAD = 96  # per point while thinning a tile, beside two copies of its record: voxel indices, key, sort order
 
 
-@dataclass
 class Bucket:
-    """One tile's spill file: raw output records in stream order, with their voxel-index bounds."""
+    """One tile's spill file: raw output records in stream order, with their voxel-index bounds.
+    An accumulator (each append grows the file, the count and the bounds), hence a plain class."""
 
-    path: Path
-    count: int = 0
-    lo: np.ndarray = field(default_factory=lambda: np.full(3, np.iinfo(np.int64).max))
-    hi: np.ndarray = field(default_factory=lambda: np.full(3, np.iinfo(np.int64).min))
+    def __init__(self, path: Path):
+        self.path = path
+        self.count = 0
+        self.lo = np.full(3, np.iinfo(np.int64).max)
+        self.hi = np.full(3, np.iinfo(np.int64).min)
 
     def append(self, raw: np.ndarray, ijk: np.ndarray) -> None:
         with open(self.path, "ab") as f:
@@ -110,21 +110,24 @@ def tile_name(origin: np.ndarray) -> str:
 def bucket_sources(
     spill: TileSpill,
     sources: list[Source],
-    counts: list[SourceCount],
     header,
     config: MergeConfig,
     step: int | None,
     bar,
-) -> None:
+) -> list[int]:
     """First pass: every chunk posed, cropped, thinned within itself (a point that is not the first of its
-    voxel in its chunk cannot be the first in the cloud) and bucketed by tile."""
-    for source, count in zip(sources, counts):
+    voxel in its chunk cannot be the first in the cloud) and bucketed by tile. The points read per source."""
+    points_in = []
+    for source in sources:
+        n_in = 0
         prethin = step is not None
         for chunk in read_records(source.path, config.chunk_size):
             record = posed_record(source, chunk, header, config.bbox, step if prethin else None)
             spill.add(record.array)
             # a fine voxel keeps nearly every point: then the in-chunk pass costs a sort and saves nothing
             prethin = prethin and len(record) < PRETHIN_WORTH * len(chunk)
-            count.points_in += len(chunk)
+            n_in += len(chunk)
             if bar is not None:
                 bar.advance(len(chunk), source.id)
+        points_in.append(n_in)
+    return points_in
