@@ -28,7 +28,7 @@ MERGED = "merged.laz"
 DEMO_NAMES = ("sim", "register", "georeferenced", MERGED, sidecar_path(Path(MERGED)).name)
 
 
-@dataclass
+@dataclass(frozen=True)
 class DemoResult:
     outdir: Path
     manifest: Path

@@ -22,7 +22,7 @@ from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.paths import check_input_file
 
 
-@dataclass
+@dataclass(frozen=True)
 class ScanPose:
     transform: np.ndarray
     plot: str | None = None
@@ -30,7 +30,7 @@ class ScanPose:
     extra: dict = field(default_factory=dict)
 
 
-@dataclass
+@dataclass(frozen=True)
 class Poses:
     scans: dict[str, ScanPose]
     frame: str = "plot"

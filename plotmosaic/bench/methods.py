@@ -35,7 +35,7 @@ METHODS = ("forestalign", "forestalign-placement", "icp", "fpfh-ransac", "cpd")
 OURS = ("forestalign", "forestalign-placement")  # plotmosaic's own: a wrong pose with exit 0 counts
 
 
-@dataclass
+@dataclass(frozen=True)
 class MethodOutput:
     transform: np.ndarray  # 4x4 source' file coords -> target file coords
     seconds: float
@@ -49,7 +49,7 @@ class MethodOutput:
     result: object | None = None  # forestalign's PairResult (also when it refused), else None
 
 
-@dataclass
+@dataclass(frozen=True)
 class PairInput:
     source: PointCloud
     target: PointCloud

@@ -33,7 +33,7 @@ def overlap_fraction(
     return float(np.mean(np.isfinite(d)))
 
 
-@dataclass
+@dataclass(frozen=True)
 class Cropped:
     source: PointCloud
     target: PointCloud

@@ -115,7 +115,7 @@ def candidate(source: str, seed: int, index: int) -> Geometry:
     return Geometry(source, index, seed, spacing, max_range, angle, shift)
 
 
-@dataclass
+@dataclass(frozen=True)
 class ViewPair:
     source: np.ndarray  # (n, 3) the source scan in its own frame (scanner at the origin)
     target: np.ndarray  # (m, 3) the target scan in its own frame (scanner at the origin)
@@ -138,7 +138,7 @@ def measure(source: np.ndarray, target: np.ndarray, truth: np.ndarray) -> tuple[
     return overlap_fraction(aligned, target), overlap_fraction(target, aligned)
 
 
-@dataclass
+@dataclass(frozen=True)
 class _Cloud:
     xyz: np.ndarray
     lo: np.ndarray

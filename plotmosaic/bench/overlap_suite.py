@@ -143,9 +143,7 @@ def run_trial(job: Job) -> list[dict]:
         if method in PEERS:
             out = run_peer(method, moved.xyz, target.xyz, seed, src_sensors, tgt_sensors)
         else:
-            inp = PairInput(moved, target, "tls", "tls")
-            if method in OURS:
-                inp.target_prepared = prepared
+            inp = PairInput(moved, target, "tls", "tls", prepared if method in OURS else None)
             out = run_method(method, inp, MethodsConfig(), seed=seed)
         cpu = time.process_time() - cpu0
         err = pose_error(out.transform, truth, centre)

@@ -71,7 +71,7 @@ SPARSE_SPACING, SPARSE_RANGE = 12.0, 10.0  # a sparse survey's neighbours (issue
 UNDERSTOREY_POINTS = 200_000  # points per simulated scan: enough for the pipeline, a quick build
 
 
-@dataclass
+@dataclass(frozen=True)
 class RealCase:
     name: str
     source: PointCloud

@@ -254,9 +254,13 @@ def run_trial(job: Trial) -> tuple[dict, list[dict]]:
     truth = np.linalg.inv(P)
     rows = []
     for method in job.methods:
-        pair = PairInput(moved, case.target, case.source_kind, case.target_kind)
-        if method in OURS:
-            pair.target_prepared = prepared
+        pair = PairInput(
+            moved,
+            case.target,
+            case.source_kind,
+            case.target_kind,
+            prepared if method in OURS else None,
+        )
         out = run_method(method, pair, MethodsConfig(), seed=job.seed + job.trial)
         err = pose_error(out.transform, truth, centre)
         row = {

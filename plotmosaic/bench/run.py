@@ -38,7 +38,7 @@ from plotmosaic.io.las import PointCloud
 from plotmosaic.io.progress import progress_bar
 
 
-@dataclass
+@dataclass(frozen=True)
 class BenchPair:
     name: str
     source: PointCloud
@@ -48,7 +48,7 @@ class BenchPair:
     target_kind: str = "tls"
 
 
-@dataclass
+@dataclass(frozen=True)
 class BenchResult:
     rows: list[dict]
     config: BenchConfig

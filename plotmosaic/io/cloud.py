@@ -26,7 +26,7 @@ STANDARD_ATTRIBUTES: dict[str, np.dtype] = {
 RGB = ("red", "green", "blue")
 
 
-@dataclass
+@dataclass(frozen=True)
 class PointCloud:
     """Points in file coordinates (float64) with optional per-point attributes and a CRS."""
 
@@ -35,7 +35,10 @@ class PointCloud:
     crs: CRS | None = None
 
     def __post_init__(self) -> None:
-        self.xyz = np.ascontiguousarray(self.xyz, dtype=np.float64).reshape(-1, 3)
+        # frozen: the normalised array replaces the given one, once, before anyone sees it
+        object.__setattr__(
+            self, "xyz", np.ascontiguousarray(self.xyz, dtype=np.float64).reshape(-1, 3)
+        )
         for name, values in self.attrs.items():
             if len(values) != len(self.xyz):
                 raise ValueError(

@@ -89,7 +89,7 @@ class GridExtent:
         )
 
 
-@dataclass
+@dataclass(frozen=True)
 class Ground(GridExtent):
     """A coarse DTM: z at cell centres of a regular grid (rows = y, columns = x)."""
 
@@ -227,7 +227,7 @@ def fit_circle(xy: np.ndarray, iterations: int = 10) -> tuple[np.ndarray, float,
     return c + mean, abs(r), float(np.sqrt(np.mean(res**2)))
 
 
-@dataclass
+@dataclass(frozen=True)
 class Stem:
     """One stem found in the slice: the joint circle and what each scan saw of it."""
 

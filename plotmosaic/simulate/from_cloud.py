@@ -56,7 +56,7 @@ RING_RADII = (
 )  # where a scanner standing in a trunk or a bush is moved to
 
 
-@dataclass
+@dataclass(frozen=True)
 class View:
     points: np.ndarray  # (n, 3) in the view's own scanner frame
     truth: np.ndarray  # 4x4 view frame -> cloud file frame
@@ -271,7 +271,7 @@ def _cut_one(
 # ---------------------------------------------------------------- files
 
 
-@dataclass
+@dataclass(frozen=True)
 class CutResult:
     outdir: Path
     manifest_path: Path

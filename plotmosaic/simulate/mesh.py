@@ -14,7 +14,7 @@ GROUND, WOODY, FOLIAGE, UNDERSTORY = 0, 1, 2, 3
 LABEL_NAMES = {GROUND: "ground", WOODY: "stem+branch", FOLIAGE: "foliage", UNDERSTORY: "understory"}
 
 
-@dataclass
+@dataclass(frozen=True)
 class Mesh:
     vertices: np.ndarray  # (V, 3) local frame (float32 once assembled: Embree's precision anyway)
     triangles: np.ndarray  # (T, 3) vertex indices (int32 once assembled)

@@ -64,7 +64,7 @@ def make_config(preset: str = "small", **overrides) -> SimulationConfig:
         ) from None
 
 
-@dataclass
+@dataclass(frozen=True)
 class SimulationResult:
     outdir: Path
     manifest_path: Path
@@ -181,15 +181,22 @@ def simulate(
     if progress:
         progress("done", total, total)
     manifest_path, truth_path = _write_manifest_and_truth(outdir, world, tls)
+    figure_paths = []
+    if figures:
+        t0 = time.perf_counter()
+        als_sample = _sample(als.cloud, streams.figures)
+        figure_paths = make_figures(outdir / "figures", world, tls.samples, tls.poses, als_sample)
+        seconds["figures"] = time.perf_counter() - t0
     extent = als.extent
     area = (extent[2] - extent[0]) * (extent[3] - extent[1])
-    result = SimulationResult(
+    seconds["total"] = time.perf_counter() - t_start
+    return SimulationResult(
         outdir=outdir,
         manifest_path=manifest_path,
         ground_truth_path=truth_path,
         scan_paths=tls.scan_paths,
         als_paths=[als.path],
-        figures=[],
+        figures=figure_paths,
         config=cfg,
         seed=seed,
         points={**tls.points, "als": len(als.cloud)},
@@ -197,13 +204,6 @@ def simulate(
         als_extent=extent,
         seconds=seconds,
     )
-    if figures:
-        t0 = time.perf_counter()
-        als_sample = _sample(als.cloud, streams.figures)
-        result.figures = make_figures(outdir / "figures", world, tls.samples, tls.poses, als_sample)
-        seconds["figures"] = time.perf_counter() - t0
-    seconds["total"] = time.perf_counter() - t_start
-    return result
 
 
 def _scan_sites(

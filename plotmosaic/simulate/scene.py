@@ -18,7 +18,7 @@ from plotmosaic.simulate.terrain import Terrain, make_terrain
 from plotmosaic.simulate.vegetation import Vegetation, make_vegetation
 
 
-@dataclass
+@dataclass(frozen=True)
 class Site:
     scan_id: str
     plot_id: str
@@ -26,7 +26,7 @@ class Site:
     post: bool = False  # scanned after the fire (prepost)
 
 
-@dataclass
+@dataclass(frozen=True)
 class World:
     config: SimulationConfig
     seed: int

@@ -27,7 +27,7 @@ def surface_normals(tree: cKDTree, local: np.ndarray, query: np.ndarray, k: int)
     return out
 
 
-@dataclass
+@dataclass(frozen=True)
 class OccupancyGrid:
     occupied: np.ndarray  # flat bool
     origin: np.ndarray

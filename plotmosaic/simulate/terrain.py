@@ -15,7 +15,7 @@ from plotmosaic.config.simulate import TerrainConfig
 from plotmosaic.simulate.mesh import GROUND, Mesh
 
 
-@dataclass
+@dataclass(frozen=True)
 class Terrain:
     x0: float
     y0: float
@@ -100,6 +100,6 @@ def make_terrain(
         ]
         z += fine / max(fine.std(), 1e-9) * cfg.microrelief_m
     z += rng.normal(0.0, cfg.roughness_m, z.shape)
-    terrain = Terrain(xmin, ymin, cfg.cell, z)
-    terrain.z -= terrain.height(np.array([0.0]), np.array([0.0]))[0]
-    return terrain
+    # heights relative to the plot centre's ground
+    z -= Terrain(xmin, ymin, cfg.cell, z).height(np.array([0.0]), np.array([0.0]))[0]
+    return Terrain(xmin, ymin, cfg.cell, z)

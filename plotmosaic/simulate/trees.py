@@ -26,7 +26,7 @@ from plotmosaic.simulate.mesh import (
 from plotmosaic.simulate.terrain import Terrain
 
 
-@dataclass
+@dataclass(frozen=True)
 class Tree:
     x: float
     y: float

@@ -19,7 +19,7 @@ GRASS_IDS = 2_000_000
 LOG_IDS = 3_000_000
 
 
-@dataclass
+@dataclass(frozen=True)
 class Vegetation:
     mesh: Mesh
     trees: list[Tree] = field(default_factory=list)
