@@ -121,7 +121,23 @@ def _fpfh_switch(when: str) -> Any:
     )
 
 
-class RegisterConfig(BaseModel):
+class _Shared(BaseModel):
+    """The sections a stage shares with the others and does not hold in its own table (excluded
+    from it; Settings fills them in)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    report: ReportConfig = Field(
+        default_factory=ReportConfig, exclude=True, description="the report's pictures"
+    )
+    read: ReadingConfig = Field(
+        default_factory=ReadingConfig,
+        exclude=True,
+        description="the memory budget of reading a scan",
+    )
+
+
+class RegisterConfig(_Shared):
     """register-plot: its [register_plot] section; the sections it shares with the other stages
     ([align], [posegraph], [pairs], [report], [read]) are filled in by Settings.register_config()."""
 
@@ -196,14 +212,6 @@ class RegisterConfig(BaseModel):
     pairs: PairSelection = Field(
         default_factory=PairSelection, exclude=True, description="which pairs are registered"
     )
-    report: ReportConfig = Field(
-        default_factory=ReportConfig, exclude=True, description="the report's pictures"
-    )
-    read: ReadingConfig = Field(
-        default_factory=ReadingConfig,
-        exclude=True,
-        description="the memory budget of reading a scan",
-    )
 
     @property
     def align(self) -> AlignConfig:
@@ -226,7 +234,7 @@ def placement_align_config() -> AlignConfig:
     return RegisterConfig().placement
 
 
-class TieConfig(BaseModel):
+class TieConfig(_Shared):
     """tie-to-als: its [tie_to_als] section; the sections it shares with the other stages
     ([align], [posegraph], [report], [read]) are filled in by Settings.tie_config()."""
 
@@ -261,14 +269,6 @@ class TieConfig(BaseModel):
         default_factory=PoseGraphConfig,
         exclude=True,
         description="the region's pose graph, ALS fixed",
-    )
-    report: ReportConfig = Field(
-        default_factory=ReportConfig, exclude=True, description="the report's pictures"
-    )
-    read: ReadingConfig = Field(
-        default_factory=ReadingConfig,
-        exclude=True,
-        description="the memory budget of reading a scan",
     )
 
     @property
