@@ -31,7 +31,7 @@ import sys
 import time
 from pathlib import Path
 
-from plotmosaic.bench.methods import runnable
+from plotmosaic.bench.methods import option_names, runnable
 from plotmosaic.bench.overlap_pairs import (
     DEFAULT_EDGES,
     PAIRS_PER_BIN,
@@ -54,14 +54,6 @@ from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import write_text_atomic
 
 INFO_FILE = "runs.json"
-
-
-def _names(text: str, allowed, option: str) -> list[str]:
-    names = [v.strip() for v in text.split(",") if v.strip()]
-    bad = [v for v in names if v not in allowed]
-    if bad or not names:
-        raise InputError(f"{option}: {bad[0] if bad else text!r} not one of {', '.join(allowed)}")
-    return names
 
 
 def _commands(out: Path) -> list[str]:
@@ -101,8 +93,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.redraw:
             return redraw(args.out, command, args.figure)
         bins = parse_bins(args.bins)
-        sources = _names(args.sources, SOURCES, "--sources")
-        methods = _names(args.methods, ALL_METHODS, "--methods")
+        sources = option_names(args.sources, SOURCES, "--sources")
+        methods = option_names(args.methods, ALL_METHODS, "--methods")
         if args.n < 1 or args.jobs < 1 or args.pairs < 1:
             raise InputError("--n, --pairs and --jobs must be at least 1")
     except InputError as exc:

@@ -28,7 +28,7 @@ import sys
 import time
 from pathlib import Path
 
-from plotmosaic.bench.methods import METHODS, runnable
+from plotmosaic.bench.methods import METHODS, option_names, runnable
 from plotmosaic.bench.real_cases import ALL_CASES, CASES
 from plotmosaic.bench.real_suite import (
     CASES_FILE,
@@ -43,14 +43,6 @@ from plotmosaic.bench.real_suite import (
     write_outputs,
 )
 from plotmosaic.errors import InputError
-
-
-def _names(text: str, allowed, option: str) -> list[str]:
-    names = [v.strip() for v in text.split(",") if v.strip()]
-    bad = [v for v in names if v not in allowed]
-    if bad or not names:
-        raise InputError(f"{option}: {bad[0] if bad else text!r} not one of {', '.join(allowed)}")
-    return names
 
 
 def _info(folders: list[Path]) -> dict:
@@ -115,9 +107,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.merge or args.redraw:
             return redraw(args.merge or [args.out], args.out, command, args.figure)
-        cases = _names(args.cases, ALL_CASES, "--cases")
-        methods = _names(args.methods, METHODS, "--methods")
-        protos = _names(args.protocol, SUITE_PROTOCOLS, "--protocol")
+        cases = option_names(args.cases, ALL_CASES, "--cases")
+        methods = option_names(args.methods, METHODS, "--methods")
+        protos = option_names(args.protocol, SUITE_PROTOCOLS, "--protocol")
         if args.n < 1 or args.n_true < 1 or args.jobs < 1:
             raise InputError("--n, --n-true and --jobs must be at least 1")
     except InputError as exc:

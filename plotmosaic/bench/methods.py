@@ -71,6 +71,15 @@ def available(name: str) -> str | None:
     return None
 
 
+def option_names(text: str, allowed, option: str) -> list[str]:
+    """A comma-separated option's names, each one of `allowed` (else one InputError naming it)."""
+    names = [v.strip() for v in text.split(",") if v.strip()]
+    bad = [v for v in names if v not in allowed]
+    if bad or not names:
+        raise InputError(f"{option}: {bad[0] if bad else text!r} not one of {', '.join(allowed)}")
+    return names
+
+
 def runnable(
     methods: list[str], why_not: Callable[[str], str | None] = available
 ) -> tuple[list[str], dict[str, str]]:
