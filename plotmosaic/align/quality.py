@@ -36,8 +36,8 @@ def measure(
 ) -> Quality:
     """Fitness, RMSE and overlap at `quality_distance`, and the information of the pose."""
     T = fine.T
-    # fitness / RMSE / overlap on seeded subsamples of the query side: same figures to ~0.1 %, a
-    # fraction of the nearest-neighbour queries on 8M-point scans
+    # fitness / RMSE / overlap on seeded subsamples of the query side: the same figures for a
+    # fraction of the nearest-neighbour queries on dense scans
     s_q = src.points[sample(len(src.points), config.quality_max_points, rng)]
     t_q = tgt.points[sample(len(tgt.points), config.quality_max_points, rng)]
     fitness, rmse, n_s = evaluate(s_q, tgt.tree, T, config.quality_distance)
