@@ -56,3 +56,28 @@ def test_a_search_carried_across_stages_gives_the_same_pose():
         carried = _refine(source, target, normals, tree, T, carried=True)
         assert carried.tobytes() == fresh.tobytes()
         assert not np.allclose(fresh, T)  # the refinement did move
+
+
+def test_an_icp_told_an_axis_turns_only_about_it():
+    """A start tilted 3 deg off the truth: turning about the vertical alone keeps the tilt (the
+    coarse stage's loose matches must not decide it), turning freely removes it."""
+    rng = np.random.default_rng(3)
+    target, normals = _scene(rng)
+    tree = cKDTree(target)
+    source = target[rng.choice(len(target), 4000, replace=False)]
+    start = np.eye(4)
+    start[:3, :3] = Rotation.from_euler("xz", [3.0, 4.0], degrees=True).as_matrix()
+    start[:3, 3] = [0.2, -0.1, 0.05]
+    up = np.array([0.0, 0.0, 1.0])
+    stages = (IcpStage(max_distance=1.0, iterations=30), IcpStage(max_distance=0.3, iterations=30))
+    about = point_to_plane_icp(
+        source, target, normals, start, IcpOptions(stages=stages, axis=up), MovingNearest(tree)
+    ).T
+    free = point_to_plane_icp(
+        source, target, normals, start, IcpOptions(stages=stages), MovingNearest(tree)
+    ).T
+    turned = about[:3, :3] @ start[:3, :3].T
+    assert np.allclose(turned @ up, up, atol=1e-9)  # a turn about the axis alone
+    tilt = np.degrees(np.arccos(about[2, 2]))
+    assert abs(tilt - 3.0) < 1e-6
+    assert np.degrees(np.arccos(np.clip(free[2, 2], -1, 1))) < 0.1  # freely: tilted into place

@@ -23,11 +23,12 @@ class Voxel(BaseModel):  # settings whose JSON stays put, whatever the align set
 
 # computed with the code before the job had one home (pair_key, with_reading, with_stored_poses)
 # for the files b"scan a" and b"scan b", version "0.0-test", seed 7: runs resumed on older output
-# folders hit their cache only while these stay; the default AlignConfig's key moved once, when
-# its unread `coarse.stem_linearity_z` was dropped (its JSON is part of the key)
+# folders hit their cache only while these stay. The default AlignConfig's JSON is part of the key:
+# it moves when the method does (so a cached pair of the older method is recomputed), last when the
+# coarse stage's ICPs learned to turn about the start's vertical and refined 8 poses
 KNOWN = {
     "voxel": "a3027940498eda0c24be8825f60d8d58",
-    "align": "133d58835357220ec1e78be6dfe4d8ea",
+    "align": "40a52567ff98bf4f0df68573ef8fc70d",
 }
 
 

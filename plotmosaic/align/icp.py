@@ -194,6 +194,9 @@ class IcpOptions:
     kernel_floor: float = 0.05  # Tukey's width never below this (m)
     kernel_ratio: float = 0.5  # Tukey's width, x the stage's correspondence distance
     tol: float = 1e-5  # a stage ends when a step moves points by less (m)
+    # turn only about this axis (target coordinates; None: all three): a start levelled under a
+    # vertical keeps its tilt while thin overlap (mostly ground) cannot yet decide it
+    axis: np.ndarray | None = None
 
 
 def point_to_plane_icp(
@@ -258,7 +261,7 @@ def point_to_plane_icp(
                 ok, a, b, n = ok[seen], a[seen], b[seen], n[seen]
             if mirror is not None:
                 a, b, n = mirror.stacked(T, st.max_distance, a, b, n, views, backward)
-            T, step, rank = _gauss_newton_step(T, a, b, n, centre, scale, k, options.min_eig_ratio)
+            T, step, rank = _gauss_newton_step(T, a, b, n, centre, scale, k, options)
             result = IcpResult(
                 T,
                 float(len(ok) / len(source)),
@@ -281,7 +284,7 @@ def _gauss_newton_step(
     centre: np.ndarray,
     scale: float,
     k: float,
-    min_eig_ratio: float,
+    options: IcpOptions,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """One Tukey-weighted point-to-plane step from T (moved source `a` on target planes (b, n)):
     (the new T, the step, how many directions it moved along)."""
@@ -290,11 +293,17 @@ def _gauss_newton_step(
     # residual as a function of a left perturbation about the moved centroid
     c = T[:3, :3] @ centre + T[:3, 3]
     J = np.hstack([np.cross(a - c, n) / scale, n])
+    # the directions a step may move along (columns: twists); all six, or the axis's turn and translation
+    basis = np.eye(6)
+    if options.axis is not None:
+        basis = np.zeros((6, 4))
+        basis[:3, 0], basis[3:, 1:] = options.axis, np.eye(3)
+    J = J @ basis
     Jw = J * wgt[:, None]
     H, g = Jw.T @ J, Jw.T @ r
     vals, vecs = np.linalg.eigh(H)
-    keep = vals > max(min_eig_ratio, 1e-9) * vals[-1]
-    step = -(vecs[:, keep] @ ((vecs[:, keep].T @ g) / vals[keep]))
+    keep = vals > max(options.min_eig_ratio, 1e-9) * vals[-1]
+    step = basis @ -(vecs[:, keep] @ ((vecs[:, keep].T @ g) / vals[keep]))
     step[:3] /= scale
     Tc = np.eye(4)
     Tc[:3, 3] = c

@@ -48,7 +48,7 @@ class CoarseConfig(CoarseGenerators, CoarseLevelling):
         "levelled 5 deg off needs them to tilt into place (sparse targets: cheap)",
     )
     refine_top: int = Field(
-        4,
+        8,
         ge=1,
         le=64,
         description="distinct screened poses refined fully (each generator's best among them)",
@@ -58,6 +58,11 @@ class CoarseConfig(CoarseGenerators, CoarseLevelling):
         gt=0,
         le=1,
         description="|normal z| below this: a non-flat point that scores (flat ground matches anywhere)",
+    )
+    screen_about_vertical: bool = Field(
+        True,
+        description="ground-based pairs: screening and the refine's wide stages turn only about "
+        "the start's vertical (thin overlap tilts a right start away); the last stage turns freely",
     )
     screen_distance_factor: float = Field(
         6.0, gt=0, le=50, description="screening ICP distance, in inlier distances"

@@ -23,12 +23,17 @@ GENERATORS = ("raster", "fpfh", "stems", "slices", "prior")
 
 
 def _refine(
-    src_pts: np.ndarray, tgt: tuple, T0: np.ndarray, distances: tuple[float, ...], iterations: int
+    src_pts: np.ndarray,
+    tgt: tuple,
+    T0: np.ndarray,
+    distances: tuple[float, ...],
+    iterations: int,
+    axis: np.ndarray | None = None,
 ) -> np.ndarray:
     """Quick robust point-to-plane ICP over shrinking correspondence distances (Tukey width = distance)."""
     points, normals, tree = tgt
     stages = tuple(IcpStage(max_distance=d, iterations=iterations) for d in distances)
-    options = IcpOptions(stages=stages, kernel_floor=0.0, kernel_ratio=1.0, tol=1e-4)
+    options = IcpOptions(stages=stages, kernel_floor=0.0, kernel_ratio=1.0, tol=1e-4, axis=axis)
     return point_to_plane_icp(src_pts, points, normals, T0, options, MovingNearest(tree)).T
 
 
@@ -120,24 +125,42 @@ class Verifier:
         self.src_few, self.structure_few = self.src_v[few], self.src_v[few][flat_ok[few]]
         # a start's key -> (score, pose) screened, and -> (pose, score) refined
         self.screened: dict[tuple, tuple[float, np.ndarray]] = {}
+        # ground-based pairs: a start's ICPs turn about its vertical while the matches are loose (thin
+        # overlap, mostly ground, tilts a right start away); airborne ones must tilt a strip into place
+        self.about_vertical = config.screen_about_vertical and not airborne
+        self.ups = {v.name: np.asarray(v.up, dtype=float) for v in tgt.cloud.verticals}
         self.refined: dict[tuple, tuple[np.ndarray, float]] = {}
+
+    def _axis(self, start: Start) -> np.ndarray | None:
+        """The target's vertical the start was levelled under, where its ICPs turn about it (None:
+        they turn freely)."""
+        if not self.about_vertical or "/" not in start.vertical:
+            return None  # a 6-DoF or prior start has no vertical of its own
+        return self.ups.get(start.vertical.rpartition("/")[2])
 
     def _screen(self, start: Start) -> tuple[float, np.ndarray]:
         c, d = self.config, self.d
+        axis = self._axis(start)
         A = _refine(
-            self.src_few, self.tgt_v, start.T, (c.screen_distance_factor * d,), self.iterations
+            self.src_few,
+            self.tgt_v,
+            start.T,
+            (c.screen_distance_factor * d,),
+            self.iterations,
+            axis,
         )
         return _score(self.structure_few, self.tgt_v, A, c.screen_score_factor * d), A
 
-    def _refine(self, A: np.ndarray) -> tuple[np.ndarray, float]:
+    def _refine(self, job: tuple[np.ndarray, np.ndarray | None]) -> tuple[np.ndarray, float]:
+        """A screened pose refined: its wide stages turn about `axis` (when given), the last, tight
+        stage freely, where the matches are right enough to decide the tilt."""
+        A, axis = job
         c, d = self.config, self.d
-        A = _refine(
-            self.src_v,
-            self.tgt_v,
-            A,
-            tuple(f * d for f in c.refine_distance_factors),
-            self.iterations,
-        )
+        distances = tuple(f * d for f in c.refine_distance_factors)
+        wide, tight = (distances[:-1], distances[-1:]) if axis is not None else ((), distances)
+        if wide:
+            A = _refine(self.src_v, self.tgt_v, A, wide, self.iterations, axis)
+        A = _refine(self.src_v, self.tgt_v, A, tight, self.iterations)
         return A, _score(self.structure, self.tgt_v, A, d)
 
     def _screen_all(self, starts: list[Start]) -> list[_Screened]:
@@ -183,7 +206,8 @@ class Verifier:
         screened = self._screen_all(starts)
         # independent ICPs, two at a time (KD-tree queries release the GIL)
         todo = [i for i in self._chosen(screened) if screened[i].start.key not in self.refined]
-        for i, r in zip(todo, in_two_threads(self._refine, [screened[i].T for i in todo])):
+        jobs = [(screened[i].T, self._axis(screened[i].start)) for i in todo]
+        for i, r in zip(todo, in_two_threads(self._refine, jobs)):
             self.refined[screened[i].start.key] = r
         results = []
         for r in screened:
