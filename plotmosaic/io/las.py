@@ -41,7 +41,6 @@ __all__ = [
     "write_cloud",
 ]
 
-LAS_SUFFIXES = (".las", ".laz")
 READ_SUFFIXES = (".las", ".laz", ".e57", ".ply")
 
 
