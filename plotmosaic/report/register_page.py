@@ -16,17 +16,10 @@ from plotmosaic.config.register import PoseGraphConfig
 from plotmosaic.config.report import ReportConfig
 from plotmosaic.graph.unplaced import unplaced_reasons
 from plotmosaic.io.atomic import write_text_atomic
+from plotmosaic.report import tables
 from plotmosaic.report.build import build_report
 from plotmosaic.report.collect import read_scan
 from plotmosaic.report.model import ReportInput, Stage
-from plotmosaic.report.tables import (
-    edge_table,
-    md_figures,
-    pair_seconds,
-    pose_table,
-    recorded,
-    residual_summary,
-)
 from plotmosaic.report.views import plot_map
 
 
@@ -88,12 +81,12 @@ def run_of(result, manifest) -> RegisterRun:
         computed=result.computed,
         failed=tuple(result.failed),
         seconds=result.seconds,
-        stages=tuple(recorded(result)),
+        stages=tuple(tables.recorded(result)),
     )
 
 
 def _stages(run: RegisterRun) -> list[Stage]:
-    pair_s, n_timed = pair_seconds(run.graph)
+    pair_s, n_timed = tables.pair_seconds(run.graph)
     now = "" if run.computed is None else f" ({run.computed} run now, the rest from the cache)"
     return [
         Stage(
@@ -167,7 +160,7 @@ def _calibration(G: nx.Graph, plot: str) -> list[str]:
 
 def _plot_md(run: RegisterRun, r: PlotRun, figures) -> list[str]:
     sub = run.graph.subgraph(r.scans)
-    s = residual_summary(sub)
+    s = tables.residual_summary(sub)
     lines = [f"## Plot {r.plot}", "", f"Reference scan (plot frame): **{r.reference}**.", ""]
     if r.unplaced:
         lines += [f"Not placed: **{', '.join(r.unplaced)}**.", ""]
@@ -182,13 +175,13 @@ def _plot_md(run: RegisterRun, r: PlotRun, figures) -> list[str]:
             "",
         ]
     lines += _calibration(run.graph, r.plot)
-    lines += ["### Poses", "", *pose_table(list(r.scans), r.poses, r.sigmas), ""]
+    lines += ["### Poses", "", *tables.pose_table(list(r.scans), r.poses, r.sigmas), ""]
     lines += [
         "### Edges",
         "",
         "Residuals before = at the spanning-tree initialisation, after = at the optimised poses.",
         "",
-        *edge_table(sub),
+        *tables.edge_table(sub),
         "",
     ]
     failed = [f for f in run.failed if f["source"] in r.scans]
@@ -207,7 +200,7 @@ def _plot_md(run: RegisterRun, r: PlotRun, figures) -> list[str]:
         f"plot {r.plot}: pose graph",
         np.zeros(3),
     )
-    return lines + md_figures(figures, r.plot) + [f"![graph]({graph_png.name})", ""]
+    return lines + tables.md_figures(figures, r.plot) + [f"![graph]({graph_png.name})", ""]
 
 
 def render_register(
@@ -218,14 +211,17 @@ def render_register(
     reader: Callable[[Path], np.ndarray],
 ) -> Path:
     """report.md and report.html (with the run's view3d.html) of a register-plot run."""
-    tables = []
+    md_tables = []
     for r in run.plots:
-        tables += [
-            (f"Plot {r.plot}: poses (plot frame)", pose_table(list(r.scans), r.poses, r.sigmas)),
-            (f"Plot {r.plot}: edges", edge_table(run.graph.subgraph(r.scans))),
+        md_tables += [
+            (
+                f"Plot {r.plot}: poses (plot frame)",
+                tables.pose_table(list(r.scans), r.poses, r.sigmas),
+            ),
+            (f"Plot {r.plot}: edges", tables.edge_table(run.graph.subgraph(r.scans))),
         ]
         if calibration := _calibration(run.graph, r.plot):
-            tables.append((f"Plot {r.plot}: sigma calibration", calibration))
+            md_tables.append((f"Plot {r.plot}: sigma calibration", calibration))
     inp = ReportInput(
         title="register-plot report",
         out=run.out,
@@ -237,10 +233,10 @@ def render_register(
         stages=tuple(_stages(run)),
         unplaced=tuple(run.unplaced),
         failed=run.failed,
-        tables_md=tuple(tables),
+        tables_md=tuple(md_tables),
         facts=(run.source, "frame: the plot frame (each plot's reference scan)"),
         min_confidence=min_confidence,
-        bundle=residual_summary(run.graph),
+        bundle=tables.residual_summary(run.graph),
         overview=True,
     )
     _, figures = build_report(inp, cfg, seed)

@@ -21,18 +21,11 @@ from plotmosaic.config.register import PoseGraphConfig
 from plotmosaic.config.report import ReportConfig
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.frame import inverse, pose_error
+from plotmosaic.report import tables
 from plotmosaic.report.build import build_report
 from plotmosaic.report.collect import read_scan
 from plotmosaic.report.model import ReportInput, Stage
-from plotmosaic.report.tables import (
-    edge_table,
-    fmt,
-    md_figures,
-    pair_seconds,
-    pose_table,
-    recorded,
-    residual_summary,
-)
+from plotmosaic.report.tables import fmt
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -117,7 +110,7 @@ def anchor_fact(a: AnchorRow) -> str:
 
 
 def _stages(run: TieRun) -> list[Stage]:
-    secs, n = pair_seconds(run.graph, anchors_only=True)
+    secs, n = tables.pair_seconds(run.graph, anchors_only=True)
     now = "" if run.computed is None else f" ({run.computed} run now)"
     return [
         Stage(
@@ -141,8 +134,8 @@ def render_tie(
 ) -> Path:
     """report.md and report.html (with the run's view3d.html) of a tie-to-als run."""
     anchors = anchor_rows(run.anchors)
-    poses = pose_table([s for ids in run.plots.values() for s in ids], run.poses, run.sigmas)
-    edges = edge_table(run.graph)
+    poses = tables.pose_table([s for ids in run.plots.values() for s in ids], run.poses, run.sigmas)
+    edges = tables.edge_table(run.graph)
     inp = ReportInput(
         title="tie-to-als report (georeferenced)",
         out=run.out,
@@ -166,7 +159,7 @@ def render_tie(
         als_xyz=run.als_xyz,
         judged_in=run.judged_in,
         min_confidence=min_confidence,
-        bundle=residual_summary(run.graph),
+        bundle=tables.residual_summary(run.graph),
         overview=True,
     )
     _, figures = build_report(inp, cfg, seed)
@@ -189,7 +182,7 @@ def render_tie(
         if p in run.judged_in:
             href, why = run.judged_in[p]
             lines += [f"{why}: its cloud-to-cloud distances are in [{href}]({href}).", ""]
-        lines += md_figures(figures, p)
+        lines += tables.md_figures(figures, p)
     lines += ["## Anchors (plot -> ALS)", "", *anchors, "", "## Poses (ALS CRS)", "", *poses, ""]
     lines += ["## Edges", "", *edges, ""]
     return write_text_atomic(run.out / "report.md", "\n".join(lines))
@@ -265,7 +258,7 @@ def write_tie_report(
         unplaced=tuple(result.unplaced),
         computed=result.computed,
         seconds=result.seconds,
-        stages=tuple(recorded(result)),
+        stages=tuple(tables.recorded(result)),
         judged_in=rigid_plots(result, earlier, earlier_report, cfg),
     )
     return render_tie(run, cfg, graph_cfg.sure_edge_confidence, seed, reader or read_scan)
