@@ -83,7 +83,6 @@ class RealCase:
     meta: dict = field(default_factory=dict)
 
     def bench_pair(self):
-
         return BenchPair(
             self.name, self.source, self.target, self.truth, self.source_kind, self.target_kind
         )

@@ -261,7 +261,6 @@ def _als_offset(fit: dict) -> str:
 
 
 def _summary(G, solves, unplaced: list[str]) -> None:
-
     console = Console(highlight=False)
     kept = sum(1 for *_, e in G.edges(data=True) if not e.get("dropped"))
     console.print(
