@@ -39,13 +39,11 @@ OURS = ("forestalign", "forestalign-placement")  # plotmosaic's own: a wrong pos
 class MethodOutput:
     transform: np.ndarray  # 4x4 source' file coords -> target file coords
     seconds: float
-    failed: bool = (
-        False  # the method reported failure (identity, or its refused estimate, is scored)
-    )
+    # the method reported failure (identity, or its refused estimate, is scored)
+    failed: bool = False
     note: str = ""
-    confidence: float | None = (
-        None  # forestalign's own confidence in its answer (also when it refused)
-    )
+    # forestalign's own confidence in its answer (also when it refused)
+    confidence: float | None = None
     result: object | None = None  # forestalign's PairResult (also when it refused), else None
 
 

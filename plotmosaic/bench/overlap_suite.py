@@ -19,21 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from plotmosaic.bench.methods import (
-    METHODS,
-    OURS,
-    PairInput,
-    available,
-    prepare_target,
-    run_method,
-)
-from plotmosaic.bench.overlap_pairs import (
-    SOURCES,
-    Bin,
-    PairRef,
-    bin_label,
-    load_pair,
-)
+from plotmosaic.bench.methods import METHODS, OURS, PairInput, available, prepare_target, run_method
+from plotmosaic.bench.overlap_pairs import SOURCES, Bin, PairRef, bin_label, load_pair
 from plotmosaic.bench.overlap_tables import ALL_METHODS
 from plotmosaic.bench.peers import PEERS, Sensors, peer_available, run_peer
 from plotmosaic.bench.protocol import (
@@ -79,9 +66,8 @@ class Job:
     pair: PairRef
     methods: tuple[str, ...]
     seed: int = 0
-    out: str | None = (
-        None  # folder: a wrong forestalign pose with exit 0 keeps its result JSON there
-    )
+    # folder: a wrong forestalign pose with exit 0 keeps its result JSON there
+    out: str | None = None
 
 
 def plan(

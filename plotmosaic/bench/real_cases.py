@@ -46,9 +46,8 @@ from plotmosaic.simulate.from_cloud import cut_views, grid_positions
 from plotmosaic.simulate.run import simulate
 from plotmosaic.simulate.tls import random_pose
 
-DATA = (
-    Path(__file__).resolve().parents[3] / "shared" / "data"
-)  # beside the work tree, as in tests/conftest.py
+# beside the work tree, as in tests/conftest.py
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 CASES = (
     "treels-2views",
     "mls-2views",
@@ -58,10 +57,8 @@ CASES = (
     "mls-uas",
     "sim-understorey",
 )
-EXTRA_CASES = (
-    "sim-small",
-    "mls-views12m",
-)  # on request: the simulator's `small` preset, a TLS pair (the old coarse suite); a sparse pair
+# on request: the simulator's `small` preset, a TLS pair (the old coarse suite); a sparse pair
+EXTRA_CASES = ("sim-small", "mls-views12m")
 ALL_CASES = CASES + EXTRA_CASES
 STRIP_WIDTH = 5.0  # metres: a narrow drone strip (<= 6 m)
 TREELS_SPACING = 7.0
@@ -122,10 +119,8 @@ def _spanner(root: str, name: str) -> PointCloud:
     return read_cloud(_file(Path(root), f"spanner/{name}_Clip.laz"), attributes=False)
 
 
-REFINE_VOXEL = {
-    ("UAS", "ALS"): 0.1,
-    ("MLS", "UAS"): 0.15,
-}  # metres: two dense clips need less detail to agree
+# metres: two dense clips need less detail to agree
+REFINE_VOXEL = {("UAS", "ALS"): 0.1, ("MLS", "UAS"): 0.15}
 
 
 def cache_dir() -> Path:

@@ -143,9 +143,8 @@ class Trial:
     methods: tuple[str, ...]  # those of this draw not yet in the trials file
     seed: int = 0
     data: str | None = None
-    out: str | None = (
-        None  # folder: a wrong forestalign pose with exit 0 keeps its result JSON there
-    )
+    # folder: a wrong forestalign pose with exit 0 keeps its result JSON there
+    out: str | None = None
 
 
 def key(row: dict) -> tuple:

@@ -17,13 +17,7 @@ from plotmosaic.config.align import KINDS
 from plotmosaic.config.bench import BenchConfig, MethodsConfig
 from plotmosaic.errors import InputError
 from plotmosaic.io.las import read_cloud
-from plotmosaic.io.outputs import (
-    OutputPlan,
-    check_outputs,
-    claimed,
-    inputs_of,
-    manifest_inputs,
-)
+from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed, inputs_of, manifest_inputs
 from plotmosaic.manifest import load_manifest
 from plotmosaic.poses import load_poses
 

@@ -64,9 +64,8 @@ class PairJob:
     levels_target: int | None
     config: AlignConfig
     seed: int
-    prepared: str | None = (
-        None  # DIR/prepared: the prepared-cloud cache shared by every pair and run
-    )
+    # DIR/prepared: the prepared-cloud cache shared by every pair and run
+    prepared: str | None = None
     init: tuple | None = None  # 4x4 rows, source file -> target file: a prior for the coarse stage
     prepare: AlignConfig | None = None  # settings the scans are prepared with, when not `config`
     start: str = "prior"  # how `init` is used (align Start): "stored" (poses stored in the scan

@@ -20,9 +20,8 @@ from plotmosaic.errors import InputError
 from plotmosaic.lifetime import signals_held
 
 TEMP_NAME = re.compile(r"^\..+\.tmp-(\d+)$")  # our own temporaries: `.NAME.tmp-PID`
-NAME_MAX = (
-    255  # bytes per path component on every common file system (ext4, xfs, btrfs, NTFS, APFS)
-)
+# bytes per path component on every common file system (ext4, xfs, btrfs, NTFS, APFS)
+NAME_MAX = 255
 _cleaned: set[str] = set()  # folders already swept for stale temporaries in this process
 
 

@@ -263,9 +263,8 @@ def _other_header_info(path: Path) -> HeaderInfo:
     memo = (str(path), st.st_mtime_ns, st.st_size)
     if memo in _OTHER_INFO:
         return _OTHER_INFO[memo]
-    box = (
-        bounds if bounds is not None else partial(_streamed_bounds, str(path))
-    )  # a partial: pickles
+    # a partial: pickles
+    box = bounds if bounds is not None else partial(_streamed_bounds, str(path))
     info = HeaderInfo(path, count, -1, version, box, None, ("X", "Y", "Z", *names))
     _OTHER_INFO[memo] = info
     return info

@@ -234,15 +234,12 @@ class Stem:
     centre: np.ndarray
     radius: float
     spread: float  # ring spread (m): RMS offset of the other scans' rings from the best-seen scan's ring
-    points: dict[str, np.ndarray] = field(
-        default_factory=dict
-    )  # scan -> its (n, 2) slice points here
-    arcs: dict[str, tuple[np.ndarray, float, float]] = field(
-        default_factory=dict
-    )  # scan -> own circle fit
-    offsets: dict[str, float] = field(
-        default_factory=dict
-    )  # scan -> offset of its ring from the best-seen scan's (m)
+    # scan -> its (n, 2) slice points here
+    points: dict[str, np.ndarray] = field(default_factory=dict)
+    # scan -> own circle fit
+    arcs: dict[str, tuple[np.ndarray, float, float]] = field(default_factory=dict)
+    # scan -> offset of its ring from the best-seen scan's (m)
+    offsets: dict[str, float] = field(default_factory=dict)
 
     @property
     def scans(self) -> list[str]:

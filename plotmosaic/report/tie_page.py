@@ -151,11 +151,7 @@ def render_tie(
             ("Poses (ALS CRS)", poses),
             ("Edges", edges),
         ),
-        facts=(
-            run.source,
-            "frame: the ALS CRS",
-            *(anchor_fact(a) for a in run.anchors),
-        ),
+        facts=(run.source, "frame: the ALS CRS", *(anchor_fact(a) for a in run.anchors)),
         als_xyz=run.als_xyz,
         judged_in=run.judged_in,
         min_confidence=min_confidence,

@@ -193,9 +193,8 @@ def broadleaf_meshes(tree: Tree, z0: float, cfg: ForestConfig, rng, owner: int) 
     centre = base + (tree.crown_base + 0.3 + crown_len / 2) * tree.lean
     radii = np.array([tree.crown_radius, tree.crown_radius, crown_len / 2])
     factor = 1 if tree.detailed else cfg.coarse_factor
-    scale = (tree.crown_radius / 4.0) ** 2 * (
-        crown_len / 10.0
-    )  # leaf count grows with crown volume
+    # leaf count grows with crown volume
+    scale = (tree.crown_radius / 4.0) ** 2 * (crown_len / 10.0)
     total = max(20, int(cfg.broadleaf_leaves * np.clip(scale, 0.2, 2.0) / factor))
     if cfg.crowns == "scattered":  # the same leaves through the whole crown ellipsoid, no scaffold
         pts = centre + unit(rng.normal(size=(total, 3))) * radii * rng.random((total, 1)) ** (1 / 3)

@@ -149,9 +149,8 @@ def _tuft_positions(extent, area: float, scan_xy: np.ndarray, cfg: ForestConfig,
     )
     tuft_xy = tuft_xy[inside]
     if len(scan_xy) and len(tuft_xy):
-        tuft_xy = tuft_xy[
-            cKDTree(scan_xy).query(tuft_xy)[0] > 0.5
-        ]  # the tripod stands on bare ground
+        # the tripod stands on bare ground
+        tuft_xy = tuft_xy[cKDTree(scan_xy).query(tuft_xy)[0] > 0.5]
     return tuft_xy
 
 

@@ -81,9 +81,8 @@ def _split(bucket: Bucket, dtype: np.dtype, step: int) -> list[Bucket]:
     if score.max() <= 0:  # the sample is one voxel wide: fall back on the bounds
         score = np.where(extent > 0, extent, -1)
     axis = int(np.argmax(score))
-    cut = int(
-        np.clip(np.median(sample[:, axis]), bucket.lo[axis] + 1, bucket.hi[axis])
-    )  # both halves non-empty
+    # both halves non-empty
+    cut = int(np.clip(np.median(sample[:, axis]), bucket.lo[axis] + 1, bucket.hi[axis]))
     halves = [Bucket(bucket.path.with_suffix(f".{k}.bin")) for k in (0, 1)]
     with open(bucket.path, "rb") as f:
         while len(raw := np.fromfile(f, dtype=dtype, count=_SPILL_READ)):
@@ -243,11 +242,7 @@ def _write_thinned_file(
 
 
 def _stream(
-    writer: laspy.LasWriter,
-    sources: list[Source],
-    header,
-    config: MergeConfig,
-    bar,
+    writer: laspy.LasWriter, sources: list[Source], header, config: MergeConfig, bar
 ) -> list[SourceCount]:
     """Plain merge: every chunk posed and written straight away, in stream order."""
     points_in, points_out = [], []

@@ -99,13 +99,11 @@ class MergeSummary:
     voxel: float | None
     bbox: tuple[float, ...] | None
     seconds: float
-    skipped: list[str] = field(
-        default_factory=list
-    )  # manifest scans without a pose (--skip-missing)
+    # manifest scans without a pose (--skip-missing)
+    skipped: list[str] = field(default_factory=list)
     ignored: list[str] = field(default_factory=list)  # posed scans not in the manifest
-    tiles: list[dict] | None = (
-        None  # with --tiles: one entry per written tile (file, origin, points, bounds)
-    )
+    # with --tiles: one entry per written tile (file, origin, points, bounds)
+    tiles: list[dict] | None = None
 
     @property
     def points_in(self) -> int:

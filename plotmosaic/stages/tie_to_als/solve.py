@@ -165,11 +165,7 @@ def _anchor_edge(
 
 
 def region_graph(
-    manifest: Manifest,
-    poses: Poses,
-    G_plot: nx.Graph | None,
-    als_frame: Frame,
-    tied: Tied,
+    manifest: Manifest, poses: Poses, G_plot: nx.Graph | None, als_frame: Frame, tied: Tied
 ) -> nx.Graph:
     """One graph: every plot's pairwise edges + an anchor edge per plot to the fixed ALS node.
 
