@@ -22,19 +22,15 @@ from plotmosaic.bench.protocol import (
 from plotmosaic.bench.real_cases import build_case, random_frame
 from plotmosaic.bench.real_suite import (
     SUITE_PROTOCOLS,
-    accuracy,
     append_trials,
     draw,
     key,
-    markdown,
     outcome,
     plan,
     read_trials,
-    reliability,
-    summarise,
-    write_outputs,
 )
 from plotmosaic.bench.refined_truth import refine_truth
+from plotmosaic.bench.suite_tables import accuracy, markdown, reliability, summarise, write_outputs
 from plotmosaic.io.frame import apply_transform
 
 
