@@ -31,21 +31,6 @@ from plotmosaic.io.e57_header import (
     scan_nodes,
 )
 
-__all__ = [
-    "CHUNK_SIZE",
-    "E57Scan",
-    "attribute_names",
-    "is_e57",
-    "iter_e57_chunks",
-    "list_scans",
-    "resolve_scan",
-    "scan_list_text",
-    "scan_ref",
-    "select_scan",
-    "split_scan_ref",
-    "stored_pose",
-]
-
 CHUNK_SIZE = 1_000_000
 _REF = re.compile(r"^(?P<file>.*\.e57)#(?P<index>\d+)$", re.IGNORECASE)
 _XYZ = ("cartesianX", "cartesianY", "cartesianZ")

@@ -48,17 +48,7 @@ from plotmosaic.stages.tie_to_als.solve import (
     solve_region,
 )
 
-__all__ = [
-    "ALS_NODE",
-    "LAS_SCALE",
-    "Anchor",
-    "TieResult",
-    "as_stored",
-    "crop_als",
-    "load_als",
-    "plot_cloud",
-    "tie_to_als",
-]
+__all__ = ["Anchor", "as_stored", "plot_cloud", "tie_to_als"]
 
 
 @dataclass(frozen=True)
