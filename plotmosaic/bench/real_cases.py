@@ -4,7 +4,6 @@
     RealCase.source, .target   PointCloud (file coordinates; each source in its own random frame)
     RealCase.truth             4x4 source file coordinates -> target file coordinates
     RealCase.source_kind, .target_kind, .note (where the truth comes from), .meta (figures)
-    RealCase.bench_pair()      the same as a `plotmosaic.bench.run.BenchPair`
 
 Cases (issue 15's suite):
   treels-2views    two virtual scans of the TreeLS pine plot 7 m apart (exact truth)
@@ -35,7 +34,6 @@ from pathlib import Path
 import numpy as np
 
 from plotmosaic.bench.refined_truth import refine_truth
-from plotmosaic.bench.run import BenchPair
 from plotmosaic.config.simulate import TlsConfig
 from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import write_text_atomic
@@ -78,11 +76,6 @@ class RealCase:
     target_kind: str
     note: str
     meta: dict = field(default_factory=dict)
-
-    def bench_pair(self):
-        return BenchPair(
-            self.name, self.source, self.target, self.truth, self.source_kind, self.target_kind
-        )
 
 
 def data_dir(path: str | Path | None = None) -> Path:
