@@ -129,9 +129,8 @@ def _run(outdir: Path, seed: int, points_per_scan: int, jobs: int | None, echo) 
     stage("merge", t)
 
     page = outdir / "georeferenced" / "report.html"
-    if (
-        page.is_file()
-    ):  # the demo's own stage times, known only now, join the final report's time table
+    # the demo's own stage times, known only now, join the final report's time table
+    if page.is_file():
         add_stages(
             page,
             [

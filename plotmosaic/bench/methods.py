@@ -280,9 +280,8 @@ def _cpd(pair: PairInput, config: MethodsConfig, seed: int) -> np.ndarray:
     T = _rigid_cpd(xyz[0], xyz[1], cfg)
     if not np.isfinite(T).all():
         raise RegistrationFailed("CPD diverged")
-    if (
-        config.cpd.refine
-    ):  # CPD on a few thousand points stops at decimetres: the same ICP as fpfh-ransac
+    # CPD on a few thousand points stops at decimetres: the same ICP as fpfh-ransac
+    if config.cpd.refine:
         _, src_fine, tgt_fine = _local(pair, config.icp.voxel)
         T = _icp_refine(src_fine, tgt_fine, T, config.icp)
     return to_global_transform(T, frame, frame)

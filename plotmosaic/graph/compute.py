@@ -80,9 +80,8 @@ def compute_pairs(
             if job.prepared
             else []
         )
-        if (
-            bad
-        ):  # the scan itself cannot be used: its error, not a registration failure (not cached)
+        # the scan itself cannot be used: its error, not a registration failure (not cached)
+        if bad:
             keep(
                 {
                     "source": job.source,

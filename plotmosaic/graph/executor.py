@@ -270,9 +270,8 @@ def _run_dask(jobs, tick, n_jobs, scheduler, worker) -> None:
         ) from None
     futures = []
     try:
-        if (
-            scheduler
-        ):  # someone else's cluster: one thread per Dask task thread, each already has its core
+        # someone else's cluster: one thread per Dask task thread, each already has its core
+        if scheduler:
             per_worker = 1
         run = partial(call_with_threads, per_worker, worker)
         futures = client.map(

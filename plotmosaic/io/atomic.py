@@ -59,9 +59,8 @@ def remove_stale_temporaries(folder: str | Path) -> list[Path]:
         if not m or entry.is_symlink() or _alive(int(m.group(1))):
             continue
         with contextlib.suppress(OSError):
-            if entry.is_dir(
-                follow_symlinks=False
-            ):  # a temporary folder (merge's tiles and spill files)
+            # a temporary folder (merge's tiles and spill files)
+            if entry.is_dir(follow_symlinks=False):
                 shutil.rmtree(entry.path)
             else:
                 os.unlink(entry.path)

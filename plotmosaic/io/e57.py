@@ -209,9 +209,8 @@ def _block(
     state = fields.state
     valid = arrays[state][keep] == 0 if state in arrays else np.ones(got, bool)
     c = [arrays[f][keep][valid] for f in fields.coords]
-    if (
-        fields.coords is _RAE
-    ):  # E57 spherical: azimuth from +x towards +y, elevation from the xy plane
+    # E57 spherical: azimuth from +x towards +y, elevation from the xy plane
+    if fields.coords is _RAE:
         r, az, el = c
         c = [r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)]
     attrs = {}

@@ -287,9 +287,8 @@ class CloudRecordReader:
         self.info = read_header_info(path)
         attrs = [n for n in self.info.dimensions if n not in ("X", "Y", "Z")]
         self.extra = {}
-        for chunk in iter_chunks(
-            path, chunk_size=1
-        ):  # the extra attributes' dtypes, from one point
+        # the extra attributes' dtypes, from one point
+        for chunk in iter_chunks(path, chunk_size=1):
             self.extra = {
                 n: v.dtype for n, v in chunk.attrs.items() if n not in STANDARD_ATTRIBUTES
             }

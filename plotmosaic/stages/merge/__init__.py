@@ -303,9 +303,8 @@ def _write_tiles(
         }
 
     items, tiles = spill.tiles(), []
-    for k in range(
-        0, len(items), parallel
-    ):  # by pairs, not one pool over all: Ctrl-C waits for two tiles at most
+    # by pairs, not one pool over all: Ctrl-C waits for two tiles at most
+    for k in range(0, len(items), parallel):
         tiles += (
             in_two_threads(write, items[k : k + parallel]) if parallel > 1 else [write(items[k])]
         )
