@@ -161,6 +161,13 @@ def with_stored_poses(
     ]
 
 
+def failed_pair(job: PairJob, error: str) -> dict:
+    """The record of a pair that could not be registered for a reason outside the pair (a scan
+    that cannot be used, a lost worker): not cached, the next run tries again."""
+    record = {"source": job.source, "target": job.target, "key": job.key, "status": "failed"}
+    return {**record, "error": error, "cacheable": False}
+
+
 def prepare_job(settings: JobSettings, scan: ScanFile, folder: str | None = None) -> PrepareJob:
     """The scan's prepare job, into `folder` (else the settings' prepared-cloud folder): each scan
     is prepared once with the run's seed, whatever its role."""

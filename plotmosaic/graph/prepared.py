@@ -96,7 +96,6 @@ def save_prepared(path: str | Path, cloud: PreparedCloud) -> Path:
 
 def load_prepared(path: str | Path) -> PreparedCloud:
     """The cloud saved by `save_prepared`; raises ValueError (or OSError) when the file is damaged."""
-
     with np.load(path, allow_pickle=False) as data:
         arrays = {k: data[k] for k in data.files}
     meta = json.loads(arrays.pop("meta").tobytes().decode())

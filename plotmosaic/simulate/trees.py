@@ -80,20 +80,23 @@ def _stem_radius(h: np.ndarray, dbh: float, total: float) -> np.ndarray:
     return np.maximum(r, 0.01)
 
 
+def _stem(
+    tree: Tree, z0: float, cfg: ForestConfig, rng, owner: int, sweep: float, length: float
+) -> tuple[np.ndarray, list[Mesh]]:
+    """The stem's base (0.3 m into the ground) and its tube, `length` m along its lean, bowed by up
+    to `sweep` of the tree's height."""
+    base = np.array([tree.x, tree.y, z0 - 0.3])
+    bow = unit(np.cross(tree.lean, rng.normal(size=3))) * rng.uniform(0, sweep) * tree.height
+    centres, h = _stem_paths(base, tree.lean, length, 0.75 if tree.detailed else 2.0, bow)
+    radius = _stem_radius(h - 0.3, tree.dbh, tree.height)
+    sides = cfg.stem_sides if tree.detailed else 8
+    return base, [tubes(centres[None], radius[None], sides, WOODY, [owner])]
+
+
 def conifer_meshes(
     tree: Tree, z0: float, cfg: ForestConfig, rng, owner: int, stubs: bool = True
 ) -> list[Mesh]:
-    sides = cfg.stem_sides if tree.detailed else 8
-    base = np.array([tree.x, tree.y, z0 - 0.3])
-    bow = unit(np.cross(tree.lean, rng.normal(size=3))) * rng.uniform(0, 0.01) * tree.height
-    centres, h = _stem_paths(
-        base, tree.lean, tree.height + 0.3, 0.75 if tree.detailed else 2.0, bow
-    )
-    meshes = [
-        tubes(
-            centres[None], _stem_radius(h - 0.3, tree.dbh, tree.height)[None], sides, WOODY, [owner]
-        )
-    ]
+    base, meshes = _stem(tree, z0, cfg, rng, owner, 0.01, tree.height + 0.3)
     if cfg.crowns == "none":
         return meshes
     # Whorls of branches through the crown; their length shrinks toward the top (a cone).
@@ -127,28 +130,12 @@ def conifer_meshes(
     mid = start + d * all_len[:, None] * 0.5 + droop * 0.35
     end = start + d * all_len[:, None] + droop
     r0 = 0.012 + 0.012 * all_len
-    if tree.detailed:
-        meshes.append(
-            tubes(
-                np.stack([start, mid, end], 1),
-                np.column_stack([r0, r0 * 0.6, r0 * 0.25]),
-                6,
-                WOODY,
-                np.full(len(start), owner),
-                cap=False,
-            )
-        )
-    else:  # far from every plot: straight three-sided branches are enough for ALS
-        meshes.append(
-            tubes(
-                np.stack([start, end], 1),
-                np.column_stack([r0, r0 * 0.25]),
-                3,
-                WOODY,
-                np.full(len(start), owner),
-                cap=False,
-            )
-        )
+    # far from every plot: straight three-sided branches are enough for ALS
+    path = [start, mid, end] if tree.detailed else [start, end]
+    radii = [r0, r0 * 0.6, r0 * 0.25] if tree.detailed else [r0, r0 * 0.25]
+    sides = 6 if tree.detailed else 3
+    owners = np.full(len(start), owner)
+    meshes.append(tubes(np.stack(path, 1), np.column_stack(radii), sides, WOODY, owners, cap=False))
     # Needle clusters along the live branches (outer part), jittered around the branch line.
     factor = 1 if tree.detailed else cfg.coarse_factor
     counts = np.maximum(1, (cfg.foliage_per_m * length / factor).astype(int))
@@ -177,16 +164,7 @@ def _in_cone(base: np.ndarray, tree: Tree, n: int, rng) -> np.ndarray:
 
 
 def broadleaf_meshes(tree: Tree, z0: float, cfg: ForestConfig, rng, owner: int) -> list[Mesh]:
-    sides = cfg.stem_sides if tree.detailed else 8
-    base = np.array([tree.x, tree.y, z0 - 0.3])
-    bow = unit(np.cross(tree.lean, rng.normal(size=3))) * rng.uniform(0, 0.015) * tree.height
-    leader = 0.8 * tree.height + 0.3
-    centres, h = _stem_paths(base, tree.lean, leader, 0.75 if tree.detailed else 2.0, bow)
-    meshes = [
-        tubes(
-            centres[None], _stem_radius(h - 0.3, tree.dbh, tree.height)[None], sides, WOODY, [owner]
-        )
-    ]
+    base, meshes = _stem(tree, z0, cfg, rng, owner, 0.015, 0.8 * tree.height + 0.3)
     if cfg.crowns == "none":
         return meshes
     crown_len = tree.height - tree.crown_base
