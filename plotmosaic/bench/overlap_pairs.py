@@ -12,11 +12,6 @@ the other). Candidates are taken in seeded order and each pair fills its bin (at
 one simulated scene a bin) until every bin holds `per_bin` pairs, so the catalogue depends on the
 seed alone; measured candidates and the chosen pairs are kept on disk and a re-run cuts nothing it
 has.
-
-    candidate(source, seed, index) -> Geometry
-    cut_candidate(geometry, data) -> [ViewPair, ...]
-    build_catalogue(source, bins, per_bin, seed, folder, data) -> {bin: [PairRef, ...]}
-    load_pair(path) -> ViewPair
 """
 
 from __future__ import annotations

@@ -45,16 +45,13 @@ def make_config(preset: str = "small", **overrides) -> SimulationConfig:
     for key, value in overrides.items():
         if value is None:
             continue
-        path = ALIASES.get(key, key).split(".")
+        *tables, name = ALIASES.get(key, key).split(".")
         node = data
-        for p in path[:-1]:
-            if p not in node or not isinstance(node[p], dict):
-                raise InputError(f"unknown simulation setting {key!r}")
-            node = node[p]
-        if path[-1] not in node:
+        for table in tables:
+            node = node.get(table) if isinstance(node, dict) else None
+        if not isinstance(node, dict) or name not in node:
             raise InputError(f"unknown simulation setting {key!r}")
-        node[path[-1]] = value
-
+        node[name] = value
     try:
         return SimulationConfig.model_validate(data)
     except ValidationError as exc:
