@@ -35,6 +35,7 @@ from plotmosaic.io.outputs import (
     manifest_inputs,
 )
 from plotmosaic.report.plot_figures import PLOT_FIGURES
+from plotmosaic.report.tables import fmt
 from plotmosaic.stages.register_plot import register_plot
 from plotmosaic.stages.tie_to_als import tie_to_als
 
@@ -230,15 +231,9 @@ def tie_to_als_command(
     for name in columns:
         table.add_column(name)
     for a in result.anchors:
-        fit = a.fit or {}
-        table.add_row(
-            a.plot,
-            a.status if a.status == "ok" else f"failed: {a.error}",
-            "-" if a.fitness is None else f"{a.fitness:.3f}",
-            "-" if a.inlier_rmse is None else f"{a.inlier_rmse * 100:.2f}",
-            "-" if a.fine_margin is None else f"{a.fine_margin:.2f}",
-            _als_offset(fit),
-        )
+        status = a.status if a.status == "ok" else f"failed: {a.error}"
+        figures = fmt(a.fitness, 1, 3), fmt(a.inlier_rmse, 100, 2), fmt(a.fine_margin, 1, 2)
+        table.add_row(a.plot, status, *figures, _als_offset(a.fit or {}))
     Console(highlight=False).print(table)
     poses = {k: v.transform for k, v in result.poses.scans.items()}
     sigmas = {k: v.sigma for k, v in result.poses.scans.items()}

@@ -76,10 +76,8 @@ def _check_names(path: Path) -> None:
                 f"more than the {NAME_MAX} a file system allows"
             )
     # the temporary's name is the longest one we write
-    name, extra = (
-        len(os.fsencode(path.name)),
-        len(os.fsencode(temp_name(path).name)) - len(os.fsencode(path.name)),
-    )
+    name = len(os.fsencode(path.name))
+    extra = len(os.fsencode(temp_name(path).name)) - name
     if name + extra > NAME_MAX:
         raise InputError(
             f"{path}: the file name is {name} bytes long, at most {NAME_MAX - extra} can be written"
