@@ -35,7 +35,7 @@ from plotmosaic.io.outputs import (
     manifest_inputs,
 )
 from plotmosaic.report.plot_figures import PLOT_FIGURES
-from plotmosaic.report.tables import fmt
+from plotmosaic.report.tables import edge_counts, fmt
 from plotmosaic.stages.register_plot import register_plot
 from plotmosaic.stages.tie_to_als import tie_to_als
 
@@ -257,10 +257,7 @@ def _als_offset(fit: dict) -> str:
 
 def _summary(G, solves, unplaced: list[str]) -> None:
     console = Console(highlight=False)
-    kept = sum(1 for *_, e in G.edges(data=True) if not e.get("dropped"))
-    console.print(
-        f"edges: {kept} kept, {G.number_of_edges() - kept} dropped, {len(G.graph.get('failed', []))} pairs failed"
-    )
+    console.print(edge_counts(G, len(G.graph.get("failed", []))))
     for plot, ref, poses, sigmas, dropped in solves:
         for d in dropped:
             console.print(f"  dropped {d['source']} -> {d['target']} ({d['reason']})")

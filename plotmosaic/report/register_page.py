@@ -105,8 +105,6 @@ def _stages(run: RegisterRun) -> list[Stage]:
 
 
 def _head(run: RegisterRun) -> list[str]:
-    G = run.graph
-    kept = sum(1 for *_, e in G.edges(data=True) if not e.get("dropped"))
     lines = ["# register-plot report", "", f"- {run.source}"]
     if run.pairs is not None:
         cached = (
@@ -115,9 +113,7 @@ def _head(run: RegisterRun) -> list[str]:
             else f" ({run.computed} registered in this run, {run.pairs - run.computed} from the cache)"
         )
         lines.append(f"- pairs: {run.pairs}{cached}")
-    lines.append(
-        f"- edges: {kept} kept, {G.number_of_edges() - kept} dropped, {len(run.failed)} pairs failed"
-    )
+    lines.append(f"- {tables.edge_counts(run.graph, len(run.failed))}")
     if run.seconds is not None:
         lines.append(f"- time: {run.seconds:.1f} s")
     lines += [
