@@ -188,14 +188,9 @@ def _plot_md(run: RegisterRun, r: PlotRun, figures) -> list[str]:
             *[f"- {f['source']} -> {f['target']}: {f.get('error')}" for f in failed],
             "",
         ]
-    graph_png = plot_map(
-        run.out / f"{r.plot}_graph.png",
-        sub,
-        {n: T[:3, 3] for n, T in r.poses.items()},
-        None,
-        f"plot {r.plot}: pose graph",
-        np.zeros(3),
-    )
+    positions = {n: T[:3, 3] for n, T in r.poses.items()}
+    title = f"plot {r.plot}: pose graph"
+    graph_png = plot_map(run.out / f"{r.plot}_graph.png", sub, positions, None, title, np.zeros(3))
     return lines + tables.md_figures(figures, r.plot) + [f"![graph]({graph_png.name})", ""]
 
 

@@ -189,16 +189,10 @@ def broadleaf_meshes(tree: Tree, z0: float, cfg: ForestConfig, rng, owner: int) 
     )
     mid = (start + target) / 2 + rng.normal(0, 0.15, (n, 3))
     r0 = np.clip(tree.dbh * 0.18, 0.03, 0.12)
-    meshes.append(
-        tubes(
-            np.stack([start, mid, target], 1),
-            np.column_stack([np.full(n, r0), np.full(n, r0 * 0.65), np.full(n, r0 * 0.3)]),
-            8 if tree.detailed else 4,
-            WOODY,
-            np.full(n, owner),
-            cap=False,
-        )
-    )
+    widths = np.column_stack([np.full(n, r0), np.full(n, r0 * 0.65), np.full(n, r0 * 0.3)])
+    sides = 8 if tree.detailed else 4
+    path = np.stack([start, mid, target], 1)
+    meshes.append(tubes(path, widths, sides, WOODY, np.full(n, owner), cap=False))
     k = int(rng.integers(2, 4))
     fs = np.repeat(mid, k, 0) + rng.uniform(0, 1, (n * k, 1)) * (
         np.repeat(target, k, 0) - np.repeat(mid, k, 0)
@@ -206,15 +200,10 @@ def broadleaf_meshes(tree: Tree, z0: float, cfg: ForestConfig, rng, owner: int) 
     fe = fs + unit(rng.normal(0, 1, (n * k, 3)) + [0, 0, 0.8]) * (
         0.25 * radii.mean() * rng.uniform(0.6, 1.2, (n * k, 1))
     )
+    widths = np.column_stack([np.full(n * k, r0 * 0.3), np.full(n * k, r0 * 0.12)])
+    sides = 5 if tree.detailed else 3
     meshes.append(
-        tubes(
-            np.stack([fs, fe], 1),
-            np.column_stack([np.full(n * k, r0 * 0.3), np.full(n * k, r0 * 0.12)]),
-            5 if tree.detailed else 3,
-            WOODY,
-            np.full(n * k, owner),
-            cap=False,
-        )
+        tubes(np.stack([fs, fe], 1), widths, sides, WOODY, np.full(n * k, owner), cap=False)
     )
     # Leaves in clumps filling the outer shell of the crown ellipsoid.
     clumps = max(4, total // 40)
