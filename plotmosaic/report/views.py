@@ -63,14 +63,8 @@ def _stem_inset(ax, st: Stem, colours: dict, origin: np.ndarray, number: int) ->
     h = st.radius + 0.12
     for name, p in st.points.items():
         q = p - origin[:2]
-        dots(
-            ax,
-            q[:, 0],
-            q[:, 1],
-            6,
-            colours.get(name, "grey"),
-            label=name if name in st.arcs else None,
-        )
+        label = name if name in st.arcs else None
+        dots(ax, q[:, 0], q[:, 1], 6, colours.get(name, "grey"), label=label)
     ax.add_patch(
         pyplot().Circle(tuple(c), st.radius, fill=False, ls="--", lw=0.7, ec="black", zorder=3)
     )
@@ -240,15 +234,8 @@ def plot_map(
             ax.plot([x1, x2], [y1, y2], "-", color="tab:blue", lw=2.2)
             r = e.get("residual_after")
             label = f"{r['translation'] * 100:.1f} cm" if r else ""
-        ax.text(
-            (x1 + x2) / 2,
-            (y1 + y2) / 2,
-            label,
-            fontsize=7,
-            ha="center",
-            va="center",
-            bbox={"fc": "white", "ec": "none", "alpha": 0.75, "pad": 0.5},
-        )
+        box = {"fc": "white", "ec": "none", "alpha": 0.75, "pad": 0.5}
+        ax.text((x1 + x2) / 2, (y1 + y2) / 2, label, fontsize=7, ha="center", va="center", bbox=box)
     for n, (x, y) in pos.items():
         placed = n in positions
         colour = "gold" if placed else "lightgrey"
