@@ -231,6 +231,12 @@ def _drop(G: nx.Graph, u: str, v: str, reason: str, dropped: list[dict]) -> None
     dropped.append({"source": e["source"], "target": e["target"], "reason": reason})
 
 
+def _mark_residuals(G: nx.Graph, name: str, poses: dict, information: EdgeInformation) -> None:
+    """Each edge's residual at `poses` as its attribute `name` (None where a scan is not placed)."""
+    for u, v, e in G.edges(data=True):
+        e[name] = residual(G, u, v, poses, information) if u in poses and v in poses else None
+
+
 def optimise(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None) -> Solution:
     """Cycle check, robust solve, drop the worst residual outlier and re-solve until none is left.
 
@@ -247,10 +253,7 @@ def optimise(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None)
         _drop(G, u, v, "unverified", dropped)
     initial = spanning_tree_poses(G, reference)
     information = EdgeInformation(G, config)
-    for u, v, e in G.edges(data=True):
-        e["residual_before"] = (
-            residual(G, u, v, initial, information) if u in initial and v in initial else None
-        )
+    _mark_residuals(G, "residual_before", initial, information)
     residual_drops = 0
     while True:
         sol = _solve(G, reference, config, information)
@@ -275,10 +278,7 @@ def optimise(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None)
     reported = _factor_graph(G, reference, sol.keys, config, information.reporting())
     covariances, sigmas, about_plot = scan_covariances(G, reported, sol.result, sol.keys, sol.poses)
     scales = information.scales.as_dict()
-    for u, v, e in G.edges(data=True):
-        e["residual_after"] = (
-            residual(G, u, v, sol.poses, information) if u in sol.poses and v in sol.poses else None
-        )
+    _mark_residuals(G, "residual_after", sol.poses, information)
     return Solution(
         sol.poses,
         sigmas,
