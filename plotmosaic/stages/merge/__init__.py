@@ -232,12 +232,9 @@ def _write_thinned_file(
         laz = out.suffix.lower() == ".laz"
         with laspy.open(tmp, mode="w", header=header, do_compress=laz) as writer:
             for _, bucket in spill.tiles():
-                for block in thinned_blocks(bucket, dtype, step, max_points):
-                    out_by_id += count_out(block, len(out_by_id))
-                    record = laspy.ScaleAwarePointRecord(
-                        block, header.point_format, header.scales, header.offsets
-                    )
-                    write_chunk(writer, record)
+                _write_blocks(
+                    writer, header, thinned_blocks(bucket, dtype, step, max_points), out_by_id
+                )
         return _finish_file(job, writer, _thinned_counts(job, points_in, out_by_id))
 
 
@@ -283,14 +280,7 @@ def _write_tiles(
         with laspy.open(
             path, mode="w", header=header, do_compress=True, laz_backend=backend
         ) as writer:
-            for block in thinned_blocks(bucket, dtype, step, max_points):
-                tile_out += count_out(block, ids)
-                write_chunk(
-                    writer,
-                    laspy.ScaleAwarePointRecord(
-                        block, header.point_format, header.scales, header.offsets
-                    ),
-                )
+            _write_blocks(writer, header, thinned_blocks(bucket, dtype, step, max_points), tile_out)
         h = writer.header
         return {
             "file": path.name,
@@ -312,6 +302,16 @@ def _write_tiles(
     for tile in tiles:
         out_by_id += tile.pop("_counts")
     return tiles, out_by_id
+
+
+def _write_blocks(writer, header, blocks: Iterator[np.ndarray], counts: np.ndarray) -> None:
+    """Thinned records written in their order, each counted by point_source_id into `counts`."""
+    for block in blocks:
+        counts += count_out(block, len(counts))
+        record = laspy.ScaleAwarePointRecord(
+            block, header.point_format, header.scales, header.offsets
+        )
+        write_chunk(writer, record)
 
 
 def write_chunk(writer: laspy.LasWriter, record: laspy.ScaleAwarePointRecord) -> None:
