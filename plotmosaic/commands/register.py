@@ -271,14 +271,9 @@ def _summary(G, solves, unplaced: list[str]) -> None:
                 table.add_row(name, *(["-"] * 5))
                 continue
             s = sigmas[name]
-            table.add_row(
-                name,
-                f"{T[0, 3]:.3f}",
-                f"{T[1, 3]:.3f}",
-                f"{T[2, 3]:.3f}",
-                " ".join(f"{v * 1000:.1f}" for v in s[3:]),
-                " ".join(f"{np.degrees(v):.4f}" for v in s[:3]),
-            )
+            sigma_t = " ".join(f"{v * 1000:.1f}" for v in s[3:])
+            sigma_r = " ".join(f"{np.degrees(v):.4f}" for v in s[:3])
+            table.add_row(name, *(f"{v:.3f}" for v in T[:3, 3]), sigma_t, sigma_r)
         console.print(table)
     for u in unplaced_reasons(G, unplaced):
         console.print(f"not placed: {u.line()}")

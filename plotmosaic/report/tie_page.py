@@ -84,12 +84,11 @@ def anchor_rows(anchors: tuple[AnchorRow, ...]) -> list[str]:
     rows = [head, "|---" * 10 + "|"]
     for a in anchors:
         status = a.status if a.status == "ok" else f"failed: {a.error}"
-        row = (
+        rows.append(
             f"| {a.plot} | {a.reference} | {status} | {fmt(a.fitness, 1, 3)} | {fmt(a.inlier_rmse, 100, 2)} "
             f"| {fmt(a.overlap, 1, 3)} | {fmt(a.fine_margin, 1, 2)} | {fmt(a.als_offset_median_m, 100, 2)} "
             f"| {fmt(a.als_offset_nmad_m, 100, 2)} | {a.crop} |"
         )
-        rows.append(row)
     return rows
 
 
