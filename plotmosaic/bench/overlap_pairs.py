@@ -237,16 +237,9 @@ def load_pair(path: str | Path) -> ViewPair:
     with np.load(path) as z:
         meta = json.loads(str(z["meta"]))
         st, ts = (float(v) for v in z["overlap"])
-        return ViewPair(
-            z["source"].astype(np.float64),
-            z["target"].astype(np.float64),
-            np.asarray(z["truth"], dtype=np.float64),
-            np.asarray(z["up"], dtype=np.float64),
-            st,
-            ts,
-            meta["name"],
-            meta["geometry"],
-        )
+        source, target = z["source"].astype(np.float64), z["target"].astype(np.float64)
+        truth, up = (np.asarray(z[k], dtype=np.float64) for k in ("truth", "up"))
+        return ViewPair(source, target, truth, up, st, ts, meta["name"], meta["geometry"])
 
 
 @dataclass(frozen=True)

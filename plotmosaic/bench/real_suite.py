@@ -221,13 +221,8 @@ def run_trial(job: Trial) -> tuple[dict, list[dict]]:
     truth = np.linalg.inv(P)
     rows = []
     for method in job.methods:
-        pair = PairInput(
-            moved,
-            case.target,
-            case.source_kind,
-            case.target_kind,
-            prepared if method in OURS else None,
-        )
+        target_prepared = prepared if method in OURS else None
+        pair = PairInput(moved, case.target, case.source_kind, case.target_kind, target_prepared)
         out = run_method(method, pair, MethodsConfig(), seed=job.seed + job.trial)
         err = pose_error(out.transform, truth, centre)
         row = {
