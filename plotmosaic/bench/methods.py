@@ -174,15 +174,10 @@ def _icp_refine(src, tgt, init: np.ndarray, cfg: IcpConfig) -> np.ndarray:
     o3d = _o3d()
     reg = o3d.pipelines.registration
     T = np.asarray(init, dtype=np.float64)
+    point_to_point = reg.TransformationEstimationPointToPoint()
+    criteria = reg.ICPConvergenceCriteria(max_iteration=cfg.iterations)
     for d in cfg.distances:
-        result = reg.registration_icp(
-            src,
-            tgt,
-            d,
-            T,
-            reg.TransformationEstimationPointToPoint(),
-            reg.ICPConvergenceCriteria(max_iteration=cfg.iterations),
-        )
+        result = reg.registration_icp(src, tgt, d, T, point_to_point, criteria)
         T = np.asarray(result.transformation)
     return T
 

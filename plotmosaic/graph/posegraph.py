@@ -38,6 +38,9 @@ from plotmosaic.graph.covariance import (  # noqa: F401  (condition_information,
 from plotmosaic.graph.cycles import kept, spanning_tree_poses, vote
 from plotmosaic.io.frame import inverse, pose_error, rotation_deg  # noqa: F401  (re-exported)
 
+# what the graph keeps of a failed pair
+_FAILED_FIELDS = ("source", "target", "error", "key", "overlap", "confidence")
+
 
 def _pose3(T: np.ndarray) -> gtsam.Pose3:
     return gtsam.Pose3(np.asarray(T, dtype=np.float64))
@@ -64,13 +67,8 @@ def add_edges(G: nx.Graph, edges: list[dict]) -> nx.Graph:
     """Add successful pair results as edges (arrays made numpy); failed ones go to G.graph["failed"]."""
     for e in edges:
         if e.get("status", "ok") != "ok":
-            G.graph.setdefault("failed", []).append(
-                {
-                    k: v
-                    for k, v in e.items()
-                    if k in ("source", "target", "error", "key", "overlap", "confidence")
-                }
-            )
+            failed = {k: v for k, v in e.items() if k in _FAILED_FIELDS}
+            G.graph.setdefault("failed", []).append(failed)
             continue
         attrs = dict(e)
         attrs["transform"] = np.asarray(e["transform"], dtype=np.float64)
