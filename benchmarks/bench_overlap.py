@@ -41,15 +41,9 @@ from plotmosaic.bench.overlap_pairs import (
     build_catalogue,
     parse_bins,
 )
-from plotmosaic.bench.overlap_suite import (
-    ALL_METHODS,
-    TRIALS_FILE,
-    method_available,
-    read_trials,
-    run,
-)
-from plotmosaic.bench.overlap_tables import markdown, summarise, write_outputs
-from plotmosaic.bench.real_suite import print_wrong
+from plotmosaic.bench.overlap_suite import method_available, run
+from plotmosaic.bench.overlap_tables import ALL_METHODS, markdown, summarise, write_outputs
+from plotmosaic.bench.real_suite import TRIALS_FILE, print_wrong, read_trials
 from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import write_text_atomic
 

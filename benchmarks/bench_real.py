@@ -35,13 +35,11 @@ from plotmosaic.bench.real_suite import (
     SUITE_PROTOCOLS,
     TRIALS_FILE,
     Suite,
-    markdown,
     print_wrong,
     read_trials,
     run_suite,
-    summarise,
-    write_outputs,
 )
+from plotmosaic.bench.suite_tables import markdown, summarise, write_outputs
 from plotmosaic.errors import InputError
 
 

@@ -86,6 +86,7 @@ def run_demo(
 
 def _run(outdir: Path, seed: int, points_per_scan: int, jobs: int | None, echo) -> DemoResult:
     seconds: dict[str, float] = {}
+    workers, geo = Workers(jobs=jobs), outdir / "georeferenced"
 
     def stage(name: str, start: float) -> None:
         seconds[name] = time.perf_counter() - start
@@ -102,50 +103,33 @@ def _run(outdir: Path, seed: int, points_per_scan: int, jobs: int | None, echo) 
 
     echo("2/4 register-plot: pairwise ForestAlign (from any start pose) + pose graph ...")
     t = time.perf_counter()
-    reg = register_plot(manifest, outdir / "register", workers=Workers(jobs=jobs), seed=seed)
+    reg = register_plot(manifest, outdir / "register", workers=workers, seed=seed)
     stage("register-plot", t)
 
     echo("3/4 tie-to-als: plot -> ALS anchors, joint optimisation in the ALS CRS ...")
     t = time.perf_counter()
-    tie = tie_to_als(
-        manifest,
-        outdir / "register" / "poses.json",
-        outdir / "georeferenced",
-        seed=seed,
-        workers=Workers(jobs=jobs),
-    )
+    tie = tie_to_als(manifest, outdir / "register" / "poses.json", geo, seed=seed, workers=workers)
     stage("tie-to-als", t)
 
     echo("4/4 merge: one georeferenced LAZ ...")
     t = time.perf_counter()
     merged = outdir / MERGED
-    merge_scans(
-        manifest,
-        tie.poses,
-        merged,
-        MergeConfig(voxel=0.02, force=True),
-        poses_path=outdir / "georeferenced" / "poses.json",
-    )
+    config = MergeConfig(voxel=0.02, force=True)
+    merge_scans(manifest, tie.poses, merged, config, poses_path=geo / "poses.json")
     stage("merge", t)
 
-    page = outdir / "georeferenced" / "report.html"
-    if (
-        page.is_file()
-    ):  # the demo's own stage times, known only now, join the final report's time table
-        add_stages(
-            page,
-            [
-                Stage(f"demo: {name}", s, "wall time, report included")
-                for name, s in seconds.items()
-            ],
-        )
+    page = geo / "report.html"
+    # the demo's own stage times, known only now, join the final report's time table
+    if page.is_file():
+        note = "wall time, report included"
+        add_stages(page, [Stage(f"demo: {name}", s, note) for name, s in seconds.items()])
 
     return DemoResult(
         outdir=outdir,
         html=page,
         manifest=sim.manifest_path,
         merged=merged,
-        reports=[outdir / "register" / "report.md", outdir / "georeferenced" / "report.md"],
+        reports=[outdir / "register" / "report.md", geo / "report.md"],
         plot_errors=plot_frame_errors(reg.poses, truth),
         geo_errors=georeferenced_errors(tie.poses, truth),
         seconds=seconds,

@@ -11,7 +11,7 @@ Errors name the file, plot, scan and field.
 A scan may point into an E57 file holding several scans: `path = "plot.e57"` with `scan = 3`
 (0-based index) or `scan = "name"` (name or GUID). Loading resolves it to the reference path
 `plot.e57#3` (io/e57.py), which every reader takes. `use_pose = true` offers the scan's stored
-pose as a prior (`Manifest.pair_prior`), never as the answer. Ids go into file names, so they
+pose as a prior (`Manifest.stored_poses`), never as the answer. Ids go into file names, so they
 are restricted to letters, digits, `-`, `_` and `.` (no `..`).
 """
 
@@ -175,19 +175,6 @@ class Manifest(_Strict):
             if not all(np.allclose(T, np.eye(4)) for T in poses.values()):
                 out.update(poses)
         return out
-
-    def pair_prior(self, source_id: str, target_id: str) -> np.ndarray | None:
-        """Initial guess source file -> target file from `stored_poses`, when both scans (of one plot)
-        offer one. A prior only: the pairwise path verifies it like any hypothesis. For many pairs,
-        call `stored_poses` once (each call reads every scan's header)."""
-        poses = self.stored_poses()
-        if (
-            source_id not in poses
-            or target_id not in poses
-            or self.plot_of(source_id) != self.plot_of(target_id)
-        ):
-            return None
-        return np.linalg.inv(poses[target_id]) @ poses[source_id]
 
     def plot_of(self, scan_id: str) -> Plot:
         for p in self.plots:

@@ -19,6 +19,17 @@ def invoke(*args):
     return result
 
 
+def pair_prior(manifest, source_id: str, target_id: str) -> np.ndarray | None:
+    """Source file -> target file from the manifest's stored poses, when both scans (of one plot)
+    offer one."""
+    poses = manifest.stored_poses()
+    if source_id not in poses or target_id not in poses:
+        return None
+    if manifest.plot_of(source_id) != manifest.plot_of(target_id):
+        return None
+    return np.linalg.inv(poses[target_id]) @ poses[source_id]
+
+
 def assert_one_line_error(result, *needles, code=2):
     """Exit `code` with exactly one line `error: ...` that names every needle, and no traceback."""
     assert result.exit_code == code, result.output

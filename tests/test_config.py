@@ -120,7 +120,7 @@ def test_defaults_print_and_load_back_equal(tmp_path, tier):
     # the sections build exactly the stages' own defaults
     assert loaded.register_config() == RegisterConfig()
     assert loaded.tie_config() == TieConfig()
-    assert loaded.merge_config() == MergeConfig()
+    assert loaded.merge == MergeConfig()
     path = tmp_path / "d.toml"
     path.write_text(text)
     ok = invoke("config", "--check", path)

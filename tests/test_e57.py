@@ -6,7 +6,7 @@ import laspy
 import numpy as np
 import pye57
 import pytest
-from helpers import assert_one_line_error, invoke, write_e57
+from helpers import assert_one_line_error, invoke, pair_prior, write_e57
 from pye57 import libe57
 
 from plotmosaic.errors import InputError
@@ -166,9 +166,9 @@ def test_manifest_from_writes_a_valid_manifest(project, tmp_path):
                 read_cloud(m.resolve(m.scan(sid).path)).xyz, points[ids[i]].astype(np.float32)
             )
     m = load_manifest(tmp_path / "stdout.toml")
-    rel = m.pair_prior(ids[1], ids[0])  # scan frame of ids[1] -> scan frame of ids[0]
+    rel = pair_prior(m, ids[1], ids[0])  # scan frame of ids[1] -> scan frame of ids[0]
     np.testing.assert_allclose(rel, np.linalg.inv(poses[ids[0]]) @ poses[ids[1]], atol=1e-9)
-    assert load_manifest(out).pair_prior(ids[1], ids[0]) is None  # written without --use-pose
+    assert pair_prior(load_manifest(out), ids[1], ids[0]) is None  # written without --use-pose
     assert_one_line_error(
         invoke("manifest-from", path, "--out", out), "plot.toml", "already exists"
     )

@@ -4,6 +4,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import pair_prior
 
 from plotmosaic.errors import InputError
 from plotmosaic.io import PointCloud, write_cloud
@@ -187,8 +188,8 @@ def test_stored_poses_skip_plots_that_store_only_identity(tmp_path):
     scan = '[[scans]]\nid = "s{i}"\npath = "FILE"\nscan = {i}\nuse_pose = true\n'
     text = 'plot_id = "P"\n' + "".join(scan.format(i=i) for i in (0, 1))
     ident = load_manifest(write(tmp_path, text.replace("FILE", "ident.e57"), "i.toml"))
-    assert ident.stored_poses() == {} and ident.pair_prior("s1", "s0") is None
+    assert ident.stored_poses() == {} and pair_prior(ident, "s1", "s0") is None
     posed = load_manifest(write(tmp_path, text.replace("FILE", "posed.e57"), "p.toml"))
     assert sorted(posed.stored_poses()) == ["s0", "s1"]
-    np.testing.assert_allclose(posed.pair_prior("s1", "s0"), T, atol=1e-12)
-    np.testing.assert_allclose(posed.pair_prior("s0", "s1"), np.linalg.inv(T), atol=1e-12)
+    np.testing.assert_allclose(pair_prior(posed, "s1", "s0"), T, atol=1e-12)
+    np.testing.assert_allclose(pair_prior(posed, "s0", "s1"), np.linalg.inv(T), atol=1e-12)

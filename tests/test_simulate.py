@@ -15,12 +15,21 @@ from plotmosaic.io.las import read_cloud, read_header_info
 from plotmosaic.manifest import load_manifest
 from plotmosaic.poses import load_poses
 from plotmosaic.simulate.mesh import FOLIAGE, GROUND, UNDERSTORY, WOODY, concat
-from plotmosaic.simulate.run import expected_scans, make_config, simulate
-from plotmosaic.simulate.scene import Scene, build_world
+from plotmosaic.simulate.run import make_config, scan_path, simulate
+from plotmosaic.simulate.scene import Scene, build_world, plot_ids, scan_id
 from plotmosaic.simulate.stats import density, overlap_fraction
 from plotmosaic.simulate.trees import Tree, broadleaf_meshes, conifer_meshes
 
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_manifests"
+
+
+def expected_scans(config) -> list[tuple[str, str, Path]]:
+    """(plot id, scan id, relative path) of every TLS scan `simulate` writes for this config."""
+    return [
+        (pid, scan_id(pid, i), scan_path(pid, scan_id(pid, i)))
+        for pid in plot_ids(config)
+        for i in range(len(config.scan_layout))
+    ]
 
 
 @pytest.fixture(scope="module")

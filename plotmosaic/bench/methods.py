@@ -39,13 +39,11 @@ OURS = ("forestalign", "forestalign-placement")  # plotmosaic's own: a wrong pos
 class MethodOutput:
     transform: np.ndarray  # 4x4 source' file coords -> target file coords
     seconds: float
-    failed: bool = (
-        False  # the method reported failure (identity, or its refused estimate, is scored)
-    )
+    # the method reported failure (identity, or its refused estimate, is scored)
+    failed: bool = False
     note: str = ""
-    confidence: float | None = (
-        None  # forestalign's own confidence in its answer (also when it refused)
-    )
+    # forestalign's own confidence in its answer (also when it refused)
+    confidence: float | None = None
     result: object | None = None  # forestalign's PairResult (also when it refused), else None
 
 
@@ -176,15 +174,10 @@ def _icp_refine(src, tgt, init: np.ndarray, cfg: IcpConfig) -> np.ndarray:
     o3d = _o3d()
     reg = o3d.pipelines.registration
     T = np.asarray(init, dtype=np.float64)
+    point_to_point = reg.TransformationEstimationPointToPoint()
+    criteria = reg.ICPConvergenceCriteria(max_iteration=cfg.iterations)
     for d in cfg.distances:
-        result = reg.registration_icp(
-            src,
-            tgt,
-            d,
-            T,
-            reg.TransformationEstimationPointToPoint(),
-            reg.ICPConvergenceCriteria(max_iteration=cfg.iterations),
-        )
+        result = reg.registration_icp(src, tgt, d, T, point_to_point, criteria)
         T = np.asarray(result.transformation)
     return T
 
@@ -282,9 +275,8 @@ def _cpd(pair: PairInput, config: MethodsConfig, seed: int) -> np.ndarray:
     T = _rigid_cpd(xyz[0], xyz[1], cfg)
     if not np.isfinite(T).all():
         raise RegistrationFailed("CPD diverged")
-    if (
-        config.cpd.refine
-    ):  # CPD on a few thousand points stops at decimetres: the same ICP as fpfh-ransac
+    # CPD on a few thousand points stops at decimetres: the same ICP as fpfh-ransac
+    if config.cpd.refine:
         _, src_fine, tgt_fine = _local(pair, config.icp.voxel)
         T = _icp_refine(src_fine, tgt_fine, T, config.icp)
     return to_global_transform(T, frame, frame)

@@ -12,11 +12,6 @@ the other). Candidates are taken in seeded order and each pair fills its bin (at
 one simulated scene a bin) until every bin holds `per_bin` pairs, so the catalogue depends on the
 seed alone; measured candidates and the chosen pairs are kept on disk and a re-run cuts nothing it
 has.
-
-    candidate(source, seed, index) -> Geometry
-    cut_candidate(geometry, data) -> [ViewPair, ...]
-    build_catalogue(source, bins, per_bin, seed, folder, data) -> {bin: [PairRef, ...]}
-    load_pair(path) -> ViewPair
 """
 
 from __future__ import annotations
@@ -242,16 +237,9 @@ def load_pair(path: str | Path) -> ViewPair:
     with np.load(path) as z:
         meta = json.loads(str(z["meta"]))
         st, ts = (float(v) for v in z["overlap"])
-        return ViewPair(
-            z["source"].astype(np.float64),
-            z["target"].astype(np.float64),
-            np.asarray(z["truth"], dtype=np.float64),
-            np.asarray(z["up"], dtype=np.float64),
-            st,
-            ts,
-            meta["name"],
-            meta["geometry"],
-        )
+        source, target = z["source"].astype(np.float64), z["target"].astype(np.float64)
+        truth, up = (np.asarray(z[k], dtype=np.float64) for k in ("truth", "up"))
+        return ViewPair(source, target, truth, up, st, ts, meta["name"], meta["geometry"])
 
 
 @dataclass(frozen=True)

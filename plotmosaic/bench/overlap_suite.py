@@ -11,7 +11,6 @@ re-runs skip what is there and -j changes nothing but the wall time.
 from __future__ import annotations
 
 import hashlib
-import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -19,22 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from plotmosaic.bench.methods import (
-    METHODS,
-    OURS,
-    PairInput,
-    available,
-    prepare_target,
-    run_method,
-)
-from plotmosaic.bench.overlap_pairs import (
-    SOURCES,
-    Bin,
-    PairRef,
-    bin_label,
-    load_pair,
-)
-from plotmosaic.bench.overlap_tables import ALL_METHODS
+from plotmosaic.bench.methods import OURS, PairInput, available, prepare_target, run_method
+from plotmosaic.bench.overlap_pairs import SOURCES, Bin, PairRef, bin_label, load_pair
 from plotmosaic.bench.peers import PEERS, Sensors, peer_available, run_peer
 from plotmosaic.bench.protocol import (
     PARAMS,
@@ -48,13 +33,13 @@ from plotmosaic.bench.real_suite import (
     append_trials,
     commit,
     draw,
+    keep_wrong,
     key,
     outcome,
     read_trials,
 )
 from plotmosaic.bench.trial_pool import run_each
 from plotmosaic.config.bench import MethodsConfig
-from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.frame import apply_transform
 from plotmosaic.io.las import PointCloud
 
@@ -79,9 +64,8 @@ class Job:
     pair: PairRef
     methods: tuple[str, ...]
     seed: int = 0
-    out: str | None = (
-        None  # folder: a wrong forestalign pose with exit 0 keeps its result JSON there
-    )
+    # folder: a wrong forestalign pose with exit 0 keeps its result JSON there
+    out: str | None = None
 
 
 def plan(
@@ -178,12 +162,7 @@ def run_trial(job: Job) -> list[dict]:
         row["outcome"] = outcome(row)
         if row["outcome"] == "wrong" and method in OURS and res is not None and job.out:
             name = f"{job.pair.id}-trial{job.trial}-seed{job.seed}.json"
-            doc = {"draw": row, "truth": truth.tolist(), "result": res.to_dict()}
-            row["result_json"] = str(
-                write_text_atomic(
-                    Path(job.out) / "wrong" / name, json.dumps(doc, indent=1, default=float)
-                )
-            )
+            keep_wrong(Path(job.out) / "wrong" / name, row, truth, res)
         rows.append(row)
     return rows
 
@@ -231,18 +210,3 @@ def run(
 
     run_each(todo, jobs, run_trial, finish, crashed)
     return new
-
-
-__all__ = [
-    "ALL_METHODS",
-    "METHODS",
-    "PROTOCOL",
-    "TRIALS_FILE",
-    "Job",
-    "case_name",
-    "method_available",
-    "plan",
-    "read_trials",
-    "run",
-    "run_trial",
-]

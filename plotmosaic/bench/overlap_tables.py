@@ -1,8 +1,4 @@
-"""The overlap benchmark's tables and curve from its trials (bench/overlap_suite.py runs them).
-
-summarise(rows) -> per (source or 'all', bin, method) counts; markdown(summary), pairs_table(rows),
-cpu_table(rows), plot_curve(summary, path), write_outputs(rows, out, command, figure)
-"""
+"""The overlap benchmark's tables and curve from its trials (bench/overlap_suite.py runs them)."""
 
 from __future__ import annotations
 

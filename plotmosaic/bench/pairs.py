@@ -127,26 +127,11 @@ def manifest_pairs(
                 als = PointCloud(np.vstack([t.xyz for t in tiles]), {}, tiles[0].crs)
             src = cloud(sid)
             world = src.xyz @ T_src[:3, :3].T + T_src[:3, 3]
-            pairs.append(
-                BenchPair(
-                    f"{sid}->ALS",
-                    src,
-                    _crop_around(als, world, ALS_MARGIN),
-                    T_src,
-                    src_scan.kind.value,
-                    "als",
-                )
-            )
+            crop = _crop_around(als, world, ALS_MARGIN)
+            pairs.append(BenchPair(f"{sid}->ALS", src, crop, T_src, src_scan.kind.value, "als"))
         else:
             T = np.linalg.inv(_pose(poses, tid, Path(str(manifest.source)))) @ T_src
-            pairs.append(
-                BenchPair(
-                    f"{sid}->{tid}",
-                    cloud(sid),
-                    cloud(tid),
-                    T,
-                    src_scan.kind.value,
-                    manifest.scan(tid).kind.value,
-                )
-            )
+            src, tgt = cloud(sid), cloud(tid)
+            kinds = src_scan.kind.value, manifest.scan(tid).kind.value
+            pairs.append(BenchPair(f"{sid}->{tid}", src, tgt, T, *kinds))
     return pairs

@@ -21,7 +21,6 @@ from plotmosaic.config.bench import PROTOCOLS, Protocol
 from plotmosaic.io.frame import translation
 
 PARAMS = ("roll", "pitch", "yaw", "tx", "ty", "tz")
-UNITS = ("deg", "deg", "deg", "m", "m", "m")
 
 
 def get_protocol(

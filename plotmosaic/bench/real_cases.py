@@ -4,7 +4,6 @@
     RealCase.source, .target   PointCloud (file coordinates; each source in its own random frame)
     RealCase.truth             4x4 source file coordinates -> target file coordinates
     RealCase.source_kind, .target_kind, .note (where the truth comes from), .meta (figures)
-    RealCase.bench_pair()      the same as a `plotmosaic.bench.run.BenchPair`
 
 Cases (issue 15's suite):
   treels-2views    two virtual scans of the TreeLS pine plot 7 m apart (exact truth)
@@ -35,7 +34,6 @@ from pathlib import Path
 import numpy as np
 
 from plotmosaic.bench.refined_truth import refine_truth
-from plotmosaic.bench.run import BenchPair
 from plotmosaic.config.simulate import TlsConfig
 from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import write_text_atomic
@@ -46,9 +44,8 @@ from plotmosaic.simulate.from_cloud import cut_views, grid_positions
 from plotmosaic.simulate.run import simulate
 from plotmosaic.simulate.tls import random_pose
 
-DATA = (
-    Path(__file__).resolve().parents[3] / "shared" / "data"
-)  # beside the work tree, as in tests/conftest.py
+# beside the work tree, as in tests/conftest.py
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 CASES = (
     "treels-2views",
     "mls-2views",
@@ -58,10 +55,8 @@ CASES = (
     "mls-uas",
     "sim-understorey",
 )
-EXTRA_CASES = (
-    "sim-small",
-    "mls-views12m",
-)  # on request: the simulator's `small` preset, a TLS pair (the old coarse suite); a sparse pair
+# on request: the simulator's `small` preset, a TLS pair (the old coarse suite); a sparse pair
+EXTRA_CASES = ("sim-small", "mls-views12m")
 ALL_CASES = CASES + EXTRA_CASES
 STRIP_WIDTH = 5.0  # metres: a narrow drone strip (<= 6 m)
 TREELS_SPACING = 7.0
@@ -81,12 +76,6 @@ class RealCase:
     target_kind: str
     note: str
     meta: dict = field(default_factory=dict)
-
-    def bench_pair(self):
-
-        return BenchPair(
-            self.name, self.source, self.target, self.truth, self.source_kind, self.target_kind
-        )
 
 
 def data_dir(path: str | Path | None = None) -> Path:
@@ -123,10 +112,8 @@ def _spanner(root: str, name: str) -> PointCloud:
     return read_cloud(_file(Path(root), f"spanner/{name}_Clip.laz"), attributes=False)
 
 
-REFINE_VOXEL = {
-    ("UAS", "ALS"): 0.1,
-    ("MLS", "UAS"): 0.15,
-}  # metres: two dense clips need less detail to agree
+# metres: two dense clips need less detail to agree
+REFINE_VOXEL = {("UAS", "ALS"): 0.1, ("MLS", "UAS"): 0.15}
 
 
 def cache_dir() -> Path:

@@ -7,7 +7,7 @@ Each trial's draw comes from (seed, case, protocol, trial) alone, so a run exten
 trials it has not got, and `-j` changes nothing but the wall time. Every finished trial is one line of
 OUT/trials.jsonl; tables and the reliability diagram are drawn from that file. A case is built once per worker,
 its target prepared once for forestalign; each trial moves the source and runs every method on that draw.
-Tables and the reliability diagram are bench/suite_tables.py (re-exported here).
+Tables and the reliability diagram are bench/suite_tables.py.
 """
 
 from __future__ import annotations
@@ -32,15 +32,6 @@ from plotmosaic.bench.protocol import (
     rotation_angle,
 )
 from plotmosaic.bench.real_cases import build_case
-from plotmosaic.bench.suite_tables import (
-    accuracy,
-    generators,
-    markdown,
-    plot_reliability,
-    reliability,
-    summarise,
-    write_outputs,
-)
 from plotmosaic.bench.trial_pool import run_each
 from plotmosaic.config.bench import SUITE_PROTOCOLS, MethodsConfig
 from plotmosaic.io.atomic import write_text_atomic
@@ -61,29 +52,6 @@ def print_wrong(rows: list[dict], where: Callable[[dict], str]) -> None:
             f" {r.get('result_json', '-')}"
         )
 
-
-__all__ = [  # the suite's API (benchmarks/bench_real.py), tables included
-    "CASES_FILE",
-    "SUITE_PROTOCOLS",
-    "TRIALS_FILE",
-    "Trial",
-    "accuracy",
-    "append_trials",
-    "draw",
-    "generators",
-    "key",
-    "markdown",
-    "outcome",
-    "plan",
-    "plot_reliability",
-    "read_trials",
-    "reliability",
-    "Suite",
-    "print_wrong",
-    "run_suite",
-    "summarise",
-    "write_outputs",
-]
 
 TRIALS_FILE = "trials.jsonl"
 CASES_FILE = "cases.json"
@@ -107,24 +75,17 @@ def draw(protocol: str, seed: int, case: str, trial: int) -> np.ndarray:
     return np.random.default_rng(ss).uniform(-1.0, 1.0, 6) * SUITE_PROTOCOLS[protocol].ranges
 
 
+def _git(root: Path, *args: str) -> str:
+    run = subprocess.run(["git", *args], cwd=root, capture_output=True, text=True, timeout=10)
+    return run.stdout.strip()
+
+
 def commit() -> str:
     """`git rev-parse --short HEAD` of the tree this runs from (+ '-dirty' when it has local changes), or '?'."""
     root = Path(__file__).resolve().parents[2]
     try:
-        head = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            cwd=root,
-            capture_output=True,
-            text=True,
-            timeout=10,
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no", "plotmosaic"],
-            cwd=root,
-            capture_output=True,
-            text=True,
-            timeout=10,
-        ).stdout.strip()
+        head = _git(root, "rev-parse", "--short", "HEAD")
+        dirty = _git(root, "status", "--porcelain", "--untracked-files=no", "plotmosaic")
     except (OSError, subprocess.SubprocessError):
         head, dirty = "", ""
     if not head and (root / ".commit").is_file():  # a `git archive` snapshot names its commit there
@@ -143,9 +104,8 @@ class Trial:
     methods: tuple[str, ...]  # those of this draw not yet in the trials file
     seed: int = 0
     data: str | None = None
-    out: str | None = (
-        None  # folder: a wrong forestalign pose with exit 0 keeps its result JSON there
-    )
+    # folder: a wrong forestalign pose with exit 0 keeps its result JSON there
+    out: str | None = None
 
 
 def key(row: dict) -> tuple:
@@ -227,6 +187,13 @@ def _case_state(name: str, seed: int, data: str | None):
     return _STATE[key_]
 
 
+def keep_wrong(path: Path, row: dict, truth: np.ndarray, result) -> None:
+    """A wrong pose returned with exit 0: its draw, the truth and the result as JSON at `path`,
+    which the row names."""
+    doc = {"draw": row, "truth": truth.tolist(), "result": result.to_dict()}
+    row["result_json"] = str(write_text_atomic(path, json.dumps(doc, indent=1, default=float)))
+
+
 def _near(result, truth: np.ndarray) -> tuple[list[str], str | None]:
     """Generators with a hypothesis near the truth, and the winning generator:vertical (coarse stage only)."""
     coarse = getattr(result, "coarse", None)
@@ -254,13 +221,8 @@ def run_trial(job: Trial) -> tuple[dict, list[dict]]:
     truth = np.linalg.inv(P)
     rows = []
     for method in job.methods:
-        pair = PairInput(
-            moved,
-            case.target,
-            case.source_kind,
-            case.target_kind,
-            prepared if method in OURS else None,
-        )
+        target_prepared = prepared if method in OURS else None
+        pair = PairInput(moved, case.target, case.source_kind, case.target_kind, target_prepared)
         out = run_method(method, pair, MethodsConfig(), seed=job.seed + job.trial)
         err = pose_error(out.transform, truth, centre)
         row = {
@@ -293,15 +255,8 @@ def run_trial(job: Trial) -> tuple[dict, list[dict]]:
             )
         row["outcome"] = outcome(row)
         if row["outcome"] == "wrong" and res is not None and job.out:
-            path = (
-                Path(job.out)
-                / "wrong"
-                / f"{job.case}-{job.protocol}-seed{job.seed}-trial{job.trial}.json"
-            )
-            doc = {"draw": row, "truth": truth.tolist(), "result": res.to_dict()}
-            row["result_json"] = str(
-                write_text_atomic(path, json.dumps(doc, indent=1, default=float))
-            )
+            name = f"{job.case}-{job.protocol}-seed{job.seed}-trial{job.trial}.json"
+            keep_wrong(Path(job.out) / "wrong" / name, row, truth, res)
         rows.append(row)
     return info, rows
 

@@ -180,7 +180,6 @@ def _failure_picture(
     truth: np.ndarray,
     folder: Path,
 ) -> Path:
-
     slug = "".join(
         ch if ch.isalnum() else "-" for ch in f"{row['pair']}-{row['method']}-trial{row['trial']}"
     ).strip("-")

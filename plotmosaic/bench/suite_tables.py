@@ -240,21 +240,13 @@ def plot_reliability(
     bins = reliability(rows, method)
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(13, 5.5))
     mids = [(b["lo"] + b["hi"]) / 2 for b in bins]
-    frac = [b["found"] / b["n"] if b["n"] else np.nan for b in bins]
+    frac = [b["found"] / b["n"] if b["n"] else 0 for b in bins]
     ax.plot([0, 1], [0, 1], color="grey", lw=0.8, ls="--", label="calibrated")
-    ax.bar(
-        mids,
-        [0 if np.isnan(f) else f for f in frac],
-        width=0.09,
-        color="tab:blue",
-        alpha=0.6,
-        label="fraction correct",
-    )
+    ax.bar(mids, frac, width=0.09, color="tab:blue", alpha=0.6, label="fraction correct")
     for m, f, b in zip(mids, frac, bins):
         if b["n"]:
-            ax.text(m, (0 if np.isnan(f) else f) + 0.02, f"{b['n']}", ha="center", fontsize=8)
-    ax.set_xlim(0, 1)
-    ax.set_ylim(0, 1.1)
+            ax.text(m, f + 0.02, f"{b['n']}", ha="center", fontsize=8)
+    ax.set(xlim=(0, 1), ylim=(0, 1.1))
     ax.set_xlabel(f"{method} confidence")
     ax.set_ylabel("fraction within 1 deg / 10 cm (trials per bin on top)")
     ax.legend(loc="upper left", fontsize=8)
@@ -288,8 +280,7 @@ def plot_reliability(
     bx.axhline(1.0, color="grey", lw=0.8, ls="--")
     bx.set_yscale("log")
     bx.set_xlim(-0.02, 1.02)
-    bx.set_xlabel(f"{method} confidence")
-    bx.set_ylabel("rotation error (deg)")
+    bx.set(xlabel=f"{method} confidence", ylabel="rotation error (deg)")
     bx.legend(loc="upper right", fontsize=8)
     no_conf = len(sub) - len(with_conf)
     bx.set_title(

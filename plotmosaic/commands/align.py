@@ -69,16 +69,12 @@ def output_plan(source, target, init, config, out, save_levels, force) -> Output
     used = config_used_path(out, save_levels)
     names = LEVEL_NAMES + ((CONFIG_USED,) if out is None else ())
     beside = (out, matrix_path(out), used) if out is not None else ()
+    inputs = inputs_of(
+        [(source, "SOURCE"), (target, "TARGET"), (init, "--init file"), (config, "--config file")]
+    )
     return OutputPlan(
         "align",
-        inputs_of(
-            [
-                (source, "SOURCE"),
-                (target, "TARGET"),
-                (init, "--init file"),
-                (config, "--config file"),
-            ]
-        ),
+        inputs,
         files=tuple(beside),
         folder=save_levels,
         names=names if save_levels is not None else (),

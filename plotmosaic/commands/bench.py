@@ -17,81 +17,12 @@ from plotmosaic.config.align import KINDS
 from plotmosaic.config.bench import BenchConfig, MethodsConfig
 from plotmosaic.errors import InputError
 from plotmosaic.io.las import read_cloud
-from plotmosaic.io.outputs import (
-    OutputPlan,
-    check_outputs,
-    claimed,
-    inputs_of,
-    manifest_inputs,
-)
+from plotmosaic.io.outputs import OutputPlan, check_outputs, claimed, inputs_of, manifest_inputs
 from plotmosaic.manifest import load_manifest
 from plotmosaic.poses import load_poses
 
 # what bench/run.py writes in OUT
 BENCH_NAMES = ("trials.csv", "table.md", "errors.png", "summary.json", "failures")
-
-# the options (declared here so the command reads as what it does)
-_SOURCE = typer.Argument(None, help="Source cloud (LAS/LAZ); omit with --manifest.")
-_TARGET = typer.Argument(None, help="Target cloud (LAS/LAZ); omit with --manifest.")
-_GT = typer.Option(
-    ...,
-    "--gt",
-    help="Ground truth: 'identity', a JSON with 'transform' (source -> target), or a poses file.",
-)
-_MANIFEST = typer.Option(
-    None, "--manifest", help="Bench pairs of a plot with known poses (e.g. sim/manifest.toml)."
-)
-_PAIRS = typer.Option(
-    "tls-tls", "--pairs", help="With --manifest: tls-tls | tls-als | prepost | all."
-)
-_MAX_PAIRS = typer.Option(
-    None, "--max-pairs", min=1, help="With --manifest: only the first N pairs."
-)
-_SOURCE_ID = typer.Option(
-    None, "--source-id", help="Source scan id in a poses --gt (default: file stem)."
-)
-_TARGET_ID = typer.Option(
-    None, "--target-id", help="Target scan id in a poses --gt (default: file stem)."
-)
-_SOURCE_KIND = typer.Option(KINDS[0], "--source-kind", help=" | ".join(KINDS))
-_TARGET_KIND = typer.Option(KINDS[0], "--target-kind", help=" | ".join(KINDS))
-_TRIALS = typer.Option(10, "--trials", min=1, help="Random perturbations per pair.")
-_PROTOCOL = typer.Option(
-    "paper",
-    "--protocol",
-    help="paper (+-45 deg, +-15 m) | beyond (yaw +-180, roll/pitch +-10, +-25 m) | custom",
-)
-_MAX_ROTATION = typer.Option(
-    None, "--max-rotation", help="custom: +- roll/pitch (deg), default 45."
-)
-_MAX_YAW = typer.Option(None, "--max-yaw", help="custom: +- yaw (deg), default = --max-rotation.")
-_MAX_TRANSLATION = typer.Option(None, "--max-translation", help="custom: +- x/y/z (m), default 15.")
-_METHODS = typer.Option(
-    "forestalign,icp,fpfh-ransac,cpd",
-    "--methods",
-    help="Comma-separated: forestalign, icp, fpfh-ransac, cpd.",
-)
-_OVERLAP = typer.Option(
-    None, "--overlap", help="Crop to these overlaps in percent, e.g. 28,15,5,1 (paper Table 1)."
-)
-_NO_COARSE = typer.Option(
-    False,
-    "--no-coarse",
-    help="forestalign without its global stage, from identity (the paper's local setting).",
-)
-_SEED = typer.Option(0, "--seed")
-_OUT = typer.Option(
-    Path("bench"), "--out", help="Folder for trials.csv, table.md, errors.png, summary.json."
-)
-_TITLE = typer.Option("", "--title", help="Heading of table.md.")
-_FAILURE_PICTURES = typer.Option(
-    3,
-    "--failure-pictures",
-    help="PNGs of forestalign's first N unsuccessful trials in OUT/failures.",
-)
-_FORCE = typer.Option(
-    False, "--force", help="Write into an OUT holding other files (they are left untouched)."
-)
 
 
 def _floats(text: str | None, option: str) -> list[float] | None:
@@ -105,29 +36,75 @@ def _floats(text: str | None, option: str) -> list[float] | None:
 
 @handle_errors
 def bench_command(
-    source: Path | None = _SOURCE,
-    target: Path | None = _TARGET,
-    gt: str = _GT,
-    manifest: Path | None = _MANIFEST,
-    pairs: str = _PAIRS,
-    max_pairs: int | None = _MAX_PAIRS,
-    source_id: str | None = _SOURCE_ID,
-    target_id: str | None = _TARGET_ID,
-    source_kind: str = _SOURCE_KIND,
-    target_kind: str = _TARGET_KIND,
-    trials: int = _TRIALS,
-    protocol: str = _PROTOCOL,
-    max_rotation: float | None = _MAX_ROTATION,
-    max_yaw: float | None = _MAX_YAW,
-    max_translation: float | None = _MAX_TRANSLATION,
-    methods: str = _METHODS,
-    overlap: str | None = _OVERLAP,
-    no_coarse: bool = _NO_COARSE,
-    seed: int = _SEED,
-    out: Path = _OUT,
-    title: str = _TITLE,
-    failure_pictures: int = _FAILURE_PICTURES,
-    force: bool = _FORCE,
+    source: Path | None = typer.Argument(
+        None, help="Source cloud (LAS/LAZ); omit with --manifest."
+    ),
+    target: Path | None = typer.Argument(
+        None, help="Target cloud (LAS/LAZ); omit with --manifest."
+    ),
+    gt: str = typer.Option(
+        ...,
+        "--gt",
+        help="Ground truth: 'identity', a JSON with 'transform' (source -> target), or a poses file.",
+    ),
+    manifest: Path | None = typer.Option(
+        None, "--manifest", help="Bench pairs of a plot with known poses (e.g. sim/manifest.toml)."
+    ),
+    pairs: str = typer.Option(
+        "tls-tls", "--pairs", help="With --manifest: tls-tls | tls-als | prepost | all."
+    ),
+    max_pairs: int | None = typer.Option(
+        None, "--max-pairs", min=1, help="With --manifest: only the first N pairs."
+    ),
+    source_id: str | None = typer.Option(
+        None, "--source-id", help="Source scan id in a poses --gt (default: file stem)."
+    ),
+    target_id: str | None = typer.Option(
+        None, "--target-id", help="Target scan id in a poses --gt (default: file stem)."
+    ),
+    source_kind: str = typer.Option(KINDS[0], "--source-kind", help=" | ".join(KINDS)),
+    target_kind: str = typer.Option(KINDS[0], "--target-kind", help=" | ".join(KINDS)),
+    trials: int = typer.Option(10, "--trials", min=1, help="Random perturbations per pair."),
+    protocol: str = typer.Option(
+        "paper",
+        "--protocol",
+        help="paper (+-45 deg, +-15 m) | beyond (yaw +-180, roll/pitch +-10, +-25 m) | custom",
+    ),
+    max_rotation: float | None = typer.Option(
+        None, "--max-rotation", help="custom: +- roll/pitch (deg), default 45."
+    ),
+    max_yaw: float | None = typer.Option(
+        None, "--max-yaw", help="custom: +- yaw (deg), default = --max-rotation."
+    ),
+    max_translation: float | None = typer.Option(
+        None, "--max-translation", help="custom: +- x/y/z (m), default 15."
+    ),
+    methods: str = typer.Option(
+        "forestalign,icp,fpfh-ransac,cpd",
+        "--methods",
+        help="Comma-separated: forestalign, icp, fpfh-ransac, cpd.",
+    ),
+    overlap: str | None = typer.Option(
+        None, "--overlap", help="Crop to these overlaps in percent, e.g. 28,15,5,1 (paper Table 1)."
+    ),
+    no_coarse: bool = typer.Option(
+        False,
+        "--no-coarse",
+        help="forestalign without its global stage, from identity (the paper's local setting).",
+    ),
+    seed: int = typer.Option(0, "--seed"),
+    out: Path = typer.Option(
+        Path("bench"), "--out", help="Folder for trials.csv, table.md, errors.png, summary.json."
+    ),
+    title: str = typer.Option("", "--title", help="Heading of table.md."),
+    failure_pictures: int = typer.Option(
+        3,
+        "--failure-pictures",
+        help="PNGs of forestalign's first N unsuccessful trials in OUT/failures.",
+    ),
+    force: bool = typer.Option(
+        False, "--force", help="Write into an OUT holding other files (they are left untouched)."
+    ),
 ) -> None:
     """Paper-style benchmark: per-parameter RMSE, success rate and time over seeded random trials."""
     try:

@@ -123,9 +123,8 @@ def no_empty_output(folder) -> Iterator[None]:
         yield
     except BaseException:
         if top is not None and top.is_dir():
-            for root, _dirs, _files in sorted(
-                os.walk(top), key=lambda w: -len(w[0])
-            ):  # deepest first
+            # deepest first
+            for root, _dirs, _files in sorted(os.walk(top), key=lambda w: -len(w[0])):
                 with contextlib.suppress(OSError):
                     os.rmdir(root)  # only succeeds on an empty folder
         raise

@@ -42,7 +42,6 @@ def config_command(
 
 
 def _changed(settings) -> list[str]:
-
     out: list[str] = []
 
     def walk(a, b, loc):

@@ -6,9 +6,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import typer
-from pydantic import ValidationError
 
 from plotmosaic.commands.common import CONFIG_HELP, handle_errors, no_empty_output, run_settings
+from plotmosaic.commands.merge import merge_options, option_of
 from plotmosaic.config.merge import MergeConfig
 from plotmosaic.errors import InputError
 from plotmosaic.io.outputs import (
@@ -41,7 +41,6 @@ _TAKES = {
     "e57": {"skip_missing"},
     "copc": {"skip_missing", "include_als", "voxel", "bbox", "tile_memory_mb"},
 }
-_OPTION = {"tile_memory_mb": "--memory-mb"}
 
 
 @handle_errors
@@ -93,7 +92,10 @@ def export_command(
         "bbox": parse_bbox(bbox) if bbox else None,
         "tile_memory_mb": memory_mb,
     }
-    merge = _merge_config(run_settings(config).merge, given, to)
+    for name, value in given.items():
+        if value is not None and name not in _TAKES[to]:
+            raise InputError(f"{option_of(name)}: not an option of --to {to}")
+    merge = merge_options(run_settings(config).merge, given)
     if cloud is not None and to != "pdal":
         raise InputError(f"--cloud: only with --to pdal, not --to {to}")
     loaded = load_manifest(manifest)
@@ -176,22 +178,3 @@ def _copc(job: Job) -> None:
 
 def _frame(plan) -> str:
     return plan.crs.name if plan.frame == "crs" and plan.crs else plan.frame
-
-
-def _merge_config(settings: MergeConfig, given: dict, to: str) -> MergeConfig:
-    """The merge settings of this export: the file's [merge], then the options this format takes."""
-    for name, value in given.items():
-        if value is not None and name not in _TAKES[to]:
-            option = _OPTION.get(name, f"--{name.replace('_', '-')}")
-            raise InputError(f"{option}: not an option of --to {to}")
-    try:
-        return MergeConfig.model_validate(
-            settings.model_dump() | {k: v for k, v in given.items() if v is not None}
-        )
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        msg = err["msg"].removeprefix("Value error, ")
-        if not err["loc"]:
-            raise InputError(msg) from None
-        name = str(err["loc"][0])
-        raise InputError(f"{_OPTION.get(name, '--' + name.replace('_', '-'))}: {msg}") from None

@@ -41,9 +41,8 @@ def manifest_for(
         raise InputError(f"{e57_path}: {empty[0].label}: contains no points")
     absolute = e57_path.resolve()
     inside = manifest_dir is not None and absolute.is_relative_to(manifest_dir.resolve())
-    path = (
-        Path(os.path.relpath(absolute, manifest_dir.resolve())) if inside else absolute
-    )  # no ../../ chains
+    # no ../../ chains
+    path = Path(os.path.relpath(absolute, manifest_dir.resolve())) if inside else absolute
     entries = [
         Scan(id=sid, path=path, kind=kind, scan=s.index, use_pose=use_pose, reference=s.index == 0)
         for sid, s in zip(scan_ids(scans), scans)

@@ -18,7 +18,6 @@ from plotmosaic.commands.common import (
     write_config_used,
 )
 from plotmosaic.config.merge import MergeConfig
-from plotmosaic.config.settings import Settings
 from plotmosaic.errors import InputError
 from plotmosaic.io.atomic import check_output_dir
 from plotmosaic.io.outputs import OutputPlan, check_outputs, inputs_of, manifest_inputs
@@ -86,8 +85,8 @@ def merge_command(
         "tile_size": tile_size,
         "tile_memory_mb": memory_mb,
     }
-    settings = _with_options(settings, given)
-    merge = settings.merge
+    merge = merge_options(settings.merge, given)
+    settings = settings.model_copy(update={"merge": merge})
     used = out / CONFIG_USED if merge.tiles else out.with_name(f"{out.stem}.{CONFIG_USED}")
     loaded = load_manifest(manifest)
     check_outputs(output_plan(loaded, poses, config, out, used, merge))
@@ -103,20 +102,24 @@ def merge_command(
     typer.echo(f"settings used: {used}")
 
 
-def _with_options(settings: Settings, given: dict) -> Settings:
-    """The settings with the given options over the file's [merge]; a bad option is named as the option."""
+def option_of(key: str) -> str:
+    """The command-line option of a [merge] key."""
+    return "--memory-mb" if key == "tile_memory_mb" else f"--{key.replace('_', '-')}"
+
+
+def merge_options(merge: MergeConfig, given: dict) -> MergeConfig:
+    """The file's [merge] with the given options over it (None: not given); a bad option is
+    named as the option (merge and export)."""
     try:
-        merge = MergeConfig.model_validate(
-            settings.merge.model_dump() | {k: v for k, v in given.items() if v is not None}
+        return MergeConfig.model_validate(
+            merge.model_dump() | {k: v for k, v in given.items() if v is not None}
         )
     except ValidationError as exc:
         err = exc.errors()[0]
         msg = err["msg"].removeprefix("Value error, ")
         if not err["loc"]:  # a check across options names them itself
             raise InputError(msg) from None
-        name = {"tile_memory_mb": "memory_mb"}.get(str(err["loc"][0]), str(err["loc"][0]))
-        raise InputError(f"--{name.replace('_', '-')}: {msg}") from None
-    return settings.model_copy(update={"merge": merge})
+        raise InputError(f"{option_of(str(err['loc'][0]))}: {msg}") from None
 
 
 def output_plan(manifest, poses: Path, config: Path | None, out: Path, used: Path, merge):
@@ -141,7 +144,6 @@ def output_plan(manifest, poses: Path, config: Path | None, out: Path, used: Pat
 
 
 def print_summary(summary: MergeSummary) -> None:
-
     console = Console(highlight=False)
     table = Table(title=f"{summary.out}", title_justify="left")
     for name in ("source id", "scan", "kind", "points in", "points out"):

@@ -35,6 +35,7 @@ from plotmosaic.io.outputs import (
     manifest_inputs,
 )
 from plotmosaic.report.plot_figures import PLOT_FIGURES
+from plotmosaic.report.tables import edge_counts, fmt
 from plotmosaic.stages.register_plot import register_plot
 from plotmosaic.stages.tie_to_als import tie_to_als
 
@@ -230,15 +231,9 @@ def tie_to_als_command(
     for name in columns:
         table.add_column(name)
     for a in result.anchors:
-        fit = a.fit or {}
-        table.add_row(
-            a.plot,
-            a.status if a.status == "ok" else f"failed: {a.error}",
-            "-" if a.fitness is None else f"{a.fitness:.3f}",
-            "-" if a.inlier_rmse is None else f"{a.inlier_rmse * 100:.2f}",
-            "-" if a.fine_margin is None else f"{a.fine_margin:.2f}",
-            _als_offset(fit),
-        )
+        status = a.status if a.status == "ok" else f"failed: {a.error}"
+        figures = fmt(a.fitness, 1, 3), fmt(a.inlier_rmse, 100, 2), fmt(a.fine_margin, 1, 2)
+        table.add_row(a.plot, status, *figures, _als_offset(a.fit or {}))
     Console(highlight=False).print(table)
     poses = {k: v.transform for k, v in result.poses.scans.items()}
     sigmas = {k: v.sigma for k, v in result.poses.scans.items()}
@@ -261,12 +256,8 @@ def _als_offset(fit: dict) -> str:
 
 
 def _summary(G, solves, unplaced: list[str]) -> None:
-
     console = Console(highlight=False)
-    kept = sum(1 for *_, e in G.edges(data=True) if not e.get("dropped"))
-    console.print(
-        f"edges: {kept} kept, {G.number_of_edges() - kept} dropped, {len(G.graph.get('failed', []))} pairs failed"
-    )
+    console.print(edge_counts(G, len(G.graph.get("failed", []))))
     for plot, ref, poses, sigmas, dropped in solves:
         for d in dropped:
             console.print(f"  dropped {d['source']} -> {d['target']} ({d['reason']})")
@@ -280,14 +271,9 @@ def _summary(G, solves, unplaced: list[str]) -> None:
                 table.add_row(name, *(["-"] * 5))
                 continue
             s = sigmas[name]
-            table.add_row(
-                name,
-                f"{T[0, 3]:.3f}",
-                f"{T[1, 3]:.3f}",
-                f"{T[2, 3]:.3f}",
-                " ".join(f"{v * 1000:.1f}" for v in s[3:]),
-                " ".join(f"{np.degrees(v):.4f}" for v in s[:3]),
-            )
+            sigma_t = " ".join(f"{v * 1000:.1f}" for v in s[3:])
+            sigma_r = " ".join(f"{np.degrees(v):.4f}" for v in s[:3])
+            table.add_row(name, *(f"{v:.3f}" for v in T[:3, 3]), sigma_t, sigma_r)
         console.print(table)
     for u in unplaced_reasons(G, unplaced):
         console.print(f"not placed: {u.line()}")

@@ -21,86 +21,6 @@ from plotmosaic.simulate.scene import plot_ids
 
 _WRITES = ("manifest.toml", "ground_truth.json")  # besides one folder per plot (simulate/run.py)
 
-# the options (declared here so the command reads as what it does)
-_OUTDIR = typer.Argument(..., help="Output folder (must be empty unless --force).")
-_PRESET = typer.Option(
-    None,
-    "--preset",
-    help="small (default) | paper | region | grassland | prepost | large | region10 | understorey"
-    " | scattered (crowns of scattered foliage, no branches) | bare-stems (open stand, no crowns)",
-)
-_SEED = typer.Option(0, "--seed", help="Random seed: the same seed gives the same files.")
-_POINTS = typer.Option(None, "--points-per-scan", help="Target points per TLS scan.")
-_STEP = typer.Option(
-    None, "--angular-step", help="TLS angular step in degrees (overrides --points-per-scan)."
-)
-_RANGE = typer.Option(None, "--max-range", help="TLS maximum range (m).")
-_ALS = typer.Option(None, "--als-density", help="ALS returns per m2.")
-_TREES = typer.Option(
-    None, "--tree-density", help="Trees per hectare (with bare-stems: stems per hectare)."
-)
-_CROWNS = typer.Option(
-    None,
-    "--crowns",
-    help="branches (foliage along branches) | scattered (foliage through the crown volume, no"
-    " branches) | none (bare stems).",
-)
-_CONIFERS = typer.Option(None, "--conifer-fraction", help="Share of conifers (0-1).")
-_SHRUBS = typer.Option(None, "--shrub-density", help="Shrubs per hectare.")
-_GRASS = typer.Option(None, "--grass-density", help="Grass tufts per m2.")
-_FLAT = typer.Option(
-    None, "--flat-terrain/--sloped-terrain", help="Near-flat terrain (the hard case)."
-)
-_GRID = typer.Option(
-    None,
-    "--scan-grid",
-    min=1,
-    help="Scan positions on an N x N grid per plot (replaces the preset's layout).",
-)
-_GRID_SPACING = typer.Option(
-    18.0, "--scan-spacing", help="With --scan-grid: metres between grid positions."
-)
-_APPROX = typer.Option(
-    False, "--approx-positions", help="Write noisy approximate scanner positions (CRS frame)."
-)
-_APPROX_SIGMA = typer.Option(None, "--approx-sigma", help="Noise of the approximate positions (m).")
-_FIGURES = typer.Option(False, "--figures", help="Also write PNG pictures to OUTDIR/figures.")
-_FORCE = typer.Option(
-    False,
-    "--force",
-    help="Write into a non-empty OUTDIR (files no simulate run wrote are left untouched).",
-)
-_DRAWN = typer.Option(
-    False,
-    "--drawn",
-    help="Draw the forest as points instead of ray casting it (no occlusion but the stems' far"
-    " sides, foliage drawn anew for every scan): 45 leaning trees on a 40 m plot, six levelled scans"
-    " 30 m range; with --seed, --points-per-scan (default 1,500,000) and --max-range only.",
-)
-_CLOUD = typer.Option(
-    None,
-    "--from-cloud",
-    help="Cut virtual scans out of this real cloud (LAS/LAZ) instead of simulating.",
-)
-_POSITIONS = typer.Option(
-    None,
-    "--positions",
-    help="--from-cloud: scanner positions 'x,y;x,y' (or x,y,z), cloud coordinates.",
-)
-_VIEWS = typer.Option(
-    None, "--views", min=1, help="--from-cloud: this many positions on a grid around the centre..."
-)
-_SPACING = typer.Option(None, "--spacing", help="--from-cloud: ...this far apart (m).")
-_FULL_DENSITY = typer.Option(
-    None,
-    "--full-density-range",
-    help="--from-cloud: points beyond it kept with probability (r0/r)^2 (m).",
-)
-_NOISE = typer.Option(None, "--range-noise", help="--from-cloud: range noise std (m), default 0.")
-_VOXEL = typer.Option(
-    None, "--occupancy-voxel", help="--from-cloud: occupancy voxel for the line of sight (m)."
-)
-
 # simulator options that are settings of the config (make_config's names)
 _SETTINGS = {
     "--points-per-scan": "points_per_scan",
@@ -133,33 +53,99 @@ def simulate_plan(
 
 @handle_errors
 def simulate_command(
-    outdir: Path = _OUTDIR,
-    preset: str | None = _PRESET,
-    seed: int = _SEED,
-    points_per_scan: int | None = _POINTS,
-    angular_step: float | None = _STEP,
-    max_range: float | None = _RANGE,
-    als_density: float | None = _ALS,
-    tree_density: float | None = _TREES,
-    crowns: str | None = _CROWNS,
-    conifer_fraction: float | None = _CONIFERS,
-    shrub_density: float | None = _SHRUBS,
-    grass_density: float | None = _GRASS,
-    flat_terrain: bool | None = _FLAT,
-    scan_grid: int | None = _GRID,
-    scan_spacing: float = _GRID_SPACING,
-    approx_positions: bool = _APPROX,
-    approx_sigma: float | None = _APPROX_SIGMA,
-    figures: bool = _FIGURES,
-    force: bool = _FORCE,
-    drawn: bool = _DRAWN,
-    from_cloud: Path | None = _CLOUD,
-    positions: str | None = _POSITIONS,
-    views: int | None = _VIEWS,
-    spacing: float | None = _SPACING,
-    full_density_range: float | None = _FULL_DENSITY,
-    range_noise: float | None = _NOISE,
-    occupancy_voxel: float | None = _VOXEL,
+    outdir: Path = typer.Argument(..., help="Output folder (must be empty unless --force)."),
+    preset: str | None = typer.Option(
+        None,
+        "--preset",
+        help="small (default) | paper | region | grassland | prepost | large | region10 | understorey"
+        " | scattered (crowns of scattered foliage, no branches) | bare-stems (open stand, no crowns)",
+    ),
+    seed: int = typer.Option(0, "--seed", help="Random seed: the same seed gives the same files."),
+    points_per_scan: int | None = typer.Option(
+        None, "--points-per-scan", help="Target points per TLS scan."
+    ),
+    angular_step: float | None = typer.Option(
+        None, "--angular-step", help="TLS angular step in degrees (overrides --points-per-scan)."
+    ),
+    max_range: float | None = typer.Option(None, "--max-range", help="TLS maximum range (m)."),
+    als_density: float | None = typer.Option(None, "--als-density", help="ALS returns per m2."),
+    tree_density: float | None = typer.Option(
+        None, "--tree-density", help="Trees per hectare (with bare-stems: stems per hectare)."
+    ),
+    crowns: str | None = typer.Option(
+        None,
+        "--crowns",
+        help="branches (foliage along branches) | scattered (foliage through the crown volume, no"
+        " branches) | none (bare stems).",
+    ),
+    conifer_fraction: float | None = typer.Option(
+        None, "--conifer-fraction", help="Share of conifers (0-1)."
+    ),
+    shrub_density: float | None = typer.Option(None, "--shrub-density", help="Shrubs per hectare."),
+    grass_density: float | None = typer.Option(None, "--grass-density", help="Grass tufts per m2."),
+    flat_terrain: bool | None = typer.Option(
+        None, "--flat-terrain/--sloped-terrain", help="Near-flat terrain (the hard case)."
+    ),
+    scan_grid: int | None = typer.Option(
+        None,
+        "--scan-grid",
+        min=1,
+        help="Scan positions on an N x N grid per plot (replaces the preset's layout).",
+    ),
+    scan_spacing: float = typer.Option(
+        18.0, "--scan-spacing", help="With --scan-grid: metres between grid positions."
+    ),
+    approx_positions: bool = typer.Option(
+        False, "--approx-positions", help="Write noisy approximate scanner positions (CRS frame)."
+    ),
+    approx_sigma: float | None = typer.Option(
+        None, "--approx-sigma", help="Noise of the approximate positions (m)."
+    ),
+    figures: bool = typer.Option(
+        False, "--figures", help="Also write PNG pictures to OUTDIR/figures."
+    ),
+    force: bool = typer.Option(
+        False,
+        "--force",
+        help="Write into a non-empty OUTDIR (files no simulate run wrote are left untouched).",
+    ),
+    drawn: bool = typer.Option(
+        False,
+        "--drawn",
+        help="Draw the forest as points instead of ray casting it (no occlusion but the stems' far"
+        " sides, foliage drawn anew for every scan): 45 leaning trees on a 40 m plot, six levelled scans"
+        " 30 m range; with --seed, --points-per-scan (default 1,500,000) and --max-range only.",
+    ),
+    from_cloud: Path | None = typer.Option(
+        None,
+        "--from-cloud",
+        help="Cut virtual scans out of this real cloud (LAS/LAZ) instead of simulating.",
+    ),
+    positions: str | None = typer.Option(
+        None,
+        "--positions",
+        help="--from-cloud: scanner positions 'x,y;x,y' (or x,y,z), cloud coordinates.",
+    ),
+    views: int | None = typer.Option(
+        None,
+        "--views",
+        min=1,
+        help="--from-cloud: this many positions on a grid around the centre...",
+    ),
+    spacing: float | None = typer.Option(
+        None, "--spacing", help="--from-cloud: ...this far apart (m)."
+    ),
+    full_density_range: float | None = typer.Option(
+        None,
+        "--full-density-range",
+        help="--from-cloud: points beyond it kept with probability (r0/r)^2 (m).",
+    ),
+    range_noise: float | None = typer.Option(
+        None, "--range-noise", help="--from-cloud: range noise std (m), default 0."
+    ),
+    occupancy_voxel: float | None = typer.Option(
+        None, "--occupancy-voxel", help="--from-cloud: occupancy voxel for the line of sight (m)."
+    ),
 ) -> None:
     """Simulate a forest plot: terrain, trees, understory; TLS scans, an ALS tile, ground truth and a manifest."""
     if outdir.exists() and not outdir.is_dir():

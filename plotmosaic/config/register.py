@@ -65,9 +65,7 @@ class PoseGraphConfig(BaseModel):
         1.0, gt=0, description="triangle loop rotation beyond which it is inconsistent"
     )
     cycle_translation: float = Field(
-        0.10,
-        gt=0,
-        description="triangle loop translation (m) beyond which it is inconsistent",
+        0.10, gt=0, description="triangle loop translation (m) beyond which it is inconsistent"
     )
     # An edge whose coarse-stage confidence is below this is kept only when a consistent triangle
     # confirms it: a wrong coarse solution can still pass the pair's own fitness checks.

@@ -110,9 +110,6 @@ class Settings(BaseModel):
             "read": self.read,
         }
 
-    def merge_config(self) -> MergeConfig:
-        return self.merge
-
 
 class SettingsError(ValueError):
     """A settings file or override that cannot be used; the message names the key."""

@@ -226,11 +226,7 @@ PRESETS: dict[str, SimulationConfig] = {
         "large",
         scan_layout=grid_layout(6, 18.0),
         scene_margin_m=30.0,
-        **{
-            "terrain.cell": 0.5,
-            "forest.detail_radius_m": 75.0,
-            "tls.points_per_scan": 1_000_000,
-        },
+        **{"terrain.cell": 0.5, "forest.detail_radius_m": 75.0, "tls.points_per_scan": 1_000_000},
     ),
     # Ten plots of the paper layout 90 m apart under one ALS survey (a region of 50 scans).
     "region10": _preset(
@@ -255,10 +251,8 @@ PRESETS: dict[str, SimulationConfig] = {
         **{
             "forest.trees_per_ha": 600.0,
             "forest.conifer_fraction": 0.4,
-            "forest.broadleaf_height_m": (
-                6.0,
-                12.0,
-            ),  # a low leafy subcanopy closes the sky within ~5 m
+            # a low leafy subcanopy closes the sky within ~5 m
+            "forest.broadleaf_height_m": (6.0, 12.0),
             "forest.shrubs_per_ha": 9000.0,
             "forest.saplings_per_ha": 6000.0,
             "forest.clearance_m": 1.0,

@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 from plotmosaic.graph.cache import PairCache
 from plotmosaic.graph.executor import Workers, run_pairs
-from plotmosaic.graph.jobs import PairJob, prepare_jobs_for
+from plotmosaic.graph.jobs import PairJob, failed_pair, prepare_jobs_for
 from plotmosaic.graph.prepared import PrepareJob, entry, run_prepare_job
 
 # Figures of a pair result kept on the graph edge (the full result stays in DIR/pairs/).
@@ -80,19 +80,9 @@ def compute_pairs(
             if job.prepared
             else []
         )
-        if (
-            bad
-        ):  # the scan itself cannot be used: its error, not a registration failure (not cached)
-            keep(
-                {
-                    "source": job.source,
-                    "target": job.target,
-                    "key": job.key,
-                    "status": "failed",
-                    "error": f"scan {bad[0]['scan']}: {bad[0].get('error')}",
-                    "cacheable": False,
-                }
-            )
+        # the scan itself cannot be used: its error, not a registration failure (not cached)
+        if bad:
+            keep(failed_pair(job, f"scan {bad[0]['scan']}: {bad[0].get('error')}"))
         else:
             runnable.append(job)
     run_pairs(runnable, workers, keep)

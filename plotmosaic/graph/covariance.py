@@ -110,9 +110,8 @@ def condition_information(
     if info is not None:
         info = np.asarray(info, dtype=np.float64)
         if info.shape == (6, 6) and np.isfinite(info).all():
-            A = (
-                S @ ((info + info.T) / 2.0) @ S
-            )  # in floor units: eigenvalue 1 <=> sigma at the floor
+            # in floor units: eigenvalue 1 <=> sigma at the floor
+            A = S @ ((info + info.T) / 2.0) @ S
     if A is not None:
         w, V = np.linalg.eigh(A)
         if w.max() <= 0:
@@ -178,9 +177,8 @@ def residual(
     """Residual of one edge at the given poses: rotation (deg), translation (m) and chi2 (conditioned info)."""
     e = G.edges[u, v]
     i, j = e["source"], e["target"]
-    E = (
-        inverse(e["transform"]) @ inverse(poses[j]) @ poses[i]
-    )  # identity when the edge is satisfied
+    # identity when the edge is satisfied
+    E = inverse(e["transform"]) @ inverse(poses[j]) @ poses[i]
     xi = gtsam.Pose3.Logmap(gtsam.Pose3(E))
     info = information.of(u, v)
     return {

@@ -89,11 +89,6 @@ def _count(tris: list[dict], config: PoseGraphConfig) -> dict[tuple[str, str], t
     return {e: (bad, total) for e, (bad, total) in votes.items()}
 
 
-def triangle_votes(G: nx.Graph, config: PoseGraphConfig) -> dict[tuple[str, str], tuple[int, int]]:
-    """Per kept edge (sorted ids): (inconsistent triangles, triangles) it is part of."""
-    return _count(cycle_errors(G), config)
-
-
 def _outliers(votes: dict[tuple[str, str], tuple[int, int]]) -> list[tuple[str, str]]:
     return sorted(e for e, (bad, total) in votes.items() if bad >= 2 and bad > total / 2)
 
@@ -114,11 +109,6 @@ def _explain(tris: list[dict], config: PoseGraphConfig) -> list[tuple[str, str]]
         active = [t for t in active if not worst.intersection(_tri_edges(t))]
 
 
-def cycle_outliers(G: nx.Graph, config: PoseGraphConfig) -> list[tuple[str, str]]:
-    """Edges inconsistent in most of the triangles they close (needs >= 2 bad triangles to decide)."""
-    return _explain(cycle_errors(G), config)
-
-
 def _unsure(G: nx.Graph, config: PoseGraphConfig) -> set[tuple[str, str]]:
     return {
         _edge_id(u, v)
@@ -129,11 +119,6 @@ def _unsure(G: nx.Graph, config: PoseGraphConfig) -> set[tuple[str, str]]:
 
 def _unconfirmed(unsure: set, votes: dict) -> list[tuple[str, str]]:
     return sorted(e for e in unsure if (lambda bt: bt[1] - bt[0])(votes.get(e, (0, 0))) == 0)
-
-
-def unverified(G: nx.Graph, config: PoseGraphConfig) -> list[tuple[str, str]]:
-    """Low-confidence edges (coarse stage unsure) that no consistent triangle confirms."""
-    return _unconfirmed(_unsure(G, config), triangle_votes(G, config))
 
 
 def vote(

@@ -23,7 +23,7 @@ from plotmosaic.align.memo import RunMemo
 from plotmosaic.align.pair import Start, register_prepared
 from plotmosaic.errors import InputError, RegistrationFailed
 from plotmosaic.graph import prepared as store
-from plotmosaic.graph.jobs import PairJob, prepare_jobs_for
+from plotmosaic.graph.jobs import PairJob, failed_pair, prepare_jobs_for
 from plotmosaic.graph.prepared import PrepareJob, get_prepared
 from plotmosaic.io.progress import progress_bar
 from plotmosaic.lifetime import DeafSpawnContext, bind_to_parent
@@ -118,22 +118,16 @@ def call_with_threads(threads: int, worker: Callable, job):
 
 
 def _failed(job, exc: BaseException) -> dict:
+    error = f"{type(exc).__name__}: {exc}"
     if isinstance(job, PrepareJob):
         return {
             "key": job.key,
             "scan": job.scan,
             "kind": "prepare",
             "status": "failed",
-            "error": f"{type(exc).__name__}: {exc}",
+            "error": error,
         }
-    return {
-        "source": job.source,
-        "target": job.target,
-        "key": job.key,
-        "status": "failed",
-        "error": f"{type(exc).__name__}: {exc}",
-        "cacheable": False,
-    }
+    return failed_pair(job, error)
 
 
 @dataclass(frozen=True)
@@ -270,9 +264,8 @@ def _run_dask(jobs, tick, n_jobs, scheduler, worker) -> None:
         ) from None
     futures = []
     try:
-        if (
-            scheduler
-        ):  # someone else's cluster: one thread per Dask task thread, each already has its core
+        # someone else's cluster: one thread per Dask task thread, each already has its core
+        if scheduler:
             per_worker = 1
         run = partial(call_with_threads, per_worker, worker)
         futures = client.map(

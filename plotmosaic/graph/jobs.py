@@ -64,9 +64,8 @@ class PairJob:
     levels_target: int | None
     config: AlignConfig
     seed: int
-    prepared: str | None = (
-        None  # DIR/prepared: the prepared-cloud cache shared by every pair and run
-    )
+    # DIR/prepared: the prepared-cloud cache shared by every pair and run
+    prepared: str | None = None
     init: tuple | None = None  # 4x4 rows, source file -> target file: a prior for the coarse stage
     prepare: AlignConfig | None = None  # settings the scans are prepared with, when not `config`
     start: str = "prior"  # how `init` is used (align Start): "stored" (poses stored in the scan
@@ -160,6 +159,13 @@ def with_stored_poses(
         else job
         for job in jobs
     ]
+
+
+def failed_pair(job: PairJob, error: str) -> dict:
+    """The record of a pair that could not be registered for a reason outside the pair (a scan
+    that cannot be used, a lost worker): not cached, the next run tries again."""
+    record = {"source": job.source, "target": job.target, "key": job.key, "status": "failed"}
+    return {**record, "error": error, "cacheable": False}
 
 
 def prepare_job(settings: JobSettings, scan: ScanFile, folder: str | None = None) -> PrepareJob:

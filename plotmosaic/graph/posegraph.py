@@ -38,6 +38,9 @@ from plotmosaic.graph.covariance import (  # noqa: F401  (condition_information,
 from plotmosaic.graph.cycles import kept, spanning_tree_poses, vote
 from plotmosaic.io.frame import inverse, pose_error, rotation_deg  # noqa: F401  (re-exported)
 
+# what the graph keeps of a failed pair
+_FAILED_FIELDS = ("source", "target", "error", "key", "overlap", "confidence")
+
 
 def _pose3(T: np.ndarray) -> gtsam.Pose3:
     return gtsam.Pose3(np.asarray(T, dtype=np.float64))
@@ -64,13 +67,8 @@ def add_edges(G: nx.Graph, edges: list[dict]) -> nx.Graph:
     """Add successful pair results as edges (arrays made numpy); failed ones go to G.graph["failed"]."""
     for e in edges:
         if e.get("status", "ok") != "ok":
-            G.graph.setdefault("failed", []).append(
-                {
-                    k: v
-                    for k, v in e.items()
-                    if k in ("source", "target", "error", "key", "overlap", "confidence")
-                }
-            )
+            failed = {k: v for k, v in e.items() if k in _FAILED_FIELDS}
+            G.graph.setdefault("failed", []).append(failed)
             continue
         attrs = dict(e)
         attrs["transform"] = np.asarray(e["transform"], dtype=np.float64)
@@ -231,6 +229,12 @@ def _drop(G: nx.Graph, u: str, v: str, reason: str, dropped: list[dict]) -> None
     dropped.append({"source": e["source"], "target": e["target"], "reason": reason})
 
 
+def _mark_residuals(G: nx.Graph, name: str, poses: dict, information: EdgeInformation) -> None:
+    """Each edge's residual at `poses` as its attribute `name` (None where a scan is not placed)."""
+    for u, v, e in G.edges(data=True):
+        e[name] = residual(G, u, v, poses, information) if u in poses and v in poses else None
+
+
 def optimise(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None) -> Solution:
     """Cycle check, robust solve, drop the worst residual outlier and re-solve until none is left.
 
@@ -247,10 +251,7 @@ def optimise(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None)
         _drop(G, u, v, "unverified", dropped)
     initial = spanning_tree_poses(G, reference)
     information = EdgeInformation(G, config)
-    for u, v, e in G.edges(data=True):
-        e["residual_before"] = (
-            residual(G, u, v, initial, information) if u in initial and v in initial else None
-        )
+    _mark_residuals(G, "residual_before", initial, information)
     residual_drops = 0
     while True:
         sol = _solve(G, reference, config, information)
@@ -275,10 +276,7 @@ def optimise(G: nx.Graph, reference: str, config: PoseGraphConfig | None = None)
     reported = _factor_graph(G, reference, sol.keys, config, information.reporting())
     covariances, sigmas, about_plot = scan_covariances(G, reported, sol.result, sol.keys, sol.poses)
     scales = information.scales.as_dict()
-    for u, v, e in G.edges(data=True):
-        e["residual_after"] = (
-            residual(G, u, v, sol.poses, information) if u in sol.poses and v in sol.poses else None
-        )
+    _mark_residuals(G, "residual_after", sol.poses, information)
     return Solution(
         sol.poses,
         sigmas,

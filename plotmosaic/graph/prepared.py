@@ -88,16 +88,14 @@ def save_prepared(path: str | Path, cloud: PreparedCloud) -> Path:
     meta["stem_normals"] = None if stems is None else stems.model_dump()
     arrays["meta"] = np.frombuffer(json.dumps(meta, default=_plain).encode(), dtype=np.uint8)
     with atomic_output(path) as tmp:
-        with open(
-            tmp, "wb"
-        ) as f:  # a file object: np.savez would append ".npz" to the temporary name
+        # a file object: np.savez would append ".npz" to the temporary name
+        with open(tmp, "wb") as f:
             np.savez(f, **arrays)
     return Path(path)
 
 
 def load_prepared(path: str | Path) -> PreparedCloud:
     """The cloud saved by `save_prepared`; raises ValueError (or OSError) when the file is damaged."""
-
     with np.load(path, allow_pickle=False) as data:
         arrays = {k: data[k] for k in data.files}
     meta = json.loads(arrays.pop("meta").tobytes().decode())
@@ -255,9 +253,8 @@ def run_prepare_job(job: PrepareJob) -> dict:
             _remember(str(path), cloud)  # a worker kept for the pairs may register this scan next
             record["computed"] = True
         record["status"] = "ok"
-    except (
-        Exception
-    ) as exc:  # unreadable scan, too few points, out of memory: its pairs fail with this
+    # unreadable scan, too few points, out of memory: its pairs fail with this
+    except Exception as exc:
         record.update(
             status="failed",
             error=f"{type(exc).__name__}: {exc}" if not str(exc).startswith(job.scan) else str(exc),

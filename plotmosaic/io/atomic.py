@@ -20,9 +20,8 @@ from plotmosaic.errors import InputError
 from plotmosaic.lifetime import signals_held
 
 TEMP_NAME = re.compile(r"^\..+\.tmp-(\d+)$")  # our own temporaries: `.NAME.tmp-PID`
-NAME_MAX = (
-    255  # bytes per path component on every common file system (ext4, xfs, btrfs, NTFS, APFS)
-)
+# bytes per path component on every common file system (ext4, xfs, btrfs, NTFS, APFS)
+NAME_MAX = 255
 _cleaned: set[str] = set()  # folders already swept for stale temporaries in this process
 
 
@@ -60,9 +59,8 @@ def remove_stale_temporaries(folder: str | Path) -> list[Path]:
         if not m or entry.is_symlink() or _alive(int(m.group(1))):
             continue
         with contextlib.suppress(OSError):
-            if entry.is_dir(
-                follow_symlinks=False
-            ):  # a temporary folder (merge's tiles and spill files)
+            # a temporary folder (merge's tiles and spill files)
+            if entry.is_dir(follow_symlinks=False):
                 shutil.rmtree(entry.path)
             else:
                 os.unlink(entry.path)
@@ -78,10 +76,8 @@ def _check_names(path: Path) -> None:
                 f"more than the {NAME_MAX} a file system allows"
             )
     # the temporary's name is the longest one we write
-    name, extra = (
-        len(os.fsencode(path.name)),
-        len(os.fsencode(temp_name(path).name)) - len(os.fsencode(path.name)),
-    )
+    name = len(os.fsencode(path.name))
+    extra = len(os.fsencode(temp_name(path).name)) - name
     if name + extra > NAME_MAX:
         raise InputError(
             f"{path}: the file name is {name} bytes long, at most {NAME_MAX - extra} can be written"

@@ -31,27 +31,13 @@ from plotmosaic.io.e57_header import (
     scan_nodes,
 )
 
-__all__ = [
-    "CHUNK_SIZE",
-    "E57Scan",
-    "attribute_names",
-    "is_e57",
-    "iter_e57_chunks",
-    "list_scans",
-    "resolve_scan",
-    "scan_list_text",
-    "scan_ref",
-    "select_scan",
-    "split_scan_ref",
-    "stored_pose",
-]
-
 CHUNK_SIZE = 1_000_000
 _REF = re.compile(r"^(?P<file>.*\.e57)#(?P<index>\d+)$", re.IGNORECASE)
 _XYZ = ("cartesianX", "cartesianY", "cartesianZ")
 _RAE = ("sphericalRange", "sphericalAzimuth", "sphericalElevation")
 _RGB = {"colorRed": "red", "colorGreen": "green", "colorBlue": "blue"}
 _NORMALS = {"nor:normalX": "normal_x", "nor:normalY": "normal_y", "nor:normalZ": "normal_z"}
+_LAS_NAMES = {"intensity": "intensity", **_RGB, **_NORMALS}  # E57 field -> LAS attribute
 
 
 def is_e57(path: str | Path) -> bool:
@@ -138,20 +124,18 @@ def stored_pose(path: str | Path, scan: int | str | None = None) -> np.ndarray |
 
 def _wanted(fields: tuple[str, ...], attributes: bool | Iterable[str]) -> list[str]:
     """E57 fields to read besides the coordinates, for the LAS attribute names asked for."""
-    las_names = {"intensity": "intensity", **_RGB, **_NORMALS}
-    present = [f for f in las_names if f in fields]
+    present = [f for f in _LAS_NAMES if f in fields]
     if attributes is True:
         return present
     if attributes is False:
         return []
     names = set(attributes)
-    return [f for f in present if las_names[f] in names]
+    return [f for f in present if _LAS_NAMES[f] in names]
 
 
 def attribute_names(scan: E57Scan) -> list[str]:
     """The LAS attribute names a read of this scan yields."""
-    las_names = {"intensity": "intensity", **_RGB, **_NORMALS}
-    return [las_names[f] for f in _wanted(scan.fields, True)]
+    return [_LAS_NAMES[f] for f in _wanted(scan.fields, True)]
 
 
 def _to_uint16(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
@@ -224,9 +208,8 @@ def _block(
     state = fields.state
     valid = arrays[state][keep] == 0 if state in arrays else np.ones(got, bool)
     c = [arrays[f][keep][valid] for f in fields.coords]
-    if (
-        fields.coords is _RAE
-    ):  # E57 spherical: azimuth from +x towards +y, elevation from the xy plane
+    # E57 spherical: azimuth from +x towards +y, elevation from the xy plane
+    if fields.coords is _RAE:
         r, az, el = c
         c = [r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)]
     attrs = {}

@@ -25,9 +25,8 @@ class E57Scan:
     fields: tuple[str, ...]
     pose: np.ndarray | None  # 4x4 scan -> file frame, None when the file stores none
     bounds: tuple[np.ndarray, np.ndarray] | None  # cartesianBounds (scan frame), when stored
-    pose_problem: str | None = (
-        None  # why a stored pose was unusable (an error only where the pose is used)
-    )
+    # why a stored pose was unusable (an error only where the pose is used)
+    pose_problem: str | None = None
 
     @property
     def label(self) -> str:

@@ -41,7 +41,6 @@ __all__ = [
     "write_cloud",
 ]
 
-LAS_SUFFIXES = (".las", ".laz")
 READ_SUFFIXES = (".las", ".laz", ".e57", ".ply")
 
 
@@ -264,9 +263,8 @@ def _other_header_info(path: Path) -> HeaderInfo:
     memo = (str(path), st.st_mtime_ns, st.st_size)
     if memo in _OTHER_INFO:
         return _OTHER_INFO[memo]
-    box = (
-        bounds if bounds is not None else partial(_streamed_bounds, str(path))
-    )  # a partial: pickles
+    # a partial: pickles
+    box = bounds if bounds is not None else partial(_streamed_bounds, str(path))
     info = HeaderInfo(path, count, -1, version, box, None, ("X", "Y", "Z", *names))
     _OTHER_INFO[memo] = info
     return info
@@ -289,9 +287,8 @@ class CloudRecordReader:
         self.info = read_header_info(path)
         attrs = [n for n in self.info.dimensions if n not in ("X", "Y", "Z")]
         self.extra = {}
-        for chunk in iter_chunks(
-            path, chunk_size=1
-        ):  # the extra attributes' dtypes, from one point
+        # the extra attributes' dtypes, from one point
+        for chunk in iter_chunks(path, chunk_size=1):
             self.extra = {
                 n: v.dtype for n, v in chunk.attrs.items() if n not in STANDARD_ATTRIBUTES
             }

@@ -27,12 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from plotmosaic.errors import InputError
-from plotmosaic.io.atomic import (
-    TEMP_NAME,
-    check_output_file,
-    write_bytes_atomic,
-    write_text_atomic,
-)
+from plotmosaic.io.atomic import TEMP_NAME, check_output_file, write_bytes_atomic, write_text_atomic
 
 RECORD = ".plotmosaic-run.json"  # the output folder's record of the runs that wrote into it
 _KIND = "plotmosaic output folder record"

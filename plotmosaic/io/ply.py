@@ -57,9 +57,8 @@ def _vertex_header(path: Path) -> tuple[int, np.dtype]:
     """(vertex count, vertex dtype) from the header alone: an ASCII body is not parsed for them."""
     try:
         with open(path, "rb") as f:
-            header = PlyData._parse_header(
-                f
-            )  # plyfile 1.x; the header parser PlyData.read itself uses
+            # plyfile 1.x; the header parser PlyData.read itself uses
+            header = PlyData._parse_header(f)
         vertex = header["vertex"]
         return int(vertex.count), np.dtype(vertex.dtype())
     except (AttributeError, TypeError):  # a plyfile without that helper: read the file

@@ -189,15 +189,12 @@ def _canopy(
     )
     lo = t_cells.min(axis=0)
     shape = tuple(t_cells.max(axis=0) - lo + 1)[::-1]
+    x0, y0 = lo * cfg.canopy_cell
     grids = []
     for top in (t_top, als_top):
         z = np.full(shape, np.nan)
         z[t_cells[both, 1] - lo[1], t_cells[both, 0] - lo[0]] = (top - ground)[both]
-        grids.append(
-            Raster(
-                x0=lo[0] * cfg.canopy_cell, y0=lo[1] * cfg.canopy_cell, cell=cfg.canopy_cell, z=z
-            )
-        )
+        grids.append(Raster(x0=x0, y0=y0, cell=cfg.canopy_cell, z=z))
     per_scan = {}
     for name, xyz in clouds.items():
         s_cells, s_top, s_near = _tops(xyz, cfg.canopy_cell, cfg.top_band)

@@ -52,8 +52,7 @@ def plot_ground_difference(path: Path, fit: AlsFit, origin: np.ndarray, colour_m
     hist.axvline(g.median * 100, color="black", ls="--", lw=1.2, label="median")
     for sign in (-1, 1):
         hist.axvline((g.median + sign * g.nmad) * 100, color="black", ls=":", lw=1)
-    hist.set_xlabel("TLS ground - ALS ground (cm)")
-    hist.set_ylabel("cells")
+    hist.set(xlabel="TLS ground - ALS ground (cm)", ylabel="cells")
     hist.set_title(
         f"median {g.median * 100:+.1f} cm, NMAD {g.nmad * 100:.1f} cm ({g.count} cells)",
         fontsize=10,
@@ -86,8 +85,7 @@ def plot_canopy(path: Path, fit: AlsFit, origin: np.ndarray) -> Path:
     sc.plot(a, t, "o", ms=3, color="tab:green", alpha=0.6)
     hi = float(max(a.max(), t.max())) if ok.any() else 1.0
     sc.plot([0, hi], [0, hi], "-", color="grey", lw=0.8, label="1:1")
-    sc.set_xlabel("ALS canopy height (m)")
-    sc.set_ylabel("TLS canopy height (m)")
+    sc.set(xlabel="ALS canopy height (m)", ylabel="TLS canopy height (m)")
     c = fit.canopy
     sc.set_title(f"median {c.median:+.2f} m, NMAD {c.nmad:.2f} m ({c.count} cells)", fontsize=10)
     sc.set_aspect("equal")

@@ -74,14 +74,9 @@ def slice_figure(v: PlotView, origin: np.ndarray, inp: ReportInput, cfg: ReportC
     if v.ground is None:
         return []
     s = cfg.slice
+    title, colours = f"plot {v.plot}: breast-height slice", views.scan_colours(list(v.scans))
     png = views.plot_breast_slice(
-        inp.out / f"{v.plot}_breast_slice.png",
-        v.slices,
-        v.stems,
-        f"plot {v.plot}: breast-height slice",
-        origin,
-        s.insets,
-        views.scan_colours(list(v.scans)),
+        inp.out / f"{v.plot}_breast_slice.png", v.slices, v.stems, title, origin, s.insets, colours
     )
     return [
         Figure(
@@ -102,14 +97,9 @@ def map_figure(v: PlotView, origin: np.ndarray, inp: ReportInput, unsure: set, b
         for s in v.scans
         if s in inp.poses
     }
+    title, sub = f"plot {v.plot}: scans and edges", inp.graph.subgraph(v.scans)
     png = views.plot_map(
-        inp.out / f"{v.plot}_map.png",
-        inp.graph.subgraph(v.scans),
-        positions,
-        background,
-        f"plot {v.plot}: scans and edges",
-        origin,
-        unsure,
+        inp.out / f"{v.plot}_map.png", sub, positions, background, title, origin, unsure
     )
     over = f" over the {background[2]}" if background is not None else ""
     return [

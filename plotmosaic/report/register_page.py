@@ -16,17 +16,10 @@ from plotmosaic.config.register import PoseGraphConfig
 from plotmosaic.config.report import ReportConfig
 from plotmosaic.graph.unplaced import unplaced_reasons
 from plotmosaic.io.atomic import write_text_atomic
+from plotmosaic.report import tables
 from plotmosaic.report.build import build_report
 from plotmosaic.report.collect import read_scan
 from plotmosaic.report.model import ReportInput, Stage
-from plotmosaic.report.tables import (
-    edge_table,
-    md_figures,
-    pair_seconds,
-    pose_table,
-    recorded,
-    residual_summary,
-)
 from plotmosaic.report.views import plot_map
 
 
@@ -88,12 +81,12 @@ def run_of(result, manifest) -> RegisterRun:
         computed=result.computed,
         failed=tuple(result.failed),
         seconds=result.seconds,
-        stages=tuple(recorded(result)),
+        stages=tuple(tables.recorded(result)),
     )
 
 
 def _stages(run: RegisterRun) -> list[Stage]:
-    pair_s, n_timed = pair_seconds(run.graph)
+    pair_s, n_timed = tables.pair_seconds(run.graph)
     now = "" if run.computed is None else f" ({run.computed} run now, the rest from the cache)"
     return [
         Stage(
@@ -112,8 +105,6 @@ def _stages(run: RegisterRun) -> list[Stage]:
 
 
 def _head(run: RegisterRun) -> list[str]:
-    G = run.graph
-    kept = sum(1 for *_, e in G.edges(data=True) if not e.get("dropped"))
     lines = ["# register-plot report", "", f"- {run.source}"]
     if run.pairs is not None:
         cached = (
@@ -122,9 +113,7 @@ def _head(run: RegisterRun) -> list[str]:
             else f" ({run.computed} registered in this run, {run.pairs - run.computed} from the cache)"
         )
         lines.append(f"- pairs: {run.pairs}{cached}")
-    lines.append(
-        f"- edges: {kept} kept, {G.number_of_edges() - kept} dropped, {len(run.failed)} pairs failed"
-    )
+    lines.append(f"- {tables.edge_counts(run.graph, len(run.failed))}")
     if run.seconds is not None:
         lines.append(f"- time: {run.seconds:.1f} s")
     lines += [
@@ -167,7 +156,7 @@ def _calibration(G: nx.Graph, plot: str) -> list[str]:
 
 def _plot_md(run: RegisterRun, r: PlotRun, figures) -> list[str]:
     sub = run.graph.subgraph(r.scans)
-    s = residual_summary(sub)
+    s = tables.residual_summary(sub)
     lines = [f"## Plot {r.plot}", "", f"Reference scan (plot frame): **{r.reference}**.", ""]
     if r.unplaced:
         lines += [f"Not placed: **{', '.join(r.unplaced)}**.", ""]
@@ -182,13 +171,13 @@ def _plot_md(run: RegisterRun, r: PlotRun, figures) -> list[str]:
             "",
         ]
     lines += _calibration(run.graph, r.plot)
-    lines += ["### Poses", "", *pose_table(list(r.scans), r.poses, r.sigmas), ""]
+    lines += ["### Poses", "", *tables.pose_table(list(r.scans), r.poses, r.sigmas), ""]
     lines += [
         "### Edges",
         "",
         "Residuals before = at the spanning-tree initialisation, after = at the optimised poses.",
         "",
-        *edge_table(sub),
+        *tables.edge_table(sub),
         "",
     ]
     failed = [f for f in run.failed if f["source"] in r.scans]
@@ -199,15 +188,10 @@ def _plot_md(run: RegisterRun, r: PlotRun, figures) -> list[str]:
             *[f"- {f['source']} -> {f['target']}: {f.get('error')}" for f in failed],
             "",
         ]
-    graph_png = plot_map(
-        run.out / f"{r.plot}_graph.png",
-        sub,
-        {n: T[:3, 3] for n, T in r.poses.items()},
-        None,
-        f"plot {r.plot}: pose graph",
-        np.zeros(3),
-    )
-    return lines + md_figures(figures, r.plot) + [f"![graph]({graph_png.name})", ""]
+    positions = {n: T[:3, 3] for n, T in r.poses.items()}
+    title = f"plot {r.plot}: pose graph"
+    graph_png = plot_map(run.out / f"{r.plot}_graph.png", sub, positions, None, title, np.zeros(3))
+    return lines + tables.md_figures(figures, r.plot) + [f"![graph]({graph_png.name})", ""]
 
 
 def render_register(
@@ -218,14 +202,17 @@ def render_register(
     reader: Callable[[Path], np.ndarray],
 ) -> Path:
     """report.md and report.html (with the run's view3d.html) of a register-plot run."""
-    tables = []
+    md_tables = []
     for r in run.plots:
-        tables += [
-            (f"Plot {r.plot}: poses (plot frame)", pose_table(list(r.scans), r.poses, r.sigmas)),
-            (f"Plot {r.plot}: edges", edge_table(run.graph.subgraph(r.scans))),
+        md_tables += [
+            (
+                f"Plot {r.plot}: poses (plot frame)",
+                tables.pose_table(list(r.scans), r.poses, r.sigmas),
+            ),
+            (f"Plot {r.plot}: edges", tables.edge_table(run.graph.subgraph(r.scans))),
         ]
         if calibration := _calibration(run.graph, r.plot):
-            tables.append((f"Plot {r.plot}: sigma calibration", calibration))
+            md_tables.append((f"Plot {r.plot}: sigma calibration", calibration))
     inp = ReportInput(
         title="register-plot report",
         out=run.out,
@@ -237,10 +224,10 @@ def render_register(
         stages=tuple(_stages(run)),
         unplaced=tuple(run.unplaced),
         failed=run.failed,
-        tables_md=tuple(tables),
+        tables_md=tuple(md_tables),
         facts=(run.source, "frame: the plot frame (each plot's reference scan)"),
         min_confidence=min_confidence,
-        bundle=residual_summary(run.graph),
+        bundle=tables.residual_summary(run.graph),
         overview=True,
     )
     _, figures = build_report(inp, cfg, seed)

@@ -48,12 +48,9 @@ def load_graph(path: Path) -> nx.Graph:
 
 
 def _settings(directory: Path) -> Settings:
+    path = directory / CONFIG_USED
     try:
-        return (
-            load_settings(directory / CONFIG_USED)
-            if (directory / CONFIG_USED).is_file()
-            else Settings()
-        )
+        return load_settings(path) if path.is_file() else Settings()
     except SettingsError as exc:
         raise InputError(str(exc)) from None
 

@@ -11,6 +11,7 @@ from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.report import html as H
 from plotmosaic.report.model import PlotView, ReportInput, Stage
 from plotmosaic.report.slice import ring_spread
+from plotmosaic.report.tables import edge_counts
 
 STAGES_MARK = "<!-- more stages -->"
 
@@ -28,9 +29,7 @@ def has_loop(G: nx.Graph) -> bool:
 
 def _edge_lines(inp: ReportInput) -> list[str]:
     G = inp.graph
-    n_kept = sum(1 for *_, e in G.edges(data=True) if not e.get("dropped"))
-    n_dropped = G.number_of_edges() - n_kept
-    out = [f"edges: {n_kept} kept, {n_dropped} dropped, {len(inp.failed)} pairs failed"]
+    out = [edge_counts(G, len(inp.failed))]
     if not has_loop(G):
         return out
     kept = [

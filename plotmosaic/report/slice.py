@@ -22,9 +22,8 @@ from plotmosaic.config.report import SliceConfig
 def flat_keys(ij: np.ndarray) -> np.ndarray:
     """One int64 per integer cell row (any number of columns): np.unique on it is far faster than axis=0."""
     key = np.zeros(len(ij), np.int64)
-    for k in range(
-        ij.shape[1]
-    ):  # column by column: axis-0 reductions over (N, k) are several times slower
+    # column by column: axis-0 reductions over (N, k) are several times slower
+    for k in range(ij.shape[1]):
         col = ij[:, k] - ij[:, k].min() if len(ij) else ij[:, k]
         key *= int(col.max()) + 1 if len(col) else 1
         key += col
@@ -211,9 +210,8 @@ def fit_circle(xy: np.ndarray, iterations: int = 10) -> tuple[np.ndarray, float,
     sol = _solve3(M, np.array([x @ sq, y @ sq, sq.sum()]))
     c = sol[:2] / 2
     r = float(np.sqrt(max(sol[2] + c @ c, 1e-12)))
-    for _ in range(
-        iterations
-    ):  # the algebraic fit is biased on a half arc; the geometric one is not
+    # the algebraic fit is biased on a half arc; the geometric one is not
+    for _ in range(iterations):
         dx, dy = x - c[0], y - c[1]
         dist = np.maximum(np.sqrt(dx * dx + dy * dy), 1e-12)
         ux, uy, f = dx / dist, dy / dist, dist - r
@@ -234,15 +232,12 @@ class Stem:
     centre: np.ndarray
     radius: float
     spread: float  # ring spread (m): RMS offset of the other scans' rings from the best-seen scan's ring
-    points: dict[str, np.ndarray] = field(
-        default_factory=dict
-    )  # scan -> its (n, 2) slice points here
-    arcs: dict[str, tuple[np.ndarray, float, float]] = field(
-        default_factory=dict
-    )  # scan -> own circle fit
-    offsets: dict[str, float] = field(
-        default_factory=dict
-    )  # scan -> offset of its ring from the best-seen scan's (m)
+    # scan -> its (n, 2) slice points here
+    points: dict[str, np.ndarray] = field(default_factory=dict)
+    # scan -> own circle fit
+    arcs: dict[str, tuple[np.ndarray, float, float]] = field(default_factory=dict)
+    # scan -> offset of its ring from the best-seen scan's (m)
+    offsets: dict[str, float] = field(default_factory=dict)
 
     @property
     def scans(self) -> list[str]:

@@ -18,6 +18,11 @@ def yaw_deg(T: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(T[1, 0], T[0, 0])))
 
 
+def edge_counts(G: nx.Graph, failed: int) -> str:
+    kept = sum(1 for *_, e in G.edges(data=True) if not e.get("dropped"))
+    return f"edges: {kept} kept, {G.number_of_edges() - kept} dropped, {failed} pairs failed"
+
+
 def edge_table(G: nx.Graph) -> list[str]:
     rows = [
         "| source | target | fitness | RMSE (cm) | overlap | before (cm / deg) | after (cm / deg) | chi2 after | status |",

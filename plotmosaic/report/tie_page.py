@@ -21,18 +21,11 @@ from plotmosaic.config.register import PoseGraphConfig
 from plotmosaic.config.report import ReportConfig
 from plotmosaic.io.atomic import write_text_atomic
 from plotmosaic.io.frame import inverse, pose_error
+from plotmosaic.report import tables
 from plotmosaic.report.build import build_report
 from plotmosaic.report.collect import read_scan
 from plotmosaic.report.model import ReportInput, Stage
-from plotmosaic.report.tables import (
-    edge_table,
-    fmt,
-    md_figures,
-    pair_seconds,
-    pose_table,
-    recorded,
-    residual_summary,
-)
+from plotmosaic.report.tables import fmt
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -91,12 +84,11 @@ def anchor_rows(anchors: tuple[AnchorRow, ...]) -> list[str]:
     rows = [head, "|---" * 10 + "|"]
     for a in anchors:
         status = a.status if a.status == "ok" else f"failed: {a.error}"
-        row = (
+        rows.append(
             f"| {a.plot} | {a.reference} | {status} | {fmt(a.fitness, 1, 3)} | {fmt(a.inlier_rmse, 100, 2)} "
             f"| {fmt(a.overlap, 1, 3)} | {fmt(a.fine_margin, 1, 2)} | {fmt(a.als_offset_median_m, 100, 2)} "
             f"| {fmt(a.als_offset_nmad_m, 100, 2)} | {a.crop} |"
         )
-        rows.append(row)
     return rows
 
 
@@ -117,7 +109,7 @@ def anchor_fact(a: AnchorRow) -> str:
 
 
 def _stages(run: TieRun) -> list[Stage]:
-    secs, n = pair_seconds(run.graph, anchors_only=True)
+    secs, n = tables.pair_seconds(run.graph, anchors_only=True)
     now = "" if run.computed is None else f" ({run.computed} run now)"
     return [
         Stage(
@@ -141,8 +133,8 @@ def render_tie(
 ) -> Path:
     """report.md and report.html (with the run's view3d.html) of a tie-to-als run."""
     anchors = anchor_rows(run.anchors)
-    poses = pose_table([s for ids in run.plots.values() for s in ids], run.poses, run.sigmas)
-    edges = edge_table(run.graph)
+    poses = tables.pose_table([s for ids in run.plots.values() for s in ids], run.poses, run.sigmas)
+    edges = tables.edge_table(run.graph)
     inp = ReportInput(
         title="tie-to-als report (georeferenced)",
         out=run.out,
@@ -158,15 +150,11 @@ def render_tie(
             ("Poses (ALS CRS)", poses),
             ("Edges", edges),
         ),
-        facts=(
-            run.source,
-            "frame: the ALS CRS",
-            *(anchor_fact(a) for a in run.anchors),
-        ),
+        facts=(run.source, "frame: the ALS CRS", *(anchor_fact(a) for a in run.anchors)),
         als_xyz=run.als_xyz,
         judged_in=run.judged_in,
         min_confidence=min_confidence,
-        bundle=residual_summary(run.graph),
+        bundle=tables.residual_summary(run.graph),
         overview=True,
     )
     _, figures = build_report(inp, cfg, seed)
@@ -189,7 +177,7 @@ def render_tie(
         if p in run.judged_in:
             href, why = run.judged_in[p]
             lines += [f"{why}: its cloud-to-cloud distances are in [{href}]({href}).", ""]
-        lines += md_figures(figures, p)
+        lines += tables.md_figures(figures, p)
     lines += ["## Anchors (plot -> ALS)", "", *anchors, "", "## Poses (ALS CRS)", "", *poses, ""]
     lines += ["## Edges", "", *edges, ""]
     return write_text_atomic(run.out / "report.md", "\n".join(lines))
@@ -265,7 +253,7 @@ def write_tie_report(
         unplaced=tuple(result.unplaced),
         computed=result.computed,
         seconds=result.seconds,
-        stages=tuple(recorded(result)),
+        stages=tuple(tables.recorded(result)),
         judged_in=rigid_plots(result, earlier, earlier_report, cfg),
     )
     return render_tie(run, cfg, graph_cfg.sure_edge_confidence, seed, reader or read_scan)

@@ -63,19 +63,12 @@ def _stem_inset(ax, st: Stem, colours: dict, origin: np.ndarray, number: int) ->
     h = st.radius + 0.12
     for name, p in st.points.items():
         q = p - origin[:2]
-        dots(
-            ax,
-            q[:, 0],
-            q[:, 1],
-            6,
-            colours.get(name, "grey"),
-            label=name if name in st.arcs else None,
-        )
+        label = name if name in st.arcs else None
+        dots(ax, q[:, 0], q[:, 1], 6, colours.get(name, "grey"), label=label)
     ax.add_patch(
         pyplot().Circle(tuple(c), st.radius, fill=False, ls="--", lw=0.7, ec="black", zorder=3)
     )
-    ax.set_xlim(c[0] - h, c[0] + h)
-    ax.set_ylim(c[1] - h, c[1] + h)
+    ax.set(xlim=(c[0] - h, c[0] + h), ylim=(c[1] - h, c[1] + h))
     ax.set_aspect("equal")
     # a 1 cm grid (lines, not ticks: cheap to draw) so a centimetre offset between rings can be read off
     for step, lw, colour in ((0.01, 0.25, "0.85"), (0.1, 0.6, "0.55")):
@@ -117,8 +110,7 @@ def plot_edge_distances(
         bins = np.linspace(0, e["max_distance"] * 100, 61)
         hist.stairs(np.histogram(d * 100, bins)[0], bins, fill=True, color="tab:blue")
         hist.axvline(e["median"] * 100, color="black", ls="--", lw=1)
-        hist.set_xlabel("distance to the other scan's local surface (cm)")
-        hist.set_ylabel("points")
+        hist.set(xlabel="distance to the other scan's local surface (cm)", ylabel="points")
         hist.set_title(
             f"{e['source']} -> {e['target']}: median {e['median'] * 100:.2f} cm, "
             f"90% {e['p90'] * 100:.2f} cm ({len(d)} points)",
@@ -242,15 +234,8 @@ def plot_map(
             ax.plot([x1, x2], [y1, y2], "-", color="tab:blue", lw=2.2)
             r = e.get("residual_after")
             label = f"{r['translation'] * 100:.1f} cm" if r else ""
-        ax.text(
-            (x1 + x2) / 2,
-            (y1 + y2) / 2,
-            label,
-            fontsize=7,
-            ha="center",
-            va="center",
-            bbox={"fc": "white", "ec": "none", "alpha": 0.75, "pad": 0.5},
-        )
+        box = {"fc": "white", "ec": "none", "alpha": 0.75, "pad": 0.5}
+        ax.text((x1 + x2) / 2, (y1 + y2) / 2, label, fontsize=7, ha="center", va="center", bbox=box)
     for n, (x, y) in pos.items():
         placed = n in positions
         colour = "gold" if placed else "lightgrey"

@@ -31,9 +31,8 @@ def _pulses(
     c = np.array([(xmin + xmax) / 2, (ymin + ymax) / 2])
     u = (target[:, :2] - c) @ across
     line = np.round(u / spacing)
-    plane_xy = target[:, :2] + (
-        (line * spacing - u)[:, None] * across
-    )  # nearest line, abeam of the target
+    # nearest line, abeam of the target
+    plane_xy = target[:, :2] + ((line * spacing - u)[:, None] * across)
     origin = np.column_stack([plane_xy, np.full(n, cfg.altitude_m + float(np.median(terrain.z)))])
     d = target - origin
     d /= np.linalg.norm(d, axis=1, keepdims=True)

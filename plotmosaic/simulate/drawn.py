@@ -144,8 +144,7 @@ def drawn_plot(outdir: str | Path, seed: int = 0, config: DrawnConfig | None = N
         scans.append(Scan(id=sid, path=scan_path("P1", sid), kind="tls", reference=k == 0))
     crs = f"EPSG:{CRS_EPSG}"
     manifest = Manifest(
-        name=f"forest drawn as points (seed {seed})",
-        plots=[Plot(id="P1", crs=crs, scans=scans)],
+        name=f"forest drawn as points (seed {seed})", plots=[Plot(id="P1", crs=crs, scans=scans)]
     )
     path = write_text_atomic(outdir / "manifest.toml", dump_manifest(manifest))
     extra = {"drawn": {"seed": seed, "config": config.model_dump()}}

@@ -79,10 +79,8 @@ def plot_top_side(
     for ax in axes:
         ax.plot(sites_xy[:, 0], sites_xy[:, 1], "k^", ms=6, mfc="white")
         ax.set_aspect("equal")
-        ax.set_xlabel("x (m, local)")
-        ax.set_ylabel("y (m, local)")
-        ax.set_xlim(-40, 40)
-        ax.set_ylim(-40, 40)
+        ax.set(xlabel="x (m, local)", ylabel="y (m, local)")
+        ax.set(xlim=(-40, 40), ylim=(-40, 40))
     _legend(axes[1])
     paths = [_save(fig, out_top)]
     fig, ax = plt.subplots(figsize=(13, 5))
@@ -92,8 +90,7 @@ def plot_top_side(
     ax.set_title(f"{title}: side view of a 4 m slab through the scan positions (y = {yc:.0f} m)")
     ax.set_aspect("equal")
     ax.set_xlim(-40, 40)
-    ax.set_xlabel("x (m, local)")
-    ax.set_ylabel("z (m, local)")
+    ax.set(xlabel="x (m, local)", ylabel="z (m, local)")
     _legend(ax)
     paths.append(_save(fig, out_side))
     return paths
@@ -109,12 +106,10 @@ def plot_scan(world: World, cloud: PointCloud, pose: ScanPose, title: str, out: 
     fig, ax = plt.subplots(figsize=(8, 8))
     _scatter(ax, xyz[low, 0], xyz[low, 1], lab[low], size=0.12, order=lab[low])
     ax.plot([c[0]], [c[1]], "r*", ms=14)
-    ax.set_xlim(c[0] - 30, c[0] + 30)
-    ax.set_ylim(c[1] - 30, c[1] + 30)
+    ax.set(xlim=(c[0] - 30, c[0] + 30), ylim=(c[1] - 30, c[1] + 30))
     ax.set_aspect("equal")
     ax.set_title(f"{title}: one TLS scan, points < 2.5 m above ground (red star: scanner)")
-    ax.set_xlabel("x (m, local)")
-    ax.set_ylabel("y (m, local)")
+    ax.set(xlabel="x (m, local)", ylabel="y (m, local)")
     _legend(ax)
     return _save(fig, out)
 
@@ -146,8 +141,7 @@ def plot_als(world: World, als: PointCloud, out: Path) -> Path:
     fig.colorbar(sc, ax=list(axes), label="return number (lower panel)", shrink=0.6)
     for ax in axes:
         ax.set_aspect("equal")
-        ax.set_xlabel("x (m, local)")
-        ax.set_ylabel("z (m)")
+        ax.set(xlabel="x (m, local)", ylabel="z (m)")
     _legend(axes[0])
     return _save(fig, out)
 

@@ -46,14 +46,8 @@ from plotmosaic.simulate.scene import scan_id
 from plotmosaic.simulate.sightlines import occupancy_grid, surface_normals, visible
 from plotmosaic.simulate.tls import random_pose
 
-RING_RADII = (
-    0.25,
-    0.5,
-    0.75,
-    1.0,
-    1.25,
-    1.5,
-)  # where a scanner standing in a trunk or a bush is moved to
+# where a scanner standing in a trunk or a bush is moved to
+RING_RADII = (0.25, 0.5, 0.75, 1.0, 1.25, 1.5)
 
 
 @dataclass(frozen=True)
@@ -193,9 +187,8 @@ def cut_views(
         raise InputError(f"cloud has {len(pts)} points, at least {cfg.min_points} needed")
     if not np.isfinite(pts).all():
         raise InputError("cloud has NaN or infinite coordinates")
-    offset = np.floor(
-        (pts.min(axis=0) + pts.max(axis=0)) / 2.0
-    )  # local frame: UTM keeps its millimetres
+    # local frame: UTM keeps its millimetres
+    offset = np.floor((pts.min(axis=0) + pts.max(axis=0)) / 2.0)
     local = pts - offset
     tree = cKDTree(local)
     xy_tree = cKDTree(local[:, :2])

@@ -57,9 +57,8 @@ def concat(meshes: list[Mesh]) -> Mesh:
         return Mesh.empty()
     offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
     return Mesh(
-        np.concatenate(
-            [m.vertices for m in meshes], dtype=np.float32
-        ),  # local frame: float32 is exact enough
+        # local frame: float32 is exact enough
+        np.concatenate([m.vertices for m in meshes], dtype=np.float32),
         np.concatenate([m.triangles + o for m, o in zip(meshes, offsets)], dtype=np.int32),
         np.concatenate([m.labels for m in meshes]),
         np.concatenate([m.owners for m in meshes]),
@@ -96,9 +95,8 @@ def tubes(
         return Mesh.empty()
     u, v = orthonormal_frame(paths[:, -1] - paths[:, 0])
     ang = np.linspace(0, 2 * np.pi, sides, endpoint=False)
-    ring = (
-        np.cos(ang)[None, :, None] * u[:, None, :] + np.sin(ang)[None, :, None] * v[:, None, :]
-    )  # (N, S, 3)
+    # (N, S, 3)
+    ring = np.cos(ang)[None, :, None] * u[:, None, :] + np.sin(ang)[None, :, None] * v[:, None, :]
     verts = paths[:, :, None, :] + radii[:, :, None, None] * ring[:, None, :, :]  # (N, R, S, 3)
     i = np.arange(r - 1)[:, None]
     j = np.arange(sides)[None, :]

@@ -28,7 +28,7 @@ from plotmosaic.manifest import AlsTile, Manifest, Plot, Scan, dump_manifest
 from plotmosaic.poses import Poses, ScanPose
 from plotmosaic.simulate.als import scan_als
 from plotmosaic.simulate.figures import make_figures
-from plotmosaic.simulate.scene import Scene, World, build_world, plot_ids, scan_id, square_extent
+from plotmosaic.simulate.scene import Scene, World, build_world, square_extent
 from plotmosaic.simulate.tls import random_pose, scan_tls
 
 FIGURE_SAMPLE = 400_000  # points per scan kept in memory for the pictures
@@ -45,16 +45,13 @@ def make_config(preset: str = "small", **overrides) -> SimulationConfig:
     for key, value in overrides.items():
         if value is None:
             continue
-        path = ALIASES.get(key, key).split(".")
+        *tables, name = ALIASES.get(key, key).split(".")
         node = data
-        for p in path[:-1]:
-            if p not in node or not isinstance(node[p], dict):
-                raise InputError(f"unknown simulation setting {key!r}")
-            node = node[p]
-        if path[-1] not in node:
+        for table in tables:
+            node = node.get(table) if isinstance(node, dict) else None
+        if not isinstance(node, dict) or name not in node:
             raise InputError(f"unknown simulation setting {key!r}")
-        node[path[-1]] = value
-
+        node[name] = value
     try:
         return SimulationConfig.model_validate(data)
     except ValidationError as exc:
@@ -89,15 +86,6 @@ def scan_path(plot_id: str, scan_id: str) -> Path:
 
 
 ALS_PATH = Path("als") / "als.laz"
-
-
-def expected_scans(config: SimulationConfig) -> list[tuple[str, str, Path]]:
-    """(plot id, scan id, relative path) of every TLS scan `simulate` writes for this config."""
-    return [
-        (pid, scan_id(pid, i), scan_path(pid, scan_id(pid, i)))
-        for pid in plot_ids(config)
-        for i in range(len(config.scan_layout))
-    ]
 
 
 def crs_wkt() -> str:

@@ -12,9 +12,8 @@ def overlap_fraction(a: np.ndarray, b: np.ndarray, radius: float = 0.05) -> floa
     """Fraction of the points of `a` within `radius` of some point of `b` (same frame, float64)."""
     if len(a) == 0 or len(b) == 0:
         return 0.0
-    offset = a.min(
-        axis=0
-    )  # query near the origin: UTM-sized coordinates lose precision in the tree
+    # query near the origin: UTM-sized coordinates lose precision in the tree
+    offset = a.min(axis=0)
     d, _ = cKDTree(b - offset).query(a - offset, distance_upper_bound=radius, workers=2)
     return float(np.isfinite(d).mean())
 
@@ -23,9 +22,8 @@ def scan_in_world(path, transform: np.ndarray) -> np.ndarray:
     """A scan's points mapped by its pose (float64, the pose's frame)."""
     xyz = read_cloud(path, attributes=False).xyz
     T = np.asarray(transform, dtype=np.float64)
-    return (
-        np.einsum("ij,kj->ik", xyz, T[:3, :3]) + T[:3, 3]
-    )  # = apply_transform, faster on millions of points
+    # = apply_transform, faster on millions of points
+    return np.einsum("ij,kj->ik", xyz, T[:3, :3]) + T[:3, 3]
 
 
 def density(xy: np.ndarray, extent: tuple[float, float, float, float]) -> float:

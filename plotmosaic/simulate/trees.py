@@ -80,20 +80,23 @@ def _stem_radius(h: np.ndarray, dbh: float, total: float) -> np.ndarray:
     return np.maximum(r, 0.01)
 
 
+def _stem(
+    tree: Tree, z0: float, cfg: ForestConfig, rng, owner: int, sweep: float, length: float
+) -> tuple[np.ndarray, list[Mesh]]:
+    """The stem's base (0.3 m into the ground) and its tube, `length` m along its lean, bowed by up
+    to `sweep` of the tree's height."""
+    base = np.array([tree.x, tree.y, z0 - 0.3])
+    bow = unit(np.cross(tree.lean, rng.normal(size=3))) * rng.uniform(0, sweep) * tree.height
+    centres, h = _stem_paths(base, tree.lean, length, 0.75 if tree.detailed else 2.0, bow)
+    radius = _stem_radius(h - 0.3, tree.dbh, tree.height)
+    sides = cfg.stem_sides if tree.detailed else 8
+    return base, [tubes(centres[None], radius[None], sides, WOODY, [owner])]
+
+
 def conifer_meshes(
     tree: Tree, z0: float, cfg: ForestConfig, rng, owner: int, stubs: bool = True
 ) -> list[Mesh]:
-    sides = cfg.stem_sides if tree.detailed else 8
-    base = np.array([tree.x, tree.y, z0 - 0.3])
-    bow = unit(np.cross(tree.lean, rng.normal(size=3))) * rng.uniform(0, 0.01) * tree.height
-    centres, h = _stem_paths(
-        base, tree.lean, tree.height + 0.3, 0.75 if tree.detailed else 2.0, bow
-    )
-    meshes = [
-        tubes(
-            centres[None], _stem_radius(h - 0.3, tree.dbh, tree.height)[None], sides, WOODY, [owner]
-        )
-    ]
+    base, meshes = _stem(tree, z0, cfg, rng, owner, 0.01, tree.height + 0.3)
     if cfg.crowns == "none":
         return meshes
     # Whorls of branches through the crown; their length shrinks toward the top (a cone).
@@ -127,28 +130,12 @@ def conifer_meshes(
     mid = start + d * all_len[:, None] * 0.5 + droop * 0.35
     end = start + d * all_len[:, None] + droop
     r0 = 0.012 + 0.012 * all_len
-    if tree.detailed:
-        meshes.append(
-            tubes(
-                np.stack([start, mid, end], 1),
-                np.column_stack([r0, r0 * 0.6, r0 * 0.25]),
-                6,
-                WOODY,
-                np.full(len(start), owner),
-                cap=False,
-            )
-        )
-    else:  # far from every plot: straight three-sided branches are enough for ALS
-        meshes.append(
-            tubes(
-                np.stack([start, end], 1),
-                np.column_stack([r0, r0 * 0.25]),
-                3,
-                WOODY,
-                np.full(len(start), owner),
-                cap=False,
-            )
-        )
+    # far from every plot: straight three-sided branches are enough for ALS
+    path = [start, mid, end] if tree.detailed else [start, end]
+    radii = [r0, r0 * 0.6, r0 * 0.25] if tree.detailed else [r0, r0 * 0.25]
+    sides = 6 if tree.detailed else 3
+    owners = np.full(len(start), owner)
+    meshes.append(tubes(np.stack(path, 1), np.column_stack(radii), sides, WOODY, owners, cap=False))
     # Needle clusters along the live branches (outer part), jittered around the branch line.
     factor = 1 if tree.detailed else cfg.coarse_factor
     counts = np.maximum(1, (cfg.foliage_per_m * length / factor).astype(int))
@@ -177,25 +164,15 @@ def _in_cone(base: np.ndarray, tree: Tree, n: int, rng) -> np.ndarray:
 
 
 def broadleaf_meshes(tree: Tree, z0: float, cfg: ForestConfig, rng, owner: int) -> list[Mesh]:
-    sides = cfg.stem_sides if tree.detailed else 8
-    base = np.array([tree.x, tree.y, z0 - 0.3])
-    bow = unit(np.cross(tree.lean, rng.normal(size=3))) * rng.uniform(0, 0.015) * tree.height
-    leader = 0.8 * tree.height + 0.3
-    centres, h = _stem_paths(base, tree.lean, leader, 0.75 if tree.detailed else 2.0, bow)
-    meshes = [
-        tubes(
-            centres[None], _stem_radius(h - 0.3, tree.dbh, tree.height)[None], sides, WOODY, [owner]
-        )
-    ]
+    base, meshes = _stem(tree, z0, cfg, rng, owner, 0.015, 0.8 * tree.height + 0.3)
     if cfg.crowns == "none":
         return meshes
     crown_len = tree.height - tree.crown_base
     centre = base + (tree.crown_base + 0.3 + crown_len / 2) * tree.lean
     radii = np.array([tree.crown_radius, tree.crown_radius, crown_len / 2])
     factor = 1 if tree.detailed else cfg.coarse_factor
-    scale = (tree.crown_radius / 4.0) ** 2 * (
-        crown_len / 10.0
-    )  # leaf count grows with crown volume
+    # leaf count grows with crown volume
+    scale = (tree.crown_radius / 4.0) ** 2 * (crown_len / 10.0)
     total = max(20, int(cfg.broadleaf_leaves * np.clip(scale, 0.2, 2.0) / factor))
     if cfg.crowns == "scattered":  # the same leaves through the whole crown ellipsoid, no scaffold
         pts = centre + unit(rng.normal(size=(total, 3))) * radii * rng.random((total, 1)) ** (1 / 3)
@@ -212,16 +189,10 @@ def broadleaf_meshes(tree: Tree, z0: float, cfg: ForestConfig, rng, owner: int) 
     )
     mid = (start + target) / 2 + rng.normal(0, 0.15, (n, 3))
     r0 = np.clip(tree.dbh * 0.18, 0.03, 0.12)
-    meshes.append(
-        tubes(
-            np.stack([start, mid, target], 1),
-            np.column_stack([np.full(n, r0), np.full(n, r0 * 0.65), np.full(n, r0 * 0.3)]),
-            8 if tree.detailed else 4,
-            WOODY,
-            np.full(n, owner),
-            cap=False,
-        )
-    )
+    widths = np.column_stack([np.full(n, r0), np.full(n, r0 * 0.65), np.full(n, r0 * 0.3)])
+    sides = 8 if tree.detailed else 4
+    path = np.stack([start, mid, target], 1)
+    meshes.append(tubes(path, widths, sides, WOODY, np.full(n, owner), cap=False))
     k = int(rng.integers(2, 4))
     fs = np.repeat(mid, k, 0) + rng.uniform(0, 1, (n * k, 1)) * (
         np.repeat(target, k, 0) - np.repeat(mid, k, 0)
@@ -229,15 +200,10 @@ def broadleaf_meshes(tree: Tree, z0: float, cfg: ForestConfig, rng, owner: int) 
     fe = fs + unit(rng.normal(0, 1, (n * k, 3)) + [0, 0, 0.8]) * (
         0.25 * radii.mean() * rng.uniform(0.6, 1.2, (n * k, 1))
     )
+    widths = np.column_stack([np.full(n * k, r0 * 0.3), np.full(n * k, r0 * 0.12)])
+    sides = 5 if tree.detailed else 3
     meshes.append(
-        tubes(
-            np.stack([fs, fe], 1),
-            np.column_stack([np.full(n * k, r0 * 0.3), np.full(n * k, r0 * 0.12)]),
-            5 if tree.detailed else 3,
-            WOODY,
-            np.full(n * k, owner),
-            cap=False,
-        )
+        tubes(np.stack([fs, fe], 1), widths, sides, WOODY, np.full(n * k, owner), cap=False)
     )
     # Leaves in clumps filling the outer shell of the crown ellipsoid.
     clumps = max(4, total // 40)

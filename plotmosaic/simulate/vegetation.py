@@ -38,31 +38,15 @@ def _shrubs(terrain: Terrain, xy: np.ndarray, coarse: np.ndarray, cfg: ForestCon
         m = max(4, cfg.shrub_elements // factor)
         d = unit(rng.normal(size=(m, 3))) * rng.random((m, 1)) ** (1 / 3)
         pts = np.array([x, y, z + h / 2]) + d * [r, r, h / 2]
-        meshes.append(
-            random_elements(
-                pts,
-                rng.uniform(*cfg.leaf_size_m, m) * np.sqrt(factor),
-                rng,
-                UNDERSTORY,
-                SHRUB_IDS + k,
-                quads=True,
-            )
-        )
+        size = rng.uniform(*cfg.leaf_size_m, m) * np.sqrt(factor)
+        meshes.append(random_elements(pts, size, rng, UNDERSTORY, SHRUB_IDS + k, quads=True))
         s = int(rng.integers(3, 6))  # a few thin stems
         base = np.column_stack(
             [x + rng.normal(0, 0.1, s), y + rng.normal(0, 0.1, s), np.full(s, z - 0.05)]
         )
         top = base + unit(rng.normal(0, 0.3, (s, 3)) + [0, 0, 1]) * h * 0.8
-        meshes.append(
-            tubes(
-                np.stack([base, top], 1),
-                np.tile([0.012, 0.005], (s, 1)),
-                4,
-                UNDERSTORY,
-                np.full(s, SHRUB_IDS + k),
-                cap=False,
-            )
-        )
+        widths, owners = np.tile([0.012, 0.005], (s, 1)), np.full(s, SHRUB_IDS + k)
+        meshes.append(tubes(np.stack([base, top], 1), widths, 4, UNDERSTORY, owners, cap=False))
     return concat(meshes)
 
 
@@ -149,9 +133,8 @@ def _tuft_positions(extent, area: float, scan_xy: np.ndarray, cfg: ForestConfig,
     )
     tuft_xy = tuft_xy[inside]
     if len(scan_xy) and len(tuft_xy):
-        tuft_xy = tuft_xy[
-            cKDTree(scan_xy).query(tuft_xy)[0] > 0.5
-        ]  # the tripod stands on bare ground
+        # the tripod stands on bare ground
+        tuft_xy = tuft_xy[cKDTree(scan_xy).query(tuft_xy)[0] > 0.5]
     return tuft_xy
 
 
@@ -165,19 +148,22 @@ def make_vegetation(
         z0 = terrain.height(np.array([tree.x]), np.array([tree.y]))[0]
         meshes += (conifer_meshes if tree.conifer else broadleaf_meshes)(tree, z0, cfg, rng, k)
     area = (extent[2] - extent[0]) * (extent[3] - extent[1])
-    n_shrubs = int(round(cfg.shrubs_per_ha * area / 1e4))
-    shrub_xy = (
-        place(n_shrubs, extent, np.full(1, 1.0), scan_xy, cfg.clearance_m, rng)
-        if n_shrubs
-        else np.zeros((0, 2))
-    )
+
+    def spaced(per_ha: float, min_dist: float) -> np.ndarray:
+        n = int(round(per_ha * area / 1e4))
+        if not n:
+            return np.zeros((0, 2))
+        return place(n, extent, np.full(1, min_dist), scan_xy, cfg.clearance_m, rng)
+
+    def scattered(per_ha: float) -> np.ndarray:
+        n = int(round(per_ha * area / 1e4))
+        return np.column_stack(
+            [rng.uniform(extent[0], extent[2], n), rng.uniform(extent[1], extent[3], n)]
+        )
+
+    shrub_xy = spaced(cfg.shrubs_per_ha, 1.0)
     meshes.append(_shrubs(terrain, shrub_xy, far(shrub_xy, plot_centres, cfg), cfg, rng))
-    n_sap = int(round(cfg.saplings_per_ha * area / 1e4))
-    sap_xy = (
-        place(n_sap, extent, np.full(1, 1.5), scan_xy, cfg.clearance_m, rng)
-        if n_sap
-        else np.zeros((0, 2))
-    )
+    sap_xy = spaced(cfg.saplings_per_ha, 1.5)
     meshes.append(
         _saplings(
             terrain, sap_xy, far(sap_xy, plot_centres, cfg), cfg, rng, SHRUB_IDS + len(shrub_xy)
@@ -186,17 +172,11 @@ def make_vegetation(
     shrub_ids = SHRUB_IDS + np.arange(len(shrub_xy) + len(sap_xy), dtype=np.int32)
     tuft_xy = _tuft_positions(extent, area, scan_xy, cfg, rng)
     meshes.append(_grass(terrain, tuft_xy, far(tuft_xy, plot_centres, cfg), cfg, rng))
-    n_logs = int(round(cfg.logs_per_ha * area / 1e4))
-    log_xy = np.column_stack(
-        [rng.uniform(extent[0], extent[2], n_logs), rng.uniform(extent[1], extent[3], n_logs)]
-    )
+    log_xy = scattered(cfg.logs_per_ha)
     meshes.append(_logs(terrain, log_xy, scan_xy, rng))
-    n_debris = int(round(cfg.debris_per_ha * area / 1e4))  # fallen branches
-    debris_xy = np.column_stack(
-        [rng.uniform(extent[0], extent[2], n_debris), rng.uniform(extent[1], extent[3], n_debris)]
-    )
+    debris_xy = scattered(cfg.debris_per_ha)  # fallen branches
     meshes.append(
-        _logs(terrain, debris_xy, scan_xy, rng, (0.5, 3.0), (0.02, 0.06), 6, LOG_IDS + n_logs)
+        _logs(terrain, debris_xy, scan_xy, rng, (0.5, 3.0), (0.02, 0.06), 6, LOG_IDS + len(log_xy))
     )
     return Vegetation(
         concat(meshes), trees, shrub_ids, GRASS_IDS + np.arange(len(tuft_xy), dtype=np.int32)

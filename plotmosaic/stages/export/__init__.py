@@ -8,31 +8,18 @@
 Each writes atomically; what it may write and what it reads are checked by the command first.
 """
 
-from plotmosaic.stages.export.copc import CopcSummary, write_copc
-from plotmosaic.stages.export.e57 import e57_pose, write_e57
-from plotmosaic.stages.export.matrices import (
-    CONVENTION,
-    INDEX,
-    matrix_file,
-    output_names,
-    write_matrices,
-)
-from plotmosaic.stages.export.pdal import is_copc, pipeline, write_pipeline
+from plotmosaic.stages.export.copc import write_copc
+from plotmosaic.stages.export.e57 import write_e57
+from plotmosaic.stages.export.matrices import output_names, write_matrices
+from plotmosaic.stages.export.pdal import write_pipeline
 from plotmosaic.stages.export.plan import ExportPlan, plan_export, points_progress
 
 FORMATS = ("matrices", "pdal", "e57", "copc")
 
 __all__ = [
-    "CONVENTION",
     "FORMATS",
-    "INDEX",
-    "CopcSummary",
     "ExportPlan",
-    "e57_pose",
-    "is_copc",
-    "matrix_file",
     "output_names",
-    "pipeline",
     "plan_export",
     "points_progress",
     "write_copc",

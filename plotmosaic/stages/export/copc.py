@@ -176,15 +176,8 @@ def _streamed(
     for label in sorted(spill):
         b = spill[label]
         child = (key[0] + 1, *(2 * k + ((label >> s) & 1) for k, s in zip(key[1:], (2, 1, 0))))
-        _region(
-            nodes,
-            cube,
-            child,
-            b.count,
-            _file_blocks(b.path, dtype, budget // STREAM_SHARE),
-            folder,
-            budget,
-        )
+        blocks = _file_blocks(b.path, dtype, budget // STREAM_SHARE)
+        _region(nodes, cube, child, b.count, blocks, folder, budget)
         b.path.unlink()
 
 
@@ -269,14 +262,8 @@ def write_copc(
     sidecar `<out>.json` (the merge's source table and counts); both atomically."""
     with temp_folder(out, ".copc") as folder:
         merged = folder / "merged.las"
-        summary = merge_scans(
-            manifest,
-            poses,
-            merged,
-            config.model_copy(update={"tiles": False}),
-            progress,
-            poses_path,
-        )
+        single = config.model_copy(update={"tiles": False})
+        summary = merge_scans(manifest, poses, merged, single, progress, poses_path)
         with (
             atomic_output(out, force=True) as tmp,
             points_progress(progress, "copc", summary.points_out) as advance,

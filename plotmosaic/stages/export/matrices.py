@@ -45,12 +45,7 @@ def write_matrices(plan: ExportPlan, folder: Path) -> list[Path]:
         "crs_name": plan.crs.name if plan.crs else None,
         "poses": str(plan.poses_path) if plan.poses_path else None,
         "scans": [
-            {
-                "id": s.id,
-                "source_id": s.source_id,
-                "file": str(s.path),
-                "matrix": matrix_file(s.id),
-            }
+            {"id": s.id, "source_id": s.source_id, "file": str(s.path), "matrix": matrix_file(s.id)}
             for s in plan.scans
         ],
         "skipped": list(plan.skipped),

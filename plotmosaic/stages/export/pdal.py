@@ -50,23 +50,21 @@ def pipeline(plan: ExportPlan, cloud: Path) -> dict:
     header = build_header(list(plan.sources), plan.crs, output_bounds(list(plan.sources))[0])
     stages: list[dict] = []
     for s in plan.sources:
-        stages.append(_reader(s))
-        stages.append(
+        stages += [
+            _reader(s),
             {
                 "type": "filters.transformation",
                 "matrix": matrix_option(s.transform),
                 "inputs": [f"read_{s.source_id}"],
                 "tag": f"pose_{s.source_id}",
-            }
-        )
-        stages.append(
+            },
             {
                 "type": "filters.assign",
                 "value": f"PointSourceId = {s.source_id}",
                 "inputs": [f"pose_{s.source_id}"],
                 "tag": f"source_{s.source_id}",
-            }
-        )
+            },
+        ]
     stages.append(
         {
             "type": "filters.merge",

@@ -81,9 +81,8 @@ def _split(bucket: Bucket, dtype: np.dtype, step: int) -> list[Bucket]:
     if score.max() <= 0:  # the sample is one voxel wide: fall back on the bounds
         score = np.where(extent > 0, extent, -1)
     axis = int(np.argmax(score))
-    cut = int(
-        np.clip(np.median(sample[:, axis]), bucket.lo[axis] + 1, bucket.hi[axis])
-    )  # both halves non-empty
+    # both halves non-empty
+    cut = int(np.clip(np.median(sample[:, axis]), bucket.lo[axis] + 1, bucket.hi[axis]))
     halves = [Bucket(bucket.path.with_suffix(f".{k}.bin")) for k in (0, 1)]
     with open(bucket.path, "rb") as f:
         while len(raw := np.fromfile(f, dtype=dtype, count=_SPILL_READ)):
@@ -233,21 +232,14 @@ def _write_thinned_file(
         laz = out.suffix.lower() == ".laz"
         with laspy.open(tmp, mode="w", header=header, do_compress=laz) as writer:
             for _, bucket in spill.tiles():
-                for block in thinned_blocks(bucket, dtype, step, max_points):
-                    out_by_id += count_out(block, len(out_by_id))
-                    record = laspy.ScaleAwarePointRecord(
-                        block, header.point_format, header.scales, header.offsets
-                    )
-                    write_chunk(writer, record)
+                _write_blocks(
+                    writer, header, thinned_blocks(bucket, dtype, step, max_points), out_by_id
+                )
         return _finish_file(job, writer, _thinned_counts(job, points_in, out_by_id))
 
 
 def _stream(
-    writer: laspy.LasWriter,
-    sources: list[Source],
-    header,
-    config: MergeConfig,
-    bar,
+    writer: laspy.LasWriter, sources: list[Source], header, config: MergeConfig, bar
 ) -> list[SourceCount]:
     """Plain merge: every chunk posed and written straight away, in stream order."""
     points_in, points_out = [], []
@@ -288,14 +280,7 @@ def _write_tiles(
         with laspy.open(
             path, mode="w", header=header, do_compress=True, laz_backend=backend
         ) as writer:
-            for block in thinned_blocks(bucket, dtype, step, max_points):
-                tile_out += count_out(block, ids)
-                write_chunk(
-                    writer,
-                    laspy.ScaleAwarePointRecord(
-                        block, header.point_format, header.scales, header.offsets
-                    ),
-                )
+            _write_blocks(writer, header, thinned_blocks(bucket, dtype, step, max_points), tile_out)
         h = writer.header
         return {
             "file": path.name,
@@ -308,9 +293,8 @@ def _write_tiles(
         }
 
     items, tiles = spill.tiles(), []
-    for k in range(
-        0, len(items), parallel
-    ):  # by pairs, not one pool over all: Ctrl-C waits for two tiles at most
+    # by pairs, not one pool over all: Ctrl-C waits for two tiles at most
+    for k in range(0, len(items), parallel):
         tiles += (
             in_two_threads(write, items[k : k + parallel]) if parallel > 1 else [write(items[k])]
         )
@@ -318,6 +302,16 @@ def _write_tiles(
     for tile in tiles:
         out_by_id += tile.pop("_counts")
     return tiles, out_by_id
+
+
+def _write_blocks(writer, header, blocks: Iterator[np.ndarray], counts: np.ndarray) -> None:
+    """Thinned records written in their order, each counted by point_source_id into `counts`."""
+    for block in blocks:
+        counts += count_out(block, len(counts))
+        record = laspy.ScaleAwarePointRecord(
+            block, header.point_format, header.scales, header.offsets
+        )
+        write_chunk(writer, record)
 
 
 def write_chunk(writer: laspy.LasWriter, record: laspy.ScaleAwarePointRecord) -> None:

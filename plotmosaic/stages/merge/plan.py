@@ -99,13 +99,11 @@ class MergeSummary:
     voxel: float | None
     bbox: tuple[float, ...] | None
     seconds: float
-    skipped: list[str] = field(
-        default_factory=list
-    )  # manifest scans without a pose (--skip-missing)
+    # manifest scans without a pose (--skip-missing)
+    skipped: list[str] = field(default_factory=list)
     ignored: list[str] = field(default_factory=list)  # posed scans not in the manifest
-    tiles: list[dict] | None = (
-        None  # with --tiles: one entry per written tile (file, origin, points, bounds)
-    )
+    # with --tiles: one entry per written tile (file, origin, points, bounds)
+    tiles: list[dict] | None = None
 
     @property
     def points_in(self) -> int:
@@ -160,17 +158,8 @@ def plan_sources(
                 )
             skipped.append(scan.id)
             continue
-        path = manifest.resolve(scan.path)
-        sources.append(
-            Source(
-                scan.id,
-                scan.kind.value,
-                path,
-                index,
-                poses.transform(scan.id),
-                read_header_info(path),
-            )
-        )
+        path, T = manifest.resolve(scan.path), poses.transform(scan.id)
+        sources.append(Source(scan.id, scan.kind.value, path, index, T, read_header_info(path)))
     if not sources:
         raise InputError("no scan of the manifest has a pose: nothing to merge")
     plots = {manifest.plot_of(s.id).id for s in sources}
@@ -187,15 +176,10 @@ def plan_sources(
             )
         for j, tile in enumerate(manifest.als):
             path = manifest.resolve(tile.path)
+            info = read_header_info(path)
+            source_id = len(manifest.scans) + j
             sources.append(
-                Source(
-                    f"als:{tile.path.as_posix()}",
-                    "als",
-                    path,
-                    len(manifest.scans) + j,
-                    np.eye(4),
-                    read_header_info(path),
-                )
+                Source(f"als:{tile.path.as_posix()}", "als", path, source_id, np.eye(4), info)
             )
     if sources[-1].source_id > MAX_SOURCE_ID:
         raise InputError(

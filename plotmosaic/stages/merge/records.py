@@ -12,10 +12,7 @@ import numpy as np
 from plotmosaic.config.merge import bbox_limits
 from plotmosaic.errors import InputError
 from plotmosaic.io.frame import apply_transform, translation
-from plotmosaic.io.las import (
-    corrupt_data,
-    open_las,
-)
+from plotmosaic.io.las import corrupt_data, open_las
 from plotmosaic.stages.merge.plan import Source
 
 

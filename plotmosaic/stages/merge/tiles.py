@@ -26,9 +26,8 @@ from plotmosaic.stages.merge.records import (
 # memory with one sort; a tile over the memory budget is cut in two first (recursively), so memory is
 # bounded by the budget, never by the input or the output.
 
-PRETHIN_WORTH = (
-    0.8  # in-chunk thinning goes on for a source while it drops at least 20 % of the points
-)
+# in-chunk thinning goes on for a source while it drops at least 20 % of the points
+PRETHIN_WORTH = 0.8
 _BYTES_OVERHEAD = 96  # per point while thinning a tile, beside two copies of its record: voxel indices, key, sort order
 
 
@@ -108,12 +107,7 @@ def tile_name(origin: np.ndarray) -> str:
 
 
 def bucket_sources(
-    spill: TileSpill,
-    sources: list[Source],
-    header,
-    config: MergeConfig,
-    step: int | None,
-    bar,
+    spill: TileSpill, sources: list[Source], header, config: MergeConfig, step: int | None, bar
 ) -> list[int]:
     """First pass: every chunk posed, cropped, thinned within itself (a point that is not the first of its
     voxel in its chunk cannot be the first in the cloud) and bucketed by tile. The points read per source."""

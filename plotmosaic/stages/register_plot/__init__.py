@@ -14,14 +14,7 @@ from pathlib import Path
 from plotmosaic.config.register import RegisterConfig
 from plotmosaic.graph.executor import Workers
 from plotmosaic.manifest import Manifest
-from plotmosaic.stages.register_plot.grow import (
-    close_loops,
-    graph_poses,
-    grow,
-    grow_jobs,
-    plot_pair,
-    position_jobs,
-)
+from plotmosaic.stages.register_plot.grow import close_loops, grow, plot_pair, position_jobs
 from plotmosaic.stages.register_plot.maps import onto_maps
 from plotmosaic.stages.register_plot.pairs import (
     anchor_id,
@@ -30,7 +23,7 @@ from plotmosaic.stages.register_plot.pairs import (
     run_jobs,
     start_run,
 )
-from plotmosaic.stages.register_plot.place import als_anchor_edges, place, place_scans
+from plotmosaic.stages.register_plot.place import als_anchor_edges, place
 from plotmosaic.stages.register_plot.plan import match_signatures, plan, plan_jobs, tree_first
 from plotmosaic.stages.register_plot.solve import PlotResult, solve, solve_plot
 from plotmosaic.stages.register_plot.write import RegisterResult, write
@@ -40,12 +33,8 @@ __all__ = [
     "RegisterResult",
     "als_anchor_edges",
     "anchor_id",
-    "close_loops",
-    "graph_poses",
-    "grow_jobs",
     "match_signatures",
     "pair_settings",
-    "place_scans",
     "plot_pair",
     "plan_jobs",
     "position_jobs",

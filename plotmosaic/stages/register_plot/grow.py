@@ -3,6 +3,8 @@ bounded rounds, where the verified pairs so far place scans or leave a plot in p
 
 from __future__ import annotations
 
+from collections import Counter
+
 import networkx as nx
 import numpy as np
 
@@ -18,12 +20,8 @@ from plotmosaic.stages.register_plot.place import Priors
 from plotmosaic.stages.register_plot.solve import solve_plot
 
 
-def _degrees(job_list: list[PairJob]) -> dict[str, int]:
-    degree: dict[str, int] = {}
-    for j in job_list:
-        degree[j.source] = degree.get(j.source, 0) + 1
-        degree[j.target] = degree.get(j.target, 0) + 1
-    return degree
+def _degrees(job_list: list[PairJob]) -> Counter[str]:
+    return Counter(scan for j in job_list for scan in (j.source, j.target))
 
 
 def plot_pair(
@@ -79,12 +77,11 @@ def position_jobs(
         far = reach_distance(xy, reach, config.max_distance)
         for i, j in neighbour_pairs(xy, config.pairs.neighbours, cap, far):
             a, b = ids[i], ids[j]
-            if frozenset((a, b)) in tried or max(degree.get(a, 0), degree.get(b, 0)) >= cap:
+            if frozenset((a, b)) in tried or max(degree[a], degree[b]) >= cap:
                 continue
             out.append(plot_pair(settings, manifest, plot, (a, b), poses))
             tried.add(frozenset((a, b)))
-            degree[a] = degree.get(a, 0) + 1
-            degree[b] = degree.get(b, 0) + 1
+            degree.update((a, b))
     return with_stored_poses(out, set(poses))
 
 

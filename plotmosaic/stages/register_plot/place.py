@@ -28,9 +28,8 @@ class Priors:
     placement_records: dict[str, dict]
     from_als: set[str]  # scans placed by the ALS step (not stored E57 poses)
     verify_first: set[str]  # scans whose prior is checked before any search
-    anchors: dict[
-        str, list[dict]
-    ]  # plot id -> its scan -> ALS node edges (none unless als_anchors)
+    # plot id -> its scan -> ALS node edges (none unless als_anchors)
+    anchors: dict[str, list[dict]]
     # scan id -> the pose its refused ALS placement ended at: never a pose, a start that its map
     # verifies (or not)
     refused: dict[str, np.ndarray]

@@ -45,22 +45,19 @@ def solve_plot(
     The ALS node and its edges live only in the solve; what the solve marks on the scan-to-scan
     edges (dropped, residuals) is written back to G, and the ALS node is no pose of the result.
     The edge groups' variance factors go to G.graph["calibration"][plot id]."""
-    ids = [s.id for s in plot.scans]
-    sub = G.subgraph(ids)
-    if not anchors:
-        ref = _choose_reference(sub, plot)
-        sol = optimise(sub, ref, config.graph)
-        G.graph.setdefault("calibration", {})[plot.id] = sol.scales
-        return ref, sol
-    H = sub.copy()
+    sub = H = G.subgraph([s.id for s in plot.scans])
     node = anchor_id(plot)
-    H.add_node(node, kind="als", plot=plot.id)  # its edges are a noise group of their own
-    add_edges(H, anchors)
+    if anchors:
+        H = sub.copy()
+        H.add_node(node, kind="als", plot=plot.id)  # its edges are a noise group of their own
+        add_edges(H, anchors)
     ref = _choose_reference(H, plot)  # a scan held by its ALS placement alone is connected too
     sol = optimise(H, ref, config.graph)
+    G.graph.setdefault("calibration", {})[plot.id] = sol.scales
+    if not anchors:
+        return ref, sol
     for u, v in sub.edges():
         G.edges[u, v].update(H.edges[u, v])
-    G.graph.setdefault("calibration", {})[plot.id] = sol.scales
     return ref, dataclasses.replace(
         sol,
         poses=_without(sol.poses, node),

@@ -35,13 +35,7 @@ from plotmosaic.manifest import Manifest, Plot, load_manifest
 from plotmosaic.poses import Poses, ScanPose, load_poses
 from plotmosaic.report.runs import write_tie_report
 from plotmosaic.stages.tie_to_als.anchor_fit import fit_anchors
-from plotmosaic.stages.tie_to_als.clouds import (
-    LAS_SCALE,
-    as_stored,
-    crop_als,
-    load_als,
-    plot_cloud,
-)
+from plotmosaic.stages.tie_to_als.clouds import LAS_SCALE, as_stored, crop_als, load_als, plot_cloud
 from plotmosaic.stages.tie_to_als.solve import (
     ALS_NODE,
     Anchor,
@@ -54,17 +48,7 @@ from plotmosaic.stages.tie_to_als.solve import (
     solve_region,
 )
 
-__all__ = [
-    "ALS_NODE",
-    "LAS_SCALE",
-    "Anchor",
-    "TieResult",
-    "as_stored",
-    "crop_als",
-    "load_als",
-    "plot_cloud",
-    "tie_to_als",
-]
+__all__ = ["Anchor", "as_stored", "plot_cloud", "tie_to_als"]
 
 
 @dataclass(frozen=True)

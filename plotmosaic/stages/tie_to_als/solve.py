@@ -124,18 +124,9 @@ def anchor_of(plot: str, reference: str, crop: str, rec: dict, fit: AnchorFit | 
 
 
 def _anchor_dict(a: Anchor) -> dict:
-    return {
-        "reference": a.reference,
-        "status": a.status,
-        "fitness": a.fitness,
-        "inlier_rmse": a.inlier_rmse,
-        "overlap": a.overlap,
-        "confidence": a.confidence,
-        "error": a.error,
-        "crop": a.crop,
-        "fine_margin": a.fine_margin,
-        **(a.fit or {}),
-    }
+    """The anchor as poses.json records it (keyed by its plot): its figures, the fit's beside them."""
+    figures = {k: v for k, v in vars(a).items() if k not in ("plot", "transform", "fit")}
+    return {**figures, **(a.fit or {})}
 
 
 def _anchor_edge(
@@ -165,11 +156,7 @@ def _anchor_edge(
 
 
 def region_graph(
-    manifest: Manifest,
-    poses: Poses,
-    G_plot: nx.Graph | None,
-    als_frame: Frame,
-    tied: Tied,
+    manifest: Manifest, poses: Poses, G_plot: nx.Graph | None, als_frame: Frame, tied: Tied
 ) -> nx.Graph:
     """One graph: every plot's pairwise edges + an anchor edge per plot to the fixed ALS node.
 
