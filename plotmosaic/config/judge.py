@@ -221,7 +221,7 @@ class JudgeConfig(BaseModel):
     # a low-overlap pair's truth often ranks low on the wide scales among many starts
     # (docs/method.md#judge-settings): a refused pose gets one more look among them
     second_look_rivals: int = Field(
-        12,
+        40,
         ge=0,
         le=64,
         description="distinct candidates a pose that would be refused is looked for again from"
@@ -230,11 +230,13 @@ class JudgeConfig(BaseModel):
     global_rivals: bool = Field(
         True, description="after --no-coarse / --init also search the whole pair for rivals"
     )
+    # a score is a share of all points, so a thin pair's truth scores little (0.09-0.11 at overlap
+    # 0.10-0.20); sharpness and margin tell chance from fit (docs/method.md#judge-settings)
     min_score: float = Field(
-        0.12,
+        0.08,
         ge=0,
         le=1,
-        description="least judge score of an accepted pose: a floor, the margin decides",
+        description="least judge score of a searched pose: a floor, the margin decides",
     )
     # wider scales rank a boxed-in view's rivals level with the truth; the finest does not
     fine_scales: int = Field(
@@ -291,6 +293,12 @@ class JudgeConfig(BaseModel):
     )
     # right stored poses are sharp; a pose that fails falls back to the search
     # (docs/method.md#judge-settings)
+    stored_min_score: float = Field(
+        0.12,
+        ge=0,
+        le=1,
+        description="least judge score of a stored pose or placement verified without a search",
+    )
     stored_min_sharpness: float = Field(
         0.075,
         gt=0,

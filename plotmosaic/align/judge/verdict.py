@@ -247,7 +247,7 @@ def verify_stored(
     src, tgt, T: np.ndarray, A: np.ndarray, config: JudgeConfig, memo: PairMemo | None = None
 ) -> StoredVerdict:
     """Does the stored pose T (source local -> target local) hold? A, the fine ICP from it, must
-    barely move it and fit sharply (`sharpness`) with at least `min_score`."""
+    barely move it and fit sharply (`sharpness`) with at least `stored_min_score`."""
     memo = memo or PairMemo()
     deg, m = separation(A, T, centre(src, config, memo.source))
     prof = profile(src, tgt, A, config, memo)
@@ -256,7 +256,7 @@ def verify_stored(
         "correction": deg <= config.stored_max_correction_deg
         and m <= config.stored_max_correction_m,
         "sharpness": sharp >= config.stored_min_sharpness,
-        "score": prof.score >= config.min_score,
+        "score": prof.score >= config.stored_min_score,
     }
     return StoredVerdict(
         verified=all(checks.values()),
