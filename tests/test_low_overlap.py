@@ -10,7 +10,8 @@ from helpers import invoke
 from plotmosaic.align.fine import final_icp
 from plotmosaic.align.memo import PairMemo
 from plotmosaic.align.pipeline import AlignRequest, align_clouds, prepare_pair
-from plotmosaic.bench.overlap_pairs import candidate, cut_candidate
+from plotmosaic.bench.overlap_pairs import PairRef, candidate, cut_candidate, save_pair
+from plotmosaic.bench.overlap_suite import Job, run_trial
 from plotmosaic.config.align import AlignConfig
 from plotmosaic.io.cloud import PointCloud
 from plotmosaic.io.frame import inverse, pose_error, to_global_transform, to_local_transform
@@ -79,3 +80,18 @@ def test_a_thin_real_pair_whose_truth_scores_below_the_stored_floor_is_found(spa
     deg, m = pose_error(result.transform, pair.truth)
     assert m < 0.05 and deg < 0.2, (m, deg)
     assert result.judge["score"] < AlignConfig().judge.stored_min_score
+
+
+@pytest.mark.slow
+def test_a_second_look_does_not_let_a_chance_pose_through(spanner_dir, tmp_path):
+    """TreeLS views sharing 0.10 / 0.08 (bench_overlap's treels candidate 30), paper draw 7: among
+    40 looks one ended 3 deg / 6 m off at confidence 0.30 and passed the first pose's floors; a
+    look's pose must be clear (second_look_min_confidence), so the pair is refused."""
+    data = spanner_dir.parent
+    if not (data / "treels").is_dir():
+        pytest.skip("shared/data/treels not present")
+    pair = cut_candidate(candidate("treels", 0, 30), data)[0]
+    path = save_pair(tmp_path / "pair.npz", pair)
+    ref = PairRef("treels-c30-p0", str(path), pair.overlap_st, pair.overlap_ts, 0.0, 0.0, 0.0)
+    row = run_trial(Job("treels", (0.05, 0.10), 7, ref, ("forestalign",), 0))[0]
+    assert row["outcome"] != "wrong", row

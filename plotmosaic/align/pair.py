@@ -261,8 +261,8 @@ def look_again(pair: PairContext, candidates: list[Candidate], judged: Judged) -
     """A verdict that would be refused gets a second look (judge.second_look): from each distinct
     candidate in turn, the level stage, the final ICP and the judge with its one retry, as the first
     pose had them (the retry's basin starts carry a pose a few degrees off onto the truth beside
-    it); the first result that would not be refused replaces the first pose, else the first verdict
-    stands. The rivals are refined once for the pair (the memo): a look pays for its own ICPs."""
+    it); the first result that would not be refused and is `clear` replaces the first pose, else the
+    first verdict stands. The rivals are refined once for the pair (the memo): a look pays for its own ICPs."""
     src, tgt, config, memo = pair.src, pair.tgt, pair.config, pair.memo
     if not config.coarse.enabled or not weak(judged.verdict, config):
         return judged
@@ -275,9 +275,15 @@ def look_again(pair: PairContext, candidates: list[Candidate], judged: Judged) -
         fine = final_icp(src, tgt, level_stage(src, tgt, config, A, False, rng).T, config, memo)
         verdict = judge_mod.judge(src, tgt, fine.T, rivals, config.judge, memo)
         found = recover(pair, rivals, fine, verdict)
-        if not weak(found.verdict, config):
+        if not weak(found.verdict, config) and clear(found.verdict, config):
             return found
     return judged
+
+
+def clear(verdict: Verdict, config: AlignConfig) -> bool:
+    """Whether a second look's verdict stands: every look is one more chance for a chance alignment
+    to pass, so a pose it finds must beat its rivals by `second_look_min_confidence`."""
+    return verdict.confidence >= config.judge.second_look_min_confidence
 
 
 def pair_result(

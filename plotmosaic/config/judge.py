@@ -227,6 +227,15 @@ class JudgeConfig(BaseModel):
         description="distinct candidates a pose that would be refused is looked for again from"
         " (0: none); the first that holds replaces it",
     )
+    # many looks are many chances: a pose 3 deg / 6 m off passed one at confidence 0.30, the truths
+    # the looks find stand at 0.63-0.81 (docs/method.md#judge-settings)
+    second_look_min_confidence: float = Field(
+        0.5,
+        ge=0,
+        le=1,
+        description="least confidence of a pose a second look finds (the first pose needs"
+        " min_confidence)",
+    )
     global_rivals: bool = Field(
         True, description="after --no-coarse / --init also search the whole pair for rivals"
     )
