@@ -227,8 +227,8 @@ class JudgeConfig(BaseModel):
         description="distinct candidates a pose that would be refused is looked for again from"
         " (0: none); the first that holds replaces it",
     )
-    # many looks are many chances: a pose 3 deg / 6 m off passed one at confidence 0.30, the truths
-    # the looks find stand at 0.63-0.81 (docs/method.md#judge-settings)
+    # many looks are many chances for a chance alignment to pass; the truths the looks find stand
+    # clear of their rivals (docs/method.md#judge-settings)
     second_look_min_confidence: float = Field(
         0.5,
         ge=0,
@@ -239,8 +239,8 @@ class JudgeConfig(BaseModel):
     global_rivals: bool = Field(
         True, description="after --no-coarse / --init also search the whole pair for rivals"
     )
-    # a score is a share of all points, so a thin pair's truth scores little (0.09-0.11 at overlap
-    # 0.10-0.20); sharpness and margin tell chance from fit (docs/method.md#judge-settings)
+    # a score is a share of all points, so a thin pair's truth scores little; sharpness and the
+    # margin tell chance from fit (docs/method.md#judge-settings)
     min_score: float = Field(
         0.08,
         ge=0,
