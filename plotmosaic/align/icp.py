@@ -179,7 +179,7 @@ class IcpResult:
     T: np.ndarray
     fitness: float  # share of source points with a correspondence in the last iteration
     rmse: float  # of their point-to-point distances
-    rank: int  # directions the last step was allowed to move along (6 = all)
+    rank: int  # directions the last step was allowed to move along (6 = all; 4 with an axis)
     source_index: np.ndarray  # last correspondences (source row, target row)
     target_index: np.ndarray
     iterations: int
@@ -293,17 +293,19 @@ def _gauss_newton_step(
     # residual as a function of a left perturbation about the moved centroid
     c = T[:3, :3] @ centre + T[:3, 3]
     J = np.hstack([np.cross(a - c, n) / scale, n])
-    # the directions a step may move along (columns: twists); all six, or the axis's turn and translation
-    basis = np.eye(6)
+    # with an axis a step moves along its turn and the translation only (columns: twists)
+    basis = None
     if options.axis is not None:
         basis = np.zeros((6, 4))
         basis[:3, 0], basis[3:, 1:] = options.axis, np.eye(3)
-    J = J @ basis
+        J = J @ basis
     Jw = J * wgt[:, None]
     H, g = Jw.T @ J, Jw.T @ r
     vals, vecs = np.linalg.eigh(H)
     keep = vals > max(options.min_eig_ratio, 1e-9) * vals[-1]
-    step = basis @ -(vecs[:, keep] @ ((vecs[:, keep].T @ g) / vals[keep]))
+    step = -(vecs[:, keep] @ ((vecs[:, keep].T @ g) / vals[keep]))
+    if basis is not None:
+        step = basis @ step
     step[:3] /= scale
     Tc = np.eye(4)
     Tc[:3, 3] = c
