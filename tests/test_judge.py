@@ -400,3 +400,36 @@ def test_near_rival_still_sliding_into_the_pose_is_the_pose(pair, monkeypatch):
     assert not next(r for r in more.rivals if r["from"] == "near")["distinct"]
     assert more.distinct_rivals == 1 and sum(deg > 2 * short.distinct_deg for deg in calls) == 1
     assert more.confidence >= once.confidence
+
+
+def _pose(deg: float, shift: tuple[float, float, float]) -> np.ndarray:
+    """A turn about the vertical by `deg` and a shift (m)."""
+    a = np.radians(deg)
+    T = np.eye(4)
+    T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+    T[:3, 3] = shift
+    return T
+
+
+def test_agreement_counts_the_poses_within_the_distinct_radius():
+    cfg = AlignConfig().judge
+    centre = np.array([5.0, 0.0, 1.0])
+    poses = [_pose(0, (0, 0, 0)), _pose(1, (0.3, 0, 0)), _pose(40, (0, 0, 0)), _pose(0, (3, 0, 0))]
+    expected = [sum(not judge.distinct(A, B, centre, cfg) for B in poses) for A in poses]
+    assert judge.agreement(poses, centre, cfg).tolist() == expected == [2, 2, 1, 1]
+
+
+def test_second_look_starts_from_the_cluster_most_candidates_agree_on():
+    """Three near-duplicates (several generators finding one pose) come before lone starts ranked
+    above them; near-duplicates of a start and of the weak pose are not looked from again."""
+    cfg = AlignConfig().judge
+    centre = np.zeros(3)
+    weak, lone_a, lone_b = _pose(90, (0, 0, 0)), _pose(0, (8, 0, 0)), _pose(180, (0, 6, 0))
+    cluster = [_pose(30 + d, (2, 2, 0)) for d in (0.0, 0.8, 1.6)]
+    names = ["lone a", "near the weak pose", "lone b", *["cluster"] * 3]
+    poses = [lone_a, _pose(91, (0.2, 0, 0)), lone_b, *cluster]
+    cands = [judge.Candidate(T=T, source=n) for T, n in zip(poses, names)]
+    starts = judge.second_look(weak, cands, centre, cfg)
+    assert len(starts) == 3
+    assert np.allclose(starts[0], cluster[0])
+    assert np.allclose(starts[1], lone_a) and np.allclose(starts[2], lone_b)

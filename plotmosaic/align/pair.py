@@ -262,7 +262,9 @@ def look_again(pair: PairContext, candidates: list[Candidate], judged: Judged) -
     candidate in turn, the level stage, the final ICP and the judge with its one retry, as the first
     pose had them (the retry's basin starts carry a pose a few degrees off onto the truth beside
     it); the first result that would not be refused and is `clear` replaces the first pose, else the
-    first verdict stands. The rivals are refined once for the pair (the memo): a look pays for its own ICPs."""
+    first verdict stands. A look that comes back to a pose already weighed (the first pose, an
+    earlier look's) stops there: its verdict is known. The rivals are refined once for the pair
+    (the memo): a look pays for its own ICPs."""
     src, tgt, config, memo = pair.src, pair.tgt, pair.config, pair.memo
     if not config.coarse.enabled or not weak(judged.verdict, config):
         return judged
@@ -270,11 +272,25 @@ def look_again(pair: PairContext, candidates: list[Candidate], judged: Judged) -
     starts = judge_mod.second_look(judged.fine.T, candidates, c, config.judge)
     pair.say(f"a second look from {len(starts)} other candidates")
     rivals = [*candidates, Candidate(T=judged.fine.T, source="first pose")]
-    for A in starts:  # the first that holds: the candidates come best-ranked first
+    weighed = [judged.fine.T]
+
+    def known(T: np.ndarray | None) -> bool:
+        return T is not None and any(not judge_mod.distinct(T, W, c, config.judge) for W in weighed)
+
+    for A in starts:  # the first that holds: the most agreed-on candidates first
         rng = np.random.default_rng(0)
-        fine = final_icp(src, tgt, level_stage(src, tgt, config, A, False, rng).T, config, memo)
+        level = level_stage(src, tgt, config, A, False, rng).T
+        if known(level):
+            continue
+        fine = final_icp(src, tgt, level, config, memo)
+        if known(fine.T):
+            continue
         verdict = judge_mod.judge(src, tgt, fine.T, rivals, config.judge, memo)
+        weighed.append(fine.T)
+        if verdict.rival_better and known(verdict.rival_transform):
+            continue  # beaten by a pose already weighed: its retry would end there
         found = recover(pair, rivals, fine, verdict)
+        weighed.append(found.fine.T)
         if not weak(found.verdict, config) and clear(found.verdict, config):
             return found
     return judged

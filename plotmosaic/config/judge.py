@@ -218,10 +218,10 @@ class JudgeConfig(BaseModel):
         default_factory=SceneConfig,
         description="each cloud must be a forest scene (extent, stems, not all planes)",
     )
-    # a low-overlap pair's truth often ranks low on the wide scales among many starts
-    # (docs/method.md#judge-settings): a refused pose gets one more look among them
+    # a low-overlap pair's truth often ranks low on the wide scales among many starts, but many
+    # starts agree on it (docs/method.md#judge-settings): a refused pose gets one more look among them
     second_look_rivals: int = Field(
-        40,
+        24,
         ge=0,
         le=64,
         description="distinct candidates a pose that would be refused is looked for again from"

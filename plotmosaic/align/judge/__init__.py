@@ -17,6 +17,7 @@ verdict and the stored-pose check.
 """
 
 from plotmosaic.align.judge.profile import (
+    agreement,
     centre,
     confidence,
     distinct,
@@ -41,6 +42,7 @@ __all__ = [
     "Candidate",
     "StoredVerdict",
     "Verdict",
+    "agreement",
     "basin",
     "centre",
     "confidence",

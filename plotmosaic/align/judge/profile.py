@@ -83,6 +83,19 @@ def distinct(A: np.ndarray, B: np.ndarray, centre: np.ndarray, config: JudgeConf
     return m > config.distinct_m or deg > config.distinct_deg
 
 
+def agreement(poses: list[np.ndarray], centre: np.ndarray, config: JudgeConfig) -> np.ndarray:
+    """For each pose, how many of `poses` (itself included) lie within its distinct radius."""
+    if not poses:
+        return np.zeros(0, dtype=int)
+    T = np.stack(poses)
+    R = T[:, :3, :3]
+    p = R @ centre + T[:, :3, 3]  # where each pose puts the source centre
+    m = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=2)
+    cos = (np.einsum("iab,jab->ij", R, R) - 1.0) / 2.0  # trace(Rj^T Ri): the angle between them
+    deg = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return ((m <= config.distinct_m) & (deg <= config.distinct_deg)).sum(axis=1)
+
+
 def near(A: np.ndarray, B: np.ndarray, centre: np.ndarray, config: JudgeConfig) -> bool:
     """Within `near_rival_radii` distinct radii (both rotation and displacement): A may be B's basin."""
     deg, m = separation(A, B, centre)

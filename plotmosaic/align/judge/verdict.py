@@ -14,6 +14,7 @@ import numpy as np
 from plotmosaic.align import scene
 from plotmosaic.align.judge.profile import (
     Profile,
+    agreement,
     centre,
     confidence,
     distinct,
@@ -205,16 +206,18 @@ def judge(
 def second_look(
     T: np.ndarray, candidates: list[Candidate], centre: np.ndarray, config: JudgeConfig
 ) -> list[np.ndarray]:
-    """A weak pose's second look: the distinct candidates (at most `second_look_rivals`, in the
-    order given), as starts of a full level stage and final ICP each. A low-overlap pair's truth is
-    often a start a few degrees off that the rivals' short ICP cannot bring in."""
+    """A weak pose's second look: distinct candidates (at most `second_look_rivals`) as starts of a
+    full level stage and final ICP each, those most candidates agree on first (ties in the order
+    given). A low-overlap pair's truth is often a start a few degrees off that the rivals' short ICP
+    cannot bring in; several generators and slices find it, so it comes as a cluster of starts."""
+    poses = [A for A in (np.asarray(c.T, dtype=float) for c in candidates) if np.isfinite(A).all()]
+    votes = agreement(poses, centre, config)
     kept: list[np.ndarray] = []
-    for cand in candidates:
-        A = np.asarray(cand.T, dtype=float)
+    for i in sorted(range(len(poses)), key=lambda i: -votes[i]):
         if len(kept) >= config.second_look_rivals:
             break
-        if np.isfinite(A).all() and all(distinct(A, k, centre, config) for k in [T, *kept]):
-            kept.append(A)
+        if all(distinct(poses[i], k, centre, config) for k in [T, *kept]):
+            kept.append(poses[i])
     return kept
 
 
