@@ -421,11 +421,12 @@ def test_agreement_counts_the_poses_within_the_distinct_radius():
 
 def test_second_look_starts_from_the_cluster_most_candidates_agree_on():
     """Three near-duplicates (several generators finding one pose) come before lone starts ranked
-    above them; near-duplicates of a start and of the weak pose are not looked from again."""
+    above them, the cluster's best-ranked member its start; near-duplicates of a start and of the
+    weak pose are not looked from again."""
     cfg = AlignConfig().judge
     centre = np.zeros(3)
     weak, lone_a, lone_b = _pose(90, (0, 0, 0)), _pose(0, (8, 0, 0)), _pose(180, (0, 6, 0))
-    cluster = [_pose(30 + d, (2, 2, 0)) for d in (0.0, 0.8, 1.6)]
+    cluster = [_pose(30 + d, (2, 2, 0)) for d in (1.6, 0.0, 0.8)]
     names = ["lone a", "near the weak pose", "lone b", *["cluster"] * 3]
     poses = [lone_a, _pose(91, (0.2, 0, 0)), lone_b, *cluster]
     cands = [judge.Candidate(T=T, source=n) for T, n in zip(poses, names)]

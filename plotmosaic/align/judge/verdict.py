@@ -206,19 +206,19 @@ def judge(
 def second_look(
     T: np.ndarray, candidates: list[Candidate], centre: np.ndarray, config: JudgeConfig
 ) -> list[np.ndarray]:
-    """A weak pose's second look: distinct candidates (at most `second_look_rivals`) as starts of a
-    full level stage and final ICP each, those most candidates agree on first (ties in the order
-    given). A low-overlap pair's truth is often a start a few degrees off that the rivals' short ICP
-    cannot bring in; several generators and slices find it, so it comes as a cluster of starts."""
+    """A weak pose's second look: the distinct candidates, each the best-ranked of those near it,
+    as starts of a full level stage and final ICP each; those most candidates agree on first (ties in
+    the order given), at most `second_look_rivals`. A low-overlap pair's truth is often a start a few
+    degrees off that the rivals' short ICP cannot bring in; several generators and slices find it,
+    so it comes as a cluster of starts."""
     poses = [A for A in (np.asarray(c.T, dtype=float) for c in candidates) if np.isfinite(A).all()]
     votes = agreement(poses, centre, config)
-    kept: list[np.ndarray] = []
-    for i in sorted(range(len(poses)), key=lambda i: -votes[i]):
-        if len(kept) >= config.second_look_rivals:
-            break
-        if all(distinct(poses[i], k, centre, config) for k in [T, *kept]):
-            kept.append(poses[i])
-    return kept
+    kept: list[int] = []
+    for i, A in enumerate(poses):
+        if all(distinct(A, B, centre, config) for B in [T, *(poses[k] for k in kept)]):
+            kept.append(i)
+    kept.sort(key=lambda i: -votes[i])
+    return [poses[i] for i in kept[: config.second_look_rivals]]
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
