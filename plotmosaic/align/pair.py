@@ -263,7 +263,7 @@ def look_again(pair: PairContext, candidates: list[Candidate], judged: Judged) -
     pose had them (the retry's basin starts carry a pose a few degrees off onto the truth beside
     it); the first result that would not be refused and is `clear` replaces the first pose, else the
     first verdict stands. A look that comes back to a pose already weighed (the first pose, an
-    earlier look's) stops there: its verdict is known. The rivals are refined once for the pair
+    earlier look's: `judge.same`) stops there: its verdict is known. The rivals are refined once for the pair
     (the memo): a look pays for its own ICPs."""
     src, tgt, config, memo = pair.src, pair.tgt, pair.config, pair.memo
     if not config.coarse.enabled or not weak(judged.verdict, config):
@@ -275,7 +275,7 @@ def look_again(pair: PairContext, candidates: list[Candidate], judged: Judged) -
     weighed = [judged.fine.T]
 
     def known(T: np.ndarray | None) -> bool:
-        return T is not None and any(not judge_mod.distinct(T, W, c, config.judge) for W in weighed)
+        return T is not None and any(judge_mod.same(T, W, c, config.judge) for W in weighed)
 
     for A in starts:  # the first that holds: the most agreed-on candidates first
         rng = np.random.default_rng(0)

@@ -236,6 +236,15 @@ class JudgeConfig(BaseModel):
         description="least confidence of a pose a second look finds (the first pose needs"
         " min_confidence)",
     )
+    # a near miss's truth can stand 1.6 deg / 0.3 m from it (docs/method.md#judge-settings): only
+    # a pose the final ICP returns to is one already weighed
+    weighed_radius: float = Field(
+        0.15,
+        gt=0,
+        le=1,
+        description="share of the distinct radius within which a second look's pose is a pose"
+        " already weighed (the look stops)",
+    )
     global_rivals: bool = Field(
         True, description="after --no-coarse / --init also search the whole pair for rivals"
     )

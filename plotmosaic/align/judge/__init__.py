@@ -25,6 +25,7 @@ from plotmosaic.align.judge.profile import (
     fine_share,
     near,
     profile,
+    same,
     separation,
     sharpness,
 )
@@ -54,6 +55,7 @@ __all__ = [
     "neighbours",
     "profile",
     "refine",
+    "same",
     "second_look",
     "separation",
     "sharper_neighbours",

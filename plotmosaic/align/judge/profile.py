@@ -96,6 +96,13 @@ def agreement(poses: list[np.ndarray], centre: np.ndarray, config: JudgeConfig) 
     return ((m <= config.distinct_m) & (deg <= config.distinct_deg)).sum(axis=1)
 
 
+def same(A: np.ndarray, B: np.ndarray, centre: np.ndarray, config: JudgeConfig) -> bool:
+    """Within `weighed_radius` of the distinct radius: the same pose as far as the judge goes."""
+    deg, m = separation(A, B, centre)
+    k = config.weighed_radius
+    return m <= k * config.distinct_m and deg <= k * config.distinct_deg
+
+
 def near(A: np.ndarray, B: np.ndarray, centre: np.ndarray, config: JudgeConfig) -> bool:
     """Within `near_rival_radii` distinct radii (both rotation and displacement): A may be B's basin."""
     deg, m = separation(A, B, centre)
