@@ -263,8 +263,8 @@ def look_again(pair: PairContext, candidates: list[Candidate], judged: Judged) -
     pose had them (the retry's basin starts carry a pose a few degrees off onto the truth beside
     it); the first result that would not be refused and is `clear` replaces the first pose, else the
     first verdict stands. A look that comes back to a pose already weighed (the first pose, an
-    earlier look's: `judge.same`) stops there: its verdict is known. The rivals are refined once for the pair
-    (the memo): a look pays for its own ICPs."""
+    earlier look's: `judge.same`) stops there: its verdict is known. The rivals are refined once
+    for the pair (the memo): a look pays for its own ICPs."""
     src, tgt, config, memo = pair.src, pair.tgt, pair.config, pair.memo
     if not config.coarse.enabled or not weak(judged.verdict, config):
         return judged
