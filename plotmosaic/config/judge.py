@@ -236,8 +236,8 @@ class JudgeConfig(BaseModel):
         description="least confidence of a pose a second look finds (the first pose needs"
         " min_confidence)",
     )
-    # a near miss's truth can stand 1.6 deg / 0.3 m from it (docs/method.md#judge-settings): only
-    # a pose the final ICP returns to is one already weighed
+    # a near miss's truth can stand well inside the distinct radius (docs/method.md#judge-settings):
+    # only a pose the final ICP returns to is one already weighed
     weighed_radius: float = Field(
         0.15,
         gt=0,
