@@ -164,3 +164,35 @@ def test_a_cloud_memo_keeps_one_coarse_sample_per_key():
     assert remembered(cloud, config, 0, False, False, 2, memo) is first
     other = remembered(cloud, config, 1, False, False, 2, memo)
     assert other is not first and remembered(cloud, config, 1, False, False, 2, memo) is other
+
+
+def test_a_start_of_the_best_pose_s_own_basin_left_short_is_refined_on_and_no_rival(monkeypatch):
+    """A quick refine that stops short (here each ICP halves a pose's heading and shift) leaves a
+    start of the best pose's own basin distinct from it: near the best, it is refined on until it
+    joins it and is no rival of the confidence; a pose far off is not refined on and stays one."""
+    cloud = _stand(np.random.default_rng(5))
+
+    def halfway(points, tgt, T, *args):
+        return _pose(np.degrees(np.arctan2(T[1, 0], T[0, 0])) / 2, T[0, 3] / 2)
+
+    monkeypatch.setattr(verification, "_refine", halfway)
+    starts = [
+        Start(T=_pose(1.0, 0.1), generator="raster", vertical="normals/normals", yaw=0.02),
+        Start(T=_pose(64.0, 4.0), generator="fpfh", vertical="normals/normals", votes=9),
+        Start(T=_pose(170.0, 16.0), generator="stems", vertical="normals/normals", votes=3),
+    ]
+
+    def verify(passes: int) -> tuple[dict[str, Hypothesis], float]:
+        config = CoarseConfig(near_rival_passes=passes)
+        verifier = Verifier(cloud, Levels(cloud), False, config, np.random.default_rng(0))
+        results, confidence = verifier(starts)
+        assert results[0].generator == "raster"
+        return {h.generator: h for h in results}, confidence
+
+    config = CoarseConfig()
+    (short, short_conf), (on, on_conf) = verify(0), verify(4)
+    assert 1.0 < verification.radii(short["fpfh"].T, short["raster"].T, config) <= 3.0
+    assert verification.radii(on["fpfh"].T, on["raster"].T, config) <= 1.0  # joined the best
+    assert np.allclose(on["stems"].T, short["stems"].T)  # far: not refined on, still a rival
+    assert verification.distinct(on["stems"].T, on["raster"].T, config)
+    assert on_conf > short_conf

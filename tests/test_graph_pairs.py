@@ -13,7 +13,7 @@ from plotmosaic.graph.jobs import JobSettings, PairJob, ScanFile, pair_job
 from plotmosaic.graph.pairs import candidate_pairs, spanning_first
 from plotmosaic.manifest import Manifest, Plot, Scan
 from plotmosaic.stages.register_plot import pair_settings, plan_jobs, tree_first
-from plotmosaic.stages.register_plot.grow import from_graph, joining
+from plotmosaic.stages.register_plot.grow import from_graph, joining, next_round
 from plotmosaic.stages.register_plot.pairs import Pairs
 
 
@@ -367,3 +367,10 @@ def test_loop_pairs_start_from_the_graph_and_pieces_are_joined_once(tmp_path):
     failed = Pairs(jobs=[ok], records={ok.key: {"status": "failed"}}, computed=1)
     picked = joining(rest, poses, failed)
     assert [(j.source, j.target) for j in picked] == [("s3", "s0"), ("s4", "s0")]
+    # one round: the loop pairs of the placed piece and, beside them, the joins of the rest
+    both = next_round(rest, poses, done)
+    assert [(j.source, j.target, j.start) for j in both] == [
+        ("s2", "s0", "stored"),
+        ("s2", "s1", "stored"),
+        ("s3", "s0", "prior"),
+    ]

@@ -85,6 +85,18 @@ class CoarseConfig(CoarseGenerators, CoarseLevelling):
     distinct_deg: float = Field(
         3.0, gt=0, le=90, description="... or further apart than this (deg)"
     )
+    # the quick refine leaves starts of the best pose's own basin a few degrees short on loose
+    # fits (scattered foliage): one near the best is refined on, so it is no rival of the
+    # confidence (docs/method.md#coarse-stage-settings)
+    near_rival_radii: float = Field(
+        3.0,
+        ge=1,
+        le=10,
+        description="a refined pose within this many distinct radii of the best is refined on",
+    )
+    near_rival_passes: int = Field(
+        4, ge=0, le=16, description="further refinements of such a pose at most (0: none)"
+    )
     prior_yaw_deg: float = Field(
         30.0, gt=0, le=180, description="with an initial guess: headings searched either side of it"
     )

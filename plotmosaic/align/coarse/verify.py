@@ -51,9 +51,14 @@ class _Screened:
     start: Start
 
 
-def distinct(A: np.ndarray, B: np.ndarray, config: CoarseConfig) -> bool:
+def radii(A: np.ndarray, B: np.ndarray, config: CoarseConfig) -> float:
+    """How far apart two poses are, in distinct radii (the larger of rotation and displacement)."""
     degrees, metres = pose_error(A, B)
-    return metres > config.distinct_m or degrees > config.distinct_deg
+    return max(metres / config.distinct_m, degrees / config.distinct_deg)
+
+
+def distinct(A: np.ndarray, B: np.ndarray, config: CoarseConfig) -> bool:
+    return radii(A, B, config) > 1.0
 
 
 def unique_starts(starts: list[Start], config: CoarseConfig) -> list[Start]:
@@ -130,6 +135,7 @@ class Verifier:
         self.about_vertical = config.screen_about_vertical and not airborne
         self.ups = {v.name: np.asarray(v.up, dtype=float) for v in tgt.cloud.verticals}
         self.refined: dict[tuple, tuple[np.ndarray, float]] = {}
+        self.refined_on: set[tuple] = set()  # refined poses refined on near a best (`_near_rivals`)
 
     def _axis(self, start: Start) -> np.ndarray | None:
         """The target's vertical the start was levelled under, where its ICPs turn about it (None:
@@ -202,13 +208,39 @@ class Verifier:
         rest = [i for i in distinct_ones if i not in chosen]
         return sorted(chosen + rest[: max(0, config.refine_top - len(chosen))])
 
-    def __call__(self, starts: list[Start]) -> tuple[list[Hypothesis], float]:
-        screened = self._screen_all(starts)
-        # independent ICPs, two at a time (KD-tree queries release the GIL)
-        todo = [i for i in self._chosen(screened) if screened[i].start.key not in self.refined]
-        jobs = [(screened[i].T, self._axis(screened[i].start)) for i in todo]
-        for i, r in zip(todo, in_two_threads(self._refine, jobs)):
-            self.refined[screened[i].start.key] = r
+    def _near_rivals(self, screened: list[_Screened], best: np.ndarray) -> bool:
+        """Refined poses that end distinct from the `best` one but within `near_rival_radii` of it,
+        refined on (at most `near_rival_passes` times, while each pass brings them closer, until
+        within the distinct radius): a start of the best's own basin the quick refine left a few
+        degrees short is no rival. Each pose is refined on once; whether any was."""
+        c = self.config
+        keys = [
+            r.start.key
+            for r in screened
+            if r.start.key in self.refined
+            and r.start.key not in self.refined_on
+            and 1.0 < radii(self.refined[r.start.key][0], best, c) <= c.near_rival_radii
+        ]
+
+        def refine_on(key: tuple) -> tuple[np.ndarray, float]:
+            A, score = self.refined[key]
+            gap = radii(A, best, c)
+            for _ in range(c.near_rival_passes):
+                B, s = self._refine((A, None))  # near: the matches decide the tilt too
+                if radii(B, best, c) >= gap:
+                    break  # settled apart: a rival
+                A, score, gap = B, s, radii(B, best, c)
+                if gap <= 1.0:
+                    break
+            return A, score
+
+        for key, r in zip(keys, in_two_threads(refine_on, keys)):
+            self.refined[key] = r
+        self.refined_on.update(keys)
+        return bool(keys)
+
+    def _ranked(self, screened: list[_Screened]) -> list[Hypothesis]:
+        """Every screened start as a hypothesis, the refined ones first, best first."""
         results = []
         for r in screened:
             # every refined pose competes, also one refined before more starts came (more rivals)
@@ -217,4 +249,16 @@ class Verifier:
         if not results:
             results.append(Hypothesis.none())
         results.sort(key=lambda h: (not h.refined, -(h.score if h.refined else h.screen_score)))
+        return results
+
+    def __call__(self, starts: list[Start]) -> tuple[list[Hypothesis], float]:
+        screened = self._screen_all(starts)
+        # independent ICPs, two at a time (KD-tree queries release the GIL)
+        todo = [i for i in self._chosen(screened) if screened[i].start.key not in self.refined]
+        jobs = [(screened[i].T, self._axis(screened[i].start)) for i in todo]
+        for i, r in zip(todo, in_two_threads(self._refine, jobs)):
+            self.refined[screened[i].start.key] = r
+        results = self._ranked(screened)
+        if results[0].refined and self._near_rivals(screened, results[0].T):
+            results = self._ranked(screened)
         return results, _confidence(results, self.config)

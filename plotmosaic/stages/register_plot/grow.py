@@ -155,18 +155,32 @@ def joining(jobs: list[PairJob], poses: dict[str, np.ndarray], pairs: Pairs) -> 
     return [jobs[k] for k in picked]
 
 
+def next_round(
+    deferred: list[PairJob],
+    poses: dict[str, np.ndarray],
+    pairs: Pairs,
+    only: frozenset[str] = frozenset(),
+    verify_first: set[str] | frozenset[str] = frozenset(),
+) -> list[PairJob]:
+    """The deferred jobs to run now: those between scans the graph places, from its poses
+    (`from_graph`), and beside them one job for each join of what it leaves apart (`joining`, as the
+    tree's jobs): a pair between placed scans cannot place another, so the joins need not wait."""
+    loops = from_graph(deferred, poses, only)
+    running = {(j.source, j.target) for j in loops}
+    rest = [j for j in deferred if (j.source, j.target) not in running]
+    return loops + with_stored_poses(joining(rest, poses, pairs), verify_first)
+
+
 def close_loops(run: Run, priors: Priors, deferred: list[PairJob], pairs: Pairs) -> Pairs:
-    """The planned pairs beyond the spanning tree (`deferred`, plain jobs): each pair between scans
-    the verified graph places starts from the pose the graph implies and is verified from there
-    (the fine ICP and the judge), the global search only when that fails; where the tree left scans
-    apart, one pair for each join runs as the tree's did, then the loop pairs it makes. Pairs inside
-    a piece the graph never places are not run (they could place nothing)."""
+    """The planned pairs beyond the spanning tree (`deferred`, plain jobs), in rounds: each pair
+    between scans the verified graph places starts from the pose the graph implies and is verified
+    from there (the fine ICP and the judge), the global search only when that fails; where the tree
+    left scans apart, one pair for each join runs as the tree's did, then the loop pairs it makes.
+    Pairs inside a piece the graph never places are not run (they could place nothing)."""
+    only = frozenset(priors.from_als) if run.config.maps.enabled else frozenset()
     while deferred:
         poses = graph_poses(run.manifest, run.config, pairs, priors.anchors)
-        only = frozenset(priors.from_als) if run.config.maps.enabled else frozenset()
-        ready = from_graph(deferred, poses, only) or with_stored_poses(
-            joining(deferred, poses, pairs), priors.verify_first
-        )
+        ready = next_round(deferred, poses, pairs, only, priors.verify_first)
         if not ready:
             return pairs
         running = {(j.source, j.target) for j in ready}
