@@ -127,7 +127,8 @@ def tilted_pair(views):
 @pytest.mark.slow
 def test_coarse_recovers_a_45_degree_tilted_source_and_is_deterministic(tilted_pair):
     src, tgt, truth = tilted_pair
-    c = CoarseConfig(max_points=20_000)
+    # every generator runs (the rasters and stem map settle this pair alone): each is checked below
+    c = CoarseConfig(max_points=20_000, settle_early=False)
     result = coarse_align(src, tgt, c, seed=3)
     deg, m = pose_error(result.transform, truth)
     assert deg < 1.0 and m < 0.2, (deg, m, result.hypotheses[:3])
