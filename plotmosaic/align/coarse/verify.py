@@ -227,9 +227,10 @@ class Verifier:
             gap = radii(A, best, c)
             for _ in range(c.near_rival_passes):
                 B, s = self._refine((A, None))  # near: the matches decide the tilt too
-                if radii(B, best, c) >= gap:
+                nearer = radii(B, best, c)
+                if nearer >= gap:
                     break  # settled apart: a rival
-                A, score, gap = B, s, radii(B, best, c)
+                A, score, gap = B, s, nearer
                 if gap <= 1.0:
                     break
             return A, score
