@@ -78,6 +78,14 @@ def separation(A: np.ndarray, B: np.ndarray, centre: np.ndarray) -> tuple[float,
     )
 
 
+def _within(
+    A: np.ndarray, B: np.ndarray, centre: np.ndarray, config: JudgeConfig, k: float
+) -> bool:
+    """Within `k` distinct radii of each other, in rotation and in displacement."""
+    deg, m = separation(A, B, centre)
+    return m <= k * config.distinct_m and deg <= k * config.distinct_deg
+
+
 def distinct(A: np.ndarray, B: np.ndarray, centre: np.ndarray, config: JudgeConfig) -> bool:
     deg, m = separation(A, B, centre)
     return m > config.distinct_m or deg > config.distinct_deg
@@ -98,16 +106,12 @@ def agreement(poses: list[np.ndarray], centre: np.ndarray, config: JudgeConfig) 
 
 def same(A: np.ndarray, B: np.ndarray, centre: np.ndarray, config: JudgeConfig) -> bool:
     """Within `weighed_radius` of the distinct radius: the same pose as far as the judge goes."""
-    deg, m = separation(A, B, centre)
-    k = config.weighed_radius
-    return m <= k * config.distinct_m and deg <= k * config.distinct_deg
+    return _within(A, B, centre, config, config.weighed_radius)
 
 
 def near(A: np.ndarray, B: np.ndarray, centre: np.ndarray, config: JudgeConfig) -> bool:
     """Within `near_rival_radii` distinct radii (both rotation and displacement): A may be B's basin."""
-    deg, m = separation(A, B, centre)
-    k = config.near_rival_radii
-    return m <= k * config.distinct_m and deg <= k * config.distinct_deg
+    return _within(A, B, centre, config, config.near_rival_radii)
 
 
 def centre(cloud, config: JudgeConfig, memo: CloudMemo | None = None) -> np.ndarray:
