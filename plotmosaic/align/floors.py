@@ -39,8 +39,11 @@ def check_quality(result: PairResult, config: AlignConfig, local: bool = False) 
     problems = []
     if not np.isfinite(result.transform).all():
         problems.append("transform is not finite")
-    if result.fitness < config.min_fitness:
-        problems.append(f"fitness {result.fitness:.3f} < {config.min_fitness}")
+    # either way: a pair's fit does not depend on which scan is the source, and the smaller view of a
+    # thin pair shares less than a tenth of itself at the right pose
+    fitness = max(result.fitness, result.fitness_reverse or 0.0)
+    if fitness < config.min_fitness:
+        problems.append(f"fitness {fitness:.3f} < {config.min_fitness} (either way)")
     if result.overlap < config.min_overlap:
         problems.append(f"overlap {result.overlap:.3f} < {config.min_overlap}")
     if not result.inlier_rmse <= config.max_inlier_rmse:

@@ -56,6 +56,7 @@ class CloudMemo:
     coarse: Slot = field(default_factory=Slot)  # the coarse stage's sample and its levelled forms
     judge: Slot = field(default_factory=Slot)  # the judge's seeded samples
     scene: Slot = field(default_factory=Slot)  # the scene figures
+    scanner: Slot = field(default_factory=Slot)  # the nearest-return image (align/freespace.py)
 
 
 @dataclass(frozen=True, eq=False)

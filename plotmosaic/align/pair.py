@@ -14,9 +14,11 @@ import numpy as np
 from plotmosaic.align import judge as judge_mod
 from plotmosaic.align import scene
 from plotmosaic.align.coarse import CoarseResult, coarse_align
+from plotmosaic.align.coarse.clouds import AIRBORNE
 from plotmosaic.align.coarse.hypothesis import Hypothesis
 from plotmosaic.align.fine import FineResult, final_icp
 from plotmosaic.align.floors import check_quality
+from plotmosaic.align.freespace import FreeSpace
 from plotmosaic.align.judge import Candidate, Verdict
 from plotmosaic.align.level_icp import LevelResult, level_stage, levels_record, no_level_stage
 from plotmosaic.align.memo import PairMemo
@@ -50,6 +52,20 @@ class PairContext:
     seed: int
     say: Say
     memo: PairMemo
+
+    @property
+    def space(self) -> FreeSpace | None:
+        return free_space(self.src, self.tgt, self.config, self.memo)
+
+
+def free_space(
+    src: PreparedCloud, tgt: PreparedCloud, config: AlignConfig, memo: PairMemo
+) -> FreeSpace | None:
+    """The pair's free space where a scanner is known; none with an airborne cloud (its strips see
+    the canopy from above, at another season: its returns are not the scanner's view)."""
+    if src.kind in AIRBORNE or tgt.kind in AIRBORNE:
+        return None
+    return FreeSpace.of_pair(src, tgt, config.free_space, memo)
 
 
 def register_prepared(
@@ -164,7 +180,7 @@ def search_pose(
         # ICP alone from a guess 10 deg / 2 m off can settle in a wrong minimum that still looks fit
         pair.say("coarse alignment")
         if has_init:
-            cres = coarse_align(src, tgt, config.coarse, seed, prior=T, memo=memo)
+            cres = coarse_align(src, tgt, config.coarse, seed, prior=T, memo=memo, space=pair.space)
         else:
             cres = global_search(src, tgt, config, seed, memo)
         T = np.asarray(cres.transform, dtype=float)
@@ -190,8 +206,10 @@ def global_search(
     and the rivals of a local result (--no-coarse, --init) are the same search."""
     memo = memo or PairMemo()
     key = (config.coarse.model_dump_json(exclude={"enabled"}), seed)
+    space = free_space(src, tgt, config, memo)
     return memo.search.get(
-        key, lambda: coarse_align(src, tgt, config.coarse, seed, prior=None, memo=memo)
+        key,
+        lambda: coarse_align(src, tgt, config.coarse, seed, prior=None, memo=memo, space=space),
     )
 
 
@@ -202,7 +220,9 @@ def judge_pose(pair: PairContext, fine: FineResult, start: np.ndarray, search: S
         return Judged(fine=fine, verdict=None)
     pair.say("judging the pose against its rivals")
     candidates = _candidates(search.hypotheses, start)
-    verdict = judge_mod.judge(pair.src, pair.tgt, fine.T, candidates, pair.config.judge, pair.memo)
+    verdict = judge_mod.judge(
+        pair.src, pair.tgt, fine.T, candidates, pair.config.judge, pair.memo, pair.space
+    )
     if search.skipped:
         return Judged(fine=fine, verdict=verdict)
     judged = recover(pair, candidates, fine, verdict)
@@ -234,6 +254,7 @@ def recover(
         [*candidates, Candidate(T=fine.T, source="first pose")],
         config.judge,
         memo,
+        pair.space,
     )
     keep = second.score > verdict.score if rival else second.confidence > verdict.confidence
     if keep:
@@ -285,7 +306,7 @@ def look_again(pair: PairContext, candidates: list[Candidate], judged: Judged) -
         fine = final_icp(src, tgt, level, config, memo)
         if known(fine.T):
             continue
-        verdict = judge_mod.judge(src, tgt, fine.T, rivals, config.judge, memo)
+        verdict = judge_mod.judge(src, tgt, fine.T, rivals, config.judge, memo, pair.space)
         weighed.append(fine.T)
         if verdict.rival_better and known(verdict.rival_transform):
             continue  # beaten by a pose already weighed: its retry would end there
@@ -317,6 +338,7 @@ def pair_result(
     return PairResult(
         transform=quality.transform,
         fitness=quality.fitness,
+        fitness_reverse=quality.fitness_reverse,
         inlier_rmse=quality.rmse,
         overlap=quality.overlap,
         information=quality.information,
@@ -366,7 +388,11 @@ def _candidates(hypotheses: tuple[Hypothesis, ...], start: np.ndarray) -> list[C
     """Rival poses: every hypothesis (refined ones first, by score), then the start as handed over."""
     order = sorted(
         range(len(hypotheses)),
-        key=lambda i: (not hypotheses[i].refined, -float(hypotheses[i].score or 0.0)),
+        key=lambda i: (
+            not hypotheses[i].refined,
+            hypotheses[i].through,
+            -float(hypotheses[i].score or 0.0),
+        ),
     )
     out = [
         Candidate(

@@ -73,11 +73,14 @@ def prepare_cloud(
     seed: int = 0,
     name: str = "cloud",
     robust: RobustPoints | None = None,
+    scanner: np.ndarray | None = None,
 ) -> PreparedCloud:
     """The cloud in its local frame: delta0 grid and its KD-tree, the final ICP's source sample, the
     labelled level sample with its normals and shape features, and the scanner where it is known.
     Every random draw comes from `seed`, in a fixed order. `robust`: the cloud's `robust_points`
-    when the caller has them already (align detects kinds on them), so they are made once."""
+    when the caller has them already (align detects kinds on them), so they are made once.
+    `scanner`: where the scan was taken from (file coordinates) when the caller knows it; else the
+    file origin where the cloud crowds around it (align/viewpoint.py)."""
     t0 = time.perf_counter()
     if len(cloud) < MIN_POINTS:
         raise InputError(
@@ -114,6 +117,7 @@ def prepare_cloud(
     t3 = time.perf_counter()
     # last of the seeded draws, so the samples above are the same whether a kind has a viewpoint or not
     view = scanner_viewpoint(xyz, kind, config.viewpoint, rng)
+    view = view if scanner is None else np.asarray(scanner, dtype=float)
     return PreparedCloud(
         frame=frame,
         kind=kind,

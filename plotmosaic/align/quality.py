@@ -20,7 +20,8 @@ class Quality:
     """The pose's figures in file coordinates."""
 
     transform: np.ndarray  # source file -> target file
-    fitness: float
+    fitness: float  # share of source points near the target
+    fitness_reverse: float  # share of target points near the source
     rmse: float
     overlap: float
     information: np.ndarray  # 6x6, from the final point-to-plane problem
@@ -41,7 +42,7 @@ def measure(
     s_q = src.points[sample(len(src.points), config.quality_max_points, rng)]
     t_q = tgt.points[sample(len(tgt.points), config.quality_max_points, rng)]
     fitness, rmse, n_s = evaluate(s_q, tgt.tree, T, config.quality_distance)
-    _, _, n_t = evaluate(t_q, src.tree, np.linalg.inv(T), config.quality_distance)
+    fitness_reverse, _, n_t = evaluate(t_q, src.tree, np.linalg.inv(T), config.quality_distance)
     overlap = float((n_s + n_t) / max(1, len(s_q) + len(t_q)))
     # information from the final point-to-plane problem (its last correspondences), in file coordinates
     T_file = to_global_transform(T, src.frame, tgt.frame)
@@ -53,6 +54,7 @@ def measure(
     return Quality(
         transform=T_file,
         fitness=fitness,
+        fitness_reverse=fitness_reverse,
         rmse=rmse,
         overlap=overlap,
         information=info,

@@ -52,6 +52,8 @@ class PairResult:
         None  # the two files, when registered from files (`plotmosaic report RESULT.json`)
     )
     target_path: str | None = None
+    # the target's share near the source (`fitness` the other way); None in results made before it
+    fitness_reverse: float | None = None
 
     @property
     def rotation_deg(self) -> float:
@@ -71,6 +73,7 @@ class PairResult:
             "source_centre": self.source_centre,
             "transform": np.asarray(self.transform, dtype=float).tolist(),
             "fitness": self.fitness,
+            "fitness_reverse": self.fitness_reverse,
             "inlier_rmse": self.inlier_rmse,
             "overlap": self.overlap,
             "information": np.asarray(self.information, dtype=float).tolist(),
@@ -97,6 +100,7 @@ class PairResult:
         return cls(
             transform=np.asarray(d["transform"], dtype=float),
             fitness=float(d["fitness"]),
+            fitness_reverse=d.get("fitness_reverse"),
             inlier_rmse=float(d["inlier_rmse"]),
             overlap=float(d["overlap"]),
             information=np.asarray(d["information"], dtype=float),

@@ -55,6 +55,9 @@ class PairInput:
     target_kind: str = "tls"
     # forestalign: the target prepared once for many trials (a suite's case); None prepares it per call
     target_prepared: object | None = None
+    # forestalign: the source's scanner (file coordinates) where the trial knows it, as a TLS file
+    # records it (the `paper` protocol moves the source off its own frame)
+    source_scanner: np.ndarray | None = None
 
 
 def available(name: str) -> str | None:
@@ -136,7 +139,9 @@ def _forestalign(pair: PairInput, config: MethodsConfig, seed: int, cfg: AlignCo
         )
         return align_clouds(pair.source, pair.target, request)
     kind = pair.source_kind.lower()
-    src = prepare_cloud(pair.source, kind, default_levels(kind), cfg, seed, "source")
+    src = prepare_cloud(
+        pair.source, kind, default_levels(kind), cfg, seed, "source", scanner=pair.source_scanner
+    )
     return register_prepared(src, pair.target_prepared, cfg, init, seed)
 
 
@@ -145,10 +150,13 @@ def _forestalign_placement(pair: PairInput, config: MethodsConfig, seed: int):
     return _forestalign(pair, config, seed, placement_align_config())
 
 
-def prepare_target(pair: PairInput, seed: int):
-    """The target as forestalign prepares it (default settings), to share over a case's trials."""
+def prepare_target(pair: PairInput, seed: int, scanner: np.ndarray | None = None):
+    """The target as forestalign prepares it (default settings), to share over a case's trials;
+    `scanner`: where it was scanned from (file coordinates), when known."""
     kind = pair.target_kind.lower()
-    return prepare_cloud(pair.target, kind, default_levels(kind), AlignConfig(), seed + 1, "target")
+    return prepare_cloud(
+        pair.target, kind, default_levels(kind), AlignConfig(), seed + 1, "target", scanner=scanner
+    )
 
 
 # ---------------------------------------------------------------- Open3D baselines

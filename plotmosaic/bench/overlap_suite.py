@@ -103,7 +103,8 @@ def _pair_state(ref: PairRef, seed: int):
         pair = load_pair(ref.path)
         aligned = PointCloud(apply_transform(pair.truth, pair.source))
         target = PointCloud(pair.target)
-        prepared = prepare_target(PairInput(aligned, target), seed)
+        # each view in its own scanner frame, as a TLS file is (scanner at the origin)
+        prepared = prepare_target(PairInput(aligned, target), seed, scanner=np.zeros(3))
         _STATE[ref.id] = (pair, aligned, target, prepared)
     return _STATE[ref.id]
 
@@ -127,7 +128,14 @@ def run_trial(job: Job) -> list[dict]:
         if method in PEERS:
             out = run_peer(method, moved.xyz, target.xyz, seed, src_sensors, tgt_sensors)
         else:
-            inp = PairInput(moved, target, "tls", "tls", prepared if method in OURS else None)
+            inp = PairInput(
+                moved,
+                target,
+                "tls",
+                "tls",
+                prepared if method in OURS else None,
+                source_scanner=src_sensors.scanner,
+            )
             out = run_method(method, inp, MethodsConfig(), seed=seed)
         cpu = time.process_time() - cpu0
         err = pose_error(out.transform, truth, centre)

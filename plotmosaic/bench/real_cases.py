@@ -76,6 +76,9 @@ class RealCase:
     target_kind: str
     note: str
     meta: dict = field(default_factory=dict)
+    # each cloud in its own scanner frame (the scanner at the file origin), as a TLS file records
+    # it; virtual views do not crowd around it as a real scan does, so the suite gives it
+    at_scanner: bool = False
 
 
 def data_dir(path: str | Path | None = None) -> Path:
@@ -181,6 +184,7 @@ def _views_case(
         "tls",
         f"{note}; scanners {dist:.2f} m apart, exact truth (both views cut from one cloud)",
         meta,
+        at_scanner=True,
     )
 
 

@@ -172,7 +172,7 @@ def _case_state(name: str, seed: int, data: str | None):
         aligned = PointCloud(apply_transform(case.truth, case.source.xyz), crs=case.target.crs)
         built = time.perf_counter() - t0
         pair = PairInput(aligned, case.target, case.source_kind, case.target_kind)
-        prepared = prepare_target(pair, seed)
+        prepared = prepare_target(pair, seed, scanner=np.zeros(3) if case.at_scanner else None)
         info = {
             "note": case.note,
             "meta": case.meta,
@@ -222,7 +222,15 @@ def run_trial(job: Trial) -> tuple[dict, list[dict]]:
     rows = []
     for method in job.methods:
         target_prepared = prepared if method in OURS else None
-        pair = PairInput(moved, case.target, case.source_kind, case.target_kind, target_prepared)
+        scanner = apply_transform(P, case.truth[:3, 3][None])[0] if case.at_scanner else None
+        pair = PairInput(
+            moved,
+            case.target,
+            case.source_kind,
+            case.target_kind,
+            target_prepared,
+            source_scanner=scanner,
+        )
         out = run_method(method, pair, MethodsConfig(), seed=job.seed + job.trial)
         err = pose_error(out.transform, truth, centre)
         row = {

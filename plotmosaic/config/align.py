@@ -7,6 +7,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from plotmosaic.config.coarse import CoarseConfig
+from plotmosaic.config.freespace import FreeSpaceConfig
 from plotmosaic.config.judge import JudgeConfig
 from plotmosaic.config.kinds import KindConfig
 
@@ -338,6 +339,12 @@ class AlignConfig(BaseModel):
     viewpoint: ViewpointConfig = Field(
         default_factory=ViewpointConfig,
         description="scanner positions for the final ICP's side test",
+    )
+    # a pose that puts points where a known scanner saw through is ruled out: at thin overlap the
+    # wrong poses overlap more by chance (docs/method.md#free-space)
+    free_space: FreeSpaceConfig = Field(
+        default_factory=FreeSpaceConfig,
+        description="the space a scanner saw through: ranks the search, rules out rivals",
     )
     coarse: CoarseConfig = Field(
         default_factory=CoarseConfig, description="the global coarse search"

@@ -54,10 +54,18 @@ class Hypothesis:
     votes: int | None = None
     agree: tuple[str, ...] = ()
     slice_score: float | None = None
+    through: bool = False  # ruled out: puts points where a scanner saw through (align/freespace.py)
+    seen_through: float | None = None  # the share it puts there (None: no scanner known)
 
     @classmethod
     def verified(
-        cls, start: Start, T: np.ndarray, screen_score: float, score: float | None
+        cls,
+        start: Start,
+        T: np.ndarray,
+        screen_score: float,
+        score: float | None,
+        through: bool = False,
+        seen_through: float | None = None,
     ) -> Hypothesis:
         """`start` at pose T after verification (`score` None: screened only)."""
         yaw = start.yaw if start.yaw is not None else np.arctan2(T[1, 0], T[0, 0])
@@ -75,6 +83,8 @@ class Hypothesis:
             votes=start.votes,
             agree=start.agree,
             slice_score=start.slice_score,
+            through=through,
+            seen_through=seen_through,
         )
 
     @classmethod
@@ -112,4 +122,6 @@ class Hypothesis:
             out["agree"] = list(self.agree)
         if self.slice_score is not None:
             out["slice_score"] = self.slice_score
+        if self.seen_through is not None:
+            out["seen_through"] = self.seen_through
         return out | {"transform": np.asarray(self.T).tolist()}

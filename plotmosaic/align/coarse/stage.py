@@ -16,6 +16,7 @@ from plotmosaic.align.coarse.raster import pyramid, raster_starts, weights
 from plotmosaic.align.coarse.slices import slice_starts
 from plotmosaic.align.coarse.stems import stem_starts
 from plotmosaic.align.coarse.verify import GENERATORS, Verifier, unique_starts
+from plotmosaic.align.freespace import FreeSpace
 from plotmosaic.align.memo import PairMemo
 from plotmosaic.config.coarse import CoarseConfig
 from plotmosaic.parallel import both
@@ -112,6 +113,7 @@ def coarse_align(
     seed: int = 0,
     prior: np.ndarray | None = None,
     memo: PairMemo | None = None,
+    space: FreeSpace | None = None,
 ) -> CoarseResult:
     """Global alignment of two prepared clouds (anything with local `points` and a `kind`).
 
@@ -123,7 +125,8 @@ def coarse_align(
     The first vertical pair is searched and verified first; the other pairs only when its best pose
     is not already settled (`verify.settled`): clearly ahead of its distinct rivals, fitting well and
     found by two generators independently. Its rivals stay in the hypotheses for the judge.
-    `memo`: the pair's, where each cloud's sample and its levelled forms are kept.
+    `memo`: the pair's, where each cloud's sample and its levelled forms are kept. `space`: the
+    pair's free space, where a scanner is known (verify.py ranks by it).
     """
     config = config or CoarseConfig()
     memo = memo or PairMemo()
@@ -134,7 +137,7 @@ def coarse_align(
     timing = {"levelling": time.perf_counter() - start}
     prior = None if prior is None else np.asarray(prior, dtype=float)
     airborne = source.kind in AIRBORNE or target.kind in AIRBORNE
-    verify = Verifier(src.cloud, tgt, airborne, config, rng)
+    verify = Verifier(src.cloud, tgt, airborne, config, rng, space)
     kinds = source.kind, target.kind
     generate = _Generators(
         src, tgt, weights(*kinds, config), pyramid(*kinds, config), config, prior, seed, timing

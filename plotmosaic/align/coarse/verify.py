@@ -1,7 +1,9 @@
 """Verification of the coarse stage's starts: screen every start with a short ICP, refine the best
 of each generator and the best overall with a quick robust ICP, and rank them by how many non-flat
 points (stems, branches, crowns: flat ground matches anywhere) find a partner; the gap to the best
-distinct runner-up is the confidence."""
+distinct runner-up is the confidence. Where a scanner is known, a pose that puts points where it saw
+through (align/freespace.py) ranks after every pose that does not, and is no rival of a best pose
+the free space clearly allows."""
 
 from __future__ import annotations
 
@@ -11,6 +13,7 @@ import numpy as np
 
 from plotmosaic.align.coarse.clouds import CoarseCloud, Levels
 from plotmosaic.align.coarse.hypothesis import Hypothesis, Start
+from plotmosaic.align.freespace import FreeSpace
 from plotmosaic.align.icp import IcpOptions, MovingNearest, evaluate, point_to_plane_icp
 from plotmosaic.align.sampling import sample
 from plotmosaic.align.voxel import thin
@@ -49,6 +52,7 @@ class _Screened:
     score: float
     T: np.ndarray
     start: Start
+    through: bool = False  # ruled out by a scanner's free space at the screening margin
 
 
 def radii(A: np.ndarray, B: np.ndarray, config: CoarseConfig) -> float:
@@ -96,11 +100,24 @@ def settled(results: list[Hypothesis], confidence: float, config: CoarseConfig) 
     )
 
 
-def _confidence(results: list[Hypothesis], config: CoarseConfig) -> float:
-    """1 - the best distinct refined runner-up's score / the best's (0 when the best scores 0)."""
+def _confidence(
+    results: list[Hypothesis], config: CoarseConfig, clear_share: float | None = None
+) -> float:
+    """1 - the best distinct refined runner-up's score / the best's (0 when the best scores 0);
+    a pose the free space rules out is no rival of a best it clearly allows (seen through at most
+    `clear_share`)."""
     best = results[0]
+    clear = clear_share is not None and best.seen_through is not None
+    clear = clear and best.seen_through <= clear_share
     # only refined hypotheses compete: an unrefined one may be the best pose not yet converged
-    runner_up = next((r for r in results[1:] if r.refined and distinct(best.T, r.T, config)), None)
+    runner_up = next(
+        (
+            r
+            for r in results[1:]
+            if r.refined and distinct(best.T, r.T, config) and not (clear and r.through)
+        ),
+        None,
+    )
     second = runner_up.score if runner_up else 0.0
     return float(1.0 - second / best.score) if best.score > 0 else 0.0
 
@@ -109,8 +126,17 @@ class Verifier:
     """Screens starts (short ICP), refines the best distinct ones, and ranks them; each start and each
     refinement is computed once, so a second call with more starts only pays for the new ones."""
 
-    def __init__(self, src: CoarseCloud, tgt: Levels, airborne: bool, config: CoarseConfig, rng):
+    def __init__(
+        self,
+        src: CoarseCloud,
+        tgt: Levels,
+        airborne: bool,
+        config: CoarseConfig,
+        rng,
+        space: FreeSpace | None = None,
+    ):
         self.config = config
+        self.space = space
         d = config.verify_distance_airborne if airborne else config.verify_distance_ground
         self.d = d
         self.iterations = (
@@ -128,6 +154,15 @@ class Verifier:
         self.structure = self.src_v[flat_ok]
         few = sample(len(self.src_v), config.screen_points, rng)
         self.src_few, self.structure_few = self.src_v[few], self.src_v[few][flat_ok[few]]
+        # the target's non-flat points, for the source scanner's free space (its own draw: the
+        # verification's samples are the same with or without a scanner)
+        tgt_up = tgt.cloud.verticals[0].up
+        self.tgt_structure = self.tgt_v[0][
+            np.abs(self.tgt_v[1] @ tgt_up) < config.structure_normal_z
+        ]
+        few = sample(len(self.tgt_structure), config.screen_points, np.random.default_rng(0))
+        self.tgt_few = self.tgt_structure[few]
+        self.shares: dict[tuple[bytes, bool], float | None] = {}
         # a start's key -> (score, pose) screened, and -> (pose, score) refined
         self.screened: dict[tuple, tuple[float, np.ndarray]] = {}
         # ground-based pairs: a start's ICPs turn about its vertical while the matches are loose (thin
@@ -143,6 +178,24 @@ class Verifier:
         if not self.about_vertical or "/" not in start.vertical:
             return None  # a 6-DoF or prior start has no vertical of its own
         return self.ups.get(start.vertical.rpartition("/")[2])
+
+    def _share(self, A: np.ndarray, screening: bool) -> float | None:
+        """Pose A's seen-through share (align/freespace.py; None without a scanner)."""
+        if self.space is None:
+            return None
+        key = (A.tobytes(), screening)
+        if key not in self.shares:
+            src, tgt = (
+                (self.structure_few, self.tgt_few)
+                if screening
+                else (self.structure, self.tgt_structure)
+            )
+            self.shares[key] = self.space.share(src, tgt, A, screening)
+        return self.shares[key]
+
+    def _through(self, A: np.ndarray, screening: bool) -> bool:
+        """Whether pose A is ruled out by a scanner's free space (never without one)."""
+        return self.space is not None and self.space.beyond(self._share(A, screening), screening)
 
     def _screen(self, start: Start) -> tuple[float, np.ndarray]:
         c, d = self.config, self.d
@@ -170,15 +223,16 @@ class Verifier:
         return A, _score(self.structure, self.tgt_v, A, d)
 
     def _screen_all(self, starts: list[Start]) -> list[_Screened]:
-        """Every start screened, best first."""
+        """Every start screened, best first (those the free space rules out after the rest)."""
         new = [s for s in starts if s.key not in self.screened]
         for s, r in zip(new, in_two_threads(self._screen, new)):
             self.screened[s.key] = r
         screened = []
         for s in starts:
             score, A = self.screened[s.key]
-            screened.append(_Screened(score=score, T=A, start=s))
-        return sorted(screened, key=lambda r: -r.score)
+            through = self._through(A, screening=True)
+            screened.append(_Screened(score=score, T=A, start=s, through=through))
+        return sorted(screened, key=lambda r: (r.through, -r.score))
 
     def agreed(self, starts: list[Start]) -> bool:
         """Whether the best screened pose was reached by `settled_generators` generators."""
@@ -246,10 +300,14 @@ class Verifier:
         for r in screened:
             # every refined pose competes, also one refined before more starts came (more rivals)
             A, score = self.refined.get(r.start.key, (r.T, None))
-            results.append(Hypothesis.verified(r.start, A, r.score, score))
+            share = self._share(A, screening=score is None)
+            through = self._through(A, screening=score is None)
+            results.append(Hypothesis.verified(r.start, A, r.score, score, through, share))
         if not results:
             results.append(Hypothesis.none())
-        results.sort(key=lambda h: (not h.refined, -(h.score if h.refined else h.screen_score)))
+        results.sort(
+            key=lambda h: (not h.refined, h.through, -(h.score if h.refined else h.screen_score))
+        )
         return results
 
     def __call__(self, starts: list[Start]) -> tuple[list[Hypothesis], float]:
@@ -262,4 +320,5 @@ class Verifier:
         results = self._ranked(screened)
         if results[0].refined and self._near_rivals(screened, results[0].T):
             results = self._ranked(screened)
-        return results, _confidence(results, self.config)
+        clear = None if self.space is None else self.space.config.pose_max_share
+        return results, _confidence(results, self.config, clear)

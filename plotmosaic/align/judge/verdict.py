@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from plotmosaic.align import scene
+from plotmosaic.align.freespace import FreeSpace
 from plotmosaic.align.judge.profile import (
     Profile,
     agreement,
@@ -26,6 +27,7 @@ from plotmosaic.align.judge.profile import (
 )
 from plotmosaic.align.judge.rivals import basin, refined, sharper_neighbours
 from plotmosaic.align.memo import PairMemo
+from plotmosaic.align.spacing import samples
 from plotmosaic.config.judge import JudgeConfig
 
 
@@ -52,6 +54,7 @@ class Verdict:
     rivals: list[dict] = field(default_factory=list)
     basin_share: float = 0.0  # highest fine share a basin start ended with (0 when none ran)
     basin_transform: np.ndarray | None = None  # that start, refined, when it is a rival (sharper)
+    seen_through: float | None = None  # of the pose (align/freespace.py; None: no scanner known)
 
     @property
     def rival_better(self) -> bool:
@@ -78,6 +81,7 @@ class Verdict:
             "distinct_rivals": self.distinct_rivals,
             "seconds": self.seconds,
             "rivals": self.rivals,
+            "seen_through": self.seen_through,
             "basin_share": self.basin_share,
             "basin_transform": None
             if self.basin_transform is None
@@ -137,8 +141,11 @@ def judge(
     candidates: list[Candidate],
     config: JudgeConfig,
     memo: PairMemo | None = None,
+    space: FreeSpace | None = None,
 ) -> Verdict:
     """Score pose T against the distinct rivals among `candidates`, each refined first; a rival that ends within the distinct radius of T is T itself.
+    A rival the pair's free space rules out (`space`: it puts points where a scanner saw through) is
+    no rival, unless T is ruled out too: then the free space says nothing of this pair.
     T's `basin` starts that end sharper than T (`sharper_neighbours`) are rivals of the fine margin too;
     rivals blunter than `blunt_min_sharpness` are rivals of the fine margin only, not of the score.
     Refined rivals are kept in the pair's `memo` (`rivals.refined`). A source or target that is not a
@@ -148,10 +155,20 @@ def judge(
     t0 = time.perf_counter()
     c = centre(src, config, memo.source)
     mine = profile(src, tgt, T, config, memo)
+    seen = _seen_through(src, tgt, config, memo, space)
+    mine_through = seen(T)
+    # the free space speaks only for a sharp pose it clearly allows: a blunt one fits by chance,
+    # and one near the limit is no better placed than the rivals it would rule out
+    speaks = (
+        mine_through is not None
+        and mine_through <= space.config.pose_max_share
+        and sharpness(mine) >= config.min_sharpness
+    )
     shortlist = _shortlist(T, candidates, c, config)
     done = refined(src, tgt, [cand.T for cand in shortlist], T, config, memo)
     table: list[dict] = []  # Verdict.rivals
     rivals: list[_Rival] = []
+    shares: list[float | None] = []  # each rival's seen-through share, where the free space speaks
     for name, (A, prof) in zip((cand.source for cand in shortlist), done):
         deg, m = separation(A, T, c)
         if m <= config.distinct_m and deg <= config.distinct_deg:
@@ -159,8 +176,19 @@ def judge(
             continue
         r = _Rival(name=name, T=A, fine=fine_share(prof, config), prof=prof, sharp=sharpness(prof))
         rivals.append(r)
+        shares.append(seen(A) if speaks else None)
         row = {"score": prof.score, "fine": r.fine, "sharpness": r.sharp}
         table.append({"from": name, "distinct": True, "deg": deg, "m": m, **row})
+    out = [i for i, share in enumerate(shares) if speaks and space.beyond(share)]
+    # ruled out only where the pose beats them beyond chance at the finest scale (their share at
+    # most 1 - chance_margin of its own): a pose that does not is not singled out by what is left
+    # (a self-similar stand whose rivals were all ruled out let a sharp pose 9 m off through)
+    below = (1.0 - config.chance_margin) * fine_share(mine, config)
+    if out and all(rivals[i].fine <= below for i in out):
+        rows = [row for row in table if row.get("distinct")]
+        for i in out:
+            rows[i].update(distinct=False, seen_through=shares[i])  # ruled out by the scene
+        rivals = [r for i, r in enumerate(rivals) if i not in out]
     near = basin(src, tgt, T, config, memo) if config.basin_neighbours else []
     sharper = sharper_neighbours(mine, [q for _, q in near], config)
     basins: list[_Rival] = []
@@ -200,7 +228,16 @@ def judge(
         rivals=table,
         basin_share=max((fine_share(q, config) for _, q in near), default=0.0),
         basin_transform=None if basin_best is None else basin_best.T,
+        seen_through=mine_through,
     )
+
+
+def _seen_through(src, tgt, config: JudgeConfig, memo: PairMemo, space: FreeSpace | None):
+    """pose -> its free-space share on the judge's structure samples (None: nothing to tell)."""
+    if space is None:
+        return lambda T: None
+    s, t = samples(src, config, memo.source), samples(tgt, config, memo.target)
+    return lambda T: space.share(s.structure, t.structure, T)
 
 
 def second_look(
